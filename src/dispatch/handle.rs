@@ -1,0 +1,105 @@
+//! Handles: dispatchable objects carry the loader's word first; non-dispatchable handles are
+//! ids in a registry, so a stale or garbage handle is detected instead of dereferenced.
+use std::any::Any;
+use std::collections::HashMap;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Arc, OnceLock, RwLock};
+
+/// A dispatchable object: `#[repr(C)]` with the loader's word at offset 0, then a type tag.
+#[repr(C)]
+pub struct Dispatchable<T> {
+    /// Owned by the loader (it writes its dispatch table pointer here). Never read by Arbor.
+    loader_data: usize,
+    tag: u64,
+    pub object: Arc<T>,
+}
+
+/// Type tags of dispatchable objects (checked on every handle conversion).
+pub trait DispatchTag {
+    const TAG: u64;
+}
+
+/// Allocate a dispatchable object and return its handle value (a pointer).
+pub fn new_dispatchable<T: DispatchTag>(object: Arc<T>) -> *mut Dispatchable<T> {
+    Box::into_raw(Box::new(Dispatchable { loader_data: crate::ICD_LOADER_MAGIC, tag: T::TAG, object }))
+}
+
+/// Resolve a dispatchable handle.
+///
+/// # Safety
+/// `ptr` must be null or a handle returned by [`new_dispatchable`] for some type that is still
+/// alive (the application's obligation under the Vulkan spec).
+pub unsafe fn dispatchable<T: DispatchTag>(ptr: *mut Dispatchable<T>) -> Option<Arc<T>> {
+    if ptr.is_null() {
+        return None;
+    }
+    // SAFETY: the caller guarantees ptr came from new_dispatchable and is alive; every
+    // Dispatchable<_> has the same layout up to `tag`, which we check before touching `object`.
+    let d = unsafe { &*ptr };
+    if d.tag != T::TAG {
+        crate::diag::report(crate::diag::Level::Error, "handle", "dispatchable handle of the wrong type");
+        return None;
+    }
+    Some(d.object.clone())
+}
+
+/// Free a dispatchable object.
+///
+/// # Safety
+/// `ptr` must be null or a live handle from [`new_dispatchable`] not used afterwards.
+pub unsafe fn free_dispatchable<T: DispatchTag>(ptr: *mut Dispatchable<T>) -> Option<Arc<T>> {
+    // SAFETY: checked the tag first via `dispatchable` (same contract).
+    let obj = unsafe { dispatchable(ptr) }?;
+    // SAFETY: the handle is live and came from Box::into_raw; the application does not use it again.
+    drop(unsafe { Box::from_raw(ptr) });
+    Some(obj)
+}
+
+type Entry = Arc<dyn Any + Send + Sync>;
+
+struct Registry {
+    map: RwLock<HashMap<u64, Entry>>,
+    next: AtomicU64,
+}
+
+fn registry() -> &'static Registry {
+    static R: OnceLock<Registry> = OnceLock::new();
+    R.get_or_init(|| Registry { map: RwLock::new(HashMap::new()), next: AtomicU64::new(0x1000) })
+}
+
+/// Register a non-dispatchable object; the returned id is its handle value (never 0, never reused).
+pub fn register<T: Send + Sync + 'static>(object: Arc<T>) -> u64 {
+    let r = registry();
+    let id = r.next.fetch_add(0x10, Ordering::Relaxed);
+    r.map.write().unwrap_or_else(|e| e.into_inner()).insert(id, object);
+    id
+}
+
+/// Look a non-dispatchable handle up; None for 0, unknown ids and ids of another type.
+pub fn get<T: Send + Sync + 'static>(handle: u64) -> Option<Arc<T>> {
+    if handle == 0 {
+        return None;
+    }
+    let map = registry().map.read().unwrap_or_else(|e| e.into_inner());
+    map.get(&handle).cloned().and_then(|e| e.downcast::<T>().ok())
+}
+
+/// Remove a non-dispatchable handle (destroy). Returns the object if it was of type T.
+pub fn unregister<T: Send + Sync + 'static>(handle: u64) -> Option<Arc<T>> {
+    if handle == 0 {
+        return None;
+    }
+    let mut map = registry().map.write().unwrap_or_else(|e| e.into_inner());
+    match map.get(&handle) {
+        Some(e) if e.is::<T>() => map.remove(&handle).and_then(|e| e.downcast::<T>().ok()),
+        _ => None,
+    }
+}
+
+/// Convert between a `vk::Handle` non-dispatchable type and registry ids.
+#[macro_export]
+macro_rules! nd_handle {
+    ($vk:ty, $raw:expr) => {
+        <$vk as ash::vk::Handle>::from_raw($raw)
+    };
+}

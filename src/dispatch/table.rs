@@ -1,0 +1,98 @@
+//! The name → function table. The registry (generated from vk.xml) says which names exist,
+//! what they alias, their dispatch level and origin; `IMPLEMENTED` says which canonical
+//! commands Arbor implements. Lookups are decided by this data, not by code.
+use std::collections::HashMap;
+use std::sync::OnceLock;
+
+use ash::vk;
+
+use super::registry::REGISTRY;
+
+pub type VoidFn = unsafe extern "system" fn();
+
+#[derive(Clone, Copy, PartialEq, Eq, Debug)]
+pub enum Level {
+    Global,
+    Instance,
+    PhysicalDevice,
+    Device,
+}
+
+#[derive(Clone, Copy, PartialEq, Eq, Debug)]
+pub enum Origin {
+    /// Core in Vulkan 1.<minor>.
+    Core(u32),
+    Extension(&'static str),
+}
+
+pub struct RegistryEntry {
+    pub name: &'static str,
+    pub canonical: &'static str,
+    pub level: Level,
+    pub origin: Origin,
+    pub fallback: VoidFn,
+}
+
+/// An implemented command: its `PFN_vk*` type name (the function is coerced to it) and pointer.
+pub struct Implemented {
+    pub pfn: &'static str,
+    pub f: VoidFn,
+}
+
+/// `imp!(PFN_vkFoo => path::to::function)`: the function is coerced to `vk::PFN_vkFoo`, so the
+/// compiler checks the signature against the registry's.
+macro_rules! imp {
+    ($pfn:ident => $f:path) => {
+        $crate::dispatch::table::Implemented {
+            pfn: stringify!($pfn),
+            f: {
+                let f: ash::vk::$pfn = $f;
+                // SAFETY: function pointers of any signature have the same size; the loader
+                // casts back to the command's PFN type before calling.
+                unsafe { std::mem::transmute::<ash::vk::$pfn, $crate::dispatch::table::VoidFn>(f) }
+            },
+        }
+    };
+}
+pub(crate) use imp;
+
+pub struct Resolved {
+    pub entry: &'static RegistryEntry,
+    pub f: VoidFn,
+    pub implemented: bool,
+}
+
+fn table() -> &'static HashMap<&'static str, Resolved> {
+    static T: OnceLock<HashMap<&'static str, Resolved>> = OnceLock::new();
+    T.get_or_init(|| {
+        let mut implemented: HashMap<&'static str, VoidFn> = HashMap::new();
+        for i in super::implemented() {
+            implemented.insert(&i.pfn[4..], i.f);
+        }
+        REGISTRY
+            .iter()
+            .map(|e| {
+                let (f, implemented) = match implemented.get(e.canonical) {
+                    Some(f) => (*f, true),
+                    None => (e.fallback, false),
+                };
+                (e.name, Resolved { entry: e, f, implemented })
+            })
+            .collect()
+    })
+}
+
+pub fn lookup(name: &str) -> Option<&'static Resolved> {
+    table().get(name)
+}
+
+/// Canonical names Arbor implements (for tests and diagnostics).
+pub fn implemented_names() -> Vec<&'static str> {
+    let mut v: Vec<_> = table().values().filter(|r| r.implemented).map(|r| r.entry.name).collect();
+    v.sort();
+    v
+}
+
+pub fn to_pfn(f: VoidFn) -> vk::PFN_vkVoidFunction {
+    Some(f)
+}

@@ -1,0 +1,51 @@
+//! The logical device: enabled extensions/features, its queues and its emulated memory.
+use std::collections::HashSet;
+use std::sync::Arc;
+
+use crate::dispatch::handle::DispatchTag;
+use crate::memory::AddressSpace;
+
+use super::PhysicalDevice;
+
+pub struct Device {
+    pub physical: Arc<PhysicalDevice>,
+    pub enabled_extensions: HashSet<String>,
+    /// Minor version of the API the device exposes (1.<minor>).
+    pub api_minor: u32,
+    pub features: EnabledFeatures,
+    /// The device-address space and allocations of this device.
+    pub memory: Arc<AddressSpace>,
+    /// Queue handles (Dispatchable<Queue> pointers), by (family, index); set once at creation.
+    pub queues: std::sync::OnceLock<Vec<(u32, u32, usize)>>,
+    /// Monotonic origin of timestamps.
+    pub epoch: std::time::Instant,
+}
+
+/// Features the application enabled that change behaviour.
+#[derive(Default, Clone, Debug)]
+pub struct EnabledFeatures {
+    pub buffer_device_address: bool,
+    pub buffer_device_address_capture_replay: bool,
+    pub timeline_semaphore: bool,
+    pub synchronization2: bool,
+    pub host_query_reset: bool,
+    pub acceleration_structure: bool,
+    pub acceleration_structure_capture_replay: bool,
+    pub acceleration_structure_indirect_build: bool,
+    pub acceleration_structure_host_commands: bool,
+}
+
+impl DispatchTag for Device {
+    const TAG: u64 = 0x4152_424f_5244_4556; // "ARBORDEV"
+}
+
+impl Device {
+    pub fn extension_enabled(&self, name: &str) -> bool {
+        self.enabled_extensions.contains(name)
+    }
+
+    /// Nanoseconds since device creation (timestamp queries; timestampPeriod = 1 ns).
+    pub fn timestamp_now(&self) -> u64 {
+        self.epoch.elapsed().as_nanos() as u64
+    }
+}

@@ -1,0 +1,8 @@
+//! The object model: plain Rust types with Arc-shared state. No raw application pointers here.
+pub mod device;
+pub mod instance;
+pub mod queue;
+
+pub use device::Device;
+pub use instance::{Instance, PhysicalDevice};
+pub use queue::Queue;
