@@ -2,11 +2,17 @@
 //! Vulkan command (raw pointers → checked Rust values → one call into the object model →
 //! outputs written), the name → function table, pNext walking and the enumerate idiom.
 //! No panic crosses this boundary: every entry point runs inside [`guard`].
+pub mod command;
+pub mod descriptor;
 pub mod device;
 pub mod handle;
 pub mod instance;
+pub mod memory;
 pub mod physical_device;
+pub mod query;
+pub mod queue;
 pub mod registry;
+pub mod sync;
 pub mod table;
 pub mod util;
 
@@ -34,6 +40,12 @@ pub fn implemented() -> Vec<Implemented> {
     v.extend(instance::commands());
     v.extend(physical_device::commands());
     v.extend(device::commands());
+    v.extend(memory::commands());
+    v.extend(descriptor::commands());
+    v.extend(command::commands());
+    v.extend(queue::commands());
+    v.extend(sync::commands());
+    v.extend(query::commands());
     v
 }
 

@@ -1,0 +1,6 @@
+//! (being written)
+use super::table::Implemented;
+
+pub fn commands() -> Vec<Implemented> {
+    vec![]
+}
