@@ -85,12 +85,13 @@ unsafe extern "system" fn messenger_callback(
 pub struct Options {
     pub validation: bool,
     pub device_extensions: Vec<&'static str>,
+    pub instance_extensions: Vec<&'static str>,
     pub queue_count: u32,
 }
 
 impl Default for Options {
     fn default() -> Self {
-        Options { validation: true, device_extensions: default_device_extensions(), queue_count: 4 }
+        Options { validation: true, device_extensions: default_device_extensions(), instance_extensions: vec![], queue_count: 4 }
     }
 }
 
@@ -140,7 +141,9 @@ impl Context {
         } else {
             vec![]
         };
-        let exts = [ext_debug.as_ptr()];
+        let inst_ext_c: Vec<CString> = opts.instance_extensions.iter().map(|e| CString::new(*e).unwrap()).collect();
+        let mut exts = vec![ext_debug.as_ptr()];
+        exts.extend(inst_ext_c.iter().map(|c| c.as_ptr()));
         let sink_ptr = Arc::as_ptr(&messages) as *mut c_void;
         let mut dbg_info = vk::DebugUtilsMessengerCreateInfoEXT::default()
             .message_severity(
