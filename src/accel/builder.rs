@@ -1,0 +1,914 @@
+//! Build: ingest (geometry → primitive references in scratch) → binned-SAH binary BVH in scratch
+//! (rayon::join on the current pool, node slots derived from primitive ranges so the tree is
+//! the same for any thread count) → collapse to BVH4 → encode into dst.
+//! Host heap use is O(threads): all arrays proportional to the input live in `scratch`.
+use super::input::{self, read_aabb, read_instance, read_triangle, transform_point};
+use super::layout::{self, GeometryRecord, InstanceRecord, PrimRecord, RawHeader, WideNode, CHILD_INTERNAL, NODE_SIZE, PRIM_SIZE, RECORD_SIZE};
+use super::{AsType, BuildDesc, BuildError, BuildFlags, BuildReport, DeviceView, Geometry, GeometryData};
+use bytemuck::{Pod, Zeroable};
+use glam::Vec3;
+use rayon::prelude::*;
+
+/// One primitive reference: its (sanitised, finite) bounds and where it came from.
+#[repr(C)]
+#[derive(Clone, Copy, Pod, Zeroable, Debug, PartialEq)]
+pub struct PrimRef {
+    pub lo: [f32; 3],
+    pub geom: u32,
+    pub hi: [f32; 3],
+    pub prim: u32,
+}
+const _: () = assert!(std::mem::size_of::<PrimRef>() == layout::PRIMREF_SIZE as usize);
+/// Marks an inactive/dropped slot during ingest, before compaction.
+const DROPPED: u32 = u32::MAX;
+
+/// Binary node in scratch. A subtree over k primitives rooted at slot r owns slots r..r+2k-1:
+/// left child at r+1, right child at r+2*left_count. Slots follow from primitive ranges, never
+/// from timing, which is what makes the tree identical for every thread count.
+#[repr(C)]
+#[derive(Clone, Copy, Pod, Zeroable, Debug, PartialEq)]
+pub struct BinNode {
+    pub lo: [f32; 3],
+    pub start: u32,
+    pub hi: [f32; 3],
+    pub count: u32,
+    /// 0 = leaf, else primitives in the left child.
+    pub left_count: u32,
+    pub reserved: u32,
+}
+const _: () = assert!(std::mem::size_of::<BinNode>() == layout::BINNODE_SIZE as usize);
+
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Aabb {
+    pub lo: [f32; 3],
+    pub hi: [f32; 3],
+}
+impl Aabb {
+    pub const EMPTY: Aabb = Aabb { lo: [f32::INFINITY; 3], hi: [f32::NEG_INFINITY; 3] };
+    #[inline]
+    pub fn grow(&mut self, lo: &[f32; 3], hi: &[f32; 3]) {
+        for a in 0..3 {
+            self.lo[a] = self.lo[a].min(lo[a]);
+            self.hi[a] = self.hi[a].max(hi[a]);
+        }
+    }
+    #[inline]
+    pub fn grow_point(&mut self, p: &[f32; 3]) {
+        self.grow(p, p);
+    }
+    #[inline]
+    pub fn union(mut self, o: &Aabb) -> Aabb {
+        self.grow(&o.lo, &o.hi);
+        self
+    }
+    /// Half surface area (the SAH uses ratios, so the factor 2 cancels).
+    #[inline]
+    pub fn half_area(&self) -> f32 {
+        let d = [self.hi[0] - self.lo[0], self.hi[1] - self.lo[1], self.hi[2] - self.lo[2]];
+        if d[0] < 0.0 || d[1] < 0.0 || d[2] < 0.0 {
+            return 0.0;
+        }
+        d[0] * d[1] + d[1] * d[2] + d[2] * d[0]
+    }
+}
+
+#[inline]
+fn centroid(r: &PrimRef) -> [f32; 3] {
+    [r.lo[0] * 0.5 + r.hi[0] * 0.5, r.lo[1] * 0.5 + r.hi[1] * 0.5, r.lo[2] * 0.5 + r.hi[2] * 0.5]
+}
+
+/// Bounds with NaN and infinity removed: traversal skips NaN geometry anyway, and finite
+/// boxes keep quantisation and SAH arithmetic total.
+pub fn sanitize(lo: [f32; 3], hi: [f32; 3]) -> ([f32; 3], [f32; 3]) {
+    let mut l = [0f32; 3];
+    let mut h = [0f32; 3];
+    for a in 0..3 {
+        let (x, y) = (lo[a], hi[a]);
+        if x.is_nan() || y.is_nan() {
+            l[a] = -f32::MAX;
+            h[a] = f32::MAX;
+        } else {
+            l[a] = x.min(y).clamp(-f32::MAX, f32::MAX);
+            h[a] = x.max(y).clamp(-f32::MAX, f32::MAX);
+        }
+    }
+    (l, h)
+}
+
+pub fn triangle_bounds(v: &[Vec3; 3]) -> ([f32; 3], [f32; 3]) {
+    let lo = v[0].min(v[1]).min(v[2]);
+    let hi = v[0].max(v[1]).max(v[2]);
+    // glam's min/max drop NaN like f32::min; recheck explicitly so a NaN Y/Z gives a huge box.
+    let any_nan = v.iter().any(|p| p.is_nan());
+    if any_nan {
+        return sanitize([f32::NAN; 3], [f32::NAN; 3]);
+    }
+    sanitize(lo.to_array(), hi.to_array())
+}
+
+/// Bounds of an instance: its BLAS bounds transformed (8 corners); an empty or unreadable BLAS
+/// is a point at the instance origin, as the spec suggests for instances of empty BLASes.
+pub fn instance_bounds(transform: &[f32; 12], reference: u64, view: &dyn DeviceView) -> ([f32; 3], [f32; 3]) {
+    let blas = view.acceleration_structure(reference).and_then(layout::parse);
+    let mut b = Aabb::EMPTY;
+    match blas {
+        Some(p) if p.raw.primitive_count > 0 => {
+            let bb = p.raw.bounds;
+            for c in 0..8 {
+                let pt = Vec3::new(
+                    if c & 1 == 0 { bb[0] } else { bb[3] },
+                    if c & 2 == 0 { bb[1] } else { bb[4] },
+                    if c & 4 == 0 { bb[2] } else { bb[5] },
+                );
+                let q = transform_point(transform, pt);
+                if q.is_nan() {
+                    return sanitize([f32::NAN; 3], [f32::NAN; 3]);
+                }
+                b.grow_point(&q.to_array());
+            }
+        }
+        _ => {
+            let o = [transform[3], transform[7], transform[11]];
+            if o.iter().any(|x| x.is_nan()) {
+                return sanitize([f32::NAN; 3], [f32::NAN; 3]);
+            }
+            b.grow_point(&o);
+        }
+    }
+    sanitize(b.lo, b.hi)
+}
+
+/// Builder settings chosen from the build flags.
+#[derive(Clone, Copy, Debug)]
+pub struct BuildParams {
+    pub bins: usize,
+    pub max_leaf: u32,
+    /// Below this many primitives a subtree is built on the calling thread.
+    pub parallel_cutoff: u32,
+}
+pub const MAX_BINS: usize = 32;
+/// Depth after which splits become balanced object-median splits: bounds recursion depth
+/// (stack use) to about 64 + log2(n) on any input.
+const MAX_SAH_DEPTH: u32 = 64;
+/// Above this many primitives binning itself runs in parallel chunks.
+const PAR_BIN_CUTOFF: usize = 1 << 16;
+const BIN_CHUNK: usize = 1 << 14;
+
+impl BuildParams {
+    pub fn from_flags(flags: BuildFlags) -> Self {
+        if flags.contains(BuildFlags::PREFER_FAST_TRACE) {
+            BuildParams { bins: 32, max_leaf: 8, parallel_cutoff: 4096 }
+        } else if flags.contains(BuildFlags::PREFER_FAST_BUILD) {
+            BuildParams { bins: 8, max_leaf: 8, parallel_cutoff: 4096 }
+        } else {
+            BuildParams { bins: 16, max_leaf: 8, parallel_cutoff: 4096 }
+        }
+    }
+}
+
+/// Split the scratch into aligned PrimRef and BinNode arrays (no unsafe: skip to an aligned
+/// offset, then let bytemuck check alignment and size).
+pub fn carve<T: Pod>(bytes: &mut [u8], count: usize) -> Option<(&mut [T], &mut [u8])> {
+    let align = std::mem::align_of::<T>().max(16);
+    let addr = bytes.as_ptr() as usize;
+    let skip = (align - addr % align) % align;
+    let size = count.checked_mul(std::mem::size_of::<T>())?;
+    let end = skip.checked_add(size)?;
+    if end > bytes.len() {
+        return None;
+    }
+    let (head, rest) = bytes.split_at_mut(end);
+    let arr: &mut [T] = bytemuck::try_cast_slice_mut(&mut head[skip..]).ok()?;
+    Some((arr, rest))
+}
+
+#[derive(Clone, Copy)]
+struct Bins {
+    lo: [[[f32; 3]; MAX_BINS]; 3],
+    hi: [[[f32; 3]; MAX_BINS]; 3],
+    count: [[u32; MAX_BINS]; 3],
+}
+impl Bins {
+    fn new() -> Self {
+        Bins { lo: [[[f32::INFINITY; 3]; MAX_BINS]; 3], hi: [[[f32::NEG_INFINITY; 3]; MAX_BINS]; 3], count: [[0; MAX_BINS]; 3] }
+    }
+    fn merge(mut self, o: &Bins, k: usize) -> Bins {
+        for a in 0..3 {
+            for b in 0..k {
+                for c in 0..3 {
+                    self.lo[a][b][c] = self.lo[a][b][c].min(o.lo[a][b][c]);
+                    self.hi[a][b][c] = self.hi[a][b][c].max(o.hi[a][b][c]);
+                }
+                self.count[a][b] += o.count[a][b];
+            }
+        }
+        self
+    }
+}
+
+#[derive(Clone, Copy)]
+struct Binning {
+    cmin: [f32; 3],
+    scale: [f32; 3],
+    k: usize,
+}
+impl Binning {
+    #[inline]
+    fn bin(&self, c: f32, a: usize) -> usize {
+        // `as usize` saturates (NaN → 0), so no input can index out of range.
+        (((c - self.cmin[a]) * self.scale[a]) as usize).min(self.k - 1)
+    }
+}
+
+fn bin_refs(refs: &[PrimRef], bn: &Binning) -> Bins {
+    let mut bins = Bins::new();
+    for r in refs {
+        let c = centroid(r);
+        for a in 0..3 {
+            let b = bn.bin(c[a], a);
+            let l = &mut bins.lo[a][b];
+            let h = &mut bins.hi[a][b];
+            for x in 0..3 {
+                l[x] = l[x].min(r.lo[x]);
+                h[x] = h[x].max(r.hi[x]);
+            }
+            bins.count[a][b] += 1;
+        }
+    }
+    bins
+}
+
+fn bounds_of(refs: &[PrimRef]) -> (Aabb, Aabb) {
+    let mut b = Aabb::EMPTY;
+    let mut cb = Aabb::EMPTY;
+    for r in refs {
+        b.grow(&r.lo, &r.hi);
+        cb.grow_point(&centroid(r));
+    }
+    (b, cb)
+}
+
+struct Ctx {
+    params: BuildParams,
+}
+
+/// Builds the subtree over `refs` into `nodes[0..2n-1]`; returns its unnormalised SAH sum
+/// (Σ inner A + Σ leaf A·|l|, half areas) and its depth.
+fn build_rec(ctx: &Ctx, refs: &mut [PrimRef], nodes: &mut [BinNode], start: u32, bounds: Aabb, cb: Aabb, depth: u32) -> (f64, u32) {
+    let n = refs.len();
+    let area = bounds.half_area();
+    let make_leaf = |nodes: &mut [BinNode]| {
+        if let Some(slot) = nodes.get_mut(0) {
+            *slot = BinNode { lo: bounds.lo, start, hi: bounds.hi, count: n as u32, left_count: 0, reserved: 0 };
+        }
+        (area as f64 * n as f64, 1u32)
+    };
+    if n <= 1 {
+        return make_leaf(nodes);
+    }
+    let p = &ctx.params;
+    // --- choose a split ---
+    let mut split: Option<(usize, usize, Aabb, Aabb, f32)> = None; // (axis, bin, left box, right box, cost)
+    let k = p.bins.clamp(2, MAX_BINS);
+    if depth < MAX_SAH_DEPTH {
+        let mut bn = Binning { cmin: cb.lo, scale: [0.0; 3], k };
+        let mut any = false;
+        for a in 0..3 {
+            let ext = cb.hi[a] - cb.lo[a];
+            let s = k as f32 / ext;
+            if ext > 0.0 && s.is_finite() && s > 0.0 {
+                // Shrink slightly so the max centroid lands in bin k-1, not k.
+                bn.scale[a] = s * (1.0 - 1.0 / 1024.0);
+                any = true;
+            }
+        }
+        if any {
+            let bins = if n >= PAR_BIN_CUTOFF {
+                refs.par_chunks(BIN_CHUNK).map(|c| bin_refs(c, &bn)).reduce(Bins::new, |x, y| x.merge(&y, k))
+            } else {
+                bin_refs(refs, &bn)
+            };
+            for a in 0..3 {
+                if bn.scale[a] == 0.0 {
+                    continue;
+                }
+                // Right-to-left suffix areas and counts.
+                let mut r_area = [0f32; MAX_BINS];
+                let mut r_box = [Aabb::EMPTY; MAX_BINS];
+                let mut acc = Aabb::EMPTY;
+                for b in (1..k).rev() {
+                    acc.grow(&bins.lo[a][b], &bins.hi[a][b]);
+                    r_box[b] = acc;
+                    r_area[b] = acc.half_area();
+                }
+                let mut lacc = Aabb::EMPTY;
+                let mut lcount = 0u32;
+                for b in 0..k - 1 {
+                    lacc.grow(&bins.lo[a][b], &bins.hi[a][b]);
+                    lcount += bins.count[a][b];
+                    let rcount = n as u32 - lcount;
+                    if lcount == 0 || rcount == 0 {
+                        continue;
+                    }
+                    let cost = lacc.half_area() * lcount as f32 + r_area[b + 1] * rcount as f32;
+                    if split.map_or(true, |s| cost < s.4) {
+                        split = Some((a, b, lacc, r_box[b + 1], cost));
+                    }
+                }
+            }
+            // SAH termination: a leaf costs A·n, a split A + children (C_T = C_I = 1).
+            if let Some(s) = split {
+                let leaf_cost = area * n as f32;
+                if n as u32 <= p.max_leaf && leaf_cost <= area + s.4 {
+                    return make_leaf(nodes);
+                }
+            }
+            if let Some((a, b, lbox, rbox, _)) = split {
+                // Partition in place (deterministic: sequential, same bin function as binning).
+                let mut i = 0usize;
+                let mut j = n;
+                let mut lcb = Aabb::EMPTY;
+                let mut rcb = Aabb::EMPTY;
+                while i < j {
+                    let c = centroid(&refs[i]);
+                    if bn.bin(c[a], a) <= b {
+                        lcb.grow_point(&c);
+                        i += 1;
+                    } else {
+                        rcb.grow_point(&c);
+                        j -= 1;
+                        refs.swap(i, j);
+                    }
+                }
+                if i > 0 && i < n {
+                    return finish_split(ctx, refs, nodes, start, bounds, i, (lbox, lcb), (rbox, rcb), depth);
+                }
+            }
+        }
+    }
+    if n as u32 <= p.max_leaf {
+        return make_leaf(nodes);
+    }
+    // Fallback: object median along the widest centroid axis (all centroids equal, no SAH
+    // split found, or depth limit). select_nth_unstable is deterministic and allocation-free.
+    let mut axis = 0;
+    for a in 1..3 {
+        if cb.hi[a] - cb.lo[a] > cb.hi[axis] - cb.lo[axis] {
+            axis = a;
+        }
+    }
+    let mid = n / 2;
+    refs.select_nth_unstable_by(mid, |x, y| centroid(x)[axis].total_cmp(&centroid(y)[axis]).then(x.geom.cmp(&y.geom)).then(x.prim.cmp(&y.prim)));
+    let (l, r) = refs.split_at(mid);
+    let lb = bounds_of(l);
+    let rb = bounds_of(r);
+    finish_split(ctx, refs, nodes, start, bounds, mid, lb, rb, depth)
+}
+
+#[allow(clippy::too_many_arguments)]
+fn finish_split(ctx: &Ctx, refs: &mut [PrimRef], nodes: &mut [BinNode], start: u32, bounds: Aabb, mid: usize, left: (Aabb, Aabb), right: (Aabb, Aabb), depth: u32) -> (f64, u32) {
+    let n = refs.len();
+    if let Some(slot) = nodes.get_mut(0) {
+        *slot = BinNode { lo: bounds.lo, start, hi: bounds.hi, count: n as u32, left_count: mid as u32, reserved: 0 };
+    }
+    let (lrefs, rrefs) = refs.split_at_mut(mid);
+    let rest = nodes.get_mut(1..).unwrap_or(&mut []);
+    let lslots = (2 * mid - 1).min(rest.len());
+    let (lnodes, rnodes) = rest.split_at_mut(lslots);
+    let rstart = start + mid as u32;
+    let area = bounds.half_area() as f64;
+    let (a, b) = if n as u32 >= ctx.params.parallel_cutoff {
+        rayon::join(
+            || build_rec(ctx, lrefs, lnodes, start, left.0, left.1, depth + 1),
+            || build_rec(ctx, rrefs, rnodes, rstart, right.0, right.1, depth + 1),
+        )
+    } else {
+        (
+            build_rec(ctx, lrefs, lnodes, start, left.0, left.1, depth + 1),
+            build_rec(ctx, rrefs, rnodes, rstart, right.0, right.1, depth + 1),
+        )
+    };
+    (area + a.0 + b.0, 1 + a.1.max(b.1))
+}
+
+/// Binary children of a binary node: (left slot, right slot), for an internal node.
+#[inline]
+fn bin_children(nodes: &[BinNode], i: usize) -> Option<(usize, usize)> {
+    let n = nodes.get(i)?;
+    if n.left_count == 0 {
+        return None;
+    }
+    Some((i + 1, i + 2 * n.left_count as usize))
+}
+
+/// The ≤4 binary subtrees that become the children of the wide node made from binary node `i`:
+/// repeatedly open the internal child with the largest area (ties: lowest slot).
+pub fn wide_children(nodes: &[BinNode], i: usize) -> ([usize; 4], usize) {
+    let mut ch = [0usize; 4];
+    let Some((l, r)) = bin_children(nodes, i) else {
+        ch[0] = i;
+        return (ch, 1);
+    };
+    ch[0] = l;
+    ch[1] = r;
+    let mut count = 2;
+    while count < 4 {
+        let mut best: Option<(usize, f32)> = None;
+        for (k, &c) in ch[..count].iter().enumerate() {
+            if let Some(nd) = nodes.get(c) {
+                if nd.left_count != 0 {
+                    let a = Aabb { lo: nd.lo, hi: nd.hi }.half_area();
+                    if best.map_or(true, |b| a > b.1) {
+                        best = Some((k, a));
+                    }
+                }
+            }
+        }
+        let Some((k, _)) = best else { break };
+        let Some((l, r)) = bin_children(nodes, ch[k]) else { break };
+        ch[k] = l;
+        ch[count] = r;
+        count += 1;
+    }
+    (ch, count)
+}
+
+/// Quantise child boxes into the frame of `node_box`, rounding outward and verifying with the
+/// exact decode arithmetic of `WideNode::child_box`, so decoded boxes always contain the input.
+pub fn encode_node(node_box: &Aabb, boxes: &[Aabb], child: &[u32], kind: &[u8]) -> WideNode {
+    let mut n = WideNode::zeroed();
+    n.origin = node_box.lo;
+    n.child_count = boxes.len() as u8;
+    for a in 0..3 {
+        let lo = node_box.lo[a];
+        let hi = node_box.hi[a];
+        let ext = (hi - lo).max(0.0);
+        // Smallest power of two s with lo + 255*s >= hi, found from the extent then verified.
+        let mut e: u32 = if ext > 0.0 && ext.is_finite() {
+            let s = ext / 255.0;
+            ((s.to_bits() >> 23) & 0xff).max(1)
+        } else if ext > 0.0 {
+            254
+        } else {
+            1
+        };
+        while e < 254 && lo + 255.0 * f32::from_bits(e << 23) < hi {
+            e += 1;
+        }
+        n.exp[a] = e as u8;
+        let s = f32::from_bits(e << 23);
+        for (c, b) in boxes.iter().enumerate() {
+            let dec = |q: u32| lo + q as f32 * s;
+            let mut ql = (((b.lo[a] - lo) / s).floor().max(0.0) as u32).min(255);
+            while ql > 0 && dec(ql) > b.lo[a] {
+                ql -= 1;
+            }
+            let mut qh = (((b.hi[a] - lo) / s).ceil().max(0.0) as u32).min(255);
+            while qh < 255 && dec(qh) < b.hi[a] {
+                qh += 1;
+            }
+            n.qlo[a][c] = ql as u8;
+            n.qhi[a][c] = qh as u8;
+        }
+    }
+    for c in 0..boxes.len().min(4) {
+        n.child[c] = child[c];
+        n.kind[c] = kind[c];
+    }
+    n
+}
+
+/// Counts the wide nodes and leaves the collapse will produce.
+fn count_wide(nodes: &[BinNode], i: usize) -> (u32, u32) {
+    let (ch, cnt) = wide_children(nodes, i);
+    let mut wn = 1u32;
+    let mut leaves = 0u32;
+    for &c in &ch[..cnt] {
+        match nodes.get(c) {
+            Some(nd) if nd.left_count != 0 => {
+                let (a, b) = count_wide(nodes, c);
+                wn += a;
+                leaves += b;
+            }
+            _ => leaves += 1,
+        }
+    }
+    (wn, leaves)
+}
+
+/// Emits the wide node for binary node `i` and its subtree in preorder; returns its index.
+fn emit_wide(nodes: &[BinNode], i: usize, next: &mut u32, out: &mut [u8]) -> u32 {
+    let me = *next;
+    *next += 1;
+    let (ch, cnt) = wide_children(nodes, i);
+    let mut boxes = [Aabb::EMPTY; 4];
+    let mut child = [0u32; 4];
+    let mut kind = [0u8; 4];
+    let mut node_box = Aabb::EMPTY;
+    for k in 0..cnt {
+        let Some(nd) = nodes.get(ch[k]).copied() else { continue };
+        boxes[k] = Aabb { lo: nd.lo, hi: nd.hi };
+        node_box = node_box.union(&boxes[k]);
+        if nd.left_count != 0 && ch[k] != i {
+            kind[k] = CHILD_INTERNAL;
+            child[k] = emit_wide(nodes, ch[k], next, out);
+        } else {
+            kind[k] = nd.count.min(254) as u8;
+            child[k] = nd.start;
+        }
+    }
+    let wn = encode_node(&node_box, &boxes[..cnt], &child, &kind);
+    let off = me as usize * NODE_SIZE;
+    if let Some(d) = out.get_mut(off..off + NODE_SIZE) {
+        d.copy_from_slice(bytemuck::bytes_of(&wn));
+    }
+    me
+}
+
+/// FNV-style 64-bit hash over the index bytes, word at a time (the update's index check).
+pub fn index_hash(g: &Geometry) -> [u32; 2] {
+    let GeometryData::Triangles { index_type, indices, .. } = g.data else { return [0, 0] };
+    let len = (g.primitive_count as u64 * 3 * index_type.size() as u64).min(indices.len() as u64) as usize;
+    let bytes = &indices[..len];
+    let mut h: u64 = 0xcbf2_9ce4_8422_2325;
+    let mut chunks = bytes.chunks_exact(8);
+    for c in &mut chunks {
+        let mut w = [0u8; 8];
+        w.copy_from_slice(c);
+        h = (h ^ u64::from_le_bytes(w)).wrapping_mul(0x0000_0100_0000_01b3);
+    }
+    for &b in chunks.remainder() {
+        h = (h ^ b as u64).wrapping_mul(0x0000_0100_0000_01b3);
+    }
+    h = (h ^ len as u64).wrapping_mul(0x0000_0100_0000_01b3);
+    [h as u32, (h >> 32) as u32]
+}
+
+/// Reads primitive `p` of geometry `gi` as a reference; None = not stored (inactive, or a
+/// degenerate triangle that may be dropped).
+pub fn make_ref(gi: u32, g: &Geometry, p: u32, view: &dyn DeviceView, allow_update: bool) -> Result<Option<PrimRef>, BuildError> {
+    let (lo, hi) = match g.data {
+        GeometryData::Triangles { .. } => {
+            let Some(v) = read_triangle(gi, g, p)? else { return Ok(None) };
+            if !allow_update {
+                // Degenerate (zero-area) triangles produce no hits; dropping them is allowed
+                // only when a later update cannot make them non-degenerate.
+                let n = (v[1] - v[0]).cross(v[2] - v[0]);
+                if n == Vec3::ZERO {
+                    return Ok(None);
+                }
+            } else {
+                // Repeated indices may always be dropped: an update cannot change indices.
+                let idx = input::triangle_indices(gi, g, p)?;
+                if idx[0] == idx[1] || idx[1] == idx[2] || idx[0] == idx[2] {
+                    if !matches!(g.data, GeometryData::Triangles { index_type: super::IndexType::None, .. }) {
+                        return Ok(None);
+                    }
+                }
+            }
+            triangle_bounds(&v)
+        }
+        GeometryData::Aabbs { .. } => {
+            let Some(b) = read_aabb(gi, g, p)? else { return Ok(None) };
+            sanitize([b[0], b[1], b[2]], [b[3], b[4], b[5]])
+        }
+        GeometryData::Instances { .. } => {
+            let Some(inst) = read_instance(gi, g, p, view)? else { return Ok(None) };
+            instance_bounds(&inst.transform, inst.reference, view)
+        }
+    };
+    Ok(Some(PrimRef { lo, geom: gi, hi, prim: p }))
+}
+
+/// Deterministic first error: the one with the lowest (geometry, chunk) position wins.
+fn first_err(a: Result<(), (u64, BuildError)>, b: Result<(), (u64, BuildError)>) -> Result<(), (u64, BuildError)> {
+    match (a, b) {
+        (Err(x), Err(y)) => Err(if x.0 <= y.0 { x } else { y }),
+        (Err(x), _) | (_, Err(x)) => Err(x),
+        _ => Ok(()),
+    }
+}
+
+pub const INGEST_CHUNK: usize = 4096;
+
+/// Fills `refs[..total]` (slot = global primitive ID), then compacts active ones to the front
+/// in order. Returns (active count, per-geometry active counts written into `active`).
+fn ingest(desc: &BuildDesc, view: &dyn DeviceView, refs: &mut [PrimRef]) -> Result<usize, BuildError> {
+    let allow_update = desc.flags.contains(BuildFlags::ALLOW_UPDATE);
+    let mut base = 0usize;
+    for (gi, g) in desc.geometries.iter().enumerate() {
+        let count = g.primitive_count as usize;
+        let slice = refs.get_mut(base..base + count).ok_or(BuildError::TooManyPrimitives)?;
+        let gi32 = gi as u32;
+        let res = slice
+            .par_chunks_mut(INGEST_CHUNK)
+            .enumerate()
+            .map(|(ci, chunk)| {
+                for (k, slot) in chunk.iter_mut().enumerate() {
+                    let p = (ci * INGEST_CHUNK + k) as u32;
+                    match make_ref(gi32, g, p, view, allow_update) {
+                        Ok(Some(r)) => *slot = r,
+                        Ok(None) => *slot = PrimRef { lo: [0.0; 3], geom: DROPPED, hi: [0.0; 3], prim: p },
+                        Err(e) => return Err(((gi as u64) << 32 | p as u64, e)),
+                    }
+                }
+                Ok(())
+            })
+            .reduce(|| Ok(()), first_err);
+        res.map_err(|e| e.1)?;
+        base += count;
+    }
+    // Stable in-place compaction (write index never passes read index).
+    let mut w = 0usize;
+    for r in 0..base {
+        if refs[r].geom != DROPPED {
+            refs[w] = refs[r];
+            w += 1;
+        }
+    }
+    Ok(w)
+}
+
+fn check_types(desc: &BuildDesc) -> Result<(), BuildError> {
+    for (gi, g) in desc.geometries.iter().enumerate() {
+        let ok = match (desc.ty, &g.data) {
+            (AsType::TopLevel, GeometryData::Instances { .. }) => true,
+            (AsType::BottomLevel, GeometryData::Triangles { .. } | GeometryData::Aabbs { .. }) => true,
+            _ => false,
+        };
+        if !ok {
+            return Err(BuildError::WrongGeometryType { geometry: gi as u32 });
+        }
+    }
+    Ok(())
+}
+
+pub fn total_primitives(desc: &BuildDesc) -> Result<u64, BuildError> {
+    let total: u64 = desc.geometries.iter().map(|g| g.primitive_count as u64).sum();
+    if total > u32::MAX as u64 || desc.geometries.len() as u64 > u32::MAX as u64 {
+        return Err(BuildError::TooManyPrimitives);
+    }
+    Ok(total)
+}
+
+pub fn geometry_record(g: &Geometry, active: u32, allow_update: bool) -> GeometryRecord {
+    let mut r = GeometryRecord::zeroed();
+    r.flags = g.flags.0;
+    r.primitive_count = g.primitive_count;
+    r.active_count = active;
+    match g.data {
+        GeometryData::Triangles { format, max_vertex, index_type, transform, .. } => {
+            r.kind = layout::KIND_TRIANGLES;
+            r.format = format.to_vk();
+            r.index_type = index_type.to_vk();
+            r.max_vertex = max_vertex;
+            r.has_transform = transform.is_some() as u32;
+            if allow_update {
+                r.index_hash = index_hash(g);
+            }
+        }
+        GeometryData::Aabbs { .. } => r.kind = layout::KIND_AABBS,
+        GeometryData::Instances { .. } => r.kind = layout::KIND_INSTANCES,
+    }
+    r
+}
+
+/// Writes primitive data and records (BLAS) for stored slots in parallel; slot order = leaf order.
+pub fn write_leaf_data(desc: &BuildDesc, refs: &[PrimRef], prims: &mut [u8], records: &mut [u8]) {
+    const CH: usize = 4096;
+    prims
+        .par_chunks_mut(CH * PRIM_SIZE)
+        .zip(records.par_chunks_mut(CH * RECORD_SIZE))
+        .zip(refs.par_chunks(CH))
+        .for_each(|((pd, rd), rs)| {
+            for (k, r) in rs.iter().enumerate() {
+                let mut data = [0f32; 9];
+                if let Some(g) = desc.geometries.get(r.geom as usize) {
+                    match g.data {
+                        GeometryData::Triangles { .. } => {
+                            if let Ok(Some(v)) = read_triangle(r.geom, g, r.prim) {
+                                data = [v[0].x, v[0].y, v[0].z, v[1].x, v[1].y, v[1].z, v[2].x, v[2].y, v[2].z];
+                            }
+                        }
+                        GeometryData::Aabbs { .. } => {
+                            if let Ok(Some(b)) = read_aabb(r.geom, g, r.prim) {
+                                data[..6].copy_from_slice(&b);
+                            }
+                        }
+                        GeometryData::Instances { .. } => {}
+                    }
+                }
+                if let Some(d) = pd.get_mut(k * PRIM_SIZE..(k + 1) * PRIM_SIZE) {
+                    d.copy_from_slice(bytemuck::bytes_of(&data));
+                }
+                let rec = PrimRecord { geometry: r.geom, primitive: r.prim };
+                if let Some(d) = rd.get_mut(k * RECORD_SIZE..(k + 1) * RECORD_SIZE) {
+                    d.copy_from_slice(bytemuck::bytes_of(&rec));
+                }
+            }
+        });
+}
+
+/// Instance records + BLAS table for stored instances (TLAS). `keys` is scratch for the sort.
+/// Returns the number of distinct BLAS addresses.
+pub fn write_instances(desc: &BuildDesc, view: &dyn DeviceView, refs: &[PrimRef], keys: &mut [u64], instances: &mut [u8], records: &mut [u8], table: &mut [u8]) -> u32 {
+    let n = refs.len();
+    let read = |r: &PrimRef| desc.geometries.get(r.geom as usize).and_then(|g| read_instance(r.geom, g, r.prim, view).ok().flatten());
+    // Distinct references, sorted (deterministic, no hashing, no heap).
+    let keys = &mut keys[..n];
+    keys.par_iter_mut().zip(refs.par_iter()).for_each(|(k, r)| *k = read(r).map_or(0, |i| i.reference));
+    keys.sort_unstable();
+    let mut distinct = 0usize;
+    for i in 0..n {
+        if i == 0 || keys[i] != keys[distinct - 1] {
+            keys[distinct] = keys[i];
+            distinct += 1;
+        }
+    }
+    let keys = &keys[..distinct];
+    for (i, k) in keys.iter().enumerate() {
+        if let Some(d) = table.get_mut(i * 8..i * 8 + 8) {
+            d.copy_from_slice(&k.to_le_bytes());
+        }
+    }
+    // Unused table slots (capacity > distinct) are zero so the bytes stay deterministic.
+    if let Some(rest) = table.get_mut(distinct * 8..) {
+        rest.fill(0);
+    }
+    const CH: usize = 1024;
+    instances
+        .par_chunks_mut(CH * layout::INSTANCE_RECORD_SIZE)
+        .zip(records.par_chunks_mut(CH * RECORD_SIZE))
+        .zip(refs.par_chunks(CH))
+        .for_each(|((id, rd), rs)| {
+            for (k, r) in rs.iter().enumerate() {
+                let mut rec = InstanceRecord::zeroed();
+                if let Some(inst) = read(r) {
+                    rec.object_to_world = inst.transform;
+                    rec.world_to_object = input::invert_transform(&inst.transform);
+                    rec.custom_index = inst.custom_index;
+                    rec.mask = inst.mask;
+                    rec.sbt_offset = inst.sbt_offset;
+                    rec.flags = inst.flags;
+                    rec.blas_index = keys.binary_search(&inst.reference).map_or(u32::MAX, |x| x as u32);
+                }
+                rec.instance_index = r.prim;
+                let o = k * layout::INSTANCE_RECORD_SIZE;
+                if let Some(d) = id.get_mut(o..o + layout::INSTANCE_RECORD_SIZE) {
+                    d.copy_from_slice(bytemuck::bytes_of(&rec));
+                }
+                let prec = PrimRecord { geometry: r.geom, primitive: r.prim };
+                if let Some(d) = rd.get_mut(k * RECORD_SIZE..(k + 1) * RECORD_SIZE) {
+                    d.copy_from_slice(bytemuck::bytes_of(&prec));
+                }
+            }
+        });
+    distinct as u32
+}
+
+/// Zero the padding between sections so dst[..used] is a function of the input only.
+pub fn zero_gaps(dst: &mut [u8], filled: &[(u64, u64)], end: u64) {
+    let mut pos = layout::HEADER_SIZE as u64;
+    let mut spans: Vec<(u64, u64)> = filled.to_vec(); // ≤ 8 entries: O(1) heap
+    spans.sort_unstable();
+    for (s, e) in spans.into_iter().chain(std::iter::once((end, end))) {
+        if s > pos {
+            if let Some(d) = dst.get_mut(pos as usize..s as usize) {
+                d.fill(0);
+            }
+        }
+        pos = pos.max(e);
+    }
+}
+
+pub fn build(desc: &BuildDesc, view: &dyn DeviceView, dst: &mut [u8], scratch: &mut [u8]) -> Result<BuildReport, BuildError> {
+    check_types(desc)?;
+    let total = total_primitives(desc)?;
+    let is_tlas = desc.ty == AsType::TopLevel;
+    let allow_update = desc.flags.contains(BuildFlags::ALLOW_UPDATE);
+    let ngeo = desc.geometries.len() as u64;
+
+    let need_scratch = layout::build_scratch_size(total);
+    if (scratch.len() as u64) < need_scratch {
+        return Err(BuildError::ScratchTooSmall { needed: need_scratch, got: scratch.len() as u64 });
+    }
+    // Worst case for this input's counts: checked before any work so failure is cheap and
+    // independent of the tree shape.
+    let worst = layout::sections(desc.ty, layout::max_nodes(total), total, ngeo).end;
+    if (dst.len() as u64) < worst {
+        return Err(BuildError::DestinationTooSmall { needed: worst, got: dst.len() as u64 });
+    }
+    let total = total as usize;
+    let (refs, rest) = carve::<PrimRef>(scratch, total).ok_or(BuildError::ScratchTooSmall { needed: need_scratch, got: 0 })?;
+    let (nodes, _) = carve::<BinNode>(rest, 2 * total).ok_or(BuildError::ScratchTooSmall { needed: need_scratch, got: 0 })?;
+
+    let active = ingest(desc, view, refs)?;
+    let refs = &mut refs[..active];
+    // Geometry table now, while refs are still in geometry order (its offset is tree-independent).
+    {
+        let goff = layout::sections(desc.ty, 0, 0, ngeo).geometries as usize;
+        let mut pos = 0usize;
+        for (gi, g) in desc.geometries.iter().enumerate() {
+            let begin = pos;
+            while pos < refs.len() && refs[pos].geom == gi as u32 {
+                pos += 1;
+            }
+            let rec = geometry_record(g, (pos - begin) as u32, allow_update);
+            let off = goff + gi * layout::GEOMETRY_SIZE;
+            if let Some(d) = dst.get_mut(off..off + layout::GEOMETRY_SIZE) {
+                d.copy_from_slice(bytemuck::bytes_of(&rec));
+            }
+        }
+    }
+
+    // Per-geometry active counts from the compacted refs (ordered by geometry).
+    let params = BuildParams::from_flags(desc.flags);
+    let ctx = Ctx { params };
+    let (root_box, root_cb) = refs
+        .par_chunks(1 << 15)
+        .map(bounds_of)
+        .reduce(|| (Aabb::EMPTY, Aabb::EMPTY), |a, b| (a.0.union(&b.0), a.1.union(&b.1)));
+    let (sah_sum, _depth) = if active > 0 {
+        build_rec(&ctx, refs, &mut nodes[..2 * active - 1], 0, root_box, root_cb, 0)
+    } else {
+        (0.0, 0)
+    };
+    let (wide_count, leaf_count) = if active > 0 { count_wide(nodes, 0) } else { (0, 0) };
+
+    let s = layout::sections(desc.ty, wide_count as u64, active as u64, ngeo);
+    if s.end > dst.len() as u64 {
+        return Err(BuildError::DestinationTooSmall { needed: s.end, got: dst.len() as u64 });
+    }
+    let used = s.end;
+    let dst = &mut dst[..used as usize];
+
+    // Nodes.
+    {
+        let nb = &mut dst[s.nodes as usize..s.nodes as usize + wide_count as usize * NODE_SIZE];
+        if active > 0 {
+            let mut next = 0u32;
+            emit_wide(nodes, 0, &mut next, nb);
+        }
+    }
+    let mut blas_refs = 0u32;
+    let instance_count;
+    if is_tlas {
+        let (head, tail) = dst.split_at_mut(s.instances as usize);
+        let records = &mut head[s.records as usize..s.records as usize + active * RECORD_SIZE];
+        let (inst, table_part) = tail.split_at_mut((s.blas_table - s.instances) as usize);
+        let inst = &mut inst[..active * layout::INSTANCE_RECORD_SIZE];
+        let table = &mut table_part[..active * 8];
+        // Reuse the binary node area (no longer needed) for the sort keys.
+        let node_bytes: &mut [u8] = bytemuck::cast_slice_mut(nodes);
+        let keys: &mut [u64] = bytemuck::try_cast_slice_mut(&mut node_bytes[..active * 8]).map_err(|_| BuildError::ScratchTooSmall { needed: need_scratch, got: 0 })?;
+        blas_refs = write_instances(desc, view, refs, keys, inst, records, table);
+        instance_count = active as u32;
+    } else {
+        let (head, tail) = dst.split_at_mut(s.records as usize);
+        let prims = &mut head[s.prims as usize..s.prims as usize + active * PRIM_SIZE];
+        let records = &mut tail[..active * RECORD_SIZE];
+        write_leaf_data(desc, refs, prims, records);
+        instance_count = 0;
+    }
+    let filled = [
+        (s.nodes, s.nodes + wide_count as u64 * NODE_SIZE as u64),
+        (s.prims, s.prims + if is_tlas { 0 } else { active as u64 * PRIM_SIZE as u64 }),
+        (s.records, s.records + active as u64 * RECORD_SIZE as u64),
+        (s.geometries, s.geometries + ngeo * layout::GEOMETRY_SIZE as u64),
+        (s.instances, s.instances + if is_tlas { active as u64 * layout::INSTANCE_RECORD_SIZE as u64 } else { 0 }),
+        (s.blas_table, s.blas_table + if is_tlas { active as u64 * 8 } else { 0 }),
+    ];
+    zero_gaps(dst, &filled, used);
+
+    let root_area = root_box.half_area() as f64;
+    let sah = if active > 0 && root_area > 0.0 && root_area.is_finite() { (sah_sum / root_area) as f32 } else { 0.0 };
+    let raw = RawHeader {
+        magic: layout::MAGIC,
+        version: layout::FORMAT_VERSION,
+        ty: desc.ty as u32,
+        flags: desc.flags.0,
+        valid: layout::valid_word(),
+        geometry_count: ngeo as u32,
+        primitive_count: active as u32,
+        instance_count,
+        node_count: wide_count,
+        leaf_count,
+        blas_reference_count: blas_refs,
+        sah_cost: sah,
+        bounds: if active > 0 { [root_box.lo[0], root_box.lo[1], root_box.lo[2], root_box.hi[0], root_box.hi[1], root_box.hi[2]] } else { [0.0; 6] },
+        total_primitives: total as u32,
+        blas_table_capacity: if is_tlas { active as u32 } else { 0 },
+        used_size: used,
+        nodes_offset: s.nodes,
+        prims_offset: s.prims,
+        records_offset: s.records,
+        geometries_offset: s.geometries,
+        instances_offset: s.instances,
+        blas_table_offset: s.blas_table,
+        max_leaf_size: params.max_leaf,
+        reserved: 0,
+    };
+    layout::write_header(dst, &raw);
+    Ok(BuildReport { used_size: used, node_count: wide_count, leaf_count, primitive_count: active as u32 })
+}
+

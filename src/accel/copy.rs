@@ -1,0 +1,117 @@
+//! Clone, compaction, serialization. The blob is position-independent, so all of these are
+//! byte copies; serialization adds the Vulkan header and takes BLAS addresses from its list.
+use super::layout::{self, parse};
+
+/// Identifies this format version in serialized data; change with layout::FORMAT_VERSION.
+pub const ACCEL_FORMAT_UUID: [u8; 16] = *b"ArborAS-BVH4q-01";
+
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum CopyError {
+    /// Source is not a valid structure (or serialized blob).
+    InvalidSource,
+    DestinationTooSmall { needed: u64, got: u64 },
+    /// Serialized data from another driver or format version.
+    Incompatible,
+}
+
+const SER_HEADER: u64 = 56;
+
+pub fn compacted_size(src: &[u8]) -> Option<u64> {
+    parse(src).map(|p| p.raw.used_size)
+}
+
+fn copy_used(src: &[u8], dst: &mut [u8]) -> Result<usize, CopyError> {
+    let p = parse(src).ok_or(CopyError::InvalidSource)?;
+    let used = p.raw.used_size as usize;
+    let got = dst.len() as u64;
+    let d = dst.get_mut(..used).ok_or(CopyError::DestinationTooSmall { needed: used as u64, got })?;
+    d.copy_from_slice(&src[..used]);
+    Ok(used)
+}
+
+pub fn clone_into(src: &[u8], dst: &mut [u8]) -> Result<(), CopyError> {
+    copy_used(src, dst).map(|_| ())
+}
+
+pub fn compact_into(src: &[u8], dst: &mut [u8]) -> Result<(), CopyError> {
+    copy_used(src, dst).map(|_| ())
+}
+
+/// 56 + 8N + payload.
+pub fn serialized_size(src: &[u8]) -> Option<u64> {
+    let p = parse(src)?;
+    Some(SER_HEADER + 8 * p.raw.blas_reference_count as u64 + p.raw.used_size)
+}
+
+/// The N addresses of the serialized header (distinct BLAS addresses, sorted).
+pub fn blas_references(src: &[u8]) -> Vec<u64> {
+    match parse(src) {
+        Some(p) => (0..p.raw.blas_reference_count).filter_map(|i| p.blas_address(i)).collect(),
+        None => Vec::new(),
+    }
+}
+
+pub fn serialize(src: &[u8], driver_uuid: [u8; 16], dst: &mut [u8]) -> Result<u64, CopyError> {
+    let p = parse(src).ok_or(CopyError::InvalidSource)?;
+    let n = p.raw.blas_reference_count as u64;
+    let used = p.raw.used_size;
+    let total = SER_HEADER + 8 * n + used;
+    if (dst.len() as u64) < total {
+        return Err(CopyError::DestinationTooSmall { needed: total, got: dst.len() as u64 });
+    }
+    dst[0..16].copy_from_slice(&driver_uuid);
+    dst[16..32].copy_from_slice(&ACCEL_FORMAT_UUID);
+    dst[32..40].copy_from_slice(&total.to_le_bytes());
+    dst[40..48].copy_from_slice(&used.to_le_bytes());
+    dst[48..56].copy_from_slice(&n.to_le_bytes());
+    for i in 0..n as usize {
+        let a = p.blas_address(i as u32).unwrap_or(0);
+        dst[56 + 8 * i..64 + 8 * i].copy_from_slice(&a.to_le_bytes());
+    }
+    let off = (SER_HEADER + 8 * n) as usize;
+    dst[off..off + used as usize].copy_from_slice(&src[..used as usize]);
+    Ok(total)
+}
+
+fn u64_at(b: &[u8], off: usize) -> Option<u64> {
+    super::input::rd_u64(b, off)
+}
+
+pub fn deserialize(data: &[u8], driver_uuid: [u8; 16], dst: &mut [u8]) -> Result<(), CopyError> {
+    let version: &[u8; 32] = data.get(..32).and_then(|s| s.try_into().ok()).ok_or(CopyError::InvalidSource)?;
+    if !compatible(version, driver_uuid) {
+        return Err(CopyError::Incompatible);
+    }
+    let total = u64_at(data, 32).ok_or(CopyError::InvalidSource)?;
+    let size = u64_at(data, 40).ok_or(CopyError::InvalidSource)?;
+    let n = u64_at(data, 48).ok_or(CopyError::InvalidSource)?;
+    let off = n.checked_mul(8).and_then(|x| x.checked_add(SER_HEADER)).ok_or(CopyError::InvalidSource)?;
+    let end = off.checked_add(size).ok_or(CopyError::InvalidSource)?;
+    if end > data.len() as u64 || end > total {
+        return Err(CopyError::InvalidSource);
+    }
+    let payload = &data[off as usize..end as usize];
+    let p = parse(payload).ok_or(CopyError::InvalidSource)?;
+    if p.raw.used_size != size || p.raw.blas_reference_count as u64 != n {
+        return Err(CopyError::InvalidSource);
+    }
+    let got = dst.len() as u64;
+    let d = dst.get_mut(..size as usize).ok_or(CopyError::DestinationTooSmall { needed: size, got })?;
+    d.copy_from_slice(payload);
+    // The application rewrote the header's addresses: they replace the payload's table.
+    let table = p.raw.blas_table_offset as usize;
+    for i in 0..n as usize {
+        let a = u64_at(data, 56 + 8 * i).ok_or(CopyError::InvalidSource)?;
+        if let Some(s) = d.get_mut(table + 8 * i..table + 8 * i + 8) {
+            s.copy_from_slice(&a.to_le_bytes());
+        }
+    }
+    // BLAS indices in instances refer to table slots, so a non-sorted rewritten table is fine.
+    let _ = layout::HEADER_SIZE;
+    Ok(())
+}
+
+/// Both UUIDs equal ours.
+pub fn compatible(version_data: &[u8; 32], driver_uuid: [u8; 16]) -> bool {
+    version_data[..16] == driver_uuid && version_data[16..] == ACCEL_FORMAT_UUID
+}

@@ -1,0 +1,496 @@
+//! Traversal per the Vulkan ray traversal rules: BVH4 with conservative boxes, watertight
+//! ray/triangle test, instance masks and flags, opacity and culling rules, and a resumable
+//! candidate iterator (`RayQuery`) with commit semantics.
+//!
+//! Facing convention (VK_KHR_acceleration_structure, VkGeometryInstanceFlagBitsKHR and the
+//! ray traversal chapter): facing is decided in object space. A triangle is front-facing when
+//! its vertices v0, v1, v2 appear clockwise as seen from the ray origin in a left-handed frame,
+//! which is, numerically, `dot((v1 - v0) x (v2 - v0), direction) < 0`; the instance flag
+//! TRIANGLE_FLIP_FACING (2, formerly FRONT_COUNTERCLOCKWISE) inverts it. Instance transforms do
+//! not change facing; geometry transforms (applied at build time) do.
+use super::input::{transform_dir, transform_point};
+use super::layout::{self, InstanceRecord, Parsed, CHILD_INTERNAL};
+use super::{DeviceView, GeometryFlags};
+use glam::{DVec3, Vec3};
+
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Ray {
+    pub origin: Vec3,
+    pub direction: Vec3,
+    pub tmin: f32,
+    pub tmax: f32,
+}
+
+/// SPIR-V RayFlags values.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Default)]
+pub struct RayFlags(pub u32);
+impl RayFlags {
+    pub const OPAQUE: u32 = 1;
+    pub const NO_OPAQUE: u32 = 2;
+    pub const TERMINATE_ON_FIRST_HIT: u32 = 4;
+    pub const SKIP_CLOSEST_HIT_SHADER: u32 = 8;
+    pub const CULL_BACK_FACING_TRIANGLES: u32 = 0x10;
+    pub const CULL_FRONT_FACING_TRIANGLES: u32 = 0x20;
+    pub const CULL_OPAQUE: u32 = 0x40;
+    pub const CULL_NO_OPAQUE: u32 = 0x80;
+    pub const SKIP_TRIANGLES: u32 = 0x100;
+    pub const SKIP_AABBS: u32 = 0x200;
+}
+
+/// VkGeometryInstanceFlagBitsKHR.
+pub const INSTANCE_FACING_CULL_DISABLE: u32 = 1;
+pub const INSTANCE_FLIP_FACING: u32 = 2;
+pub const INSTANCE_FORCE_OPAQUE: u32 = 4;
+pub const INSTANCE_FORCE_NO_OPAQUE: u32 = 8;
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum HitKind {
+    Triangle,
+    Aabb,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Hit {
+    pub t: f32,
+    pub kind: HitKind,
+    /// Weights of v1 and v2 (triangles); zero for AABBs.
+    pub barycentrics: [f32; 2],
+    /// Triangles: facing after TRIANGLE_FLIP_FACING. AABBs: false.
+    pub front_face: bool,
+    pub opaque: bool,
+    /// InstanceId (index in the TLAS build's instance array).
+    pub instance_index: u32,
+    pub instance_custom_index: u32,
+    pub sbt_record_offset: u32,
+    pub geometry_index: u32,
+    pub primitive_index: u32,
+    pub object_ray_origin: Vec3,
+    pub object_ray_direction: Vec3,
+    pub object_to_world: [f32; 12],
+    pub world_to_object: [f32; 12],
+}
+
+const IDENTITY: [f32; 12] = [1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0];
+
+fn max_dim(d: Vec3) -> usize {
+    let a = d.abs();
+    if a.x >= a.y && a.x >= a.z {
+        0
+    } else if a.y >= a.z {
+        1
+    } else {
+        2
+    }
+}
+
+/// Watertight ray/triangle test (Woop, Benthin, Wald 2013) with the double-precision fallback
+/// for edge hits. Returns (t, u, v, front) with u, v the weights of v1 and v2, and t within
+/// [tmin, tmax] inclusive. `front` is the unflipped Vulkan facing (see the module doc).
+pub fn intersect_triangle(ray: &Ray, v0: Vec3, v1: Vec3, v2: Vec3) -> Option<(f32, f32, f32, bool)> {
+    let d = ray.direction;
+    let kz = max_dim(d);
+    let mut kx = (kz + 1) % 3;
+    let mut ky = (kx + 1) % 3;
+    if d[kz] < 0.0 {
+        std::mem::swap(&mut kx, &mut ky);
+    }
+    let sx = d[kx] / d[kz];
+    let sy = d[ky] / d[kz];
+    let sz = 1.0 / d[kz];
+    let a = v0 - ray.origin;
+    let b = v1 - ray.origin;
+    let c = v2 - ray.origin;
+    let ax = a[kx] - sx * a[kz];
+    let ay = a[ky] - sy * a[kz];
+    let bx = b[kx] - sx * b[kz];
+    let by = b[ky] - sy * b[kz];
+    let cx = c[kx] - sx * c[kz];
+    let cy = c[ky] - sy * c[kz];
+    let mut u = cx * by - cy * bx;
+    let mut v = ax * cy - ay * cx;
+    let mut w = bx * ay - by * ax;
+    if u == 0.0 || v == 0.0 || w == 0.0 {
+        u = (cx as f64 * by as f64 - cy as f64 * bx as f64) as f32;
+        v = (ax as f64 * cy as f64 - ay as f64 * cx as f64) as f32;
+        w = (bx as f64 * ay as f64 - by as f64 * ax as f64) as f32;
+    }
+    // NaN in any of u, v, w fails both sign tests below only partially, so reject explicitly.
+    if u.is_nan() || v.is_nan() || w.is_nan() {
+        return None;
+    }
+    if (u < 0.0 || v < 0.0 || w < 0.0) && (u > 0.0 || v > 0.0 || w > 0.0) {
+        return None;
+    }
+    let det = u + v + w;
+    if det == 0.0 || !det.is_finite() {
+        return None;
+    }
+    let az = sz * a[kz];
+    let bz = sz * b[kz];
+    let cz = sz * c[kz];
+    let tt = u * az + v * bz + w * cz;
+    let rcp = 1.0 / det;
+    let t = tt * rcp;
+    if !(t >= ray.tmin && t <= ray.tmax) {
+        return None;
+    }
+    Some((t, v * rcp, w * rcp, det > 0.0))
+}
+
+/// Slab test against a box; returns the entry distance clamped to tmin. The far distance is
+/// widened by a few ulps (Ize 2013) so rounding never loses a box the ray touches.
+#[inline]
+fn ray_box(org: Vec3, inv: Vec3, b: &[f32; 6], tmin: f32, tmax: f32) -> Option<f32> {
+    let mut tn = tmin;
+    let mut tf = tmax;
+    for a in 0..3 {
+        let t0 = (b[a] - org[a]) * inv[a];
+        let t1 = (b[a + 3] - org[a]) * inv[a];
+        // f32::min/max ignore a NaN operand (0 * inf on a slab plane): that axis then
+        // constrains nothing, which is conservative.
+        let lo = t0.min(t1);
+        let hi = t0.max(t1);
+        tn = tn.max(lo);
+        tf = tf.min(hi + hi.abs() * 4.8e-7);
+    }
+    if tn <= tf {
+        Some(tn)
+    } else {
+        None
+    }
+}
+
+#[derive(Clone, Copy, Debug)]
+enum Item {
+    Node { node: u32, inner: bool, tnear: f32 },
+    Prims { first: u32, count: u32, inner: bool },
+    ExitInstance,
+}
+
+#[derive(Clone, Copy)]
+struct Level<'a> {
+    s: Parsed<'a>,
+    org: Vec3,
+    dir: Vec3,
+    inv: Vec3,
+}
+
+#[derive(Clone, Copy)]
+struct InstCtx<'a> {
+    level: Level<'a>,
+    rec: InstanceRecord,
+}
+
+/// The candidate iterator a ray query needs. Opaque triangle hits are committed internally;
+/// non-opaque triangles and all AABBs are returned by `proceed` as candidates.
+pub struct RayQuery<'a> {
+    top: Option<Level<'a>>,
+    view: &'a dyn DeviceView,
+    ray: Ray,
+    flags: u32,
+    cull_mask: u8,
+    tmax: f32,
+    stack: Vec<Item>,
+    inst: Option<InstCtx<'a>>,
+    candidate: Option<Hit>,
+    committed: Option<Hit>,
+    done: bool,
+    /// all_hits mode: opaque hits are reported as candidates too, and nothing shrinks tmax.
+    collect_all: bool,
+}
+
+fn ray_ok(r: &Ray) -> bool {
+    !(r.origin.is_nan() || r.direction.is_nan() || r.tmin.is_nan() || r.tmax.is_nan() || r.tmin > r.tmax || r.direction == Vec3::ZERO)
+}
+
+fn make_level(s: Parsed<'_>, org: Vec3, dir: Vec3) -> Level<'_> {
+    Level { s, org, dir, inv: Vec3::ONE / dir }
+}
+
+impl<'a> RayQuery<'a> {
+    pub fn new(structure: &'a [u8], view: &'a dyn DeviceView, ray: Ray, flags: RayFlags, cull_mask: u8) -> Self {
+        let top = layout::parse(structure).map(|s| make_level(s, ray.origin, ray.direction));
+        let mut q = RayQuery {
+            top,
+            view,
+            ray,
+            flags: flags.0,
+            cull_mask,
+            tmax: ray.tmax,
+            stack: Vec::with_capacity(64),
+            inst: None,
+            candidate: None,
+            committed: None,
+            done: false,
+            collect_all: false,
+        };
+        match top {
+            Some(l) if ray_ok(&ray) && l.s.raw.node_count > 0 => q.stack.push(Item::Node { node: 0, inner: false, tnear: ray.tmin }),
+            _ => q.done = true,
+        }
+        q
+    }
+
+    fn level(&self, inner: bool) -> Option<Level<'a>> {
+        if inner {
+            self.inst.map(|i| i.level)
+        } else {
+            self.top
+        }
+    }
+
+    /// Next candidate; None when traversal is done.
+    pub fn proceed(&mut self) -> Option<Hit> {
+        self.candidate = None;
+        while !self.done {
+            let Some(item) = self.stack.pop() else {
+                self.done = true;
+                break;
+            };
+            match item {
+                Item::ExitInstance => self.inst = None,
+                Item::Node { node, inner, tnear } => {
+                    if tnear > self.tmax {
+                        continue;
+                    }
+                    let Some(l) = self.level(inner) else { continue };
+                    let Some(n) = l.s.node(node) else { continue };
+                    let mut hits: [(f32, Item); 4] = [(0.0, Item::ExitInstance); 4];
+                    let mut nh = 0;
+                    for c in 0..(n.child_count as usize).min(4) {
+                        let b = n.child_box(c);
+                        let Some(t) = ray_box(l.org, l.inv, &b, self.ray.tmin, self.tmax) else { continue };
+                        let it = match n.kind[c] {
+                            0 => continue,
+                            CHILD_INTERNAL => Item::Node { node: n.child[c], inner, tnear: t },
+                            k => Item::Prims { first: n.child[c], count: k as u32, inner },
+                        };
+                        hits[nh] = (t, it);
+                        nh += 1;
+                    }
+                    // Push far to near so the nearest child is processed first.
+                    let hs = &mut hits[..nh];
+                    hs.sort_unstable_by(|a, b| b.0.total_cmp(&a.0));
+                    for h in hs.iter() {
+                        self.stack.push(h.1);
+                    }
+                }
+                Item::Prims { first, count, inner } => {
+                    if count > 1 {
+                        self.stack.push(Item::Prims { first: first.wrapping_add(1), count: count - 1, inner });
+                    }
+                    let Some(l) = self.level(inner) else { continue };
+                    if l.s.is_tlas() {
+                        self.enter_instance(l, first);
+                    } else if let Some(hit) = self.test_prim(l, first) {
+                        if let Some(h) = self.handle_hit(hit) {
+                            return Some(h);
+                        }
+                    }
+                }
+            }
+        }
+        None
+    }
+
+    fn enter_instance(&mut self, l: Level<'a>, slot: u32) {
+        // Instances only live in a top-level structure that is itself the query root.
+        if self.inst.is_some() {
+            return;
+        }
+        let Some(rec) = l.s.instance(slot) else { return };
+        if rec.mask & self.cull_mask as u32 == 0 {
+            return;
+        }
+        let Some(addr) = l.s.blas_address(rec.blas_index) else { return };
+        let Some(blas) = self.view.acceleration_structure(addr).and_then(layout::parse) else { return };
+        if blas.is_tlas() || blas.raw.node_count == 0 {
+            return;
+        }
+        let org = transform_point(&rec.world_to_object, self.ray.origin);
+        let dir = transform_dir(&rec.world_to_object, self.ray.direction);
+        if org.is_nan() || dir.is_nan() || dir == Vec3::ZERO {
+            return;
+        }
+        self.inst = Some(InstCtx { level: make_level(blas, org, dir), rec });
+        self.stack.push(Item::ExitInstance);
+        self.stack.push(Item::Node { node: 0, inner: true, tnear: self.ray.tmin });
+    }
+
+    /// Geometric test + flag rules for stored primitive `slot` of a BLAS level.
+    fn test_prim(&self, l: Level<'a>, slot: u32) -> Option<Hit> {
+        let rec = l.s.record(slot)?;
+        let geom = l.s.geometry(rec.geometry)?;
+        let inst_flags = self.inst.map_or(0, |i| i.rec.flags);
+        let f = self.flags;
+        let mut opaque = geom.flags & GeometryFlags::OPAQUE != 0;
+        if inst_flags & INSTANCE_FORCE_OPAQUE != 0 {
+            opaque = true;
+        } else if inst_flags & INSTANCE_FORCE_NO_OPAQUE != 0 {
+            opaque = false;
+        }
+        if f & RayFlags::OPAQUE != 0 {
+            opaque = true;
+        } else if f & RayFlags::NO_OPAQUE != 0 {
+            opaque = false;
+        }
+        if (opaque && f & RayFlags::CULL_OPAQUE != 0) || (!opaque && f & RayFlags::CULL_NO_OPAQUE != 0) {
+            return None;
+        }
+        let data = l.s.prim(slot)?;
+        let ray = Ray { origin: l.org, direction: l.dir, tmin: self.ray.tmin, tmax: self.tmax };
+        let (t, kind, bary, front) = match geom.kind {
+            layout::KIND_TRIANGLES => {
+                if f & RayFlags::SKIP_TRIANGLES != 0 {
+                    return None;
+                }
+                let v0 = Vec3::new(data[0], data[1], data[2]);
+                let v1 = Vec3::new(data[3], data[4], data[5]);
+                let v2 = Vec3::new(data[6], data[7], data[8]);
+                let (t, u, v, front_raw) = intersect_triangle(&ray, v0, v1, v2)?;
+                let front = front_raw ^ (inst_flags & INSTANCE_FLIP_FACING != 0);
+                if inst_flags & INSTANCE_FACING_CULL_DISABLE == 0 {
+                    if (f & RayFlags::CULL_BACK_FACING_TRIANGLES != 0 && !front) || (f & RayFlags::CULL_FRONT_FACING_TRIANGLES != 0 && front) {
+                        return None;
+                    }
+                }
+                (t, HitKind::Triangle, [u, v], front)
+            }
+            layout::KIND_AABBS => {
+                if f & RayFlags::SKIP_AABBS != 0 {
+                    return None;
+                }
+                let b = [data[0], data[1], data[2], data[3], data[4], data[5]];
+                let t = ray_box_exact(l.org, l.dir, &b, self.ray.tmin, self.tmax)?;
+                (t, HitKind::Aabb, [0.0, 0.0], false)
+            }
+            _ => return None,
+        };
+        let (ii, ci, sbt, o2w, w2o) = match self.inst {
+            Some(i) => (i.rec.instance_index, i.rec.custom_index, i.rec.sbt_offset, i.rec.object_to_world, i.rec.world_to_object),
+            None => (0, 0, 0, IDENTITY, IDENTITY),
+        };
+        Some(Hit {
+            t,
+            kind,
+            barycentrics: bary,
+            front_face: front,
+            opaque,
+            instance_index: ii,
+            instance_custom_index: ci,
+            sbt_record_offset: sbt,
+            geometry_index: rec.geometry,
+            primitive_index: rec.primitive,
+            object_ray_origin: l.org,
+            object_ray_direction: l.dir,
+            object_to_world: o2w,
+            world_to_object: w2o,
+        })
+    }
+
+    fn handle_hit(&mut self, hit: Hit) -> Option<Hit> {
+        if hit.kind == HitKind::Triangle && hit.opaque && !self.collect_all {
+            self.commit(hit);
+            return None;
+        }
+        self.candidate = Some(hit);
+        Some(hit)
+    }
+
+    fn commit(&mut self, hit: Hit) {
+        self.committed = Some(hit);
+        if !self.collect_all {
+            self.tmax = hit.t;
+        }
+        if self.flags & RayFlags::TERMINATE_ON_FIRST_HIT != 0 {
+            self.terminate();
+        }
+    }
+
+    /// Commit the current triangle candidate.
+    pub fn confirm(&mut self) {
+        if let Some(c) = self.candidate.take() {
+            if c.kind == HitKind::Triangle && c.t <= self.tmax {
+                self.commit(c);
+            }
+        }
+    }
+
+    /// Commit the current AABB candidate at t (ignored outside [tmin, current tmax]).
+    pub fn generate_intersection(&mut self, t: f32) {
+        if let Some(c) = self.candidate {
+            if c.kind == HitKind::Aabb && t >= self.ray.tmin && t <= self.tmax {
+                self.candidate = None;
+                self.commit(Hit { t, ..c });
+            }
+        }
+    }
+
+    pub fn terminate(&mut self) {
+        self.done = true;
+        self.stack.clear();
+        self.inst = None;
+    }
+
+    pub fn committed(&self) -> Option<Hit> {
+        self.committed
+    }
+}
+
+/// Exact (unwidened) entry distance of a ray into an AABB primitive within [tmin, tmax].
+fn ray_box_exact(org: Vec3, dir: Vec3, b: &[f32; 6], tmin: f32, tmax: f32) -> Option<f32> {
+    let o = DVec3::new(org.x as f64, org.y as f64, org.z as f64);
+    let d = DVec3::new(dir.x as f64, dir.y as f64, dir.z as f64);
+    let mut tn = tmin as f64;
+    let mut tf = tmax as f64;
+    for a in 0..3 {
+        let (lo, hi) = (b[a] as f64, b[a + 3] as f64);
+        if d[a] == 0.0 {
+            if o[a] < lo || o[a] > hi {
+                return None;
+            }
+            continue;
+        }
+        let t0 = (lo - o[a]) / d[a];
+        let t1 = (hi - o[a]) / d[a];
+        tn = tn.max(t0.min(t1));
+        tf = tf.min(t0.max(t1));
+    }
+    if tn <= tf && !tn.is_nan() {
+        Some((tn as f32).clamp(tmin, tmax))
+    } else {
+        None
+    }
+}
+
+fn run(mut q: RayQuery<'_>) -> Option<Hit> {
+    while let Some(c) = q.proceed() {
+        match c.kind {
+            HitKind::Triangle => q.confirm(),
+            HitKind::Aabb => q.generate_intersection(c.t),
+        }
+    }
+    q.committed()
+}
+
+/// Every candidate confirmed (AABB candidates: hit at max(tmin, box entry t)).
+pub fn closest_hit(structure: &[u8], view: &dyn DeviceView, ray: Ray, flags: RayFlags, cull_mask: u8) -> Option<Hit> {
+    run(RayQuery::new(structure, view, ray, flags, cull_mask))
+}
+
+/// closest_hit with TERMINATE_ON_FIRST_HIT.
+pub fn any_hit(structure: &[u8], view: &dyn DeviceView, ray: Ray, flags: RayFlags, cull_mask: u8) -> Option<Hit> {
+    run(RayQuery::new(structure, view, ray, RayFlags(flags.0 | RayFlags::TERMINATE_ON_FIRST_HIT), cull_mask))
+}
+
+/// Every candidate/hit the traversal meets within [tmin, tmax] (flags and culling applied), in
+/// no particular order.
+pub fn all_hits(structure: &[u8], view: &dyn DeviceView, ray: Ray, flags: RayFlags, cull_mask: u8) -> Vec<Hit> {
+    let mut q = RayQuery::new(structure, view, ray, RayFlags(flags.0 & !RayFlags::TERMINATE_ON_FIRST_HIT), cull_mask);
+    q.collect_all = true;
+    let mut out = Vec::new();
+    while let Some(h) = q.proceed() {
+        out.push(h);
+    }
+    out
+}
