@@ -1,4 +1,5 @@
 //! The object model: plain Rust types with Arc-shared state. No raw application pointers here.
+pub mod descriptor;
 pub mod device;
 pub mod instance;
 pub mod queue;
