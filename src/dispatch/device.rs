@@ -160,6 +160,7 @@ unsafe extern "system" fn create_device(
             memory,
             queues: OnceLock::new(),
             epoch: std::time::Instant::now(),
+            lost: Default::default(),
         });
         let mut queues = Vec::new();
         for q in qinfos {
@@ -182,7 +183,10 @@ unsafe extern "system" fn destroy_device(device: vk::Device, _p_allocator: *cons
         if let Some(dev) = unsafe { free_dispatchable::<Device>(vk::Handle::as_raw(device) as DeviceHandle) } {
             for (_, _, q) in dev.queues.get().map(|v| v.as_slice()).unwrap_or(&[]) {
                 // SAFETY: queue handles were created with the device and die with it.
-                unsafe { free_dispatchable::<Queue>(*q as QueueHandle) };
+                if let Some(queue) = unsafe { free_dispatchable::<Queue>(*q as QueueHandle) } {
+                    // Stop and join the queue's worker (cancels waits it is blocked in).
+                    queue.shutdown();
+                }
             }
         }
     })

@@ -19,6 +19,9 @@ pub struct Device {
     pub queues: std::sync::OnceLock<Vec<(u32, u32, usize)>>,
     /// Monotonic origin of timestamps.
     pub epoch: std::time::Instant,
+    /// Set when a submission lost the device (strict mode); waits and submits then report
+    /// VK_ERROR_DEVICE_LOST.
+    pub lost: std::sync::atomic::AtomicBool,
 }
 
 /// Features the application enabled that change behaviour.
@@ -42,6 +45,15 @@ impl DispatchTag for Device {
 impl Device {
     pub fn extension_enabled(&self, name: &str) -> bool {
         self.enabled_extensions.contains(name)
+    }
+
+    pub fn is_lost(&self) -> bool {
+        self.lost.load(std::sync::atomic::Ordering::Acquire)
+    }
+
+    pub fn mark_lost(&self) {
+        self.lost.store(true, std::sync::atomic::Ordering::Release);
+        crate::runtime::sync::notify();
     }
 
     /// Nanoseconds since device creation (timestamp queries; timestampPeriod = 1 ns).

@@ -1,14 +1,77 @@
-//! Queues: each has a worker thread that executes submissions in order.
-use std::sync::Weak;
+//! Queues: each has a worker thread (started on the first submission) that executes
+//! submissions in order: wait semaphores → command buffers → signal semaphores, batch after
+//! batch, then the fence. vkQueueSubmit only enqueues.
+//!
+//! Stopping: [`Queue::shutdown`] (vkDestroyDevice) raises the cancel flag, which ends any wait
+//! the worker is blocked in, closes the channel and joins the thread. Submissions still queued
+//! are abandoned (their buffers leave the pending state; nothing executes).
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::mpsc;
+use std::sync::{Arc, Mutex, Weak};
+use std::thread::JoinHandle;
 
+use ash::vk;
+
+use super::command::{execute_recording, CommandBuffer, ExecContext, Flow, SubmittedBuffer};
+use super::sync::{self, Deadline, Fence, Semaphore, SemaphoreKind, WaitOutcome};
+use super::Device;
+use crate::diag;
 use crate::dispatch::handle::DispatchTag;
 
-use super::Device;
+/// One batch of a submission, as the dispatch layer lowered it.
+pub struct BatchDesc {
+    pub waits: Vec<(Arc<Semaphore>, u64)>,
+    pub command_buffers: Vec<Arc<CommandBuffer>>,
+    pub signals: Vec<(Arc<Semaphore>, u64)>,
+}
+
+struct Batch {
+    waits: Vec<(Arc<Semaphore>, u64)>,
+    command_buffers: Vec<SubmittedBuffer>,
+    signals: Vec<(Arc<Semaphore>, u64)>,
+}
+
+struct Submission {
+    batches: Vec<Batch>,
+    fence: Option<Arc<Fence>>,
+}
+
+impl Submission {
+    /// Nothing executes; buffers leave the pending state, signals and fence fire so that no
+    /// host wait hangs on a stopped queue.
+    fn abandon(self) {
+        for b in self.batches {
+            for cb in &b.command_buffers {
+                cb.complete();
+            }
+            for (s, v) in &b.signals {
+                s.signal(*v);
+            }
+        }
+        if let Some(f) = self.fence {
+            f.signal_from_queue();
+        }
+    }
+}
+
+/// State shared with the worker thread.
+struct Shared {
+    submitted: AtomicU64,
+    completed: AtomicU64,
+    stop: AtomicBool,
+}
+
+struct Worker {
+    tx: mpsc::Sender<Submission>,
+    thread: JoinHandle<()>,
+}
 
 pub struct Queue {
     pub device: Weak<Device>,
     pub family: u32,
     pub index: u32,
+    shared: Arc<Shared>,
+    worker: Mutex<Option<Worker>>,
 }
 
 impl DispatchTag for Queue {
@@ -17,6 +80,158 @@ impl DispatchTag for Queue {
 
 impl Queue {
     pub fn new(device: Weak<Device>, family: u32, index: u32) -> Queue {
-        Queue { device, family, index }
+        Queue {
+            device,
+            family,
+            index,
+            shared: Arc::new(Shared { submitted: AtomicU64::new(0), completed: AtomicU64::new(0), stop: AtomicBool::new(false) }),
+            worker: Mutex::new(None),
+        }
+    }
+
+    /// vkQueueSubmit / vkQueueSubmit2 after lowering: validate, mark pending, enqueue.
+    pub fn submit(&self, command: &str, batches: Vec<BatchDesc>, fence: Option<Arc<Fence>>) -> vk::Result {
+        let Some(device) = self.device.upgrade() else { return vk::Result::ERROR_DEVICE_LOST };
+        if device.is_lost() {
+            return vk::Result::ERROR_DEVICE_LOST;
+        }
+        if let Some(f) = &fence {
+            if f.is_signalled() {
+                diag::vuid("VUID-vkQueueSubmit-fence-00063", command, "the fence is already signalled (reset it before submitting)");
+            }
+            if f.is_pending() {
+                diag::vuid("VUID-vkQueueSubmit-fence-00064", command, "the fence is already associated with an unfinished submission");
+            }
+        }
+        let mut lowered = Vec::with_capacity(batches.len());
+        for b in batches {
+            for (s, v) in &b.signals {
+                if s.kind == SemaphoreKind::Timeline && *v <= s.value() {
+                    diag::vuid(
+                        "VUID-VkSubmitInfo-pSignalSemaphores-03242",
+                        command,
+                        &format!("signal value {v} is not greater than the timeline semaphore's current value {}", s.value()),
+                    );
+                }
+            }
+            let command_buffers = b.command_buffers.iter().filter_map(|cb| cb.prepare_submit(command)).collect();
+            lowered.push(Batch { waits: b.waits, command_buffers, signals: b.signals });
+        }
+        if let Some(f) = &fence {
+            f.mark_pending();
+        }
+        let submission = Submission { batches: lowered, fence };
+        let mut w = self.worker.lock().unwrap_or_else(|e| e.into_inner());
+        if self.shared.stop.load(Ordering::Acquire) {
+            drop(w);
+            submission.abandon();
+            return vk::Result::ERROR_DEVICE_LOST;
+        }
+        if w.is_none() {
+            match self.start_worker() {
+                Some(worker) => *w = Some(worker),
+                None => {
+                    drop(w);
+                    submission.abandon();
+                    return vk::Result::ERROR_OUT_OF_HOST_MEMORY;
+                }
+            }
+        }
+        self.shared.submitted.fetch_add(1, Ordering::AcqRel);
+        if let Some(Worker { tx, .. }) = w.as_ref() {
+            if let Err(mpsc::SendError(s)) = tx.send(submission) {
+                self.shared.completed.fetch_add(1, Ordering::AcqRel);
+                s.abandon();
+                return vk::Result::ERROR_DEVICE_LOST;
+            }
+        }
+        vk::Result::SUCCESS
+    }
+
+    fn start_worker(&self) -> Option<Worker> {
+        let (tx, rx) = mpsc::channel::<Submission>();
+        let shared = self.shared.clone();
+        let device = self.device.clone();
+        let thread = std::thread::Builder::new()
+            .name(format!("arbor-queue-{}-{}", self.family, self.index))
+            .spawn(move || worker_loop(rx, shared, device))
+            .ok()?;
+        Some(Worker { tx, thread })
+    }
+
+    /// vkQueueWaitIdle: wait for everything submitted so far.
+    pub fn wait_idle(&self) -> vk::Result {
+        let target = self.shared.submitted.load(Ordering::Acquire);
+        let shared = &self.shared;
+        sync::wait_until(Deadline::Never, Some(&shared.stop), || shared.completed.load(Ordering::Acquire) >= target);
+        match self.device.upgrade() {
+            Some(d) if !d.is_lost() => vk::Result::SUCCESS,
+            _ => vk::Result::ERROR_DEVICE_LOST,
+        }
+    }
+
+    /// Stop the worker (device destruction): cancel its waits, abandon what is queued, join.
+    pub fn shutdown(&self) {
+        self.shared.stop.store(true, Ordering::Release);
+        sync::notify();
+        let worker = self.worker.lock().unwrap_or_else(|e| e.into_inner()).take();
+        if let Some(Worker { tx, thread }) = worker {
+            drop(tx);
+            if thread.join().is_err() {
+                diag::report(diag::Level::Error, "vkDestroyDevice", "a queue worker panicked");
+            }
+        }
+    }
+}
+
+impl Drop for Queue {
+    fn drop(&mut self) {
+        self.shutdown();
+    }
+}
+
+fn worker_loop(rx: mpsc::Receiver<Submission>, shared: Arc<Shared>, device: Weak<Device>) {
+    while let Ok(submission) = rx.recv() {
+        let device = device.upgrade();
+        match device {
+            Some(d) if !shared.stop.load(Ordering::Acquire) => {
+                // A panic in a command must not kill the queue: report it and go on.
+                let r = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| run(&d, &shared, submission)));
+                if r.is_err() {
+                    diag::report(diag::Level::Error, "queue", "internal error (caught panic) while executing a submission");
+                }
+            }
+            _ => submission.abandon(),
+        }
+        shared.completed.fetch_add(1, Ordering::AcqRel);
+        sync::notify();
+    }
+}
+
+fn run(device: &Arc<Device>, shared: &Shared, submission: Submission) {
+    let ctx = ExecContext { device, cancel: &shared.stop };
+    let mut stopped = false;
+    for batch in &submission.batches {
+        if !stopped {
+            for (s, v) in &batch.waits {
+                let r = sync::wait_until(Deadline::Never, Some(&shared.stop), || s.try_consume(*v));
+                if r != WaitOutcome::Ready {
+                    stopped = true;
+                    break;
+                }
+            }
+        }
+        for cb in &batch.command_buffers {
+            if !stopped && !device.is_lost() && execute_recording(&cb.recording, &ctx) == Flow::Stop {
+                stopped = true;
+            }
+            cb.complete();
+        }
+        for (s, v) in &batch.signals {
+            s.signal(*v);
+        }
+    }
+    if let Some(f) = &submission.fence {
+        f.signal_from_queue();
     }
 }

@@ -1,0 +1,877 @@
+//! Command pools, command buffers, the recorded [`Command`]s and the executor that runs them on
+//! a queue's worker thread.
+//!
+//! Recording checks what it can see (VUIDs reported through `diag`, the offending command is
+//! not recorded) and stores a [`Command`] that owns deep copies of its arguments and `Arc`s of
+//! the objects it names, so nothing recorded points into application memory (DESIGN.md,
+//! principle 3 and lavapipe's vk_cmd_enqueue lesson). Ending a recording freezes it into an
+//! `Arc<Recording>`; a submission holds that `Arc`, so re-recording or freeing a buffer the
+//! application still has pending is diagnosed but can never make the worker read freed state.
+//!
+//! Extension point: a command that does not fit the built-in variants (acceleration-structure
+//! builds, copies, property writes) implements [`Exec`] and is recorded with
+//! [`CommandBuffer::record_custom`]; the executor calls [`Exec::execute`] with an
+//! [`ExecContext`] (device memory, timestamps, cancellable waits, the rayon pool via
+//! `crate::threads`). Returning `Err` reports the failure, skips the command and goes on (or
+//! loses the device in strict mode).
+use std::sync::atomic::{AtomicBool, AtomicU32, Ordering};
+use std::sync::{Arc, Mutex, MutexGuard, Weak};
+
+use ash::vk;
+
+use super::query::{QueryKind, QueryPool, RangeError, ReadFlags};
+use super::sync::{self, Deadline, Event, WaitOutcome};
+use super::Device;
+use crate::diag;
+use crate::dispatch::handle::DispatchTag;
+use crate::memory::{AccessError, AddressSpace, Buffer};
+
+/// Largest copy/fill chunk staged through host memory at once (keeps extra memory bounded).
+const CHUNK: u64 = 4 << 20;
+
+// ---------------------------------------------------------------------------------------------
+// Execution
+
+/// Why executing a command failed.
+#[derive(Debug)]
+pub enum ExecError {
+    /// A valid-usage rule that only execution can check was broken.
+    Invalid { vuid: &'static str, message: String },
+    /// A device-memory access was refused (freed memory, destroyed buffer, bad range).
+    Access(AccessError),
+    /// The queue is being stopped (device destruction): stop executing.
+    Cancelled,
+}
+
+impl From<AccessError> for ExecError {
+    fn from(e: AccessError) -> Self {
+        ExecError::Access(e)
+    }
+}
+
+/// What a command sees while it executes.
+pub struct ExecContext<'a> {
+    pub device: &'a Arc<Device>,
+    /// Raised when the queue is stopped; long waits and long work should check it.
+    pub cancel: &'a AtomicBool,
+}
+
+impl ExecContext<'_> {
+    /// The device's memory (resolve device addresses, read and write).
+    pub fn memory(&self) -> &AddressSpace {
+        &self.device.memory
+    }
+
+    /// Current device timestamp (ns).
+    pub fn timestamp(&self) -> u64 {
+        self.device.timestamp_now()
+    }
+
+    /// Block (cancellably) until `ready()` holds. `ready` runs under the sync hub's lock; it
+    /// must only read state.
+    pub fn wait(&self, ready: impl FnMut() -> bool) -> Result<(), ExecError> {
+        match sync::wait_until(Deadline::Never, Some(self.cancel), ready) {
+            WaitOutcome::Ready => Ok(()),
+            _ => Err(ExecError::Cancelled),
+        }
+    }
+
+    pub fn cancelled(&self) -> bool {
+        self.cancel.load(Ordering::Acquire)
+    }
+}
+
+/// A command implemented outside this module (the acceleration-structure commands).
+pub trait Exec: Send + Sync {
+    /// The Vulkan command it was recorded by, for diagnostics ("vkCmdBuildAccelerationStructuresKHR").
+    fn name(&self) -> &'static str;
+    /// Run it. Reads of device memory happen here, not at record time.
+    fn execute(&self, ctx: &ExecContext<'_>) -> Result<(), ExecError>;
+}
+
+/// A buffer copy region (validated at record time, checked again when executed).
+#[derive(Clone, Copy, Debug)]
+pub struct CopyRegion {
+    pub src_offset: u64,
+    pub dst_offset: u64,
+    pub size: u64,
+}
+
+/// A secondary command buffer recorded into a primary: the buffer (for pending/lifecycle
+/// tracking) and the recording it had at that moment.
+pub struct Secondary {
+    pub buffer: Arc<CommandBuffer>,
+    pub recording: Arc<Recording>,
+}
+
+/// One recorded command, owning everything it needs.
+pub enum Command {
+    CopyBuffer { src: Arc<Buffer>, dst: Arc<Buffer>, regions: Vec<CopyRegion> },
+    FillBuffer { dst: Arc<Buffer>, offset: u64, size: u64, data: u32 },
+    UpdateBuffer { dst: Arc<Buffer>, offset: u64, data: Vec<u8> },
+    /// Pipeline barriers: a CPU queue executes in order and writes memory directly, so there is
+    /// nothing to do; recorded so the command stream mirrors what the application recorded.
+    Barrier,
+    SetEvent(Arc<Event>),
+    ResetEvent(Arc<Event>),
+    WaitEvents(Vec<Arc<Event>>),
+    WriteTimestamp { pool: Arc<QueryPool>, query: u32, name: &'static str },
+    ResetQueries { pool: Arc<QueryPool>, first: u32, count: u32 },
+    CopyQueryResults { pool: Arc<QueryPool>, first: u32, count: u32, dst: Arc<Buffer>, offset: u64, stride: u64, flags: vk::QueryResultFlags },
+    ExecuteCommands(Vec<Secondary>),
+    Custom(Box<dyn Exec>),
+}
+
+impl Command {
+    pub fn name(&self) -> &'static str {
+        match self {
+            Command::CopyBuffer { .. } => "vkCmdCopyBuffer",
+            Command::FillBuffer { .. } => "vkCmdFillBuffer",
+            Command::UpdateBuffer { .. } => "vkCmdUpdateBuffer",
+            Command::Barrier => "vkCmdPipelineBarrier",
+            Command::SetEvent(_) => "vkCmdSetEvent",
+            Command::ResetEvent(_) => "vkCmdResetEvent",
+            Command::WaitEvents(_) => "vkCmdWaitEvents",
+            Command::WriteTimestamp { name, .. } => name,
+            Command::ResetQueries { .. } => "vkCmdResetQueryPool",
+            Command::CopyQueryResults { .. } => "vkCmdCopyQueryPoolResults",
+            Command::ExecuteCommands(_) => "vkCmdExecuteCommands",
+            Command::Custom(c) => c.name(),
+        }
+    }
+
+    fn execute(&self, ctx: &ExecContext<'_>) -> Result<(), ExecError> {
+        match self {
+            Command::CopyBuffer { src, dst, regions } => {
+                for r in regions {
+                    copy_buffer(src, dst, r)?;
+                }
+                Ok(())
+            }
+            Command::FillBuffer { dst, offset, size, data } => fill_buffer(dst, *offset, *size, *data),
+            Command::UpdateBuffer { dst, offset, data } => Ok(dst.write(*offset, data)?),
+            Command::Barrier => Ok(()),
+            Command::SetEvent(e) => {
+                e.set();
+                Ok(())
+            }
+            Command::ResetEvent(e) => {
+                e.reset();
+                Ok(())
+            }
+            Command::WaitEvents(events) => ctx.wait(|| events.iter().all(|e| e.is_set())),
+            Command::WriteTimestamp { pool, query, name } => {
+                let vuid = if *name == "vkCmdWriteTimestamp2" { "VUID-vkCmdWriteTimestamp2-None-03864" } else { "VUID-vkCmdWriteTimestamp-None-00830" };
+                if !pool.write(*query, ctx.timestamp()) {
+                    return Err(ExecError::Invalid { vuid, message: format!("query {query} was not unavailable (reset it before writing it again); the timestamp was written") });
+                }
+                Ok(())
+            }
+            Command::ResetQueries { pool, first, count } => {
+                pool.reset(*first, *count);
+                Ok(())
+            }
+            Command::CopyQueryResults { pool, first, count, dst, offset, stride, flags } => {
+                let f = ReadFlags::from_vk(*flags);
+                if f.wait {
+                    let end = *first + *count;
+                    ctx.wait(|| (*first..end).all(|q| pool.is_available(q)))?;
+                }
+                let len = copy_results_len(*count, *stride, &f);
+                dst.with_slice_mut(*offset, len, |out| {
+                    pool.read_into(*first, *count, *stride, &f, out);
+                })?;
+                Ok(())
+            }
+            Command::ExecuteCommands(secondaries) => {
+                for s in secondaries {
+                    if execute_recording(&s.recording, ctx) == Flow::Stop {
+                        return Err(ExecError::Cancelled);
+                    }
+                }
+                Ok(())
+            }
+            Command::Custom(c) => c.execute(ctx),
+        }
+    }
+}
+
+fn copy_buffer(src: &Buffer, dst: &Buffer, r: &CopyRegion) -> Result<(), ExecError> {
+    let mut done = 0;
+    let mut staging = vec![0u8; r.size.min(CHUNK) as usize];
+    while done < r.size {
+        let n = (r.size - done).min(CHUNK);
+        let tmp = &mut staging[..n as usize];
+        src.read(r.src_offset + done, tmp)?;
+        dst.write(r.dst_offset + done, tmp)?;
+        done += n;
+    }
+    Ok(())
+}
+
+fn fill_buffer(dst: &Buffer, offset: u64, size: u64, data: u32) -> Result<(), ExecError> {
+    let mut done = 0;
+    while done < size {
+        let n = (size - done).min(CHUNK);
+        dst.with_slice_mut(offset + done, n, |s| {
+            for w in s.chunks_mut(4) {
+                w.copy_from_slice(&data.to_le_bytes()[..w.len()]);
+            }
+        })?;
+        done += n;
+    }
+    Ok(())
+}
+
+/// Bytes vkCmdCopyQueryPoolResults/vkGetQueryPoolResults write for `count` queries.
+pub fn copy_results_len(count: u32, stride: u64, f: &ReadFlags) -> u64 {
+    if count == 0 {
+        0
+    } else {
+        (count as u64 - 1) * stride + f.element_size()
+    }
+}
+
+#[derive(Clone, Copy, PartialEq, Eq, Debug)]
+pub enum Flow {
+    Continue,
+    /// Stop the submission: cancelled, or the device was lost (strict mode).
+    Stop,
+}
+
+/// Execute a recording in order. A failing command is reported and skipped; in strict mode it
+/// loses the device and stops the submission.
+pub fn execute_recording(recording: &Recording, ctx: &ExecContext<'_>) -> Flow {
+    if recording.violations > 0 && diag::strict() {
+        diag::report(diag::Level::Error, "vkQueueSubmit", "strict mode: the command buffer was recorded with valid-usage violations; device lost");
+        ctx.device.mark_lost();
+        return Flow::Stop;
+    }
+    for c in &recording.commands {
+        if ctx.cancelled() {
+            return Flow::Stop;
+        }
+        let msg = match c.execute(ctx) {
+            Ok(()) => continue,
+            Err(ExecError::Cancelled) => return Flow::Stop,
+            Err(ExecError::Invalid { vuid, message }) => format!("[{vuid}] {message}"),
+            Err(ExecError::Access(a)) => format!("device-memory access refused: {a}; command skipped"),
+        };
+        diag::report(diag::Level::Error, c.name(), &msg);
+        if diag::strict() {
+            diag::report(diag::Level::Error, c.name(), "strict mode: device lost");
+            ctx.device.mark_lost();
+            return Flow::Stop;
+        }
+    }
+    Flow::Continue
+}
+
+// ---------------------------------------------------------------------------------------------
+// Pools and buffers
+
+/// One `VkCommandPool`. It owns its command buffers' handles (freed with the pool).
+pub struct CommandPool {
+    pub flags: vk::CommandPoolCreateFlags,
+    pub family: u32,
+    /// (handle value, buffer) of every live buffer allocated from the pool.
+    buffers: Mutex<Vec<(usize, Arc<CommandBuffer>)>>,
+}
+
+impl CommandPool {
+    pub fn new(flags: vk::CommandPoolCreateFlags, family: u32) -> CommandPool {
+        CommandPool { flags, family, buffers: Mutex::new(Vec::new()) }
+    }
+
+    fn list(&self) -> MutexGuard<'_, Vec<(usize, Arc<CommandBuffer>)>> {
+        self.buffers.lock().unwrap_or_else(|e| e.into_inner())
+    }
+
+    pub fn allocate(self: &Arc<Self>, level: vk::CommandBufferLevel) -> Arc<CommandBuffer> {
+        Arc::new(CommandBuffer {
+            level,
+            pool: Arc::downgrade(self),
+            pool_flags: self.flags,
+            state: Mutex::new(CbState::default()),
+            pending: AtomicU32::new(0),
+        })
+    }
+
+    /// Remember a buffer's handle (after the dispatch layer made it).
+    pub fn adopt(&self, handle: usize, buffer: Arc<CommandBuffer>) {
+        self.list().push((handle, buffer));
+    }
+
+    /// Forget a handle (vkFreeCommandBuffers). Returns whether it belonged to this pool.
+    pub fn release(&self, handle: usize, command: &str) -> bool {
+        let mut l = self.list();
+        let Some(i) = l.iter().position(|(h, _)| *h == handle) else { return false };
+        let (_, b) = l.swap_remove(i);
+        if b.is_pending() {
+            diag::vuid("VUID-vkFreeCommandBuffers-pCommandBuffers-00047", command, "freeing a command buffer that is pending execution (the queue keeps its recording alive)");
+        }
+        true
+    }
+
+    /// Take every handle (vkDestroyCommandPool), diagnosing pending buffers.
+    pub fn take_all(&self) -> Vec<usize> {
+        let l = std::mem::take(&mut *self.list());
+        if l.iter().any(|(_, b)| b.is_pending()) {
+            diag::vuid("VUID-vkDestroyCommandPool-commandPool-00041", "vkDestroyCommandPool", "a command buffer of the pool is pending execution");
+        }
+        l.into_iter().map(|(h, _)| h).collect()
+    }
+
+    /// vkResetCommandPool: every buffer back to the initial state.
+    pub fn reset(&self, release_resources: bool) {
+        let l = self.list();
+        if l.iter().any(|(_, b)| b.is_pending()) {
+            diag::vuid("VUID-vkResetCommandPool-commandPool-00040", "vkResetCommandPool", "a command buffer of the pool is pending execution");
+        }
+        for (_, b) in l.iter() {
+            b.state().reset(release_resources);
+        }
+    }
+
+    /// vkTrimCommandPool: give back spare recording capacity.
+    pub fn trim(&self) {
+        for (_, b) in self.list().iter() {
+            let mut s = b.state();
+            s.building.shrink_to_fit();
+        }
+    }
+}
+
+#[derive(Clone, Copy, PartialEq, Eq, Debug, Default)]
+pub enum Lifecycle {
+    #[default]
+    Initial,
+    Recording,
+    Executable,
+    Invalid,
+}
+
+/// A frozen recording (what a submission executes).
+#[derive(Default)]
+pub struct Recording {
+    pub commands: Vec<Command>,
+    /// Valid-usage violations seen while recording (strict mode loses the device on submit).
+    pub violations: u32,
+    pub usage: vk::CommandBufferUsageFlags,
+    /// The buffer's generation when this recording was made.
+    pub generation: u64,
+}
+
+#[derive(Default)]
+struct CbState {
+    lifecycle: Lifecycle,
+    usage: vk::CommandBufferUsageFlags,
+    building: Vec<Command>,
+    violations: u32,
+    recorded: Option<Arc<Recording>>,
+    /// Bumped by every reset/begin: lets a primary detect that a secondary it recorded changed.
+    generation: u64,
+}
+
+impl CbState {
+    fn reset(&mut self, release_resources: bool) {
+        self.lifecycle = Lifecycle::Initial;
+        self.building.clear();
+        if release_resources {
+            self.building.shrink_to_fit();
+        }
+        self.violations = 0;
+        self.recorded = None;
+        self.generation += 1;
+    }
+}
+
+/// One `VkCommandBuffer`.
+pub struct CommandBuffer {
+    pub level: vk::CommandBufferLevel,
+    pub pool: Weak<CommandPool>,
+    pool_flags: vk::CommandPoolCreateFlags,
+    state: Mutex<CbState>,
+    /// Submissions (or primaries in submissions) not yet completed that include this buffer.
+    pending: AtomicU32,
+}
+
+impl DispatchTag for CommandBuffer {
+    const TAG: u64 = 0x4152_424f_5243_4d44; // "ARBORCMD"
+}
+
+/// A command buffer as a submission holds it.
+pub struct SubmittedBuffer {
+    pub buffer: Arc<CommandBuffer>,
+    pub recording: Arc<Recording>,
+    /// Secondaries it executes (recursively), with their recordings: pending with it.
+    pub involved: Vec<(Arc<CommandBuffer>, Arc<Recording>)>,
+}
+
+impl CommandBuffer {
+    fn state(&self) -> MutexGuard<'_, CbState> {
+        self.state.lock().unwrap_or_else(|e| e.into_inner())
+    }
+
+    pub fn is_pending(&self) -> bool {
+        self.pending.load(Ordering::Acquire) > 0
+    }
+
+    pub fn lifecycle(&self) -> Lifecycle {
+        self.state().lifecycle
+    }
+
+    fn is_primary(&self) -> bool {
+        self.level == vk::CommandBufferLevel::PRIMARY
+    }
+
+    /// vkBeginCommandBuffer. `has_inheritance`: pInheritanceInfo was given.
+    pub fn begin(&self, usage: vk::CommandBufferUsageFlags, has_inheritance: bool) {
+        const CMD: &str = "vkBeginCommandBuffer";
+        if self.is_pending() {
+            diag::vuid("VUID-vkBeginCommandBuffer-commandBuffer-00049", CMD, "the command buffer is pending execution (the queue keeps the old recording)");
+        }
+        let mut s = self.state();
+        match s.lifecycle {
+            Lifecycle::Recording => {
+                diag::vuid("VUID-vkBeginCommandBuffer-commandBuffer-00049", CMD, "the command buffer is already recording; the recording restarts");
+            }
+            Lifecycle::Executable | Lifecycle::Invalid
+                if !self.pool_flags.contains(vk::CommandPoolCreateFlags::RESET_COMMAND_BUFFER) =>
+            {
+                diag::vuid(
+                    "VUID-vkBeginCommandBuffer-commandBuffer-00050",
+                    CMD,
+                    "the buffer is not in the initial state and its pool lacks RESET_COMMAND_BUFFER (reset the pool first)",
+                );
+            }
+            _ => {}
+        }
+        s.reset(false);
+        s.lifecycle = Lifecycle::Recording;
+        s.usage = usage;
+        if !self.is_primary() && !has_inheritance {
+            diag::vuid("VUID-vkBeginCommandBuffer-commandBuffer-00051", CMD, "a secondary command buffer needs pInheritanceInfo");
+            s.violations += 1;
+        }
+        if !self.is_primary() && usage.contains(vk::CommandBufferUsageFlags::RENDER_PASS_CONTINUE) {
+            diag::report(diag::Level::Warn, CMD, "RENDER_PASS_CONTINUE: Arbor has no render passes; the flag has no effect");
+        }
+    }
+
+    /// vkEndCommandBuffer.
+    pub fn end(&self) -> vk::Result {
+        let mut s = self.state();
+        if s.lifecycle != Lifecycle::Recording {
+            diag::vuid("VUID-vkEndCommandBuffer-commandBuffer-00059", "vkEndCommandBuffer", "the command buffer is not recording");
+            return vk::Result::SUCCESS;
+        }
+        let recording = Recording {
+            commands: std::mem::take(&mut s.building),
+            violations: s.violations,
+            usage: s.usage,
+            generation: s.generation,
+        };
+        s.recorded = Some(Arc::new(recording));
+        s.lifecycle = Lifecycle::Executable;
+        vk::Result::SUCCESS
+    }
+
+    /// vkResetCommandBuffer.
+    pub fn reset(&self, release_resources: bool) {
+        const CMD: &str = "vkResetCommandBuffer";
+        if !self.pool_flags.contains(vk::CommandPoolCreateFlags::RESET_COMMAND_BUFFER) {
+            diag::vuid("VUID-vkResetCommandBuffer-commandBuffer-00046", CMD, "the pool was not created with RESET_COMMAND_BUFFER");
+        }
+        if self.is_pending() {
+            diag::vuid("VUID-vkResetCommandBuffer-commandBuffer-00045", CMD, "the command buffer is pending execution (the queue keeps the old recording)");
+        }
+        self.state().reset(release_resources);
+    }
+
+    /// Report a valid-usage violation found while recording; the command is not recorded.
+    pub fn violation(&self, vuid: &str, command: &str, message: &str) {
+        diag::vuid(vuid, command, message);
+        self.state().violations += 1;
+    }
+
+    /// Append a command (only while recording).
+    fn push(&self, command: &str, c: Command) {
+        let mut s = self.state();
+        if s.lifecycle != Lifecycle::Recording {
+            drop(s);
+            diag::report(diag::Level::Error, command, "the command buffer is not in the recording state; command ignored");
+            return;
+        }
+        s.building.push(c);
+    }
+
+    /// Check the recording state before validating arguments (so a misuse is reported once).
+    fn recording(&self, command: &str) -> bool {
+        if self.state().lifecycle != Lifecycle::Recording {
+            diag::report(diag::Level::Error, command, "the command buffer is not in the recording state; command ignored");
+            return false;
+        }
+        true
+    }
+
+    /// Record a command implemented elsewhere (see the module docs).
+    pub fn record_custom(&self, command: Box<dyn Exec>) {
+        let name = command.name();
+        self.push(name, Command::Custom(command));
+    }
+
+    /// Record a command built by the caller (for variants without their own entry point).
+    pub fn record(&self, command: Command) {
+        let name = command.name();
+        self.push(name, command);
+    }
+
+    // --- transfer commands ------------------------------------------------------------------
+
+    pub fn cmd_copy_buffer(&self, v: &CopyVuids, src: Arc<Buffer>, dst: Arc<Buffer>, regions: Vec<CopyRegion>) {
+        let cmd = v.command;
+        if !self.recording(cmd) {
+            return;
+        }
+        if !src.usage.contains(vk::BufferUsageFlags::TRANSFER_SRC) {
+            return self.violation(v.src_usage, cmd, "srcBuffer lacks TRANSFER_SRC usage");
+        }
+        if !dst.usage.contains(vk::BufferUsageFlags::TRANSFER_DST) {
+            return self.violation(v.dst_usage, cmd, "dstBuffer lacks TRANSFER_DST usage");
+        }
+        for (i, r) in regions.iter().enumerate() {
+            if r.size == 0 {
+                return self.violation(v.size_zero, cmd, &format!("pRegions[{i}].size is 0"));
+            }
+            if r.src_offset >= src.size {
+                return self.violation(v.src_offset, cmd, &format!("pRegions[{i}].srcOffset {} is not less than the source size {}", r.src_offset, src.size));
+            }
+            if r.dst_offset >= dst.size {
+                return self.violation(v.dst_offset, cmd, &format!("pRegions[{i}].dstOffset {} is not less than the destination size {}", r.dst_offset, dst.size));
+            }
+            if r.size > src.size - r.src_offset {
+                return self.violation(v.src_size, cmd, &format!("pRegions[{i}] reads past the end of the source ({} + {} > {})", r.src_offset, r.size, src.size));
+            }
+            if r.size > dst.size - r.dst_offset {
+                return self.violation(v.dst_size, cmd, &format!("pRegions[{i}] writes past the end of the destination ({} + {} > {})", r.dst_offset, r.size, dst.size));
+            }
+        }
+        if Arc::ptr_eq(&src, &dst) {
+            let overlaps = |a: u64, b: u64, n: u64, m: u64| a < b + m && b < a + n;
+            for (i, r) in regions.iter().enumerate() {
+                for (j, q) in regions.iter().enumerate() {
+                    if overlaps(r.src_offset, q.dst_offset, r.size, q.size) {
+                        return self.violation(v.overlap, cmd, &format!("pRegions[{i}] source overlaps pRegions[{j}] destination in the same buffer"));
+                    }
+                }
+            }
+        }
+        self.push(cmd, Command::CopyBuffer { src, dst, regions });
+    }
+
+    pub fn cmd_fill_buffer(&self, dst: Arc<Buffer>, offset: u64, size: u64, data: u32) {
+        const CMD: &str = "vkCmdFillBuffer";
+        if !self.recording(CMD) {
+            return;
+        }
+        if !dst.usage.contains(vk::BufferUsageFlags::TRANSFER_DST) {
+            return self.violation("VUID-vkCmdFillBuffer-dstBuffer-00029", CMD, "dstBuffer lacks TRANSFER_DST usage");
+        }
+        if offset >= dst.size {
+            return self.violation("VUID-vkCmdFillBuffer-dstOffset-00024", CMD, &format!("dstOffset {offset} is not less than the buffer size {}", dst.size));
+        }
+        if offset % 4 != 0 {
+            return self.violation("VUID-vkCmdFillBuffer-dstOffset-00025", CMD, &format!("dstOffset {offset} is not a multiple of 4"));
+        }
+        let size = if size == vk::WHOLE_SIZE {
+            // VK_WHOLE_SIZE: to the end of the buffer, rounded down to a multiple of 4.
+            (dst.size - offset) & !3
+        } else {
+            if size == 0 {
+                return self.violation("VUID-vkCmdFillBuffer-size-00026", CMD, "size is 0");
+            }
+            if size > dst.size - offset {
+                return self.violation("VUID-vkCmdFillBuffer-size-00027", CMD, &format!("dstOffset {offset} + size {size} exceeds the buffer size {}", dst.size));
+            }
+            if size % 4 != 0 {
+                return self.violation("VUID-vkCmdFillBuffer-size-00028", CMD, &format!("size {size} is not a multiple of 4"));
+            }
+            size
+        };
+        if size > 0 {
+            self.push(CMD, Command::FillBuffer { dst, offset, size, data });
+        }
+    }
+
+    pub fn cmd_update_buffer(&self, dst: Arc<Buffer>, offset: u64, data: Vec<u8>) {
+        const CMD: &str = "vkCmdUpdateBuffer";
+        if !self.recording(CMD) {
+            return;
+        }
+        let n = data.len() as u64;
+        if !dst.usage.contains(vk::BufferUsageFlags::TRANSFER_DST) {
+            return self.violation("VUID-vkCmdUpdateBuffer-dstBuffer-00034", CMD, "dstBuffer lacks TRANSFER_DST usage");
+        }
+        if offset >= dst.size {
+            return self.violation("VUID-vkCmdUpdateBuffer-dstOffset-00032", CMD, &format!("dstOffset {offset} is not less than the buffer size {}", dst.size));
+        }
+        if offset % 4 != 0 {
+            return self.violation("VUID-vkCmdUpdateBuffer-dstOffset-00036", CMD, &format!("dstOffset {offset} is not a multiple of 4"));
+        }
+        if n == 0 || n > 65536 {
+            return self.violation("VUID-vkCmdUpdateBuffer-dataSize-00037", CMD, &format!("dataSize {n} must be in 1..=65536"));
+        }
+        if n % 4 != 0 {
+            return self.violation("VUID-vkCmdUpdateBuffer-dataSize-00038", CMD, &format!("dataSize {n} is not a multiple of 4"));
+        }
+        if n > dst.size - offset {
+            return self.violation("VUID-vkCmdUpdateBuffer-dataSize-00033", CMD, &format!("dstOffset {offset} + dataSize {n} exceeds the buffer size {}", dst.size));
+        }
+        self.push(CMD, Command::UpdateBuffer { dst, offset, data });
+    }
+
+    pub fn cmd_barrier(&self, command: &str) {
+        if self.recording(command) {
+            self.push(command, Command::Barrier);
+        }
+    }
+
+    // --- events -----------------------------------------------------------------------------
+
+    pub fn cmd_set_event(&self, command: &str, event: Arc<Event>, set: bool) {
+        if self.recording(command) {
+            self.push(command, if set { Command::SetEvent(event) } else { Command::ResetEvent(event) });
+        }
+    }
+
+    pub fn cmd_wait_events(&self, command: &str, events: Vec<Arc<Event>>) {
+        if self.recording(command) && !events.is_empty() {
+            self.push(command, Command::WaitEvents(events));
+        }
+    }
+
+    // --- queries ----------------------------------------------------------------------------
+
+    pub fn cmd_write_timestamp(&self, command: &'static str, pool: Arc<QueryPool>, query: u32) {
+        if !self.recording(command) {
+            return;
+        }
+        let v2 = command == "vkCmdWriteTimestamp2";
+        if pool.kind != QueryKind::Timestamp {
+            let vuid = if v2 { "VUID-vkCmdWriteTimestamp2-queryPool-03861" } else { "VUID-vkCmdWriteTimestamp-queryPool-01416" };
+            return self.violation(vuid, command, &format!("queryPool has query type {}, not TIMESTAMP", pool.query_type.as_raw()));
+        }
+        if query >= pool.count {
+            let vuid = if v2 { "VUID-vkCmdWriteTimestamp2-query-04903" } else { "VUID-vkCmdWriteTimestamp-query-04904" };
+            return self.violation(vuid, command, &format!("query {query} is not less than the pool's {} queries", pool.count));
+        }
+        self.push(command, Command::WriteTimestamp { pool, query, name: command });
+    }
+
+    pub fn cmd_reset_query_pool(&self, pool: Arc<QueryPool>, first: u32, count: u32) {
+        const CMD: &str = "vkCmdResetQueryPool";
+        if !self.recording(CMD) {
+            return;
+        }
+        match pool.check_range(first, count) {
+            Err(RangeError::First) => self.violation("VUID-vkCmdResetQueryPool-firstQuery-00796", CMD, &format!("firstQuery {first} is not less than the pool's {} queries", pool.count)),
+            Err(RangeError::Count) => self.violation("VUID-vkCmdResetQueryPool-firstQuery-00797", CMD, &format!("firstQuery {first} + queryCount {count} exceeds the pool's {} queries", pool.count)),
+            Ok(()) => self.push(CMD, Command::ResetQueries { pool, first, count }),
+        }
+    }
+
+    /// vkCmdBeginQuery / vkCmdEndQuery: no supported query type is begun and ended (occlusion
+    /// needs a graphics queue, pipeline statistics a feature Arbor does not offer).
+    pub fn cmd_begin_end_query(&self, command: &str, pool: Arc<QueryPool>, query: u32) {
+        if !self.recording(command) {
+            return;
+        }
+        let (vuid, why) = match pool.kind {
+            QueryKind::Timestamp => ("VUID-vkCmdBeginQuery-queryType-02804", "timestamp queries are written with vkCmdWriteTimestamp, not begun"),
+            QueryKind::AccelerationStructure(_) => ("VUID-vkCmdBeginQuery-queryType-04728", "acceleration-structure queries are written by vkCmdWriteAccelerationStructuresPropertiesKHR"),
+            QueryKind::Unsupported(t) if t == vk::QueryType::OCCLUSION => ("VUID-vkCmdBeginQuery-queryType-00803", "occlusion queries need a graphics queue; Arbor's queue family has none"),
+            QueryKind::Unsupported(_) => ("VUID-vkCmdBeginQuery-queryType-00800", "this query type is not supported by Arbor"),
+        };
+        self.violation(vuid, command, &format!("query {query} of a pool of query type {}: {why}; not recorded", pool.query_type.as_raw()));
+    }
+
+    #[allow(clippy::too_many_arguments)]
+    pub fn cmd_copy_query_pool_results(&self, pool: Arc<QueryPool>, first: u32, count: u32, dst: Arc<Buffer>, offset: u64, stride: u64, flags: vk::QueryResultFlags) {
+        const CMD: &str = "vkCmdCopyQueryPoolResults";
+        if !self.recording(CMD) {
+            return;
+        }
+        match pool.check_range(first, count) {
+            Err(RangeError::First) => return self.violation("VUID-vkCmdCopyQueryPoolResults-firstQuery-00820", CMD, &format!("firstQuery {first} is not less than the pool's {} queries", pool.count)),
+            Err(RangeError::Count) => return self.violation("VUID-vkCmdCopyQueryPoolResults-firstQuery-00821", CMD, &format!("firstQuery {first} + queryCount {count} exceeds the pool's {} queries", pool.count)),
+            Ok(()) => {}
+        }
+        let f = ReadFlags::from_vk(flags);
+        if offset >= dst.size {
+            return self.violation("VUID-vkCmdCopyQueryPoolResults-dstOffset-00819", CMD, &format!("dstOffset {offset} is not less than the buffer size {}", dst.size));
+        }
+        if !f.wide && (offset % 4 != 0 || stride % 4 != 0) {
+            return self.violation("VUID-vkCmdCopyQueryPoolResults-flags-00822", CMD, "without 64_BIT, dstOffset and stride must be multiples of 4");
+        }
+        if f.wide && (offset % 8 != 0 || stride % 8 != 0) {
+            return self.violation("VUID-vkCmdCopyQueryPoolResults-flags-00823", CMD, "with 64_BIT, dstOffset and stride must be multiples of 8");
+        }
+        let len = copy_results_len(count, stride, &f);
+        if len > dst.size - offset {
+            return self.violation("VUID-vkCmdCopyQueryPoolResults-dstBuffer-00824", CMD, &format!("the results need {len} bytes from dstOffset {offset}; the buffer has {}", dst.size));
+        }
+        if !dst.usage.contains(vk::BufferUsageFlags::TRANSFER_DST) {
+            return self.violation("VUID-vkCmdCopyQueryPoolResults-dstBuffer-00825", CMD, "dstBuffer lacks TRANSFER_DST usage");
+        }
+        if f.partial && !pool.kind.allows_partial() {
+            return self.violation("VUID-vkCmdCopyQueryPoolResults-queryType-00827", CMD, "PARTIAL is not allowed for this query type");
+        }
+        if count > 0 {
+            self.push(CMD, Command::CopyQueryResults { pool, first, count, dst, offset, stride, flags });
+        }
+    }
+
+    // --- secondaries ------------------------------------------------------------------------
+
+    pub fn cmd_execute_commands(&self, secondaries: Vec<Arc<CommandBuffer>>) {
+        const CMD: &str = "vkCmdExecuteCommands";
+        if !self.recording(CMD) {
+            return;
+        }
+        if !self.is_primary() {
+            return self.violation("VUID-vkCmdExecuteCommands-bufferlevel", CMD, "commandBuffer must be a primary command buffer");
+        }
+        let mut list = Vec::with_capacity(secondaries.len());
+        for (i, s) in secondaries.into_iter().enumerate() {
+            if s.is_primary() {
+                return self.violation("VUID-vkCmdExecuteCommands-pCommandBuffers-00088", CMD, &format!("pCommandBuffers[{i}] is not a secondary command buffer"));
+            }
+            let (lifecycle, recorded) = {
+                let st = s.state();
+                (st.lifecycle, st.recorded.clone())
+            };
+            let Some(recording) = recorded.filter(|_| lifecycle == Lifecycle::Executable) else {
+                return self.violation("VUID-vkCmdExecuteCommands-pCommandBuffers-00089", CMD, &format!("pCommandBuffers[{i}] is not in the executable state"));
+            };
+            if s.is_pending() && !recording.usage.contains(vk::CommandBufferUsageFlags::SIMULTANEOUS_USE) {
+                return self.violation("VUID-vkCmdExecuteCommands-pCommandBuffers-00091", CMD, &format!("pCommandBuffers[{i}] is pending and was not recorded with SIMULTANEOUS_USE"));
+            }
+            list.push(Secondary { buffer: s, recording });
+        }
+        if !list.is_empty() {
+            self.push(CMD, Command::ExecuteCommands(list));
+        }
+    }
+
+    // --- submission -------------------------------------------------------------------------
+
+    /// Checks for vkQueueSubmit and marks the buffer (and its secondaries) pending. On a
+    /// violation the buffer is reported and left out of the submission.
+    pub fn prepare_submit(self: &Arc<Self>, command: &str) -> Option<SubmittedBuffer> {
+        if !self.is_primary() {
+            diag::vuid("VUID-VkSubmitInfo-pCommandBuffers-00075", command, "a secondary command buffer cannot be submitted; left out");
+            return None;
+        }
+        let recording = {
+            let s = self.state();
+            match (&s.recorded, s.lifecycle) {
+                (Some(r), Lifecycle::Executable) => r.clone(),
+                (_, l) => {
+                    drop(s);
+                    diag::vuid("VUID-vkQueueSubmit-pCommandBuffers-00070", command, &format!("the command buffer is in the {l:?} state, not executable; left out"));
+                    return None;
+                }
+            }
+        };
+        if self.is_pending() && !recording.usage.contains(vk::CommandBufferUsageFlags::SIMULTANEOUS_USE) {
+            diag::vuid("VUID-vkQueueSubmit-pCommandBuffers-00071", command, "the command buffer is already pending and was not recorded with SIMULTANEOUS_USE; left out");
+            return None;
+        }
+        // Secondaries recorded into it must still hold the recording the primary captured.
+        let mut involved = Vec::new();
+        let mut stack: Vec<Arc<Recording>> = vec![recording.clone()];
+        while let Some(r) = stack.pop() {
+            for c in &r.commands {
+                if let Command::ExecuteCommands(list) = c {
+                    for s in list {
+                        let current = s.buffer.state().generation;
+                        if current != s.recording.generation {
+                            diag::vuid(
+                                "VUID-vkQueueSubmit-pCommandBuffers-00072",
+                                command,
+                                "a secondary command buffer it executes was reset or re-recorded, so it is invalid; left out",
+                            );
+                            return None;
+                        }
+                        involved.push((s.buffer.clone(), s.recording.clone()));
+                        stack.push(s.recording.clone());
+                    }
+                }
+            }
+        }
+        self.pending.fetch_add(1, Ordering::AcqRel);
+        for (b, _) in &involved {
+            b.pending.fetch_add(1, Ordering::AcqRel);
+        }
+        Some(SubmittedBuffer { buffer: self.clone(), recording, involved })
+    }
+
+    /// After execution: no longer pending; a ONE_TIME_SUBMIT recording becomes invalid.
+    fn complete(&self, recording: &Recording) {
+        if recording.usage.contains(vk::CommandBufferUsageFlags::ONE_TIME_SUBMIT) {
+            let mut s = self.state();
+            if s.generation == recording.generation && s.lifecycle == Lifecycle::Executable {
+                s.lifecycle = Lifecycle::Invalid;
+            }
+        }
+        self.pending.fetch_sub(1, Ordering::AcqRel);
+    }
+}
+
+impl SubmittedBuffer {
+    /// Mark the buffer and its secondaries complete (executed or abandoned).
+    pub fn complete(&self) {
+        for (b, r) in &self.involved {
+            b.complete(r);
+        }
+        self.buffer.complete(&self.recording);
+    }
+}
+
+/// The VUIDs of vkCmdCopyBuffer and vkCmdCopyBuffer2 (same rules, different names).
+pub struct CopyVuids {
+    pub command: &'static str,
+    pub src_offset: &'static str,
+    pub dst_offset: &'static str,
+    pub src_size: &'static str,
+    pub dst_size: &'static str,
+    pub overlap: &'static str,
+    pub src_usage: &'static str,
+    pub dst_usage: &'static str,
+    pub size_zero: &'static str,
+}
+
+pub const COPY_BUFFER_VUIDS: CopyVuids = CopyVuids {
+    command: "vkCmdCopyBuffer",
+    src_offset: "VUID-vkCmdCopyBuffer-srcOffset-00113",
+    dst_offset: "VUID-vkCmdCopyBuffer-dstOffset-00114",
+    src_size: "VUID-vkCmdCopyBuffer-size-00115",
+    dst_size: "VUID-vkCmdCopyBuffer-size-00116",
+    overlap: "VUID-vkCmdCopyBuffer-pRegions-00117",
+    src_usage: "VUID-vkCmdCopyBuffer-srcBuffer-00118",
+    dst_usage: "VUID-vkCmdCopyBuffer-dstBuffer-00120",
+    size_zero: "VUID-VkBufferCopy-size-01988",
+};
+
+pub const COPY_BUFFER2_VUIDS: CopyVuids = CopyVuids {
+    command: "vkCmdCopyBuffer2",
+    src_offset: "VUID-VkCopyBufferInfo2-srcOffset-00113",
+    dst_offset: "VUID-VkCopyBufferInfo2-dstOffset-00114",
+    src_size: "VUID-VkCopyBufferInfo2-size-00115",
+    dst_size: "VUID-VkCopyBufferInfo2-size-00116",
+    overlap: "VUID-VkCopyBufferInfo2-pRegions-00117",
+    src_usage: "VUID-VkCopyBufferInfo2-srcBuffer-00118",
+    dst_usage: "VUID-VkCopyBufferInfo2-dstBuffer-00120",
+    size_zero: "VUID-VkBufferCopy2-size-01988",
+};
