@@ -1,8 +1,11 @@
 //! The object model: plain Rust types with Arc-shared state. No raw application pointers here.
+pub mod command;
 pub mod descriptor;
 pub mod device;
 pub mod instance;
+pub mod query;
 pub mod queue;
+pub mod sync;
 
 pub use device::Device;
 pub use instance::{Instance, PhysicalDevice};
