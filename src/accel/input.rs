@@ -268,8 +268,13 @@ pub fn read_instance(geometry_index: u32, g: &Geometry, p: u32, view: &dyn Devic
         let off = usize::try_from((p as u64) * INSTANCE_SIZE as u64).map_err(|_| short.clone())?;
         data.get(off..off.checked_add(INSTANCE_SIZE).ok_or(short.clone())?).ok_or(short.clone())?
     };
-    let inst = decode_instance(record).ok_or(short)?;
-    Ok(if inst.reference == 0 { None } else { Some(inst) })
+    let mut inst = decode_instance(record).ok_or(short)?;
+    if inst.reference == 0 {
+        return Ok(None);
+    }
+    // Host builds name BLASes by handle; the stored reference is always the device address.
+    inst.reference = view.translate_reference(inst.reference);
+    Ok(Some(inst))
 }
 
 /// Triangle j of a geometry after format decode + transform, exactly as the builder reads it.

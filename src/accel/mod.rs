@@ -201,6 +201,13 @@ pub trait DeviceView: Sync {
     /// The bytes of the acceleration structure whose device address (or, for host builds,
     /// handle value) is `reference`; the slice starts at the structure and spans its size.
     fn acceleration_structure(&self, reference: u64) -> Option<&[u8]>;
+    /// The reference a built structure stores for an instance's
+    /// `accelerationStructureReference`: identity for device builds; host builds map the
+    /// handle value to the structure's device address, so host and device builds of the same
+    /// input are byte-identical. Called once per active instance; 0 is never passed.
+    fn translate_reference(&self, reference: u64) -> u64 {
+        reference
+    }
 }
 
 /// A DeviceView over nothing (for BLAS-only use).

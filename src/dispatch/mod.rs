@@ -2,6 +2,7 @@
 //! Vulkan command (raw pointers → checked Rust values → one call into the object model →
 //! outputs written), the name → function table, pNext walking and the enumerate idiom.
 //! No panic crosses this boundary: every entry point runs inside [`guard`].
+pub mod accel;
 pub mod command;
 pub mod descriptor;
 pub mod device;
@@ -38,6 +39,7 @@ pub fn guard<R>(command: &str, on_panic: R, body: impl FnOnce() -> R) -> R {
 pub fn implemented() -> Vec<Implemented> {
     let mut v = Vec::new();
     v.extend(instance::commands());
+    v.extend(accel::commands());
     v.extend(physical_device::commands());
     v.extend(device::commands());
     v.extend(memory::commands());

@@ -14,16 +14,19 @@ use crate::runtime::PhysicalDevice;
 
 /// Device extensions Arbor advertises, with spec versions. Only what works.
 pub const DEVICE_EXTENSIONS: &[(&str, u32)] = &[
+    ("VK_KHR_acceleration_structure", 13),
     ("VK_KHR_bind_memory2", 1),
     ("VK_KHR_buffer_device_address", 1),
     ("VK_KHR_copy_commands2", 1),
     ("VK_KHR_dedicated_allocation", 3),
+    ("VK_KHR_deferred_host_operations", 4),
     ("VK_EXT_descriptor_indexing", 2),
     ("VK_KHR_get_memory_requirements2", 1),
     ("VK_EXT_host_query_reset", 1),
     ("VK_KHR_maintenance1", 2),
     ("VK_KHR_maintenance2", 1),
     ("VK_KHR_maintenance3", 1),
+    ("VK_KHR_ray_tracing_maintenance1", 1),
     ("VK_KHR_synchronization2", 1),
     ("VK_KHR_timeline_semaphore", 2),
 ];
@@ -36,6 +39,11 @@ pub const MEMORY_TYPE_FLAGS: vk::MemoryPropertyFlags = vk::MemoryPropertyFlags::
         | vk::MemoryPropertyFlags::HOST_COHERENT.as_raw()
         | vk::MemoryPropertyFlags::HOST_CACHED.as_raw(),
 );
+/// Acceleration-structure limits: the spec's minimums or more (maxPrimitiveCount 2^29-1 is
+/// required; the counts are 32-bit in the API and the format addresses up to 2^32-1 primitives).
+pub const MAX_GEOMETRY_COUNT: u64 = (1 << 24) - 1;
+pub const MAX_INSTANCE_COUNT: u64 = (1 << 24) - 1;
+pub const MAX_PRIMITIVE_COUNT: u64 = (1 << 29) - 1;
 /// Largest single allocation (also maxMemoryAllocationSize).
 pub const MAX_ALLOCATION_SIZE: u64 = 1 << 40;
 
@@ -118,6 +126,26 @@ pub unsafe fn fill_feature_struct(s_type: vk::StructureType, p: *mut c_void) -> 
             vk::StructureType::PHYSICAL_DEVICE_SYNCHRONIZATION_2_FEATURES => util::write_keep_chain(
                 p,
                 vk::PhysicalDeviceSynchronization2Features { synchronization2: vk::TRUE, ..Default::default() },
+            ),
+            vk::StructureType::PHYSICAL_DEVICE_ACCELERATION_STRUCTURE_FEATURES_KHR => util::write_keep_chain(
+                p,
+                vk::PhysicalDeviceAccelerationStructureFeaturesKHR {
+                    acceleration_structure: vk::TRUE,
+                    acceleration_structure_capture_replay: vk::TRUE,
+                    acceleration_structure_indirect_build: vk::TRUE,
+                    acceleration_structure_host_commands: vk::TRUE,
+                    descriptor_binding_acceleration_structure_update_after_bind: vk::TRUE,
+                    ..Default::default()
+                },
+            ),
+            vk::StructureType::PHYSICAL_DEVICE_RAY_TRACING_MAINTENANCE_1_FEATURES_KHR => util::write_keep_chain(
+                // No ray-tracing pipelines, so no vkCmdTraceRaysIndirect2KHR.
+                p,
+                vk::PhysicalDeviceRayTracingMaintenance1FeaturesKHR {
+                    ray_tracing_maintenance1: vk::TRUE,
+                    ray_tracing_pipeline_trace_rays_indirect2: vk::FALSE,
+                    ..Default::default()
+                },
             ),
             vk::StructureType::PHYSICAL_DEVICE_HOST_QUERY_RESET_FEATURES => util::write_keep_chain(
                 p,
@@ -364,6 +392,20 @@ pub unsafe fn fill_property_struct(s_type: vk::StructureType, p: *mut c_void) ->
                     max_descriptor_set_update_after_bind_sampled_images: 96,
                     max_descriptor_set_update_after_bind_storage_images: 24,
                     max_descriptor_set_update_after_bind_input_attachments: 4,
+                    ..Default::default()
+                },
+            ),
+            vk::StructureType::PHYSICAL_DEVICE_ACCELERATION_STRUCTURE_PROPERTIES_KHR => util::write_keep_chain(
+                p,
+                vk::PhysicalDeviceAccelerationStructurePropertiesKHR {
+                    max_geometry_count: MAX_GEOMETRY_COUNT,
+                    max_instance_count: MAX_INSTANCE_COUNT,
+                    max_primitive_count: MAX_PRIMITIVE_COUNT,
+                    max_per_stage_descriptor_acceleration_structures: 1 << 20,
+                    max_per_stage_descriptor_update_after_bind_acceleration_structures: 1 << 20,
+                    max_descriptor_set_acceleration_structures: 1 << 20,
+                    max_descriptor_set_update_after_bind_acceleration_structures: 1 << 20,
+                    min_acceleration_structure_scratch_offset_alignment: crate::runtime::accel::SCRATCH_ALIGNMENT as u32,
                     ..Default::default()
                 },
             ),

@@ -3,6 +3,8 @@
 //! every message; `Context::finish` (and Drop) fails the test on any validation message.
 #![allow(dead_code)]
 
+pub mod accel;
+
 use std::ffi::{c_void, CStr, CString};
 use std::path::PathBuf;
 use std::sync::{Arc, Mutex, OnceLock};
@@ -87,11 +89,14 @@ pub struct Options {
     pub device_extensions: Vec<&'static str>,
     pub instance_extensions: Vec<&'static str>,
     pub queue_count: u32,
+    /// Enable VK_KHR_acceleration_structure (+ deferred host operations, ray_tracing_maintenance1)
+    /// with every optional feature.
+    pub acceleration_structure: bool,
 }
 
 impl Default for Options {
     fn default() -> Self {
-        Options { validation: true, device_extensions: default_device_extensions(), instance_extensions: vec![], queue_count: 4 }
+        Options { validation: true, device_extensions: default_device_extensions(), instance_extensions: vec![], queue_count: 4, acceleration_structure: false }
     }
 }
 
@@ -189,7 +194,15 @@ impl Context {
             .expect("Arbor's physical device");
         let prio = vec![1.0f32; opts.queue_count as usize];
         let qci = [vk::DeviceQueueCreateInfo::default().queue_family_index(0).queue_priorities(&prio)];
-        let ext_c: Vec<CString> = opts.device_extensions.iter().map(|e| CString::new(*e).unwrap()).collect();
+        let mut dev_exts = opts.device_extensions.clone();
+        if opts.acceleration_structure {
+            for e in ["VK_KHR_acceleration_structure", "VK_KHR_deferred_host_operations", "VK_EXT_descriptor_indexing", "VK_KHR_buffer_device_address", "VK_KHR_ray_tracing_maintenance1"] {
+                if !dev_exts.contains(&e) {
+                    dev_exts.push(e);
+                }
+            }
+        }
+        let ext_c: Vec<CString> = dev_exts.iter().map(|e| CString::new(*e).unwrap()).collect();
         let ext_p: Vec<*const i8> = ext_c.iter().map(|c| c.as_ptr()).collect();
         let mut bda = vk::PhysicalDeviceBufferDeviceAddressFeatures::default()
             .buffer_device_address(true)
@@ -198,7 +211,17 @@ impl Context {
         let mut s2 = vk::PhysicalDeviceSynchronization2Features::default().synchronization2(true);
         let mut hqr = vk::PhysicalDeviceHostQueryResetFeatures::default().host_query_reset(true);
         let mut dci = vk::DeviceCreateInfo::default().queue_create_infos(&qci).enabled_extension_names(&ext_p);
-        let has = |e: &str| opts.device_extensions.contains(&e);
+        let mut asf = vk::PhysicalDeviceAccelerationStructureFeaturesKHR::default()
+            .acceleration_structure(true)
+            .acceleration_structure_capture_replay(true)
+            .acceleration_structure_indirect_build(true)
+            .acceleration_structure_host_commands(true)
+            .descriptor_binding_acceleration_structure_update_after_bind(true);
+        let mut rtm1 = vk::PhysicalDeviceRayTracingMaintenance1FeaturesKHR::default().ray_tracing_maintenance1(true);
+        let has = |e: &str| dev_exts.contains(&e);
+        if opts.acceleration_structure {
+            dci = dci.push_next(&mut asf).push_next(&mut rtm1);
+        }
         if has("VK_KHR_buffer_device_address") {
             dci = dci.push_next(&mut bda);
         }

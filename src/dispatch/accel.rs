@@ -1,0 +1,836 @@
+//! VK_KHR_acceleration_structure, VK_KHR_deferred_host_operations and the query types of
+//! VK_KHR_ray_tracing_maintenance1: entry points. Raw pointers are lowered here into owned
+//! descriptions (`runtime::accel::BuildInfo`) that commands keep until they execute.
+use std::ffi::c_void;
+use std::sync::Arc;
+
+use ash::vk;
+use ash::vk::Handle;
+
+use super::device::device_from;
+use super::handle::{self, dispatchable};
+use super::table::{imp, Implemented};
+use super::{guard, util};
+use crate::accel;
+use crate::diag;
+use crate::memory::view::DeviceMemoryView;
+use crate::memory::{AccessError, AddressSpace, Buffer};
+use crate::runtime::accel::{
+    self as rt, AccelerationStructure, BuildInfo, DeviceInputs, GeometryDesc, GeometryInfo, InputError, InputMemory, RangeInfo,
+    Ranges,
+};
+use crate::runtime::command::{CommandBuffer, ExecContext, ExecError, Exec};
+use crate::runtime::deferred::DeferredOperation;
+use crate::runtime::Device;
+
+pub fn commands() -> Vec<Implemented> {
+    vec![
+        imp!(PFN_vkCreateAccelerationStructureKHR => create_acceleration_structure_khr),
+        imp!(PFN_vkDestroyAccelerationStructureKHR => destroy_acceleration_structure_khr),
+        imp!(PFN_vkGetAccelerationStructureDeviceAddressKHR => get_acceleration_structure_device_address_khr),
+        imp!(PFN_vkGetAccelerationStructureBuildSizesKHR => get_acceleration_structure_build_sizes_khr),
+        imp!(PFN_vkGetDeviceAccelerationStructureCompatibilityKHR => get_device_acceleration_structure_compatibility_khr),
+        imp!(PFN_vkCmdBuildAccelerationStructuresKHR => cmd_build_acceleration_structures_khr),
+        imp!(PFN_vkCmdBuildAccelerationStructuresIndirectKHR => cmd_build_acceleration_structures_indirect_khr),
+        imp!(PFN_vkBuildAccelerationStructuresKHR => build_acceleration_structures_khr),
+        imp!(PFN_vkCmdCopyAccelerationStructureKHR => cmd_copy_acceleration_structure_khr),
+        imp!(PFN_vkCopyAccelerationStructureKHR => copy_acceleration_structure_khr),
+        imp!(PFN_vkCmdCopyAccelerationStructureToMemoryKHR => cmd_copy_acceleration_structure_to_memory_khr),
+        imp!(PFN_vkCopyAccelerationStructureToMemoryKHR => copy_acceleration_structure_to_memory_khr),
+        imp!(PFN_vkCmdCopyMemoryToAccelerationStructureKHR => cmd_copy_memory_to_acceleration_structure_khr),
+        imp!(PFN_vkCopyMemoryToAccelerationStructureKHR => copy_memory_to_acceleration_structure_khr),
+        imp!(PFN_vkCmdWriteAccelerationStructuresPropertiesKHR => cmd_write_acceleration_structures_properties_khr),
+        imp!(PFN_vkWriteAccelerationStructuresPropertiesKHR => write_acceleration_structures_properties_khr),
+        imp!(PFN_vkCreateDeferredOperationKHR => create_deferred_operation_khr),
+        imp!(PFN_vkDestroyDeferredOperationKHR => destroy_deferred_operation_khr),
+        imp!(PFN_vkGetDeferredOperationMaxConcurrencyKHR => get_deferred_operation_max_concurrency_khr),
+        imp!(PFN_vkGetDeferredOperationResultKHR => get_deferred_operation_result_khr),
+        imp!(PFN_vkDeferredOperationJoinKHR => deferred_operation_join_khr),
+    ]
+}
+
+pub fn structure_from(h: vk::AccelerationStructureKHR) -> Option<Arc<AccelerationStructure>> {
+    handle::get::<AccelerationStructure>(h.as_raw())
+}
+
+fn command_buffer_from(h: vk::CommandBuffer) -> Option<Arc<CommandBuffer>> {
+    // SAFETY: a non-null VkCommandBuffer is a live handle we created (application obligation).
+    unsafe { dispatchable::<CommandBuffer>(h.as_raw() as *mut handle::Dispatchable<CommandBuffer>) }
+}
+
+// ---------------------------------------------------------------------------------------------
+// Objects
+
+unsafe extern "system" fn create_acceleration_structure_khr(
+    device: vk::Device,
+    p_info: *const vk::AccelerationStructureCreateInfoKHR,
+    _p_allocator: *const vk::AllocationCallbacks,
+    p_as: *mut vk::AccelerationStructureKHR,
+) -> vk::Result {
+    const CMD: &str = "vkCreateAccelerationStructureKHR";
+    guard(CMD, vk::Result::ERROR_OUT_OF_HOST_MEMORY, || {
+        let Some(dev) = device_from(device) else { return vk::Result::ERROR_INITIALIZATION_FAILED };
+        if p_info.is_null() || p_as.is_null() {
+            return vk::Result::ERROR_INITIALIZATION_FAILED;
+        }
+        // SAFETY: valid create info per the spec.
+        let info = unsafe { &*p_info };
+        let Some(buffer) = handle::get::<Buffer>(info.buffer.as_raw()) else {
+            diag::vuid("VUID-VkAccelerationStructureCreateInfoKHR-buffer-parameter", CMD, "buffer is not a valid VkBuffer");
+            return vk::Result::ERROR_INITIALIZATION_FAILED;
+        };
+        if info.offset % rt::STRUCTURE_ALIGNMENT != 0 {
+            diag::vuid("VUID-VkAccelerationStructureCreateInfoKHR-offset-03734", CMD, "offset must be a multiple of 256");
+        }
+        if info.offset.checked_add(info.size).is_none_or(|end| end > buffer.size) {
+            diag::vuid("VUID-VkAccelerationStructureCreateInfoKHR-offset-03616", CMD, "offset + size exceeds the buffer size");
+            return vk::Result::ERROR_INITIALIZATION_FAILED;
+        }
+        if !buffer.usage.contains(vk::BufferUsageFlags::ACCELERATION_STRUCTURE_STORAGE_KHR) {
+            diag::vuid(
+                "VUID-VkAccelerationStructureCreateInfoKHR-buffer-03614",
+                CMD,
+                "buffer lacks ACCELERATION_STRUCTURE_STORAGE_BIT_KHR usage",
+            );
+        }
+        let replay = info.create_flags.contains(vk::AccelerationStructureCreateFlagsKHR::DEVICE_ADDRESS_CAPTURE_REPLAY);
+        if info.device_address != 0 {
+            if !replay {
+                diag::vuid(
+                    "VUID-VkAccelerationStructureCreateInfoKHR-deviceAddress-03612",
+                    CMD,
+                    "deviceAddress is not 0 but CAPTURE_REPLAY is not set",
+                );
+            }
+            // Addresses are buffer address + offset: a replayed address is honoured when the
+            // buffer was placed where it was at capture time.
+            if let Some(a) = buffer.device_address() {
+                if a + info.offset != info.device_address {
+                    return vk::Result::ERROR_INVALID_OPAQUE_CAPTURE_ADDRESS_KHR;
+                }
+            }
+        }
+        let s = AccelerationStructure {
+            buffer,
+            offset: info.offset,
+            size: info.size,
+            create_type: info.ty,
+            create_flags: info.create_flags,
+        };
+        let _ = dev;
+        // SAFETY: checked non-null.
+        unsafe { *p_as = vk::AccelerationStructureKHR::from_raw(handle::register(Arc::new(s))) };
+        vk::Result::SUCCESS
+    })
+}
+
+unsafe extern "system" fn destroy_acceleration_structure_khr(
+    _device: vk::Device,
+    h: vk::AccelerationStructureKHR,
+    _p_allocator: *const vk::AllocationCallbacks,
+) {
+    guard("vkDestroyAccelerationStructureKHR", (), || {
+        if h != vk::AccelerationStructureKHR::null() && handle::unregister::<AccelerationStructure>(h.as_raw()).is_none() {
+            diag::vuid(
+                "VUID-vkDestroyAccelerationStructureKHR-accelerationStructure-parameter",
+                "vkDestroyAccelerationStructureKHR",
+                "not a valid acceleration structure",
+            );
+        }
+    })
+}
+
+unsafe extern "system" fn get_acceleration_structure_device_address_khr(
+    _device: vk::Device,
+    p_info: *const vk::AccelerationStructureDeviceAddressInfoKHR,
+) -> vk::DeviceAddress {
+    guard("vkGetAccelerationStructureDeviceAddressKHR", 0, || {
+        if p_info.is_null() {
+            return 0;
+        }
+        // SAFETY: valid info per the spec.
+        let info = unsafe { &*p_info };
+        match structure_from(info.acceleration_structure).and_then(|s| s.address()) {
+            Some(a) => a,
+            None => {
+                diag::vuid(
+                    "VUID-vkGetAccelerationStructureDeviceAddressKHR-pInfo-09541",
+                    "vkGetAccelerationStructureDeviceAddressKHR",
+                    "the structure is invalid or its buffer is not bound to memory",
+                );
+                0
+            }
+        }
+    })
+}
+
+/// Lower one `VkAccelerationStructureGeometryKHR`.
+///
+/// # Safety
+/// `g` is a valid geometry struct.
+unsafe fn lower_geometry(g: &vk::AccelerationStructureGeometryKHR) -> GeometryInfo {
+    // SAFETY: the union member read is the one geometryType names.
+    let desc = unsafe {
+        match g.geometry_type {
+            vk::GeometryTypeKHR::TRIANGLES => {
+                let t = &g.geometry.triangles;
+                GeometryDesc::Triangles {
+                    vertex_format: t.vertex_format,
+                    vertex_data: t.vertex_data.device_address,
+                    vertex_stride: t.vertex_stride,
+                    max_vertex: t.max_vertex,
+                    index_type: t.index_type,
+                    index_data: t.index_data.device_address,
+                    transform_data: t.transform_data.device_address,
+                }
+            }
+            vk::GeometryTypeKHR::AABBS => {
+                let a = &g.geometry.aabbs;
+                GeometryDesc::Aabbs { data: a.data.device_address, stride: a.stride }
+            }
+            vk::GeometryTypeKHR::INSTANCES => {
+                let i = &g.geometry.instances;
+                GeometryDesc::Instances { array_of_pointers: i.array_of_pointers != 0, data: i.data.device_address }
+            }
+            other => GeometryDesc::Unsupported(other),
+        }
+    };
+    GeometryInfo { desc, flags: g.flags }
+}
+
+/// The geometries of a build info (pGeometries or ppGeometries).
+///
+/// # Safety
+/// `info` is a valid build-geometry info.
+unsafe fn lower_geometries(info: &vk::AccelerationStructureBuildGeometryInfoKHR) -> Vec<GeometryInfo> {
+    let n = info.geometry_count as usize;
+    // SAFETY: exactly one of the arrays is valid for geometryCount elements (spec).
+    unsafe {
+        if !info.p_geometries.is_null() {
+            (0..n).map(|j| lower_geometry(&*info.p_geometries.add(j))).collect()
+        } else if !info.pp_geometries.is_null() {
+            (0..n).map(|j| lower_geometry(&**info.pp_geometries.add(j))).collect()
+        } else {
+            Vec::new()
+        }
+    }
+}
+
+/// # Safety
+/// `info` is a valid build-geometry info.
+unsafe fn lower_info(info: &vk::AccelerationStructureBuildGeometryInfoKHR, ranges: Ranges) -> BuildInfo {
+    BuildInfo {
+        ty: info.ty,
+        flags: info.flags,
+        mode: info.mode,
+        src: structure_from(info.src_acceleration_structure),
+        src_handle: info.src_acceleration_structure.as_raw(),
+        dst: structure_from(info.dst_acceleration_structure),
+        dst_handle: info.dst_acceleration_structure.as_raw(),
+        // SAFETY: valid info; the union is read as an address (device) or pointer value (host).
+        scratch: unsafe { info.scratch_data.device_address },
+        // SAFETY: valid info.
+        geometries: unsafe { lower_geometries(info) },
+        ranges,
+    }
+}
+
+unsafe extern "system" fn get_acceleration_structure_build_sizes_khr(
+    _device: vk::Device,
+    build_type: vk::AccelerationStructureBuildTypeKHR,
+    p_build_info: *const vk::AccelerationStructureBuildGeometryInfoKHR,
+    p_max_primitive_counts: *const u32,
+    p_size_info: *mut vk::AccelerationStructureBuildSizesInfoKHR,
+) {
+    const CMD: &str = "vkGetAccelerationStructureBuildSizesKHR";
+    guard(CMD, (), || {
+        if p_build_info.is_null() || p_size_info.is_null() {
+            return;
+        }
+        // SAFETY: valid info per the spec.
+        let info = unsafe { &*p_build_info };
+        // SAFETY: valid info.
+        let geometries = unsafe { lower_geometries(info) };
+        if info.geometry_count > 0 && p_max_primitive_counts.is_null() {
+            diag::vuid("VUID-vkGetAccelerationStructureBuildSizesKHR-pBuildInfo-03619", CMD, "pMaxPrimitiveCounts is NULL");
+            return;
+        }
+        // SAFETY: geometryCount elements per the spec.
+        let counts = unsafe { util::slice(p_max_primitive_counts, info.geometry_count) };
+        let _ = build_type; // host and device builds use the same format and sizes
+        match rt::build_sizes(info.ty, info.flags, &geometries, counts) {
+            Some(s) => {
+                // SAFETY: valid output struct; sType/pNext kept.
+                unsafe {
+                    (*p_size_info).acceleration_structure_size = s.acceleration_structure_size;
+                    (*p_size_info).build_scratch_size = s.build_scratch_size;
+                    (*p_size_info).update_scratch_size = s.update_scratch_size;
+                }
+            }
+            None => diag::vuid(
+                "VUID-vkGetAccelerationStructureBuildSizesKHR-pBuildInfo-parameter",
+                CMD,
+                "type, geometry type, vertex format or index type not supported",
+            ),
+        }
+    })
+}
+
+unsafe extern "system" fn get_device_acceleration_structure_compatibility_khr(
+    _device: vk::Device,
+    p_version: *const vk::AccelerationStructureVersionInfoKHR,
+    p_compat: *mut vk::AccelerationStructureCompatibilityKHR,
+) {
+    guard("vkGetDeviceAccelerationStructureCompatibilityKHR", (), || {
+        if p_version.is_null() || p_compat.is_null() {
+            return;
+        }
+        // SAFETY: pVersionData points to 2*VK_UUID_SIZE bytes (spec).
+        let data: &[u8; 32] = unsafe { &*((*p_version).p_version_data as *const [u8; 32]) };
+        let ok = accel::compatible(data, crate::DRIVER_UUID);
+        // SAFETY: valid output pointer.
+        unsafe {
+            *p_compat = if ok {
+                vk::AccelerationStructureCompatibilityKHR::COMPATIBLE
+            } else {
+                vk::AccelerationStructureCompatibilityKHR::INCOMPATIBLE
+            }
+        };
+    })
+}
+
+// ---------------------------------------------------------------------------------------------
+// Builds
+
+/// A recorded build command: executes through `runtime::accel::execute_builds` on the queue.
+struct BuildCommand {
+    name: &'static str,
+    infos: Vec<BuildInfo>,
+}
+
+impl Exec for BuildCommand {
+    fn name(&self) -> &'static str {
+        self.name
+    }
+    fn execute(&self, ctx: &ExecContext<'_>) -> Result<(), ExecError> {
+        if self.name == "vkCmdBuildAccelerationStructuresIndirectKHR" && !ctx.device.features.acceleration_structure_indirect_build {
+            diag::vuid(
+                "VUID-vkCmdBuildAccelerationStructuresIndirectKHR-accelerationStructureIndirectBuild-03650",
+                self.name,
+                "the accelerationStructureIndirectBuild feature is not enabled",
+            );
+        }
+        let inputs = DeviceInputs::new(ctx.memory(), self.name);
+        rt::execute_builds(&inputs, &self.infos).map_err(|_| ExecError::Invalid {
+            vuid: "strict",
+            message: "an acceleration-structure build broke a valid-usage rule (ARBOR_STRICT)".into(),
+        })
+    }
+}
+
+unsafe extern "system" fn cmd_build_acceleration_structures_khr(
+    command_buffer: vk::CommandBuffer,
+    info_count: u32,
+    p_infos: *const vk::AccelerationStructureBuildGeometryInfoKHR,
+    pp_ranges: *const *const vk::AccelerationStructureBuildRangeInfoKHR,
+) {
+    const CMD: &str = "vkCmdBuildAccelerationStructuresKHR";
+    guard(CMD, (), || {
+        let Some(cb) = command_buffer_from(command_buffer) else { return };
+        // SAFETY: infoCount valid elements each (spec).
+        let infos = unsafe { util::slice(p_infos, info_count) };
+        let mut out = Vec::with_capacity(infos.len());
+        for (i, info) in infos.iter().enumerate() {
+            // SAFETY: ppBuildRangeInfos[i] points to geometryCount records (spec).
+            let ranges = unsafe {
+                let p = if pp_ranges.is_null() { std::ptr::null() } else { *pp_ranges.add(i) };
+                util::slice(p, info.geometry_count).iter().map(range_from_vk).collect()
+            };
+            // SAFETY: valid info.
+            out.push(unsafe { lower_info(info, Ranges::Direct(ranges)) });
+        }
+        cb.record_custom(Box::new(BuildCommand { name: CMD, infos: out }));
+    })
+}
+
+fn range_from_vk(r: &vk::AccelerationStructureBuildRangeInfoKHR) -> RangeInfo {
+    RangeInfo {
+        primitive_count: r.primitive_count,
+        primitive_offset: r.primitive_offset,
+        first_vertex: r.first_vertex,
+        transform_offset: r.transform_offset,
+    }
+}
+
+unsafe extern "system" fn cmd_build_acceleration_structures_indirect_khr(
+    command_buffer: vk::CommandBuffer,
+    info_count: u32,
+    p_infos: *const vk::AccelerationStructureBuildGeometryInfoKHR,
+    p_addresses: *const vk::DeviceAddress,
+    p_strides: *const u32,
+    pp_max_counts: *const *const u32,
+) {
+    const CMD: &str = "vkCmdBuildAccelerationStructuresIndirectKHR";
+    guard(CMD, (), || {
+        let Some(cb) = command_buffer_from(command_buffer) else { return };
+        // SAFETY: infoCount elements each (spec).
+        let (infos, addrs, strides) = unsafe {
+            (util::slice(p_infos, info_count), util::slice(p_addresses, info_count), util::slice(p_strides, info_count))
+        };
+        if addrs.len() != infos.len() || strides.len() != infos.len() || pp_max_counts.is_null() {
+            diag::vuid("VUID-vkCmdBuildAccelerationStructuresIndirectKHR-pIndirectDeviceAddresses-parameter", CMD, "missing arrays");
+            return;
+        }
+        let mut out = Vec::with_capacity(infos.len());
+        for (i, info) in infos.iter().enumerate() {
+            // SAFETY: ppMaxPrimitiveCounts[i] points to geometryCount values (spec).
+            let max = unsafe { util::slice(*pp_max_counts.add(i), info.geometry_count).to_vec() };
+            let ranges = Ranges::Indirect { address: addrs[i], stride: strides[i], max_primitive_counts: max };
+            // SAFETY: valid info.
+            out.push(unsafe { lower_info(info, ranges) });
+        }
+        cb.record_custom(Box::new(BuildCommand { name: CMD, infos: out }));
+    })
+}
+
+/// Host-memory inputs for host commands: addresses are host pointers the application promises
+/// are valid while the command (or its deferred operation) runs; instance references are
+/// `VkAccelerationStructureKHR` handles, translated to device addresses so host and device
+/// builds produce the same bytes.
+struct HostInputs<'a> {
+    device_view: DeviceMemoryView<'a>,
+    command: &'static str,
+}
+
+impl<'a> HostInputs<'a> {
+    /// # Safety
+    /// Every host address the build reads must be valid for the lengths the build derives from
+    /// its parameters (VUID-vkBuildAccelerationStructuresKHR-pInfos-03725 and the geometry
+    /// host-address rules): the application's obligation.
+    unsafe fn new(space: &'a AddressSpace, command: &'static str) -> Self {
+        HostInputs { device_view: DeviceMemoryView::new(space), command }
+    }
+}
+
+impl accel::DeviceView for HostInputs<'_> {
+    fn bytes(&self, address: u64, len: u64) -> Option<&[u8]> {
+        if address == 0 {
+            return None;
+        }
+        // SAFETY: HostInputs::new's contract: host addresses given to a host command are valid.
+        Some(unsafe { std::slice::from_raw_parts(address as *const u8, len as usize) })
+    }
+    fn acceleration_structure(&self, reference: u64) -> Option<&[u8]> {
+        match structure_from(vk::AccelerationStructureKHR::from_raw(reference)) {
+            Some(s) => self.device_view.acceleration_structure(s.address()?),
+            None => self.device_view.acceleration_structure(reference),
+        }
+    }
+    fn translate_reference(&self, reference: u64) -> u64 {
+        structure_from(vk::AccelerationStructureKHR::from_raw(reference)).and_then(|s| s.address()).unwrap_or(reference)
+    }
+}
+
+impl InputMemory for HostInputs<'_> {
+    fn input(&self, address: u64, len: u64, _usage: vk::BufferUsageFlags) -> Result<&[u8], InputError> {
+        accel::DeviceView::bytes(self, address, len).ok_or(InputError::Access(AccessError::Unmapped { address }))
+    }
+    unsafe fn scratch(&self, address: u64, len: u64) -> Result<&mut [u8], InputError> {
+        if address == 0 {
+            return Err(InputError::Access(AccessError::Unmapped { address }));
+        }
+        // SAFETY: the caller's contract and HostInputs::new's: valid, exclusive host scratch.
+        Ok(unsafe { std::slice::from_raw_parts_mut(address as *mut u8, len as usize) })
+    }
+    fn memory_range(&self, _address: u64, _len: u64) -> Option<(usize, u64, u64)> {
+        None
+    }
+    fn command(&self) -> &'static str {
+        self.command
+    }
+    fn is_host(&self) -> bool {
+        true
+    }
+}
+
+/// Run `work` now or under a deferred operation.
+fn run_host(
+    dev: &Arc<Device>,
+    deferred: vk::DeferredOperationKHR,
+    command: &str,
+    work: Box<dyn FnOnce() -> vk::Result + Send>,
+) -> vk::Result {
+    if !dev.features.acceleration_structure_host_commands {
+        diag::vuid(
+            &format!("VUID-{command}-accelerationStructureHostCommands-03581"),
+            command,
+            "the accelerationStructureHostCommands feature is not enabled",
+        );
+    }
+    if deferred == vk::DeferredOperationKHR::null() {
+        return work();
+    }
+    let Some(op) = handle::get::<DeferredOperation>(deferred.as_raw()) else {
+        diag::vuid(&format!("VUID-{command}-deferredOperation-parameter"), command, "not a valid deferred operation");
+        return vk::Result::ERROR_UNKNOWN;
+    };
+    if op.is_pending() {
+        diag::vuid(&format!("VUID-{command}-deferredOperation-03678"), command, "the previous deferred operation is not complete");
+        return vk::Result::ERROR_UNKNOWN;
+    }
+    op.defer(crate::threads::configured_threads(), work)
+}
+
+unsafe extern "system" fn build_acceleration_structures_khr(
+    device: vk::Device,
+    deferred: vk::DeferredOperationKHR,
+    info_count: u32,
+    p_infos: *const vk::AccelerationStructureBuildGeometryInfoKHR,
+    pp_ranges: *const *const vk::AccelerationStructureBuildRangeInfoKHR,
+) -> vk::Result {
+    const CMD: &str = "vkBuildAccelerationStructuresKHR";
+    guard(CMD, vk::Result::ERROR_OUT_OF_HOST_MEMORY, || {
+        let Some(dev) = device_from(device) else { return vk::Result::ERROR_INITIALIZATION_FAILED };
+        // SAFETY: infoCount elements (spec).
+        let infos = unsafe { util::slice(p_infos, info_count) };
+        let mut out = Vec::with_capacity(infos.len());
+        for (i, info) in infos.iter().enumerate() {
+            // SAFETY: ppBuildRangeInfos[i] points to geometryCount records (spec).
+            let ranges = unsafe {
+                let p = if pp_ranges.is_null() { std::ptr::null() } else { *pp_ranges.add(i) };
+                util::slice(p, info.geometry_count).iter().map(range_from_vk).collect()
+            };
+            // SAFETY: valid info.
+            out.push(unsafe { lower_info(info, Ranges::Direct(ranges)) });
+        }
+        let d = dev.clone();
+        run_host(
+            &dev,
+            deferred,
+            CMD,
+            Box::new(move || {
+                // SAFETY: host addresses of a host build are valid until it completes (spec).
+                let inputs = unsafe { HostInputs::new(&d.memory, CMD) };
+                match rt::execute_builds(&inputs, &out) {
+                    Ok(()) => vk::Result::SUCCESS,
+                    Err(_) => vk::Result::ERROR_DEVICE_LOST,
+                }
+            }),
+        )
+    })
+}
+
+// ---------------------------------------------------------------------------------------------
+// Copies
+
+/// A copy between structures or to/from memory; `dst_address`/`src_address` are device
+/// addresses for commands and host pointers for host commands.
+enum CopyOp {
+    Structure { src: Option<Arc<AccelerationStructure>>, dst: Option<Arc<AccelerationStructure>>, mode: vk::CopyAccelerationStructureModeKHR },
+    ToMemory { src: Option<Arc<AccelerationStructure>>, dst_address: u64, mode: vk::CopyAccelerationStructureModeKHR },
+    FromMemory { src_address: u64, dst: Option<Arc<AccelerationStructure>>, mode: vk::CopyAccelerationStructureModeKHR },
+}
+
+struct CopyCommand {
+    name: &'static str,
+    op: CopyOp,
+}
+
+impl Exec for CopyCommand {
+    fn name(&self) -> &'static str {
+        self.name
+    }
+    fn execute(&self, ctx: &ExecContext<'_>) -> Result<(), ExecError> {
+        let inputs = DeviceInputs::new(ctx.memory(), self.name);
+        rt::execute_copy(&inputs, &self.op.lower()).map_err(|_| ExecError::Invalid {
+            vuid: "strict",
+            message: "an acceleration-structure copy broke a valid-usage rule (ARBOR_STRICT)".into(),
+        })
+    }
+}
+
+impl CopyOp {
+    fn lower(&self) -> rt::Copy {
+        match self {
+            CopyOp::Structure { src, dst, mode } => rt::Copy::Structure { src: src.clone(), dst: dst.clone(), mode: *mode },
+            CopyOp::ToMemory { src, dst_address, mode } => rt::Copy::ToMemory { src: src.clone(), dst: *dst_address, mode: *mode },
+            CopyOp::FromMemory { src_address, dst, mode } => rt::Copy::FromMemory { src: *src_address, dst: dst.clone(), mode: *mode },
+        }
+    }
+}
+
+unsafe extern "system" fn cmd_copy_acceleration_structure_khr(command_buffer: vk::CommandBuffer, p_info: *const vk::CopyAccelerationStructureInfoKHR) {
+    const CMD: &str = "vkCmdCopyAccelerationStructureKHR";
+    guard(CMD, (), || {
+        let Some(cb) = command_buffer_from(command_buffer) else { return };
+        if p_info.is_null() {
+            return;
+        }
+        // SAFETY: valid info (spec).
+        let i = unsafe { &*p_info };
+        let op = CopyOp::Structure { src: structure_from(i.src), dst: structure_from(i.dst), mode: i.mode };
+        cb.record_custom(Box::new(CopyCommand { name: CMD, op }));
+    })
+}
+
+unsafe extern "system" fn cmd_copy_acceleration_structure_to_memory_khr(
+    command_buffer: vk::CommandBuffer,
+    p_info: *const vk::CopyAccelerationStructureToMemoryInfoKHR,
+) {
+    const CMD: &str = "vkCmdCopyAccelerationStructureToMemoryKHR";
+    guard(CMD, (), || {
+        let Some(cb) = command_buffer_from(command_buffer) else { return };
+        if p_info.is_null() {
+            return;
+        }
+        // SAFETY: valid info (spec); the union is read as a device address.
+        let (src, dst_address, mode) = unsafe { ((*p_info).src, (*p_info).dst.device_address, (*p_info).mode) };
+        let op = CopyOp::ToMemory { src: structure_from(src), dst_address, mode };
+        cb.record_custom(Box::new(CopyCommand { name: CMD, op }));
+    })
+}
+
+unsafe extern "system" fn cmd_copy_memory_to_acceleration_structure_khr(
+    command_buffer: vk::CommandBuffer,
+    p_info: *const vk::CopyMemoryToAccelerationStructureInfoKHR,
+) {
+    const CMD: &str = "vkCmdCopyMemoryToAccelerationStructureKHR";
+    guard(CMD, (), || {
+        let Some(cb) = command_buffer_from(command_buffer) else { return };
+        if p_info.is_null() {
+            return;
+        }
+        // SAFETY: valid info (spec); the union is read as a device address.
+        let (src_address, dst, mode) = unsafe { ((*p_info).src.device_address, (*p_info).dst, (*p_info).mode) };
+        let op = CopyOp::FromMemory { src_address, dst: structure_from(dst), mode };
+        cb.record_custom(Box::new(CopyCommand { name: CMD, op }));
+    })
+}
+
+fn host_copy(device: vk::Device, deferred: vk::DeferredOperationKHR, name: &'static str, op: CopyOp) -> vk::Result {
+    let Some(dev) = device_from(device) else { return vk::Result::ERROR_INITIALIZATION_FAILED };
+    let d = dev.clone();
+    run_host(
+        &dev,
+        deferred,
+        name,
+        Box::new(move || {
+            // SAFETY: host addresses of a host copy are valid until it completes (spec).
+            let inputs = unsafe { HostInputs::new(&d.memory, name) };
+            match rt::execute_copy(&inputs, &op.lower()) {
+                Ok(()) => vk::Result::SUCCESS,
+                Err(_) => vk::Result::ERROR_DEVICE_LOST,
+            }
+        }),
+    )
+}
+
+unsafe extern "system" fn copy_acceleration_structure_khr(
+    device: vk::Device,
+    deferred: vk::DeferredOperationKHR,
+    p_info: *const vk::CopyAccelerationStructureInfoKHR,
+) -> vk::Result {
+    const CMD: &str = "vkCopyAccelerationStructureKHR";
+    guard(CMD, vk::Result::ERROR_OUT_OF_HOST_MEMORY, || {
+        if p_info.is_null() {
+            return vk::Result::ERROR_INITIALIZATION_FAILED;
+        }
+        // SAFETY: valid info (spec).
+        let i = unsafe { &*p_info };
+        host_copy(device, deferred, CMD, CopyOp::Structure { src: structure_from(i.src), dst: structure_from(i.dst), mode: i.mode })
+    })
+}
+
+unsafe extern "system" fn copy_acceleration_structure_to_memory_khr(
+    device: vk::Device,
+    deferred: vk::DeferredOperationKHR,
+    p_info: *const vk::CopyAccelerationStructureToMemoryInfoKHR,
+) -> vk::Result {
+    const CMD: &str = "vkCopyAccelerationStructureToMemoryKHR";
+    guard(CMD, vk::Result::ERROR_OUT_OF_HOST_MEMORY, || {
+        if p_info.is_null() {
+            return vk::Result::ERROR_INITIALIZATION_FAILED;
+        }
+        // SAFETY: valid info (spec); the union is read as a host pointer value.
+        let (src, dst, mode) = unsafe { ((*p_info).src, (*p_info).dst.host_address as u64, (*p_info).mode) };
+        host_copy(device, deferred, CMD, CopyOp::ToMemory { src: structure_from(src), dst_address: dst, mode })
+    })
+}
+
+unsafe extern "system" fn copy_memory_to_acceleration_structure_khr(
+    device: vk::Device,
+    deferred: vk::DeferredOperationKHR,
+    p_info: *const vk::CopyMemoryToAccelerationStructureInfoKHR,
+) -> vk::Result {
+    const CMD: &str = "vkCopyMemoryToAccelerationStructureKHR";
+    guard(CMD, vk::Result::ERROR_OUT_OF_HOST_MEMORY, || {
+        if p_info.is_null() {
+            return vk::Result::ERROR_INITIALIZATION_FAILED;
+        }
+        // SAFETY: valid info (spec); the union is read as a host pointer value.
+        let (src, dst, mode) = unsafe { ((*p_info).src.host_address as u64, (*p_info).dst, (*p_info).mode) };
+        host_copy(device, deferred, CMD, CopyOp::FromMemory { src_address: src, dst: structure_from(dst), mode })
+    })
+}
+
+// ---------------------------------------------------------------------------------------------
+// Properties
+
+/// Recorded vkCmdWriteAccelerationStructuresPropertiesKHR.
+struct WritePropertiesCommand {
+    structures: Vec<Option<Arc<AccelerationStructure>>>,
+    query_type: vk::QueryType,
+    pool: Arc<crate::runtime::query::QueryPool>,
+    first: u32,
+}
+
+impl Exec for WritePropertiesCommand {
+    fn name(&self) -> &'static str {
+        "vkCmdWriteAccelerationStructuresPropertiesKHR"
+    }
+    fn execute(&self, _ctx: &ExecContext<'_>) -> Result<(), ExecError> {
+        for (i, s) in self.structures.iter().enumerate() {
+            match rt::property(s.as_deref(), self.query_type, self.name(), i) {
+                Some(v) => {
+                    self.pool.write(self.first + i as u32, v);
+                }
+                None if diag::strict() => {
+                    return Err(ExecError::Invalid { vuid: "strict", message: "invalid property query (ARBOR_STRICT)".into() })
+                }
+                None => {}
+            }
+        }
+        Ok(())
+    }
+}
+
+unsafe extern "system" fn cmd_write_acceleration_structures_properties_khr(
+    command_buffer: vk::CommandBuffer,
+    count: u32,
+    p_structures: *const vk::AccelerationStructureKHR,
+    query_type: vk::QueryType,
+    query_pool: vk::QueryPool,
+    first_query: u32,
+) {
+    const CMD: &str = "vkCmdWriteAccelerationStructuresPropertiesKHR";
+    guard(CMD, (), || {
+        let Some(cb) = command_buffer_from(command_buffer) else { return };
+        let Some(pool) = handle::get::<crate::runtime::query::QueryPool>(query_pool.as_raw()) else {
+            diag::vuid(&format!("VUID-{CMD}-queryPool-parameter"), CMD, "not a valid query pool");
+            return;
+        };
+        if pool.query_type != query_type {
+            diag::vuid(&format!("VUID-{CMD}-queryPool-02493"), CMD, "queryPool was created with another queryType");
+            return;
+        }
+        if pool.check_range(first_query, count).is_err() {
+            diag::vuid(&format!("VUID-{CMD}-query-04880"), CMD, "firstQuery + accelerationStructureCount exceeds the pool");
+            return;
+        }
+        // SAFETY: count handles (spec).
+        let structures = unsafe { util::slice(p_structures, count) }.iter().map(|h| structure_from(*h)).collect();
+        cb.record_custom(Box::new(WritePropertiesCommand { structures, query_type, pool, first: first_query }));
+    })
+}
+
+unsafe extern "system" fn write_acceleration_structures_properties_khr(
+    device: vk::Device,
+    count: u32,
+    p_structures: *const vk::AccelerationStructureKHR,
+    query_type: vk::QueryType,
+    data_size: usize,
+    p_data: *mut c_void,
+    stride: usize,
+) -> vk::Result {
+    const CMD: &str = "vkWriteAccelerationStructuresPropertiesKHR";
+    guard(CMD, vk::Result::ERROR_OUT_OF_HOST_MEMORY, || {
+        let Some(dev) = device_from(device) else { return vk::Result::ERROR_INITIALIZATION_FAILED };
+        if !dev.features.acceleration_structure_host_commands {
+            diag::vuid(&format!("VUID-{CMD}-accelerationStructureHostCommands-03585"), CMD, "host commands are not enabled");
+        }
+        if stride % 8 != 0 {
+            diag::vuid(&format!("VUID-{CMD}-queryType-03448"), CMD, "stride must be a multiple of 8");
+            return vk::Result::ERROR_UNKNOWN;
+        }
+        if (count as usize).checked_mul(stride).is_none_or(|n| n > data_size) || p_data.is_null() {
+            diag::vuid(&format!("VUID-{CMD}-dataSize-03452"), CMD, "dataSize is smaller than accelerationStructureCount * stride");
+            return vk::Result::ERROR_UNKNOWN;
+        }
+        // SAFETY: count handles (spec).
+        let handles = unsafe { util::slice(p_structures, count) };
+        for (i, h) in handles.iter().enumerate() {
+            let s = structure_from(*h);
+            if let Some(v) = rt::property(s.as_deref(), query_type, CMD, i) {
+                // SAFETY: i * stride + 8 <= dataSize checked above; unaligned-safe write.
+                unsafe { (p_data as *mut u8).add(i * stride).cast::<u64>().write_unaligned(v) };
+            }
+        }
+        vk::Result::SUCCESS
+    })
+}
+
+// ---------------------------------------------------------------------------------------------
+// Deferred operations
+
+unsafe extern "system" fn create_deferred_operation_khr(
+    _device: vk::Device,
+    _p_allocator: *const vk::AllocationCallbacks,
+    p_op: *mut vk::DeferredOperationKHR,
+) -> vk::Result {
+    guard("vkCreateDeferredOperationKHR", vk::Result::ERROR_OUT_OF_HOST_MEMORY, || {
+        if p_op.is_null() {
+            return vk::Result::ERROR_INITIALIZATION_FAILED;
+        }
+        // SAFETY: valid output pointer.
+        unsafe { *p_op = vk::DeferredOperationKHR::from_raw(handle::register(DeferredOperation::new())) };
+        vk::Result::SUCCESS
+    })
+}
+
+unsafe extern "system" fn destroy_deferred_operation_khr(
+    _device: vk::Device,
+    op: vk::DeferredOperationKHR,
+    _p_allocator: *const vk::AllocationCallbacks,
+) {
+    const CMD: &str = "vkDestroyDeferredOperationKHR";
+    guard(CMD, (), || {
+        if op == vk::DeferredOperationKHR::null() {
+            return;
+        }
+        match handle::get::<DeferredOperation>(op.as_raw()) {
+            Some(o) if o.is_pending() => {
+                diag::vuid(&format!("VUID-{CMD}-operation-03436"), CMD, "the operation is not complete; not destroyed");
+            }
+            Some(_) => {
+                handle::unregister::<DeferredOperation>(op.as_raw());
+            }
+            None => diag::vuid(&format!("VUID-{CMD}-operation-parameter"), CMD, "not a valid deferred operation"),
+        }
+    })
+}
+
+fn deferred_from(op: vk::DeferredOperationKHR, command: &str) -> Option<Arc<DeferredOperation>> {
+    let o = handle::get::<DeferredOperation>(op.as_raw());
+    if o.is_none() {
+        diag::vuid(&format!("VUID-{command}-operation-parameter"), command, "not a valid deferred operation");
+    }
+    o
+}
+
+unsafe extern "system" fn get_deferred_operation_max_concurrency_khr(_device: vk::Device, op: vk::DeferredOperationKHR) -> u32 {
+    guard("vkGetDeferredOperationMaxConcurrencyKHR", 0, || {
+        deferred_from(op, "vkGetDeferredOperationMaxConcurrencyKHR").map_or(0, |o| o.max_concurrency())
+    })
+}
+
+unsafe extern "system" fn get_deferred_operation_result_khr(_device: vk::Device, op: vk::DeferredOperationKHR) -> vk::Result {
+    guard("vkGetDeferredOperationResultKHR", vk::Result::ERROR_UNKNOWN, || {
+        deferred_from(op, "vkGetDeferredOperationResultKHR").map_or(vk::Result::ERROR_UNKNOWN, |o| o.result())
+    })
+}
+
+unsafe extern "system" fn deferred_operation_join_khr(_device: vk::Device, op: vk::DeferredOperationKHR) -> vk::Result {
+    guard("vkDeferredOperationJoinKHR", vk::Result::ERROR_UNKNOWN, || {
+        deferred_from(op, "vkDeferredOperationJoinKHR").map_or(vk::Result::ERROR_UNKNOWN, |o| o.join())
+    })
+}

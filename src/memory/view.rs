@@ -1,0 +1,79 @@
+//! Borrowed views of device memory for the acceleration-structure library: byte slices whose
+//! lifetime is tied to a pinned buffer, and the `accel::DeviceView` that TLAS builds and
+//! traversal use to follow device addresses.
+use std::sync::{Arc, Mutex};
+
+use super::{AccessError, AddressSpace, Buffer};
+use crate::accel;
+
+impl Buffer {
+    /// A shared view of `[offset, offset + len)` of this buffer, valid while the buffer is
+    /// borrowed (the buffer keeps its memory alive).
+    pub fn bytes(&self, offset: u64, len: u64) -> Result<&[u8], AccessError> {
+        let (m, o) = self.locate(offset, len)?;
+        m.check(o, len)?;
+        // SAFETY: range checked against the allocation; the backing lives as long as the
+        // Arc<Memory> this buffer holds, hence as long as &self. Concurrent writers would violate
+        // the application's synchronisation obligations (module docs of `memory`).
+        Ok(unsafe { std::slice::from_raw_parts(m.backing.ptr.as_ptr().add(o as usize), len as usize) })
+    }
+
+    /// A mutable view of `[offset, offset + len)` of this buffer.
+    ///
+    /// # Safety
+    /// No other view (shared or mutable) of any byte of this range may exist while the returned
+    /// slice lives. Arbor's build and copy paths check that destination, scratch and source
+    /// regions do not overlap (the spec's aliasing VUIDs) before making views.
+    pub unsafe fn bytes_mut(&self, offset: u64, len: u64) -> Result<&mut [u8], AccessError> {
+        let (m, o) = self.locate(offset, len)?;
+        m.check(o, len)?;
+        // SAFETY: range checked; lifetime as in `bytes`; exclusivity is the caller's contract.
+        Ok(unsafe { std::slice::from_raw_parts_mut(m.backing.ptr.as_ptr().add(o as usize), len as usize) })
+    }
+
+    /// Identity of the backing memory and the byte range of `[offset, offset + len)` within it,
+    /// for overlap checks between regions.
+    pub fn memory_range(&self, offset: u64, len: u64) -> Option<(usize, u64, u64)> {
+        let (m, base) = self.memory()?;
+        Some((Arc::as_ptr(m) as usize, base + offset, base + offset.saturating_add(len)))
+    }
+}
+
+/// Smallest prefix of an acceleration structure that identifies it (the accel header).
+pub const STRUCTURE_PROBE: u64 = 16;
+
+/// `accel::DeviceView` over a device's address space: device addresses resolve to the live
+/// buffers containing them; every buffer a returned slice borrows from is pinned for the
+/// view's lifetime.
+pub struct DeviceMemoryView<'a> {
+    space: &'a AddressSpace,
+    pins: Mutex<Vec<Arc<Buffer>>>,
+}
+
+impl<'a> DeviceMemoryView<'a> {
+    pub fn new(space: &'a AddressSpace) -> Self {
+        DeviceMemoryView { space, pins: Mutex::new(Vec::new()) }
+    }
+
+    fn pinned_slice(&self, buffer: Arc<Buffer>, offset: u64, len: u64) -> Option<&[u8]> {
+        let s = buffer.bytes(offset, len).ok()?;
+        let (ptr, n) = (s.as_ptr(), s.len());
+        self.pins.lock().unwrap_or_else(|e| e.into_inner()).push(buffer);
+        // SAFETY: the slice points into memory owned by `buffer`, which is now pinned in
+        // `self.pins` until the view is dropped, so it outlives the returned borrow of `self`.
+        Some(unsafe { std::slice::from_raw_parts(ptr, n) })
+    }
+}
+
+impl accel::DeviceView for DeviceMemoryView<'_> {
+    fn bytes(&self, address: u64, len: u64) -> Option<&[u8]> {
+        let r = self.space.resolve(address, len).ok()?;
+        self.pinned_slice(r.buffer, r.offset, len)
+    }
+
+    fn acceleration_structure(&self, reference: u64) -> Option<&[u8]> {
+        let r = self.space.resolve(reference, STRUCTURE_PROBE).ok()?;
+        let len = r.buffer.size - r.offset;
+        self.pinned_slice(r.buffer, r.offset, len)
+    }
+}

@@ -1,0 +1,134 @@
+//! Deferred host operations (VK_KHR_deferred_host_operations) whose joining threads do the work.
+//!
+//! A deferred operation owns a rayon thread pool created without threads of its own: its N
+//! worker slots (`rayon::ThreadBuilder`s) are handed to the application threads that call
+//! `vkDeferredOperationJoinKHR`, which run rayon's worker loop themselves. The operation's work
+//! is one job spawned on that pool; its parallel parts (`rayon::join`, parallel iterators) are
+//! split into tasks that the joined threads steal from each other — the same scheduler (rayon)
+//! that runs every other build, so the structures built are byte-identical whatever the number of
+//! joiners. When the work finishes it drops the pool, every joined worker leaves its loop, and each
+//! joiner returns VK_SUCCESS. A join that finds no free slot returns VK_THREAD_DONE_KHR: nothing
+//! more can be handed to it, and the slots already taken guarantee progress.
+use std::sync::{Arc, Condvar, Mutex};
+
+use ash::vk;
+
+
+enum State {
+    /// Created, or never used: complete with VK_SUCCESS.
+    Idle,
+    Pending { slots: Vec<rayon::ThreadBuilder>, pool: Option<rayon::ThreadPool> },
+    Complete(vk::Result),
+}
+
+pub struct DeferredOperation {
+    state: Mutex<State>,
+    done: Condvar,
+}
+
+
+impl Default for DeferredOperation {
+    fn default() -> Self {
+        DeferredOperation { state: Mutex::new(State::Idle), done: Condvar::new() }
+    }
+}
+
+impl DeferredOperation {
+    pub fn new() -> Arc<Self> {
+        Arc::new(Self::default())
+    }
+
+    /// Whether an earlier operation on this object is still pending (VUID ...-03678).
+    pub fn is_pending(&self) -> bool {
+        matches!(*self.state.lock().unwrap_or_else(|e| e.into_inner()), State::Pending { .. })
+    }
+
+    /// Defer `work`: it runs when threads join. Returns VK_OPERATION_DEFERRED_KHR, or runs it at
+    /// once and returns VK_OPERATION_NOT_DEFERRED_KHR when no pool can be made.
+    pub fn defer(self: &Arc<Self>, threads: usize, work: Box<dyn FnOnce() -> vk::Result + Send>) -> vk::Result {
+        let slots = Arc::new(Mutex::new(Vec::new()));
+        let sink = slots.clone();
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(threads.max(1))
+            .spawn_handler(move |builder| {
+                sink.lock().unwrap_or_else(|e| e.into_inner()).push(builder);
+                Ok(())
+            })
+            .build();
+        let pool = match pool {
+            Ok(p) => p,
+            Err(_) => {
+                let r = work();
+                *self.state.lock().unwrap_or_else(|e| e.into_inner()) = State::Complete(r);
+                return vk::Result::OPERATION_NOT_DEFERRED_KHR;
+            }
+        };
+        let mut slots = std::mem::take(&mut *slots.lock().unwrap_or_else(|e| e.into_inner()));
+        // Joiners take slots from the end: keep slot 0 (the first joiner) first.
+        slots.reverse();
+        let me = self.clone();
+        pool.spawn(move || {
+            let r = work();
+            me.complete(r);
+        });
+        *self.state.lock().unwrap_or_else(|e| e.into_inner()) = State::Pending { slots, pool: Some(pool) };
+        vk::Result::OPERATION_DEFERRED_KHR
+    }
+
+    fn complete(&self, result: vk::Result) {
+        let pool = {
+            let mut st = self.state.lock().unwrap_or_else(|e| e.into_inner());
+            let pool = match &mut *st {
+                State::Pending { pool, .. } => pool.take(),
+                _ => None,
+            };
+            // Unclaimed slots are dropped with the state: nobody will run them.
+            *st = State::Complete(result);
+            pool
+        };
+        self.done.notify_all();
+        // Dropping the pool terminates it: joined workers leave their loops once idle.
+        drop(pool);
+    }
+
+    /// vkDeferredOperationJoinKHR.
+    pub fn join(&self) -> vk::Result {
+        let slot = {
+            let mut st = self.state.lock().unwrap_or_else(|e| e.into_inner());
+            match &mut *st {
+                State::Idle | State::Complete(_) => return vk::Result::SUCCESS,
+                State::Pending { slots, .. } => slots.pop(),
+            }
+        };
+        match slot {
+            Some(worker) => {
+                // Runs rayon's worker loop on this thread until the pool terminates, which
+                // happens only after the work completed.
+                worker.run();
+                let mut st = self.state.lock().unwrap_or_else(|e| e.into_inner());
+                while matches!(*st, State::Pending { .. }) {
+                    st = self.done.wait(st).unwrap_or_else(|e| e.into_inner());
+                }
+                vk::Result::SUCCESS
+            }
+            None => vk::Result::THREAD_DONE_KHR,
+        }
+    }
+
+    /// vkGetDeferredOperationMaxConcurrencyKHR: how many more threads could help.
+    pub fn max_concurrency(&self) -> u32 {
+        match &*self.state.lock().unwrap_or_else(|e| e.into_inner()) {
+            State::Pending { slots, .. } => slots.len() as u32,
+            _ => 0,
+        }
+    }
+
+    /// vkGetDeferredOperationResultKHR.
+    pub fn result(&self) -> vk::Result {
+        match &*self.state.lock().unwrap_or_else(|e| e.into_inner()) {
+            State::Idle => vk::Result::SUCCESS,
+            State::Pending { .. } => vk::Result::NOT_READY,
+            State::Complete(r) => *r,
+        }
+    }
+}
