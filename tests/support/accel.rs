@@ -43,6 +43,8 @@ pub struct Accel<'c> {
     pub deferred: ash::khr::deferred_host_operations::Device,
     pub bda: ash::khr::buffer_device_address::Device,
     pub pool: vk::CommandPool,
+    /// Queue index submissions go to (one thread per queue: queues are externally synchronized).
+    pub queue: usize,
     buffers: std::cell::RefCell<Vec<Buf>>,
     structures: std::cell::RefCell<Vec<vk::AccelerationStructureKHR>>,
 }
@@ -60,7 +62,7 @@ impl<'c> Accel<'c> {
         }
         .unwrap();
         let bda = ash::khr::buffer_device_address::Device::new(&ctx.instance, &ctx.device);
-        Accel { ctx, ext, deferred, bda, pool, buffers: Default::default(), structures: Default::default() }
+        Accel { ctx, ext, deferred, bda, pool, queue: 0, buffers: Default::default(), structures: Default::default() }
     }
 
     /// A host-visible buffer with a device address, usable for every AS role. Owned by `self`.
@@ -123,7 +125,7 @@ impl<'c> Accel<'c> {
             d.end_command_buffer(cb).unwrap();
             let fence = d.create_fence(&vk::FenceCreateInfo::default(), None).unwrap();
             let cbs = [cb];
-            d.queue_submit(self.ctx.queues[0], &[vk::SubmitInfo::default().command_buffers(&cbs)], fence).unwrap();
+            d.queue_submit(self.ctx.queues[self.queue], &[vk::SubmitInfo::default().command_buffers(&cbs)], fence).unwrap();
             d.wait_for_fences(&[fence], true, u64::MAX).unwrap();
             d.destroy_fence(fence, None);
             d.free_command_buffers(self.pool, &cbs);
@@ -182,9 +184,9 @@ impl<'c> Accel<'c> {
     /// Destroy everything this helper created.
     pub fn destroy(self) {
         let d = &self.ctx.device;
-        // SAFETY: the device is idle after the waits; objects are destroyed once.
+        // SAFETY: this helper's queue is idle after the wait; objects are destroyed once.
         unsafe {
-            d.device_wait_idle().unwrap();
+            d.queue_wait_idle(self.ctx.queues[self.queue]).unwrap();
             for s in self.structures.borrow().iter() {
                 self.ext.destroy_acceleration_structure(*s, None);
             }

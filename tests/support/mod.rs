@@ -51,10 +51,24 @@ pub fn use_arbor_manifest() -> PathBuf {
                 std::env::set_var("VK_DRIVER_FILES", &path);
                 // Mesa's implicit device-select layer may be installed; it is not under test.
                 std::env::set_var("NODEVICE_SELECT", "1");
+                // Arbor's diagnostics go to a file per test process, so tests can read them.
+                std::env::set_var("ARBOR_DIAG_FILE", diagnostics_path());
             }
             path
         })
         .clone()
+}
+
+/// The file Arbor's diagnostics channel writes to in this test process.
+pub fn diagnostics_path() -> PathBuf {
+    let exe = std::env::current_exe().expect("test executable path");
+    let name = exe.file_name().unwrap().to_string_lossy().into_owned();
+    exe.parent().unwrap().parent().unwrap().join("arbor-test-icd").join(format!("diag-{name}-{}.log", std::process::id()))
+}
+
+/// Everything Arbor's diagnostics channel reported in this test process so far.
+pub fn diagnostics() -> String {
+    std::fs::read_to_string(diagnostics_path()).unwrap_or_default()
 }
 
 pub type Messages = Arc<Mutex<Vec<String>>>;
