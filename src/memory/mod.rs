@@ -67,9 +67,31 @@ impl fmt::Display for AccessError {
 }
 
 /// Host backing of one allocation.
+///
+/// Allocated through the allocator's zeroing path with 16-byte alignment (calloc: large blocks
+/// come straight from mmap, zero and uncommitted until touched, so a big allocation costs RAM
+/// only as it is used), over-sized by one page so that `ptr` can be page aligned: host pointers
+/// then have the alignment of the device addresses they back, up to 4096.
 struct Backing {
+    /// Page-aligned start of the bytes.
     ptr: NonNull<u8>,
+    /// What the allocator returned.
+    base: NonNull<u8>,
     layout: std::alloc::Layout,
+}
+
+impl Backing {
+    /// Zeroed bytes for `size` (a multiple of [`ALLOCATION_ALIGNMENT`]); None when the host
+    /// allocator fails.
+    fn new(size: usize) -> Option<Backing> {
+        let layout = std::alloc::Layout::from_size_align(size.checked_add(ALLOCATION_ALIGNMENT as usize)?, 16).ok()?;
+        // SAFETY: layout has non-zero size.
+        let base = NonNull::new(unsafe { std::alloc::alloc_zeroed(layout) })?;
+        let pad = base.as_ptr().align_offset(ALLOCATION_ALIGNMENT as usize);
+        // SAFETY: pad < ALLOCATION_ALIGNMENT, so ptr..ptr+size lies inside the block.
+        let ptr = unsafe { NonNull::new_unchecked(base.as_ptr().add(pad)) };
+        Some(Backing { ptr, base, layout })
+    }
 }
 
 // SAFETY: the backing is plain bytes owned by the allocation; concurrent access follows the
@@ -80,8 +102,8 @@ unsafe impl Sync for Backing {}
 
 impl Drop for Backing {
     fn drop(&mut self) {
-        // SAFETY: allocated with this layout in Memory::new.
-        unsafe { std::alloc::dealloc(self.ptr.as_ptr(), self.layout) };
+        // SAFETY: allocated with this layout in Backing::new.
+        unsafe { std::alloc::dealloc(self.base.as_ptr(), self.layout) };
     }
 }
 
@@ -189,7 +211,7 @@ impl Memory {
 
     /// Bytes the host backing really occupies (the allocation rounded to whole pages).
     pub fn committed_size(&self) -> u64 {
-        self.backing.layout.size() as u64
+        self.size.next_multiple_of(ALLOCATION_ALIGNMENT)
     }
 
     /// Buffers currently bound to this memory.
@@ -361,11 +383,7 @@ impl AddressSpace {
             e
         };
         let rounded = size.checked_add(ALLOCATION_ALIGNMENT - 1).ok_or(AllocError::OutOfDeviceMemory).map_err(release)? & !(ALLOCATION_ALIGNMENT - 1);
-        let layout = std::alloc::Layout::from_size_align(rounded as usize, ALLOCATION_ALIGNMENT as usize)
-            .map_err(|_| release(AllocError::OutOfDeviceMemory))?;
-        // SAFETY: layout has non-zero size.
-        let ptr = NonNull::new(unsafe { std::alloc::alloc_zeroed(layout) }).ok_or_else(|| release(AllocError::OutOfHostMemory))?;
-        let backing = Backing { ptr, layout };
+        let backing = usize::try_from(rounded).ok().and_then(Backing::new).ok_or_else(|| release(AllocError::OutOfHostMemory))?;
 
         let mut allocations = self.allocations.write().unwrap_or_else(|e| e.into_inner());
         let address = match capture_address {
@@ -673,6 +691,8 @@ mod tests {
         let mut out = [0u8];
         m.read(10, &mut out).unwrap();
         assert_eq!(out, [42]);
+        // Host pointers have the alignment of the device addresses they back.
+        assert_eq!(m.host_ptr(0).unwrap() as usize % ALLOCATION_ALIGNMENT as usize, 0);
         assert!(m.unmap());
         assert!(!m.unmap());
         // Freeing unmaps.
