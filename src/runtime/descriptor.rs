@@ -641,3 +641,79 @@ impl PipelineLayout {
         Ok(PipelineLayout { flags, set_layouts, push_constant_ranges })
     }
 }
+
+/// Device limits the buffer-descriptor checks use (VkPhysicalDeviceLimits).
+#[derive(Clone, Copy, Debug)]
+pub struct BufferLimits {
+    pub min_uniform_offset_alignment: u64,
+    pub min_storage_offset_alignment: u64,
+    pub max_uniform_range: u64,
+    pub max_storage_range: u64,
+}
+
+/// Check and build a buffer descriptor of type `t` (VkDescriptorBufferInfo). `buffer` is the
+/// looked-up buffer (None for a null or unknown handle).
+pub fn buffer_descriptor(
+    t: vk::DescriptorType,
+    buffer: Option<Arc<Buffer>>,
+    handle: u64,
+    offset: u64,
+    range: u64,
+    limits: &BufferLimits,
+) -> Result<Descriptor, Violation> {
+    let Some(b) = buffer else {
+        return Err(violation(
+            "VUID-VkDescriptorBufferInfo-buffer-02998",
+            format!("buffer {handle:#x} is not a live VkBuffer (the nullDescriptor feature is not offered)"),
+        ));
+    };
+    if offset >= b.size {
+        return Err(violation("VUID-VkDescriptorBufferInfo-offset-00340", format!("offset {offset} is not less than the buffer size {}", b.size)));
+    }
+    if range != vk::WHOLE_SIZE {
+        if range == 0 {
+            return Err(violation("VUID-VkDescriptorBufferInfo-range-00341", "range is 0"));
+        }
+        if range > b.size - offset {
+            return Err(violation(
+                "VUID-VkDescriptorBufferInfo-range-00342",
+                format!("offset {offset} + range {range} exceeds the buffer size {}", b.size),
+            ));
+        }
+    }
+    let effective = if range == vk::WHOLE_SIZE { b.size - offset } else { range };
+    let uniform = matches!(t, vk::DescriptorType::UNIFORM_BUFFER | vk::DescriptorType::UNIFORM_BUFFER_DYNAMIC);
+    let (usage, usage_vuid, align, align_vuid, max, max_vuid) = if uniform {
+        (
+            vk::BufferUsageFlags::UNIFORM_BUFFER,
+            "VUID-VkWriteDescriptorSet-descriptorType-00330",
+            limits.min_uniform_offset_alignment,
+            "VUID-VkWriteDescriptorSet-descriptorType-00327",
+            limits.max_uniform_range,
+            "VUID-VkWriteDescriptorSet-descriptorType-00332",
+        )
+    } else {
+        (
+            vk::BufferUsageFlags::STORAGE_BUFFER,
+            "VUID-VkWriteDescriptorSet-descriptorType-00331",
+            limits.min_storage_offset_alignment,
+            "VUID-VkWriteDescriptorSet-descriptorType-00328",
+            limits.max_storage_range,
+            "VUID-VkWriteDescriptorSet-descriptorType-00333",
+        )
+    };
+    if !b.usage.contains(usage) {
+        return Err(violation(usage_vuid, format!("{t:?} descriptor for a buffer without {usage:?} usage ({:?})", b.usage)));
+    }
+    if offset % align.max(1) != 0 {
+        return Err(violation(align_vuid, format!("offset {offset} is not a multiple of {align}")));
+    }
+    // For the dynamic types the effective range is only known at bind time.
+    if !is_dynamic(t) && effective > max {
+        return Err(violation(max_vuid, format!("range {effective} exceeds the device limit {max}")));
+    }
+    if b.memory().is_none() {
+        return Err(violation("VUID-VkWriteDescriptorSet-descriptorType-00329", "the buffer is not bound to memory"));
+    }
+    Ok(Descriptor::Buffer { buffer: Arc::downgrade(&b), handle, offset, range })
+}
