@@ -486,3 +486,114 @@ fn concurrent_builds_from_several_threads() {
     });
     ctx.finish();
 }
+
+/// Refit: move the vertices, UPDATE in place and from src into another structure; both equal
+/// and traversal equals brute force over the moved mesh.
+#[test]
+fn update_refits_in_place_and_into_another_structure() {
+    let ctx = as_context();
+    let a = Accel::new(&ctx);
+    let mut mesh = bunny();
+    let m = upload_mesh(&a, &mesh);
+    let flags = vk::BuildAccelerationStructureFlagsKHR::ALLOW_UPDATE | vk::BuildAccelerationStructureFlagsKHR::PREFER_FAST_TRACE;
+    let s = device_blas(&a, &m, flags);
+    // Move every vertex (a smooth deformation) and upload the new positions.
+    for p in mesh.positions.iter_mut() {
+        p[1] += 0.02 * (p[0] * 40.0).sin();
+        p[0] *= 1.1;
+    }
+    a.buf(m.vertices).write(0, &mesh.vertex_bytes());
+    let geoms = [triangles(a.buf(m.vertices).address, a.buf(m.indices).address, m.max_vertex)];
+    let info = blas_info(&geoms, flags);
+    let sizes = a.sizes(vk::AccelerationStructureBuildTypeKHR::DEVICE, &info, &[m.count]);
+    assert!(sizes.update_scratch_size > 0);
+    let scratch = a.buffer(sizes.update_scratch_size.max(sizes.build_scratch_size));
+    let (s2, _) = a.structure(vk::AccelerationStructureTypeKHR::BOTTOM_LEVEL, sizes.acceleration_structure_size);
+    let saddr = a.buf(scratch).address;
+    let range = [vk::AccelerationStructureBuildRangeInfoKHR::default().primitive_count(m.count)];
+    // src → dst first (src keeps the old geometry), then in place.
+    let into_other = info
+        .mode(vk::BuildAccelerationStructureModeKHR::UPDATE)
+        .src_acceleration_structure(s)
+        .dst_acceleration_structure(s2)
+        .scratch_data(vk::DeviceOrHostAddressKHR { device_address: saddr });
+    a.submit(|cb| {
+        // SAFETY: valid infos.
+        unsafe { a.ext.cmd_build_acceleration_structures(cb, &[into_other], &[&range]) };
+    });
+    let in_place = info
+        .mode(vk::BuildAccelerationStructureModeKHR::UPDATE)
+        .src_acceleration_structure(s)
+        .dst_acceleration_structure(s)
+        .scratch_data(vk::DeviceOrHostAddressKHR { device_address: saddr });
+    a.submit(|cb| {
+        // SAFETY: valid infos.
+        unsafe { a.ext.cmd_build_acceleration_structures(cb, &[in_place], &[&range]) };
+    });
+    let x = a.serialize(s);
+    let y = a.serialize(s2);
+    assert_eq!(x, y, "in-place and src→dst updates differ");
+    let blob = payload(&x);
+    let mut hits = 0;
+    for ray in rays(mesh.bounds(), 1500, 5) {
+        let got = accel::closest_hit(blob, &NoDevice, ray, RayFlags(0), 0xFF).map(|h| (h.t, h.primitive_index));
+        let want = brute_closest(&mesh, &ray);
+        assert_eq!(got, want, "after refit, ray {ray:?}");
+        hits += want.is_some() as u32;
+    }
+    assert!(hits > 100);
+    a.destroy();
+    ctx.finish();
+}
+
+/// Limits meet the spec's minimums (maxPrimitiveCount 2^29-1, which lavapipe misses) and the
+/// size query answers for the maximum counts without overflowing.
+#[test]
+fn limits_and_size_queries_for_maximum_counts() {
+    let ctx = as_context();
+    let a = Accel::new(&ctx);
+    let mut asp = vk::PhysicalDeviceAccelerationStructurePropertiesKHR::default();
+    let mut asf = vk::PhysicalDeviceAccelerationStructureFeaturesKHR::default();
+    // SAFETY: plain queries.
+    unsafe {
+        let mut p2 = vk::PhysicalDeviceProperties2::default().push_next(&mut asp);
+        ctx.instance.get_physical_device_properties2(ctx.physical, &mut p2);
+        let mut f2 = vk::PhysicalDeviceFeatures2::default().push_next(&mut asf);
+        ctx.instance.get_physical_device_features2(ctx.physical, &mut f2);
+    }
+    assert!(asp.max_geometry_count >= (1 << 24) - 1);
+    assert!(asp.max_instance_count >= (1 << 24) - 1);
+    assert!(asp.max_primitive_count >= (1 << 29) - 1);
+    assert!(asp.max_per_stage_descriptor_update_after_bind_acceleration_structures >= 500_000);
+    assert!(asp.max_descriptor_set_update_after_bind_acceleration_structures >= 500_000);
+    assert!(asp.min_acceleration_structure_scratch_offset_alignment.is_power_of_two());
+    assert!(asp.min_acceleration_structure_scratch_offset_alignment <= 256);
+    for f in [
+        asf.acceleration_structure,
+        asf.acceleration_structure_capture_replay,
+        asf.acceleration_structure_indirect_build,
+        asf.acceleration_structure_host_commands,
+        asf.descriptor_binding_acceleration_structure_update_after_bind,
+    ] {
+        assert_eq!(f, vk::TRUE, "every optional feature is on");
+    }
+    let geoms = [triangles(0, 0, u32::MAX)];
+    let info = blas_info(&geoms, vk::BuildAccelerationStructureFlagsKHR::empty());
+    let max = asp.max_primitive_count as u32;
+    let small = a.sizes(vk::AccelerationStructureBuildTypeKHR::DEVICE, &info, &[1 << 20]);
+    let big = a.sizes(vk::AccelerationStructureBuildTypeKHR::DEVICE, &info, &[max]);
+    let big1 = a.sizes(vk::AccelerationStructureBuildTypeKHR::DEVICE, &info, &[max - 1]);
+    // Linear in the count: no 32-bit wrap anywhere (a wrapped size would be far smaller).
+    assert!(big.acceleration_structure_size >= small.acceleration_structure_size * 500);
+    assert!(big.acceleration_structure_size > big1.acceleration_structure_size);
+    assert!(big.build_scratch_size >= small.build_scratch_size * 500);
+    assert!(big.acceleration_structure_size >= max as u64 * 36, "at least the triangles' vertices");
+    let tgeoms = [instances(0)];
+    let tinfo = vk::AccelerationStructureBuildGeometryInfoKHR::default()
+        .ty(vk::AccelerationStructureTypeKHR::TOP_LEVEL)
+        .geometries(&tgeoms);
+    let t = a.sizes(vk::AccelerationStructureBuildTypeKHR::HOST_OR_DEVICE, &tinfo, &[asp.max_instance_count as u32]);
+    assert!(t.acceleration_structure_size >= asp.max_instance_count * 64);
+    a.destroy();
+    ctx.finish();
+}
