@@ -717,3 +717,219 @@ pub fn buffer_descriptor(
     }
     Ok(Descriptor::Buffer { buffer: Arc::downgrade(&b), handle, offset, range })
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::memory::AddressSpace;
+
+    const LIMITS: BufferLimits =
+        BufferLimits { min_uniform_offset_alignment: 16, min_storage_offset_alignment: 16, max_uniform_range: 65536, max_storage_range: u32::MAX as u64 };
+
+    fn binding(binding: u32, t: vk::DescriptorType, count: u32) -> LayoutBinding {
+        LayoutBinding { binding, descriptor_type: t, count, stages: vk::ShaderStageFlags::COMPUTE, flags: vk::DescriptorBindingFlags::empty(), immutable_samplers: vec![] }
+    }
+
+    fn storage(space: &AddressSpace, size: u64, usage: vk::BufferUsageFlags) -> Arc<Buffer> {
+        let m = space.allocate(size, false, None).unwrap();
+        let b = Arc::new(Buffer::new(size, usage, vk::BufferCreateFlags::empty()));
+        b.bind(m, 0).unwrap();
+        b
+    }
+
+    fn pool(max_sets: u32, sizes: &[(vk::DescriptorType, u32)], flags: vk::DescriptorPoolCreateFlags) -> Arc<DescriptorPool> {
+        Arc::new(DescriptorPool::new(flags, max_sets, sizes).unwrap())
+    }
+
+    #[test]
+    fn writes_read_back() {
+        let space = AddressSpace::new(1 << 24);
+        let b = storage(&space, 4096, vk::BufferUsageFlags::STORAGE_BUFFER | vk::BufferUsageFlags::UNIFORM_BUFFER);
+        let layout = Arc::new(
+            DescriptorSetLayout::new(
+                vk::DescriptorSetLayoutCreateFlags::empty(),
+                vec![binding(3, vk::DescriptorType::UNIFORM_BUFFER, 1), binding(0, vk::DescriptorType::STORAGE_BUFFER, 4)],
+            )
+            .unwrap(),
+        );
+        assert_eq!(layout.bindings[0].binding, 0, "bindings sorted");
+        let p = pool(4, &[(vk::DescriptorType::STORAGE_BUFFER, 8), (vk::DescriptorType::UNIFORM_BUFFER, 2)], vk::DescriptorPoolCreateFlags::empty());
+        let set = p.allocate(&[(layout.clone(), None)]).unwrap().remove(0);
+        assert_eq!(set.binding(0).unwrap(), vec![Descriptor::Empty; 4]);
+        assert_eq!(set.binding(1), None);
+
+        let d = |off, range| buffer_descriptor(vk::DescriptorType::STORAGE_BUFFER, Some(b.clone()), 0x77, off, range, &LIMITS).unwrap();
+        set.write(0, 1, vk::DescriptorType::STORAGE_BUFFER, vec![d(0, 64), d(256, vk::WHOLE_SIZE)]).unwrap();
+        assert_eq!(set.descriptor(0, 0), Some(Descriptor::Empty));
+        assert_eq!(set.descriptor(0, 1), Some(d(0, 64)));
+        let (buf, off, len) = set.descriptor(0, 2).unwrap().buffer_range(0).unwrap();
+        assert!(Arc::ptr_eq(&buf, &b));
+        assert_eq!((off, len), (256, 4096 - 256));
+        assert_eq!(set.descriptor(0, 2).unwrap().handle(), 0x77);
+
+        // Wrong type, unknown binding, past the end.
+        assert_eq!(set.write(3, 0, vk::DescriptorType::STORAGE_BUFFER, vec![d(0, 16)]).unwrap_err().vuid, "VUID-VkWriteDescriptorSet-descriptorType-00319");
+        assert_eq!(set.write(1, 0, vk::DescriptorType::STORAGE_BUFFER, vec![d(0, 16)]).unwrap_err().vuid, "VUID-VkWriteDescriptorSet-dstBinding-00315");
+        // Rolling over from binding 0 into binding 3 (a different type) is invalid, and
+        // nothing is written.
+        assert!(set.write(0, 3, vk::DescriptorType::STORAGE_BUFFER, vec![d(0, 16), d(16, 16)]).is_err());
+        assert_eq!(set.descriptor(0, 3), Some(Descriptor::Empty));
+
+        // A destroyed buffer leaves an invalid descriptor, not a dangling one.
+        let b2 = storage(&space, 256, vk::BufferUsageFlags::STORAGE_BUFFER);
+        set.write(0, 0, vk::DescriptorType::STORAGE_BUFFER, vec![buffer_descriptor(vk::DescriptorType::STORAGE_BUFFER, Some(b2.clone()), 1, 0, 256, &LIMITS).unwrap()]).unwrap();
+        drop(b2);
+        assert!(set.descriptor(0, 0).unwrap().buffer_range(0).is_none());
+    }
+
+    #[test]
+    fn buffer_descriptor_checks() {
+        let space = AddressSpace::new(1 << 24);
+        let st = storage(&space, 1024, vk::BufferUsageFlags::STORAGE_BUFFER);
+        let check = |t, b: &Arc<Buffer>, off, range| buffer_descriptor(t, Some(b.clone()), 1, off, range, &LIMITS).err().map(|v| v.vuid);
+        let sb = vk::DescriptorType::STORAGE_BUFFER;
+        assert_eq!(check(sb, &st, 0, 1024), None);
+        assert_eq!(check(sb, &st, 1024, vk::WHOLE_SIZE), Some("VUID-VkDescriptorBufferInfo-offset-00340"));
+        assert_eq!(check(sb, &st, 0, 0), Some("VUID-VkDescriptorBufferInfo-range-00341"));
+        assert_eq!(check(sb, &st, 16, 1024), Some("VUID-VkDescriptorBufferInfo-range-00342"));
+        assert_eq!(check(sb, &st, 8, 16), Some("VUID-VkWriteDescriptorSet-descriptorType-00328"));
+        assert_eq!(check(vk::DescriptorType::UNIFORM_BUFFER, &st, 0, 16), Some("VUID-VkWriteDescriptorSet-descriptorType-00330"));
+        let un = storage(&space, 1 << 17, vk::BufferUsageFlags::UNIFORM_BUFFER);
+        assert_eq!(check(vk::DescriptorType::UNIFORM_BUFFER, &un, 0, vk::WHOLE_SIZE), Some("VUID-VkWriteDescriptorSet-descriptorType-00332"));
+        // Dynamic: the range limit applies at bind time.
+        assert_eq!(check(vk::DescriptorType::UNIFORM_BUFFER_DYNAMIC, &un, 0, vk::WHOLE_SIZE), None);
+        let unbound = Arc::new(Buffer::new(64, vk::BufferUsageFlags::STORAGE_BUFFER, vk::BufferCreateFlags::empty()));
+        assert_eq!(check(sb, &unbound, 0, 64), Some("VUID-VkWriteDescriptorSet-descriptorType-00329"));
+        assert_eq!(buffer_descriptor(sb, None, 5, 0, 4, &LIMITS).unwrap_err().vuid, "VUID-VkDescriptorBufferInfo-buffer-02998");
+    }
+
+    #[test]
+    fn roll_over_and_copies() {
+        let space = AddressSpace::new(1 << 24);
+        let b = storage(&space, 4096, vk::BufferUsageFlags::STORAGE_BUFFER);
+        let t = vk::DescriptorType::STORAGE_BUFFER;
+        // Binding 1 is empty and skipped by roll-over.
+        let layout = Arc::new(
+            DescriptorSetLayout::new(
+                vk::DescriptorSetLayoutCreateFlags::empty(),
+                vec![binding(0, t, 2), binding(1, vk::DescriptorType::UNIFORM_BUFFER, 0), binding(2, t, 3)],
+            )
+            .unwrap(),
+        );
+        let p = pool(2, &[(t, 10)], vk::DescriptorPoolCreateFlags::empty());
+        let sets = p.allocate(&[(layout.clone(), None), (layout.clone(), None)]).unwrap();
+        let d = |i: u64| buffer_descriptor(t, Some(b.clone()), 9, i * 16, 16, &LIMITS).unwrap();
+        // Four descriptors from (0, 1): one into binding 0, three into binding 2.
+        sets[0].write(0, 1, t, (0..4).map(d).collect()).unwrap();
+        assert_eq!(sets[0].binding(0).unwrap(), vec![Descriptor::Empty, d(0)]);
+        assert_eq!(sets[0].binding(2).unwrap(), vec![d(1), d(2), d(3)]);
+        // Past the end of the last binding.
+        assert_eq!(sets[0].write(2, 2, t, vec![d(0), d(1)]).unwrap_err().vuid, "VUID-VkWriteDescriptorSet-dstArrayElement-00321");
+        // An element index past a binding's end continues in the next bindings.
+        sets[1].write(0, 3, t, vec![d(7)]).unwrap();
+        assert_eq!(sets[1].descriptor(2, 1), Some(d(7)));
+
+        // Copies (with roll-over on both sides) and a copy within one set.
+        sets[1].copy_from(&sets[0], 0, 1, 2, 0, 3).unwrap();
+        assert_eq!(sets[1].binding(2).unwrap(), vec![d(0), d(1), d(2)]);
+        sets[0].copy_from(&sets[0], 2, 2, 0, 0, 1).unwrap();
+        assert_eq!(sets[0].descriptor(0, 0), Some(d(3)));
+        assert!(sets[1].copy_from(&sets[0], 0, 0, 1, 0, 1).is_err(), "type mismatch");
+    }
+
+    #[test]
+    fn pool_limits_free_and_reset() {
+        let t = vk::DescriptorType::STORAGE_BUFFER;
+        let layout = Arc::new(DescriptorSetLayout::new(vk::DescriptorSetLayoutCreateFlags::empty(), vec![binding(0, t, 2)]).unwrap());
+        let p = pool(3, &[(t, 5)], vk::DescriptorPoolCreateFlags::FREE_DESCRIPTOR_SET);
+        let a = p.allocate(&[(layout.clone(), None), (layout.clone(), None)]).unwrap();
+        // 4 of 5 descriptors used: a third set needs 2 more.
+        assert_eq!(p.allocate(&[(layout.clone(), None)]).unwrap_err(), AllocateError::OutOfPoolMemory);
+        assert_eq!(p.allocated(), 2);
+        p.free(&a[..1]).unwrap();
+        assert!(!p.owns(&a[0]) && p.owns(&a[1]));
+        let b = p.allocate(&[(layout.clone(), None)]).unwrap();
+        assert_eq!(p.allocated(), 2);
+        // maxSets: an empty layout uses no descriptors but still a set.
+        let empty = Arc::new(DescriptorSetLayout::new(vk::DescriptorSetLayoutCreateFlags::empty(), vec![]).unwrap());
+        p.allocate(&[(empty.clone(), None)]).unwrap();
+        assert_eq!(p.allocate(&[(empty.clone(), None)]).unwrap_err(), AllocateError::OutOfPoolMemory);
+        // All or nothing.
+        assert_eq!(p.reset().len(), 3);
+        assert_eq!(p.allocate(&[(layout.clone(), None), (layout.clone(), None), (layout.clone(), None)]).unwrap_err(), AllocateError::OutOfPoolMemory);
+        assert_eq!(p.allocated(), 0);
+        // Sets of another pool, and pools without FREE_DESCRIPTOR_SET.
+        assert!(p.free(&b).is_err());
+        let fixed = pool(1, &[(t, 2)], vk::DescriptorPoolCreateFlags::empty());
+        let s = fixed.allocate(&[(layout.clone(), None)]).unwrap();
+        assert_eq!(fixed.free(&s).unwrap_err().vuid, "VUID-vkFreeDescriptorSets-descriptorPool-00312");
+    }
+
+    #[test]
+    fn binding_flags_and_variable_counts() {
+        let t = vk::DescriptorType::STORAGE_BUFFER;
+        let mut var = binding(1, t, 100);
+        var.flags = vk::DescriptorBindingFlags::VARIABLE_DESCRIPTOR_COUNT | vk::DescriptorBindingFlags::PARTIALLY_BOUND;
+        let mut uab = binding(0, t, 1);
+        uab.flags = vk::DescriptorBindingFlags::UPDATE_AFTER_BIND;
+        // UPDATE_AFTER_BIND needs the layout flag.
+        assert_eq!(
+            DescriptorSetLayout::new(vk::DescriptorSetLayoutCreateFlags::empty(), vec![uab.clone()]).unwrap_err().vuid,
+            "VUID-VkDescriptorSetLayoutCreateInfo-flags-03000"
+        );
+        // The variable binding must be the last one.
+        let mut early = var.clone();
+        early.binding = 0;
+        let mut after = binding(1, t, 1);
+        after.binding = 5;
+        assert!(DescriptorSetLayout::new(vk::DescriptorSetLayoutCreateFlags::empty(), vec![early, after]).is_err());
+        let layout = Arc::new(
+            DescriptorSetLayout::new(vk::DescriptorSetLayoutCreateFlags::UPDATE_AFTER_BIND_POOL, vec![var.clone(), uab.clone()]).unwrap(),
+        );
+        assert_eq!(layout.binding(1).unwrap().flags, var.flags);
+        assert_eq!(layout.variable_binding().map(|b| b.binding), Some(1));
+        // Needs an UPDATE_AFTER_BIND pool.
+        let plain = pool(4, &[(t, 200)], vk::DescriptorPoolCreateFlags::empty());
+        assert!(matches!(plain.allocate(&[(layout.clone(), Some(3))]), Err(AllocateError::Invalid(_))));
+        let p = pool(4, &[(t, 20)], vk::DescriptorPoolCreateFlags::UPDATE_AFTER_BIND);
+        let s = p.allocate(&[(layout.clone(), Some(7))]).unwrap().remove(0);
+        assert_eq!(s.variable_count, 7);
+        assert_eq!(s.binding(1).unwrap().len(), 7);
+        // Without a count the variable binding is empty; counts above the maximum are invalid;
+        // the pool counts the variable count, not the maximum.
+        assert_eq!(p.allocate(&[(layout.clone(), None)]).unwrap()[0].binding(1).unwrap().len(), 0);
+        assert!(matches!(p.allocate(&[(layout.clone(), Some(101))]), Err(AllocateError::Invalid(_))));
+        assert!(p.allocate(&[(layout.clone(), Some(10))]).is_ok());
+        assert_eq!(p.allocate(&[(layout.clone(), Some(2))]).unwrap_err(), AllocateError::OutOfPoolMemory);
+    }
+
+    #[test]
+    fn templates_and_pipeline_layouts() {
+        let t = vk::DescriptorType::STORAGE_BUFFER;
+        let layout = Arc::new(DescriptorSetLayout::new(vk::DescriptorSetLayoutCreateFlags::empty(), vec![binding(0, t, 2)]).unwrap());
+        let entry = TemplateEntry { binding: 0, element: 0, count: 2, descriptor_type: t, offset: 0, stride: 24 };
+        assert!(DescriptorUpdateTemplate::new(layout.clone(), vec![entry.clone()]).is_ok());
+        assert!(DescriptorUpdateTemplate::new(layout.clone(), vec![TemplateEntry { binding: 4, ..entry.clone() }]).is_err());
+        assert!(DescriptorUpdateTemplate::new(layout.clone(), vec![TemplateEntry { descriptor_type: vk::DescriptorType::UNIFORM_BUFFER, ..entry }]).is_err());
+
+        let range = |stages, offset, size| vk::PushConstantRange { stage_flags: stages, offset, size };
+        let ok = PipelineLayout::new(
+            vk::PipelineLayoutCreateFlags::empty(),
+            vec![layout.clone(), layout.clone()],
+            vec![range(vk::ShaderStageFlags::COMPUTE, 0, 128)],
+            8,
+            128,
+        )
+        .unwrap();
+        assert_eq!(ok.set_layouts.len(), 2);
+        assert_eq!(ok.push_constant_ranges[0].size, 128);
+        let bad = |ranges, sets: usize| PipelineLayout::new(vk::PipelineLayoutCreateFlags::empty(), vec![layout.clone(); sets], ranges, 8, 128).map(|_| ()).unwrap_err().vuid;
+        assert_eq!(bad(vec![], 9), "VUID-VkPipelineLayoutCreateInfo-setLayoutCount-00286");
+        assert_eq!(bad(vec![range(vk::ShaderStageFlags::COMPUTE, 2, 4)], 1), "VUID-VkPushConstantRange-offset-00294");
+        assert_eq!(bad(vec![range(vk::ShaderStageFlags::COMPUTE, 64, 68)], 1), "VUID-VkPushConstantRange-size-00298");
+        assert_eq!(
+            bad(vec![range(vk::ShaderStageFlags::COMPUTE, 0, 4), range(vk::ShaderStageFlags::COMPUTE, 4, 4)], 1),
+            "VUID-VkPipelineLayoutCreateInfo-pPushConstantRanges-00292"
+        );
+    }
+}
