@@ -500,7 +500,7 @@ impl CommandBuffer {
         let mut s = self.state();
         if s.lifecycle != Lifecycle::Recording {
             drop(s);
-            diag::report(diag::Level::Error, command, "the command buffer is not in the recording state; command ignored");
+            not_recording(command);
             return;
         }
         s.building.push(c);
@@ -509,7 +509,7 @@ impl CommandBuffer {
     /// Check the recording state before validating arguments (so a misuse is reported once).
     fn recording(&self, command: &str) -> bool {
         if self.state().lifecycle != Lifecycle::Recording {
-            diag::report(diag::Level::Error, command, "the command buffer is not in the recording state; command ignored");
+            not_recording(command);
             return false;
         }
         true
@@ -795,12 +795,24 @@ impl CommandBuffer {
             for c in &r.commands {
                 if let Command::ExecuteCommands(list) = c {
                     for s in list {
-                        let current = s.buffer.state().generation;
-                        if current != s.recording.generation {
+                        let (generation, lifecycle) = {
+                            let st = s.buffer.state();
+                            (st.generation, st.lifecycle)
+                        };
+                        if generation != s.recording.generation || lifecycle != Lifecycle::Executable {
                             diag::vuid(
                                 "VUID-vkQueueSubmit-pCommandBuffers-00072",
                                 command,
-                                "a secondary command buffer it executes was reset or re-recorded, so it is invalid; left out",
+                                "a secondary command buffer it executes was reset, re-recorded or invalidated (ONE_TIME_SUBMIT), so the primary is invalid; left out",
+                            );
+                            return None;
+                        }
+                        let simultaneous = s.recording.usage.contains(vk::CommandBufferUsageFlags::SIMULTANEOUS_USE);
+                        if !simultaneous && (s.buffer.is_pending() || involved.iter().any(|(b, _): &(Arc<CommandBuffer>, _)| Arc::ptr_eq(b, &s.buffer))) {
+                            diag::vuid(
+                                "VUID-vkQueueSubmit-pCommandBuffers-00073",
+                                command,
+                                "a secondary command buffer it executes is already pending and was not recorded with SIMULTANEOUS_USE; left out",
                             );
                             return None;
                         }
@@ -827,6 +839,10 @@ impl CommandBuffer {
         }
         self.pending.fetch_sub(1, Ordering::AcqRel);
     }
+}
+
+fn not_recording(command: &str) {
+    diag::vuid(&format!("VUID-{command}-commandBuffer-recording"), command, "the command buffer is not in the recording state; command ignored");
 }
 
 impl SubmittedBuffer {
@@ -875,3 +891,118 @@ pub const COPY_BUFFER2_VUIDS: CopyVuids = CopyVuids {
     dst_usage: "VUID-VkCopyBufferInfo2-dstBuffer-00120",
     size_zero: "VUID-VkBufferCopy2-size-01988",
 };
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn pool(flags: vk::CommandPoolCreateFlags) -> Arc<CommandPool> {
+        Arc::new(CommandPool::new(flags, 0))
+    }
+
+    fn fill_target() -> Arc<Buffer> {
+        Arc::new(Buffer::new(64, vk::BufferUsageFlags::TRANSFER_DST | vk::BufferUsageFlags::TRANSFER_SRC, vk::BufferCreateFlags::empty()))
+    }
+
+    fn count(r: &Recording) -> usize {
+        r.commands.len()
+    }
+
+    #[test]
+    fn lifecycle_and_one_time_submit() {
+        let p = pool(vk::CommandPoolCreateFlags::RESET_COMMAND_BUFFER);
+        let cb = p.allocate(vk::CommandBufferLevel::PRIMARY);
+        assert_eq!(cb.lifecycle(), Lifecycle::Initial);
+        cb.begin(vk::CommandBufferUsageFlags::ONE_TIME_SUBMIT, false);
+        assert_eq!(cb.lifecycle(), Lifecycle::Recording);
+        cb.cmd_fill_buffer(fill_target(), 0, vk::WHOLE_SIZE, 7);
+        cb.cmd_barrier("vkCmdPipelineBarrier");
+        assert_eq!(cb.end(), vk::Result::SUCCESS);
+        assert_eq!(cb.lifecycle(), Lifecycle::Executable);
+        let s = cb.prepare_submit("test").expect("executable");
+        assert_eq!(count(&s.recording), 2);
+        assert!(cb.is_pending());
+        assert!(cb.prepare_submit("test").is_none(), "pending without SIMULTANEOUS_USE is refused");
+        s.complete();
+        assert!(!cb.is_pending());
+        assert_eq!(cb.lifecycle(), Lifecycle::Invalid, "ONE_TIME_SUBMIT: invalid after execution");
+        assert!(cb.prepare_submit("test").is_none());
+        cb.begin(vk::CommandBufferUsageFlags::SIMULTANEOUS_USE, false);
+        cb.end();
+        let a = cb.prepare_submit("test").unwrap();
+        let b = cb.prepare_submit("test").expect("SIMULTANEOUS_USE may be pending twice");
+        a.complete();
+        b.complete();
+        assert_eq!(cb.lifecycle(), Lifecycle::Executable);
+    }
+
+    #[test]
+    fn invalid_commands_are_not_recorded() {
+        let p = pool(vk::CommandPoolCreateFlags::empty());
+        let cb = p.allocate(vk::CommandBufferLevel::PRIMARY);
+        let before = diag::reported_count();
+        cb.cmd_fill_buffer(fill_target(), 0, 4, 1); // not recording
+        cb.begin(vk::CommandBufferUsageFlags::empty(), false);
+        let t = fill_target();
+        cb.cmd_fill_buffer(t.clone(), 2, 4, 1); // unaligned offset
+        cb.cmd_fill_buffer(t.clone(), 0, 68, 1); // past the end
+        cb.cmd_update_buffer(t.clone(), 0, vec![0; 6]); // size not a multiple of 4
+        let ro = Arc::new(Buffer::new(64, vk::BufferUsageFlags::TRANSFER_SRC, vk::BufferCreateFlags::empty()));
+        cb.cmd_copy_buffer(&COPY_BUFFER_VUIDS, t.clone(), ro, vec![CopyRegion { src_offset: 0, dst_offset: 0, size: 4 }]); // no TRANSFER_DST
+        cb.cmd_copy_buffer(&COPY_BUFFER_VUIDS, t.clone(), t.clone(), vec![CopyRegion { src_offset: 0, dst_offset: 8, size: 16 }]); // overlap
+        cb.cmd_fill_buffer(t.clone(), 60, vk::WHOLE_SIZE, 1); // fine: 4 bytes
+        cb.end();
+        assert!(diag::reported_count() >= before + 6);
+        let s = cb.prepare_submit("test").unwrap();
+        assert_eq!(count(&s.recording), 1);
+        assert_eq!(s.recording.violations, 5);
+        s.complete();
+        // Begin on an executable buffer of a pool without RESET_COMMAND_BUFFER is diagnosed.
+        let before = diag::reported_count();
+        cb.begin(vk::CommandBufferUsageFlags::empty(), false);
+        assert!(diag::reported_count() > before);
+    }
+
+    #[test]
+    fn secondaries_follow_their_primary() {
+        let p = pool(vk::CommandPoolCreateFlags::RESET_COMMAND_BUFFER);
+        let primary = p.allocate(vk::CommandBufferLevel::PRIMARY);
+        let secondary = p.allocate(vk::CommandBufferLevel::SECONDARY);
+        secondary.begin(vk::CommandBufferUsageFlags::ONE_TIME_SUBMIT, true);
+        secondary.cmd_fill_buffer(fill_target(), 0, 4, 1);
+        secondary.end();
+        assert!(secondary.prepare_submit("test").is_none(), "secondaries cannot be submitted");
+        primary.begin(vk::CommandBufferUsageFlags::SIMULTANEOUS_USE, false);
+        primary.cmd_execute_commands(vec![secondary.clone()]);
+        primary.end();
+        let s = primary.prepare_submit("test").unwrap();
+        assert!(secondary.is_pending(), "pending with its primary");
+        assert!(primary.prepare_submit("test").is_none(), "the secondary is pending and not SIMULTANEOUS_USE");
+        s.complete();
+        assert!(!secondary.is_pending());
+        assert_eq!(secondary.lifecycle(), Lifecycle::Invalid);
+        assert!(primary.prepare_submit("test").is_none(), "its ONE_TIME_SUBMIT secondary ran: the primary is invalid");
+        // Re-recording the secondary also invalidates the primary that captured the old one.
+        secondary.begin(vk::CommandBufferUsageFlags::empty(), true);
+        secondary.end();
+        assert!(primary.prepare_submit("test").is_none());
+        primary.begin(vk::CommandBufferUsageFlags::empty(), false);
+        primary.cmd_execute_commands(vec![secondary.clone()]);
+        primary.end();
+        primary.prepare_submit("test").unwrap().complete();
+    }
+
+    #[test]
+    fn pool_reset_and_free() {
+        let p = pool(vk::CommandPoolCreateFlags::empty());
+        let a = p.allocate(vk::CommandBufferLevel::PRIMARY);
+        p.adopt(0x10, a.clone());
+        a.begin(vk::CommandBufferUsageFlags::empty(), false);
+        a.end();
+        p.reset(true);
+        assert_eq!(a.lifecycle(), Lifecycle::Initial);
+        assert!(p.release(0x10, "test"));
+        assert!(!p.release(0x10, "test"));
+        assert!(p.take_all().is_empty());
+    }
+}
