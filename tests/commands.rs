@@ -335,3 +335,139 @@ fn simultaneous_use_on_two_queues() {
     a.destroy(&ctx);
     ctx.finish();
 }
+
+/// A command that fails when executed (its source memory was freed after recording) is
+/// reported and skipped; the rest of the command buffer still runs. Deliberately invalid
+/// usage, so without the validation layer.
+#[test]
+fn a_failing_command_is_skipped_and_the_rest_runs() {
+    let ctx = support::Context::new(support::Options { validation: false, ..Default::default() });
+    let a = Buf::new(&ctx, 256);
+    let b = Buf::new(&ctx, 256);
+    a.bytes().fill(0x99);
+    b.bytes().fill(0);
+    let p = pool(&ctx, vk::CommandPoolCreateFlags::empty());
+    let cb = allocate(&ctx, p, vk::CommandBufferLevel::PRIMARY, 1)[0];
+    begin(&ctx, cb, vk::CommandBufferUsageFlags::empty());
+    // SAFETY: recording valid commands; the source is then freed before execution (the test).
+    unsafe {
+        ctx.device.cmd_copy_buffer(cb, a.buffer, b.buffer, &[vk::BufferCopy { src_offset: 0, dst_offset: 0, size: 128 }]);
+        ctx.device.cmd_fill_buffer(cb, b.buffer, 128, 128, 0x2222_2222);
+        ctx.device.end_command_buffer(cb).unwrap();
+    }
+    a.destroy(&ctx);
+    submit_wait(&ctx, ctx.queues[0], &[cb]);
+    assert!(b.bytes()[..128].iter().all(|x| *x == 0), "the failed copy wrote nothing");
+    assert!(b.bytes()[128..].iter().all(|x| *x == 0x22), "the fill after it ran");
+    assert!(support::diagnostics().contains("vkCmdCopyBuffer: device-memory access refused: the memory was freed"), "reported");
+    // SAFETY: the device is idle.
+    unsafe { ctx.device.destroy_command_pool(p, None) };
+    b.destroy(&ctx);
+    ctx.finish();
+}
+
+/// Strict mode (ARBOR_STRICT=1, read once per process): run in a child process.
+#[test]
+fn strict_mode_loses_the_device() {
+    let exe = std::env::current_exe().unwrap();
+    let out = std::process::Command::new(exe)
+        .args(["--exact", "strict_mode_child", "--ignored", "--test-threads=1"])
+        .env("ARBOR_STRICT", "1")
+        .env("ARBOR_DIAG", "off")
+        .output()
+        .unwrap();
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(out.status.success() && text.contains("1 passed"), "child failed:\n{text}\n{}", String::from_utf8_lossy(&out.stderr));
+}
+
+#[test]
+#[ignore = "run by strict_mode_loses_the_device with ARBOR_STRICT=1"]
+fn strict_mode_child() {
+    let ctx = support::Context::new(support::Options { validation: false, ..Default::default() });
+    let b = Buf::new(&ctx, 64);
+    let p = pool(&ctx, vk::CommandPoolCreateFlags::empty());
+    let cb = allocate(&ctx, p, vk::CommandBufferLevel::PRIMARY, 1)[0];
+    begin(&ctx, cb, vk::CommandBufferUsageFlags::empty());
+    // SAFETY: a deliberately invalid fill (unaligned offset): strict mode loses the device.
+    unsafe {
+        ctx.device.cmd_fill_buffer(cb, b.buffer, 2, 4, 1);
+        ctx.device.end_command_buffer(cb).unwrap();
+        let f = ctx.device.create_fence(&vk::FenceCreateInfo::default(), None).unwrap();
+        let cbs = [cb];
+        ctx.device.queue_submit(ctx.queues[0], &[vk::SubmitInfo::default().command_buffers(&cbs)], f).unwrap();
+        assert_eq!(ctx.device.wait_for_fences(&[f], true, u64::MAX), Err(vk::Result::ERROR_DEVICE_LOST));
+        assert_eq!(ctx.device.queue_submit(ctx.queues[1], &[], vk::Fence::null()), Err(vk::Result::ERROR_DEVICE_LOST));
+        assert_eq!(ctx.device.device_wait_idle(), Err(vk::Result::ERROR_DEVICE_LOST));
+        ctx.device.destroy_fence(f, None);
+        ctx.device.destroy_command_pool(p, None);
+    }
+    b.destroy(&ctx);
+    ctx.finish();
+}
+
+/// Lifecycle misuse and invalid arguments are reported with their VUIDs; invalid commands are
+/// not recorded (guard bytes stay), the process goes on. Without the validation layer.
+#[test]
+fn misuse_is_diagnosed() {
+    let ctx = support::Context::new(support::Options { validation: false, ..Default::default() });
+    let b = Buf::new(&ctx, 64);
+    b.bytes().fill(0xAA);
+    let p = pool(&ctx, vk::CommandPoolCreateFlags::empty());
+    let cbs = allocate(&ctx, p, vk::CommandBufferLevel::PRIMARY, 2);
+    let d = &ctx.device;
+    // SAFETY: deliberately invalid usage the driver must diagnose without crashing.
+    unsafe {
+        let event = d.create_event(&vk::EventCreateInfo::default(), None).unwrap();
+        let qp = d.create_query_pool(&vk::QueryPoolCreateInfo::default().query_type(vk::QueryType::TIMESTAMP).query_count(1), None).unwrap();
+        // Submitting a buffer that was never recorded.
+        let f = d.create_fence(&vk::FenceCreateInfo::default(), None).unwrap();
+        d.queue_submit(ctx.queues[0], &[vk::SubmitInfo::default().command_buffers(&cbs[..1])], f).unwrap();
+        d.wait_for_fences(&[f], true, u64::MAX).unwrap();
+        // Invalid arguments: not recorded.
+        begin(&ctx, cbs[0], vk::CommandBufferUsageFlags::empty());
+        d.cmd_fill_buffer(cbs[0], b.buffer, 2, 4, 0);
+        d.cmd_fill_buffer(cbs[0], b.buffer, 0, 128, 0);
+        d.cmd_update_buffer(cbs[0], b.buffer, 60, &[0u8; 8]);
+        d.cmd_copy_buffer(cbs[0], b.buffer, b.buffer, &[vk::BufferCopy { src_offset: 0, dst_offset: 8, size: 16 }]);
+        d.cmd_begin_query(cbs[0], qp, 0, vk::QueryControlFlags::empty());
+        d.cmd_write_timestamp(cbs[0], vk::PipelineStageFlags::TRANSFER, qp, 1);
+        d.cmd_wait_events(cbs[0], &[event], vk::PipelineStageFlags::HOST, vk::PipelineStageFlags::TRANSFER, &[], &[], &[]);
+        d.end_command_buffer(cbs[0]).unwrap();
+        // Pending: reset, re-begin and resubmit are diagnosed.
+        d.reset_fences(&[f]).unwrap();
+        d.queue_submit(ctx.queues[0], &[vk::SubmitInfo::default().command_buffers(&cbs[..1])], f).unwrap();
+        d.queue_submit(ctx.queues[1], &[vk::SubmitInfo::default().command_buffers(&cbs[..1])], vk::Fence::null()).unwrap();
+        d.reset_fences(&[f]).unwrap();
+        d.set_event(event).unwrap();
+        d.device_wait_idle().unwrap();
+        // Executable, pool without RESET_COMMAND_BUFFER: begin is diagnosed (and resets anyway).
+        begin(&ctx, cbs[0], vk::CommandBufferUsageFlags::empty());
+        d.end_command_buffer(cbs[0]).unwrap();
+        d.end_command_buffer(cbs[1]).unwrap();
+        d.reset_command_buffer(cbs[1], vk::CommandBufferResetFlags::empty()).unwrap();
+        d.destroy_fence(f, None);
+        d.destroy_event(event, None);
+        d.destroy_query_pool(qp, None);
+        d.destroy_command_pool(p, None);
+    }
+    assert!(b.bytes().iter().all(|x| *x == 0xAA), "no invalid command was executed");
+    let log = support::diagnostics();
+    for vuid in [
+        "VUID-vkQueueSubmit-pCommandBuffers-00070",
+        "VUID-vkCmdFillBuffer-dstOffset-00025",
+        "VUID-vkCmdFillBuffer-size-00027",
+        "VUID-vkCmdUpdateBuffer-dataSize-00033",
+        "VUID-vkCmdCopyBuffer-pRegions-00117",
+        "VUID-vkCmdBeginQuery-queryType-02804",
+        "VUID-vkCmdWriteTimestamp-query-04904",
+        "VUID-vkQueueSubmit-pCommandBuffers-00071",
+        "VUID-vkResetFences-pFences-01123",
+        "VUID-vkBeginCommandBuffer-commandBuffer-00050",
+        "VUID-vkEndCommandBuffer-commandBuffer-00059",
+        "VUID-vkResetCommandBuffer-commandBuffer-00046",
+    ] {
+        assert!(log.contains(vuid), "{vuid} not reported; diagnostics:\n{log}");
+    }
+    b.destroy(&ctx);
+    ctx.finish();
+}
