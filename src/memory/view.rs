@@ -58,7 +58,11 @@ impl<'a> DeviceMemoryView<'a> {
     fn pinned_slice(&self, buffer: Arc<Buffer>, offset: u64, len: u64) -> Option<&[u8]> {
         let s = buffer.bytes(offset, len).ok()?;
         let (ptr, n) = (s.as_ptr(), s.len());
-        self.pins.lock().unwrap_or_else(|e| e.into_inner()).push(buffer);
+        let mut pins = self.pins.lock().unwrap_or_else(|e| e.into_inner());
+        // Consecutive reads usually hit the same buffer (instance arrays, BLAS lookups): pin once.
+        if !pins.iter().rev().take(8).any(|b| Arc::ptr_eq(b, &buffer)) {
+            pins.push(buffer);
+        }
         // SAFETY: the slice points into memory owned by `buffer`, which is now pinned in
         // `self.pins` until the view is dropped, so it outlives the returned borrow of `self`.
         Some(unsafe { std::slice::from_raw_parts(ptr, n) })

@@ -674,7 +674,7 @@ fn check_geometry(
                 let blas = accel::DeviceView::acceleration_structure(mem, reference).and_then(accel::header);
                 match blas {
                     Some(h) if h.ty == AsType::BottomLevel => {
-                        referenced.push(reference);
+                        referenced.push(mem.translate_reference(reference));
                         Ok(())
                     }
                     _ => Err((
