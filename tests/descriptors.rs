@@ -306,3 +306,69 @@ fn invalid_updates_are_reported() {
         assert!(diag.contains(vuid), "{vuid} not reported:\n{diag}");
     }
 }
+
+/// Acceleration-structure descriptors (VkWriteDescriptorSetAccelerationStructureKHR), written
+/// directly and through a template.
+#[test]
+fn acceleration_structure_descriptors() {
+    let ctx = support::Context::new(support::Options { acceleration_structure: true, ..Default::default() });
+    let d = &ctx.device;
+    let as_fns = ash::khr::acceleration_structure::Device::new(&ctx.instance, d);
+    let (buffer, mem, _) = ctx.host_buffer(
+        4096,
+        vk::BufferUsageFlags::ACCELERATION_STRUCTURE_STORAGE_KHR | vk::BufferUsageFlags::SHADER_DEVICE_ADDRESS,
+    );
+    // SAFETY: valid create infos and updates; everything destroyed below.
+    unsafe {
+        let tlas = as_fns
+            .create_acceleration_structure(
+                &vk::AccelerationStructureCreateInfoKHR::default()
+                    .buffer(buffer)
+                    .offset(0)
+                    .size(2048)
+                    .ty(vk::AccelerationStructureTypeKHR::TOP_LEVEL),
+                None,
+            )
+            .unwrap();
+        let t = vk::DescriptorType::ACCELERATION_STRUCTURE_KHR;
+        let bindings = [layout_binding(0, t, 2)];
+        let layout = d.create_descriptor_set_layout(&vk::DescriptorSetLayoutCreateInfo::default().bindings(&bindings), None).unwrap();
+        let sizes = [vk::DescriptorPoolSize { ty: t, descriptor_count: 2 }];
+        let pool = d.create_descriptor_pool(&vk::DescriptorPoolCreateInfo::default().max_sets(1).pool_sizes(&sizes), None).unwrap();
+        let l = [layout];
+        let set = d.allocate_descriptor_sets(&vk::DescriptorSetAllocateInfo::default().descriptor_pool(pool).set_layouts(&l)).unwrap()[0];
+        let handles = [tlas];
+        let mut as_write = vk::WriteDescriptorSetAccelerationStructureKHR::default().acceleration_structures(&handles);
+        let mut w = vk::WriteDescriptorSet::default().dst_set(set).dst_binding(0).dst_array_element(1).descriptor_type(t).push_next(&mut as_write);
+        w.descriptor_count = 1;
+        d.update_descriptor_sets(&[w], &[]);
+
+        let entries = [vk::DescriptorUpdateTemplateEntry {
+            dst_binding: 0,
+            dst_array_element: 0,
+            descriptor_count: 1,
+            descriptor_type: t,
+            offset: 0,
+            stride: std::mem::size_of::<vk::AccelerationStructureKHR>(),
+        }];
+        let template = d
+            .create_descriptor_update_template(
+                &vk::DescriptorUpdateTemplateCreateInfo::default()
+                    .descriptor_update_entries(&entries)
+                    .template_type(vk::DescriptorUpdateTemplateType::DESCRIPTOR_SET)
+                    .descriptor_set_layout(layout),
+                None,
+            )
+            .unwrap();
+        d.update_descriptor_set_with_template(set, template, handles.as_ptr() as *const std::ffi::c_void);
+        d.destroy_descriptor_update_template(template, None);
+        d.destroy_descriptor_pool(pool, None);
+        d.destroy_descriptor_set_layout(layout, None);
+        as_fns.destroy_acceleration_structure(tlas, None);
+        d.destroy_buffer(buffer, None);
+        d.free_memory(mem, None);
+    }
+    ctx.finish();
+    let diag = support::diagnostics();
+    assert!(!diag.contains("VkWriteDescriptorSetAccelerationStructureKHR") && !diag.contains("descriptorType-02382"), "{diag}");
+}

@@ -13,8 +13,9 @@ use super::memory::buffer_from;
 use super::table::{imp, Implemented};
 use super::{guard, util};
 use crate::diag;
+use crate::runtime::accel::AccelerationStructure;
 use crate::runtime::descriptor::{
-    buffer_descriptor, type_class, AllocateError, BufferLimits, Descriptor, DescriptorPool, DescriptorSet, DescriptorSetLayout,
+    acceleration_structure_descriptor, buffer_descriptor, type_class, AllocateError, BufferLimits, Descriptor, DescriptorPool, DescriptorSet, DescriptorSetLayout,
     DescriptorUpdateTemplate, LayoutBinding, PipelineLayout, TemplateEntry, TypeClass, Violation,
 };
 
@@ -388,7 +389,8 @@ unsafe extern "system" fn free_descriptor_sets(
 ///
 /// # Safety
 /// `at(i)` must return a pointer valid for a read of the struct type `t` uses
-/// (VkDescriptorBufferInfo, VkDescriptorImageInfo or VkBufferView), for i in 0..count.
+/// (VkDescriptorBufferInfo, VkDescriptorImageInfo, VkBufferView or VkAccelerationStructureKHR),
+/// for i in 0..count.
 unsafe fn convert(t: vk::DescriptorType, count: u32, at: impl Fn(usize) -> *const u8) -> Result<Vec<Descriptor>, Violation> {
     let limits = buffer_limits();
     (0..count as usize)
@@ -412,6 +414,11 @@ unsafe fn convert(t: vk::DescriptorType, count: u32, at: impl Fn(usize) -> *cons
                     let v = unsafe { std::ptr::read_unaligned(p as *const vk::BufferView) };
                     Ok(Descriptor::TexelBuffer { view: v.as_raw() })
                 }
+                TypeClass::AccelerationStructure => {
+                    // SAFETY: see above; a VkAccelerationStructureKHR handle.
+                    let h = unsafe { std::ptr::read_unaligned(p as *const vk::AccelerationStructureKHR) };
+                    acceleration_structure_descriptor(get::<AccelerationStructure>(h.as_raw()), h.as_raw())
+                }
                 TypeClass::Unsupported => Err(Violation {
                     vuid: "VUID-VkWriteDescriptorSet-descriptorType-parameter",
                     message: format!("descriptor type {t:?} is not supported"),
@@ -434,6 +441,28 @@ unsafe fn apply_write(w: &vk::WriteDescriptorSet) -> Result<(), Violation> {
         TypeClass::Buffer => (w.p_buffer_info.cast(), std::mem::size_of::<vk::DescriptorBufferInfo>(), "VUID-VkWriteDescriptorSet-descriptorType-00324"),
         TypeClass::Image => (w.p_image_info.cast(), std::mem::size_of::<vk::DescriptorImageInfo>(), "VUID-VkWriteDescriptorSet-descriptorType-00322"),
         TypeClass::TexelBuffer => (w.p_texel_buffer_view.cast(), std::mem::size_of::<vk::BufferView>(), "VUID-VkWriteDescriptorSet-descriptorType-02994"),
+        TypeClass::AccelerationStructure => {
+            // SAFETY: valid chain per the spec.
+            let info = unsafe {
+                util::find_in::<vk::WriteDescriptorSetAccelerationStructureKHR>(
+                    w.p_next,
+                    vk::StructureType::WRITE_DESCRIPTOR_SET_ACCELERATION_STRUCTURE_KHR,
+                )
+            };
+            match info {
+                Some(i) if i.acceleration_structure_count == w.descriptor_count => (
+                    i.p_acceleration_structures.cast(),
+                    std::mem::size_of::<vk::AccelerationStructureKHR>(),
+                    "VUID-VkWriteDescriptorSetAccelerationStructureKHR-pAccelerationStructures-parameter",
+                ),
+                _ => {
+                    return Err(Violation {
+                        vuid: "VUID-VkWriteDescriptorSet-descriptorType-02382",
+                        message: "no VkWriteDescriptorSetAccelerationStructureKHR with accelerationStructureCount == descriptorCount in pNext".into(),
+                    })
+                }
+            }
+        }
         TypeClass::Unsupported => (std::ptr::null(), 0, "VUID-VkWriteDescriptorSet-descriptorType-parameter"),
     };
     if base.is_null() && w.descriptor_count > 0 {

@@ -4,8 +4,9 @@
 //!
 //! A set stores one [`Descriptor`] per array element of each binding. Buffer descriptors keep a
 //! weak reference to the buffer (a destroyed buffer makes the descriptor invalid, it does not
-//! keep the memory alive) plus the handle for diagnostics. A new descriptor kind (for example
-//! acceleration structures) is one more [`Descriptor`] variant and one arm in [`type_class`].
+//! keep the memory alive) plus the handle for diagnostics; acceleration-structure descriptors
+//! likewise hold the structure weakly. A new descriptor kind is one more [`Descriptor`] variant,
+//! one [`TypeClass`] and one arm in [`type_class`].
 use std::collections::HashMap;
 use std::fmt;
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -14,6 +15,7 @@ use std::sync::{Arc, Mutex, Weak};
 use ash::vk;
 
 use crate::memory::Buffer;
+use crate::runtime::accel::AccelerationStructure;
 
 /// Descriptors Arbor can store. Types Arbor has no objects for yet (samplers, images, texel
 /// buffers) are kept as raw handles so that writes and copies still round-trip.
@@ -27,6 +29,8 @@ pub enum Descriptor {
     Image { sampler: u64, image_view: u64, layout: vk::ImageLayout },
     /// Uniform/storage texel buffer: the raw buffer-view handle.
     TexelBuffer { view: u64 },
+    /// VK_DESCRIPTOR_TYPE_ACCELERATION_STRUCTURE_KHR.
+    AccelerationStructure { structure: Weak<AccelerationStructure>, handle: u64 },
 }
 
 impl Descriptor {
@@ -57,6 +61,16 @@ impl Descriptor {
                 }
             }
             Descriptor::TexelBuffer { view } => *view,
+            Descriptor::AccelerationStructure { handle, .. } => *handle,
+        }
+    }
+
+    /// The acceleration structure of an acceleration-structure descriptor (None for other
+    /// kinds or when it was destroyed).
+    pub fn acceleration_structure(&self) -> Option<Arc<AccelerationStructure>> {
+        match self {
+            Descriptor::AccelerationStructure { structure, .. } => structure.upgrade(),
+            _ => None,
         }
     }
 }
@@ -74,6 +88,10 @@ impl PartialEq for Descriptor {
                 Descriptor::Image { sampler: sb, image_view: vb, layout: lb },
             ) => sa == sb && va == vb && la == lb,
             (Descriptor::TexelBuffer { view: a }, Descriptor::TexelBuffer { view: b }) => a == b,
+            (
+                Descriptor::AccelerationStructure { structure: a, handle: ha },
+                Descriptor::AccelerationStructure { structure: b, handle: hb },
+            ) => a.ptr_eq(b) && ha == hb,
             _ => false,
         }
     }
@@ -92,6 +110,11 @@ impl fmt::Debug for Descriptor {
                 write!(f, "Image(sampler {sampler:#x}, view {image_view:#x}, {layout:?})")
             }
             Descriptor::TexelBuffer { view } => write!(f, "TexelBuffer({view:#x})"),
+            Descriptor::AccelerationStructure { handle, structure } => write!(
+                f,
+                "AccelerationStructure({handle:#x}{})",
+                if structure.strong_count() == 0 { ", destroyed" } else { "" }
+            ),
         }
     }
 }
@@ -102,6 +125,7 @@ pub enum TypeClass {
     Buffer,
     Image,
     TexelBuffer,
+    AccelerationStructure,
     /// Types Arbor does not support (inline uniform blocks, mutable, …).
     Unsupported,
 }
@@ -118,6 +142,7 @@ pub fn type_class(t: vk::DescriptorType) -> TypeClass {
         | vk::DescriptorType::STORAGE_IMAGE
         | vk::DescriptorType::INPUT_ATTACHMENT => TypeClass::Image,
         vk::DescriptorType::UNIFORM_TEXEL_BUFFER | vk::DescriptorType::STORAGE_TEXEL_BUFFER => TypeClass::TexelBuffer,
+        vk::DescriptorType::ACCELERATION_STRUCTURE_KHR => TypeClass::AccelerationStructure,
         _ => TypeClass::Unsupported,
     }
 }
@@ -199,7 +224,14 @@ impl DescriptorSetLayout {
                     format!("binding {}: dynamic buffer descriptors cannot be UPDATE_AFTER_BIND", b.binding),
                 ));
             }
-            if uab && !matches!(b.descriptor_type, vk::DescriptorType::UNIFORM_BUFFER | vk::DescriptorType::STORAGE_BUFFER) {
+            if uab
+                && !matches!(
+                    b.descriptor_type,
+                    vk::DescriptorType::UNIFORM_BUFFER
+                        | vk::DescriptorType::STORAGE_BUFFER
+                        | vk::DescriptorType::ACCELERATION_STRUCTURE_KHR
+                )
+            {
                 return Err(violation(
                     "VUID-VkDescriptorSetLayoutBindingFlagsCreateInfo-descriptorBindingSampledImageUpdateAfterBind-03006",
                     format!(
@@ -718,6 +750,24 @@ pub fn buffer_descriptor(
     Ok(Descriptor::Buffer { buffer: Arc::downgrade(&b), handle, offset, range })
 }
 
+/// Check and build an acceleration-structure descriptor. `structure` is the looked-up object
+/// (None for a null or unknown handle).
+pub fn acceleration_structure_descriptor(structure: Option<Arc<AccelerationStructure>>, handle: u64) -> Result<Descriptor, Violation> {
+    let Some(s) = structure else {
+        return Err(violation(
+            "VUID-VkWriteDescriptorSetAccelerationStructureKHR-pAccelerationStructures-03580",
+            format!("{handle:#x} is not a live VkAccelerationStructureKHR (the nullDescriptor feature is not offered)"),
+        ));
+    };
+    if s.create_type == vk::AccelerationStructureTypeKHR::BOTTOM_LEVEL {
+        return Err(violation(
+            "VUID-VkWriteDescriptorSetAccelerationStructureKHR-pAccelerationStructures-03579",
+            "a bottom-level acceleration structure cannot be written to a descriptor",
+        ));
+    }
+    Ok(Descriptor::AccelerationStructure { structure: Arc::downgrade(&s), handle })
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -901,6 +951,42 @@ mod tests {
         assert!(matches!(p.allocate(&[(layout.clone(), Some(101))]), Err(AllocateError::Invalid(_))));
         assert!(p.allocate(&[(layout.clone(), Some(10))]).is_ok());
         assert_eq!(p.allocate(&[(layout.clone(), Some(2))]).unwrap_err(), AllocateError::OutOfPoolMemory);
+    }
+
+    #[test]
+    fn acceleration_structure_descriptors() {
+        let space = AddressSpace::new(1 << 24);
+        let b = storage(&space, 4096, vk::BufferUsageFlags::ACCELERATION_STRUCTURE_STORAGE_KHR);
+        let make = |t| {
+            Arc::new(AccelerationStructure {
+                buffer: b.clone(),
+                offset: 256,
+                size: 1024,
+                create_type: t,
+                create_flags: vk::AccelerationStructureCreateFlagsKHR::empty(),
+            })
+        };
+        let tlas = make(vk::AccelerationStructureTypeKHR::TOP_LEVEL);
+        let blas = make(vk::AccelerationStructureTypeKHR::BOTTOM_LEVEL);
+        let t = vk::DescriptorType::ACCELERATION_STRUCTURE_KHR;
+        let mut asb = binding(0, t, 2);
+        asb.flags = vk::DescriptorBindingFlags::UPDATE_AFTER_BIND;
+        let layout = Arc::new(DescriptorSetLayout::new(vk::DescriptorSetLayoutCreateFlags::UPDATE_AFTER_BIND_POOL, vec![asb]).unwrap());
+        let p = pool(1, &[(t, 2)], vk::DescriptorPoolCreateFlags::UPDATE_AFTER_BIND);
+        let set = p.allocate(&[(layout, None)]).unwrap().remove(0);
+        let d = acceleration_structure_descriptor(Some(tlas.clone()), 0x42).unwrap();
+        set.write(0, 1, t, vec![d.clone()]).unwrap();
+        assert_eq!(set.descriptor(0, 1), Some(d));
+        let got = set.descriptor(0, 1).unwrap().acceleration_structure().unwrap();
+        assert!(Arc::ptr_eq(&got, &tlas));
+        assert_eq!(set.descriptor(0, 1).unwrap().handle(), 0x42);
+        assert_eq!(
+            acceleration_structure_descriptor(Some(blas), 1).unwrap_err().vuid,
+            "VUID-VkWriteDescriptorSetAccelerationStructureKHR-pAccelerationStructures-03579"
+        );
+        assert!(acceleration_structure_descriptor(None, 0).is_err());
+        drop((got, tlas));
+        assert!(set.descriptor(0, 1).unwrap().acceleration_structure().is_none());
     }
 
     #[test]
