@@ -12,7 +12,7 @@ use super::guard;
 use crate::diag;
 use crate::runtime::command::copy_results_len;
 use crate::runtime::query::{QueryKind, QueryPool, RangeError, ReadFlags};
-use crate::runtime::sync::WaitOutcome;
+use crate::runtime::sync::{Deadline, WaitOutcome};
 
 pub fn commands() -> Vec<Implemented> {
     vec![
@@ -133,8 +133,22 @@ unsafe extern "system" fn get_query_pool_results(
         if count == 0 {
             return vk::Result::SUCCESS;
         }
-        if f.wait && p.wait_available(first, count, None) != WaitOutcome::Ready {
-            return vk::Result::ERROR_DEVICE_LOST;
+        if f.wait {
+            // The spec lets WAIT block forever on a query nothing will write; say so once it
+            // has taken suspiciously long, then keep waiting (or stop if the device is lost).
+            let soon = Deadline::from_timeout_ns(2_000_000_000);
+            let mut r = p.wait_available(first, count, soon, Some(&dev.lost));
+            if r == WaitOutcome::TimedOut {
+                diag::report(
+                    diag::Level::Warn,
+                    CMD,
+                    &format!("WAIT: queries [{first}, +{count}) still unavailable after 2 s; unless a pending submission writes them this never returns"),
+                );
+                r = p.wait_available(first, count, Deadline::Never, Some(&dev.lost));
+            }
+            if r != WaitOutcome::Ready {
+                return vk::Result::ERROR_DEVICE_LOST;
+            }
         }
         // SAFETY: pData is valid for dataSize bytes per the spec; dataSize ≥ needed, checked above.
         let out = unsafe { std::slice::from_raw_parts_mut(p_data as *mut u8, needed as usize) };

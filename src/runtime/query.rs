@@ -147,9 +147,9 @@ impl QueryPool {
     }
 
     /// Wait until the queries of the range are available (WAIT flag). `cancel`: stop early.
-    pub fn wait_available(&self, first: u32, count: u32, cancel: Option<&AtomicBool>) -> WaitOutcome {
+    pub fn wait_available(&self, first: u32, count: u32, deadline: Deadline, cancel: Option<&AtomicBool>) -> WaitOutcome {
         let end = first as usize + count as usize;
-        sync::wait_until(Deadline::Never, cancel, || {
+        sync::wait_until(deadline, cancel, || {
             let s = self.slots();
             s.get(first as usize..end).is_some_and(|r| r.iter().all(|q| q.available))
         })
