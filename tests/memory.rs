@@ -286,3 +286,57 @@ fn khr_aliases_resolve_to_the_same_commands() {
     }
     ctx.finish();
 }
+
+/// With the validation layer off, Arbor's own checks report invalid memory usage with VUIDs and
+/// return errors; the process survives.
+#[test]
+fn invalid_usage_is_reported() {
+    let ctx = support::Context::new(support::Options { validation: false, ..Default::default() });
+    let d = &ctx.device;
+    let bda = bda(&ctx);
+    const FAILED: Option<vk::Result> = Some(vk::Result::ERROR_VALIDATION_FAILED_EXT);
+    // SAFETY: deliberately invalid usage Arbor must survive; objects destroyed below.
+    unsafe {
+        assert_eq!(d.create_buffer(&vk::BufferCreateInfo::default().size(0).usage(vk::BufferUsageFlags::STORAGE_BUFFER), None).err(), FAILED);
+        assert_eq!(d.allocate_memory(&vk::MemoryAllocateInfo::default().allocation_size(4096).memory_type_index(3), None).err(), FAILED);
+
+        // host_buffer leaves the memory mapped: a second map fails.
+        let (b, m, _) = ctx.host_buffer(1024, vk::BufferUsageFlags::STORAGE_BUFFER);
+        assert_eq!(d.map_memory(m, 0, vk::WHOLE_SIZE, vk::MemoryMapFlags::empty()), Err(vk::Result::ERROR_MEMORY_MAP_FAILED));
+        d.unmap_memory(m);
+        d.unmap_memory(m);
+        let range = [vk::MappedMemoryRange::default().memory(m).offset(0).size(vk::WHOLE_SIZE)];
+        assert_eq!(d.flush_mapped_memory_ranges(&range).err(), FAILED);
+        assert_eq!(d.map_memory(m, 512, 1024, vk::MemoryMapFlags::empty()), Err(vk::Result::ERROR_MEMORY_MAP_FAILED));
+        // Bound twice; misaligned; too small.
+        assert_eq!(d.bind_buffer_memory(b, m, 0).err(), FAILED);
+        let b2 = d.create_buffer(&vk::BufferCreateInfo::default().size(512).usage(vk::BufferUsageFlags::STORAGE_BUFFER), None).unwrap();
+        assert_eq!(d.bind_buffer_memory(b2, m, 100).err(), FAILED);
+        assert_eq!(d.bind_buffer_memory(b2, m, 768).err(), FAILED);
+        // An address of a buffer without SHADER_DEVICE_ADDRESS usage is reported (and given).
+        assert_ne!(bda.get_buffer_device_address(&vk::BufferDeviceAddressInfo::default().buffer(b)), 0);
+        // No format supports texel buffers.
+        let view = vk::BufferViewCreateInfo::default().buffer(b).format(vk::Format::R32_UINT).range(vk::WHOLE_SIZE);
+        assert_eq!(d.create_buffer_view(&view, None).err(), FAILED);
+        d.destroy_buffer(b2, None);
+        d.destroy_buffer(b, None);
+        d.free_memory(m, None);
+    }
+    ctx.finish();
+    let diag = support::diagnostics();
+    for vuid in [
+        "VUID-VkBufferCreateInfo-size-00912",
+        "VUID-vkAllocateMemory-pAllocateInfo-01714",
+        "VUID-vkMapMemory-memory-00678",
+        "VUID-vkUnmapMemory-memory-00689",
+        "VUID-VkMappedMemoryRange-memory-00684",
+        "VUID-vkMapMemory-size-00681",
+        "VUID-vkBindBufferMemory-buffer-07459",
+        "VUID-vkBindBufferMemory-memoryOffset-01036",
+        "VUID-vkBindBufferMemory-size-01037",
+        "VUID-VkBufferDeviceAddressInfo-buffer-02601",
+        "VUID-VkBufferViewCreateInfo-format-08778",
+    ] {
+        assert!(diag.contains(vuid), "{vuid} not reported:\n{diag}");
+    }
+}
