@@ -113,11 +113,11 @@ unsafe extern "system" fn get_query_pool_results(
             Ok(()) => {}
         }
         let f = ReadFlags::from_vk(flags);
-        if f.wide && stride % 8 != 0 {
+        if f.wide && !stride.is_multiple_of(8) {
             diag::vuid("VUID-vkGetQueryPoolResults-flags-00815", CMD, &format!("with 64_BIT, stride {stride} must be a multiple of 8"));
             return vk::Result::SUCCESS;
         }
-        if !f.wide && stride % 4 != 0 {
+        if !f.wide && !stride.is_multiple_of(4) {
             diag::vuid("VUID-vkGetQueryPoolResults-flags-02828", CMD, &format!("without 64_BIT, stride {stride} must be a multiple of 4"));
             return vk::Result::SUCCESS;
         }

@@ -581,7 +581,7 @@ impl CommandBuffer {
         if offset >= dst.size {
             return self.violation("VUID-vkCmdFillBuffer-dstOffset-00024", CMD, &format!("dstOffset {offset} is not less than the buffer size {}", dst.size));
         }
-        if offset % 4 != 0 {
+        if !offset.is_multiple_of(4) {
             return self.violation("VUID-vkCmdFillBuffer-dstOffset-00025", CMD, &format!("dstOffset {offset} is not a multiple of 4"));
         }
         let size = if size == vk::WHOLE_SIZE {
@@ -594,7 +594,7 @@ impl CommandBuffer {
             if size > dst.size - offset {
                 return self.violation("VUID-vkCmdFillBuffer-size-00027", CMD, &format!("dstOffset {offset} + size {size} exceeds the buffer size {}", dst.size));
             }
-            if size % 4 != 0 {
+            if !size.is_multiple_of(4) {
                 return self.violation("VUID-vkCmdFillBuffer-size-00028", CMD, &format!("size {size} is not a multiple of 4"));
             }
             size
@@ -616,13 +616,13 @@ impl CommandBuffer {
         if offset >= dst.size {
             return self.violation("VUID-vkCmdUpdateBuffer-dstOffset-00032", CMD, &format!("dstOffset {offset} is not less than the buffer size {}", dst.size));
         }
-        if offset % 4 != 0 {
+        if !offset.is_multiple_of(4) {
             return self.violation("VUID-vkCmdUpdateBuffer-dstOffset-00036", CMD, &format!("dstOffset {offset} is not a multiple of 4"));
         }
         if n == 0 || n > 65536 {
             return self.violation("VUID-vkCmdUpdateBuffer-dataSize-00037", CMD, &format!("dataSize {n} must be in 1..=65536"));
         }
-        if n % 4 != 0 {
+        if !n.is_multiple_of(4) {
             return self.violation("VUID-vkCmdUpdateBuffer-dataSize-00038", CMD, &format!("dataSize {n} is not a multiple of 4"));
         }
         if n > dst.size - offset {
@@ -711,10 +711,10 @@ impl CommandBuffer {
         if offset >= dst.size {
             return self.violation("VUID-vkCmdCopyQueryPoolResults-dstOffset-00819", CMD, &format!("dstOffset {offset} is not less than the buffer size {}", dst.size));
         }
-        if !f.wide && (offset % 4 != 0 || stride % 4 != 0) {
+        if !f.wide && (!offset.is_multiple_of(4) || !stride.is_multiple_of(4)) {
             return self.violation("VUID-vkCmdCopyQueryPoolResults-flags-00822", CMD, "without 64_BIT, dstOffset and stride must be multiples of 4");
         }
-        if f.wide && (offset % 8 != 0 || stride % 8 != 0) {
+        if f.wide && (!offset.is_multiple_of(8) || !stride.is_multiple_of(8)) {
             return self.violation("VUID-vkCmdCopyQueryPoolResults-flags-00823", CMD, "with 64_BIT, dstOffset and stride must be multiples of 8");
         }
         let len = copy_results_len(count, stride, &f);
