@@ -1,74 +1,465 @@
-//! arbor-bench: goes through the Vulkan loader to a driver (Arbor by default: the manifest built
-//! beside this program) and reports what it offers. The acceleration-structure workloads land
-//! here as the AS API does (issue 5).
+//! arbor-bench: runs acceleration-structure workloads through the Vulkan loader on any installed
+//! driver (Arbor by default: the library built beside this program) and reports build times,
+//! sizes and, for Arbor, SAH cost and node counts. `arbor-bench --help` lists the options.
+mod png;
+mod render;
+mod report;
+mod vkctx;
+mod work;
+
 use std::ffi::CStr;
-use std::path::PathBuf;
+use std::io::{IsTerminal, Write};
+use std::path::{Path, PathBuf};
 
 use ash::vk;
 
-/// The icd.json of the checkout this program was built in (target/<profile>/arbor-bench →
-/// <checkout>/icd.json), or a manifest next to the built driver.
+use work::{Scene, SceneKind, Workload};
+
+const BUNNY_PLY: &[u8] = include_bytes!("../../data/bunny.ply");
+
+const HELP: &str = "\
+arbor-bench: acceleration-structure workloads through the Vulkan loader, on any installed driver
+
+USAGE: arbor-bench [OPTIONS]
+
+Drivers (default: arbor, the libvulkan_arbor.so beside this program):
+  --driver LIST        arbor, lavapipe, nvidia or all (comma-separated or repeated);
+                       drivers that are not installed are skipped with a message
+  --icd PATH           another driver's manifest (repeatable)
+  --threads N          ARBOR_THREADS for Arbor (its worker pool size)
+  --list               list the devices found and exit
+Scenes (default: bunny):
+  --scene LIST         bunny (embedded Stanford bunny), soup (random triangle soup), terrain
+                       (tessellated heightfield), instances (TLAS of instances over 3 BLASes), all
+  --mesh FILE          a PLY (ASCII/binary) or OBJ mesh, gzip allowed (repeatable)
+  --soup N             triangles of the soup (default 1000000)
+  --terrain N          terrain grid cells per side, 2 triangles each (default 512)
+  --instances N        instances of the TLAS scene (default 10000)
+Workloads (default: all; unsupported ones are reported as \"not supported\"):
+  --workloads LIST     fast-trace, fast-build, update, compact, indirect, host, host-deferred
+  --repeat N           timed runs per workload (default 5), after --warmup N (default 1)
+  --joiners N          threads joining deferred host builds (default: all cores)
+  --no-metrics         skip Arbor's serialize + SAH/node metrics
+Output:
+  --json FILE          results as JSON        --csv FILE   results as CSV
+  --svg FILE           chart: build time and compacted size by driver and scene
+  --render FILE.png    Arbor only: primary rays through the built fast-trace structure
+  --render-scene NAME  scene to render (default: the first)
+  --render-size WxH    default 480x360
+  --quiet              no progress on stderr
+";
+
+struct Args {
+    drivers: Vec<String>,
+    icds: Vec<PathBuf>,
+    threads: Option<usize>,
+    list: bool,
+    scenes: Vec<String>,
+    meshes: Vec<PathBuf>,
+    soup: usize,
+    terrain: u32,
+    instances: usize,
+    workloads: Vec<Workload>,
+    repeat: usize,
+    warmup: usize,
+    joiners: usize,
+    metrics: bool,
+    json: Option<PathBuf>,
+    csv: Option<PathBuf>,
+    svg: Option<PathBuf>,
+    render: Option<PathBuf>,
+    render_scene: Option<String>,
+    render_size: (u32, u32),
+    quiet: bool,
+}
+
+fn parse_args(argv: &[String]) -> Result<Args, String> {
+    let cores = std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1);
+    let mut a = Args {
+        drivers: Vec::new(),
+        icds: Vec::new(),
+        threads: None,
+        list: false,
+        scenes: Vec::new(),
+        meshes: Vec::new(),
+        soup: 1_000_000,
+        terrain: 512,
+        instances: 10_000,
+        workloads: Vec::new(),
+        repeat: 5,
+        warmup: 1,
+        joiners: cores,
+        metrics: true,
+        json: None,
+        csv: None,
+        svg: None,
+        render: None,
+        render_scene: None,
+        render_size: (480, 360),
+        quiet: false,
+    };
+    let mut it = argv.iter();
+    let list = |v: &str| -> Vec<String> { v.split(',').map(|s| s.trim().to_string()).filter(|s| !s.is_empty()).collect() };
+    while let Some(arg) = it.next() {
+        let (flag, inline) = match arg.split_once('=') {
+            Some((f, v)) if f.starts_with("--") => (f.to_string(), Some(v.to_string())),
+            _ => (arg.clone(), None),
+        };
+        let mut value = |name: &str| -> Result<String, String> {
+            inline.clone().or_else(|| it.next().cloned()).ok_or_else(|| format!("{name} needs a value"))
+        };
+        let num = |name: &str, v: String| -> Result<usize, String> { v.parse::<usize>().map_err(|_| format!("{name}: not a number: {v}")) };
+        match flag.as_str() {
+            "-h" | "--help" => {
+                print!("{HELP}");
+                std::process::exit(0);
+            }
+            "--driver" => a.drivers.extend(list(&value("--driver")?)),
+            "--icd" => a.icds.push(PathBuf::from(value("--icd")?)),
+            "--threads" => a.threads = Some(num("--threads", value("--threads")?)?.max(1)),
+            "--list" => a.list = true,
+            "--scene" => a.scenes.extend(list(&value("--scene")?)),
+            "--mesh" => a.meshes.push(PathBuf::from(value("--mesh")?)),
+            "--soup" => a.soup = num("--soup", value("--soup")?)?.max(1),
+            "--terrain" => a.terrain = num("--terrain", value("--terrain")?)?.max(1) as u32,
+            "--instances" => a.instances = num("--instances", value("--instances")?)?.max(1),
+            "--workloads" | "--workload" => {
+                for w in list(&value("--workloads")?) {
+                    if w == "all" {
+                        a.workloads.extend(Workload::ALL);
+                    } else {
+                        a.workloads.push(Workload::parse(&w).ok_or_else(|| format!("unknown workload {w}"))?);
+                    }
+                }
+            }
+            "--repeat" => a.repeat = num("--repeat", value("--repeat")?)?.max(1),
+            "--warmup" => a.warmup = num("--warmup", value("--warmup")?)?,
+            "--joiners" => a.joiners = num("--joiners", value("--joiners")?)?.max(1),
+            "--no-metrics" => a.metrics = false,
+            "--json" => a.json = Some(PathBuf::from(value("--json")?)),
+            "--csv" => a.csv = Some(PathBuf::from(value("--csv")?)),
+            "--svg" => a.svg = Some(PathBuf::from(value("--svg")?)),
+            "--render" => a.render = Some(PathBuf::from(value("--render")?)),
+            "--render-scene" => a.render_scene = Some(value("--render-scene")?),
+            "--render-size" => {
+                let v = value("--render-size")?;
+                let (w, h) = v.split_once('x').ok_or("--render-size WxH")?;
+                let w: u32 = w.parse().map_err(|_| "--render-size WxH")?;
+                let h: u32 = h.parse().map_err(|_| "--render-size WxH")?;
+                a.render_size = (w.clamp(1, 8192), h.clamp(1, 8192));
+            }
+            "--quiet" | "-q" => a.quiet = true,
+            other => return Err(format!("unknown option {other} (see --help)")),
+        }
+    }
+    if a.workloads.is_empty() {
+        a.workloads.extend(Workload::ALL);
+    }
+    a.workloads.dedup();
+    if a.drivers.is_empty() && a.icds.is_empty() {
+        a.drivers.push("arbor".into());
+    }
+    if a.drivers.iter().any(|d| d == "all") {
+        a.drivers = vec!["arbor".into(), "lavapipe".into(), "nvidia".into()];
+    }
+    for d in &a.drivers {
+        if !["arbor", "lavapipe", "nvidia"].contains(&d.as_str()) {
+            return Err(format!("unknown driver {d} (arbor, lavapipe, nvidia, all; or --icd PATH)"));
+        }
+    }
+    if a.scenes.is_empty() && a.meshes.is_empty() {
+        a.scenes.push("bunny".into());
+    }
+    if a.scenes.iter().any(|s| s == "all") {
+        a.scenes = vec!["bunny".into(), "soup".into(), "terrain".into(), "instances".into()];
+    }
+    Ok(a)
+}
+
+/// Writes a manifest for the libvulkan_arbor.so beside this program (target/<profile>/).
 fn arbor_manifest() -> Option<PathBuf> {
     let exe = std::env::current_exe().ok()?;
-    let profile_dir = exe.parent()?;
-    let lib = profile_dir.join("libvulkan_arbor.so");
+    let dir = exe.parent()?;
+    let lib = dir.join("libvulkan_arbor.so");
     if !lib.exists() {
         return None;
     }
-    let path = profile_dir.join("arbor_icd.json");
     let json = format!(
-        "{{\"file_format_version\":\"1.0.1\",\"ICD\":{{\"library_path\":\"{}\",\"api_version\":\"1.1.281\",\"library_arch\":\"64\"}}}}",
-        lib.display()
+        "{{\"file_format_version\":\"1.0.1\",\"ICD\":{{\"library_path\":{},\"api_version\":\"1.1.281\",\"library_arch\":\"64\"}}}}",
+        report::json_str(&lib.display().to_string())
     );
-    std::fs::write(&path, json).ok()?;
-    Some(path)
+    for path in [dir.join("arbor_icd.json"), std::env::temp_dir().join(format!("arbor_icd_{}.json", std::process::id()))] {
+        if std::fs::write(&path, &json).is_ok() {
+            return Some(path);
+        }
+    }
+    None
+}
+
+fn first_existing(paths: &[&str]) -> Option<PathBuf> {
+    paths.iter().map(PathBuf::from).find(|p| p.exists())
+}
+
+fn manifest_for(driver: &str) -> Result<PathBuf, String> {
+    match driver {
+        "arbor" => arbor_manifest().ok_or_else(|| "libvulkan_arbor.so not found beside arbor-bench (cargo build --release --workspace)".to_string()),
+        "lavapipe" => first_existing(&[
+            "/usr/share/vulkan/icd.d/lvp_icd.json",
+            "/usr/share/vulkan/icd.d/lvp_icd.x86_64.json",
+            "/usr/local/share/vulkan/icd.d/lvp_icd.json",
+            "/etc/vulkan/icd.d/lvp_icd.json",
+        ])
+        .ok_or_else(|| "lavapipe is not installed (apt-get install mesa-vulkan-drivers; see docs/BENCHMARKS.md)".to_string()),
+        "nvidia" => first_existing(&[
+            "/usr/local/nvidia/share/vulkan/icd.d/nvidia_icd.json",
+            "/usr/share/vulkan/icd.d/nvidia_icd.json",
+            "/etc/vulkan/icd.d/nvidia_icd.json",
+            "/usr/share/vulkan/icd.d/nvidia_icd.x86_64.json",
+        ])
+        .ok_or_else(|| "NVIDIA's Vulkan driver is not installed".to_string()),
+        _ => Err(format!("unknown driver {driver}")),
+    }
+}
+
+/// The report's name for a device.
+fn classify(p: &vk::PhysicalDeviceProperties, name: &str) -> String {
+    if name.contains("Arbor") {
+        "arbor".into()
+    } else if name.contains("llvmpipe") {
+        "lavapipe".into()
+    } else if p.vendor_id == 0x10DE {
+        "nvidia".into()
+    } else {
+        name.split_whitespace().next().unwrap_or("device").to_ascii_lowercase()
+    }
+}
+
+fn mesh_scene_name(path: &Path) -> String {
+    let n = path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_else(|| "mesh".into());
+    let n = n.strip_suffix(".gz").unwrap_or(&n).to_string();
+    n.strip_suffix(".ply").or_else(|| n.strip_suffix(".obj")).unwrap_or(&n).to_string()
+}
+
+fn load_scenes(a: &Args) -> Result<Vec<Scene>, String> {
+    let bunny = || arbor::scene::parse_ply(BUNNY_PLY).map_err(|e| format!("embedded bunny: {e}"));
+    let mut out = Vec::new();
+    for s in &a.scenes {
+        let kind = match s.as_str() {
+            "bunny" => SceneKind::Mesh(bunny()?),
+            "soup" => SceneKind::Mesh(arbor::scene::random_soup(a.soup, 1)),
+            "terrain" => SceneKind::Mesh(arbor::scene::terrain(a.terrain)),
+            "instances" => SceneKind::Instances {
+                blases: vec![work::normalized(&bunny()?), arbor::scene::terrain(64), arbor::scene::random_soup(4096, 7)],
+                count: a.instances,
+                seed: 1,
+            },
+            other => return Err(format!("unknown scene {other} (bunny, soup, terrain, instances, all; or --mesh FILE)")),
+        };
+        out.push(Scene { name: s.clone(), kind });
+    }
+    for p in &a.meshes {
+        let m = arbor::scene::load(p).map_err(|e| format!("{}: {e}", p.display()))?;
+        if m.triangle_count() == 0 {
+            return Err(format!("{}: no triangles", p.display()));
+        }
+        out.push(Scene { name: mesh_scene_name(p), kind: SceneKind::Mesh(m) });
+    }
+    Ok(out)
 }
 
 fn main() {
-    let args: Vec<String> = std::env::args().collect();
-    let icd = args.iter().position(|a| a == "--icd").and_then(|i| args.get(i + 1)).map(PathBuf::from);
-    let manifest = icd.or_else(arbor_manifest);
-    match &manifest {
-        // SAFETY: set before the loader is opened; single-threaded here.
-        Some(m) => unsafe {
-            std::env::set_var("VK_ICD_FILENAMES", m);
-            std::env::set_var("VK_DRIVER_FILES", m);
-        },
-        None => eprintln!("arbor-bench: libvulkan_arbor.so not found beside this program; using the system's drivers"),
-    }
-    if let Err(e) = run() {
-        eprintln!("arbor-bench: {e}");
-        std::process::exit(1);
+    let argv: Vec<String> = std::env::args().skip(1).collect();
+    let args = match parse_args(&argv) {
+        Ok(a) => a,
+        Err(e) => {
+            eprintln!("arbor-bench: {e}");
+            std::process::exit(2);
+        }
+    };
+    match run(&args, &argv) {
+        Ok(failed) => std::process::exit(if failed { 1 } else { 0 }),
+        Err(e) => {
+            eprintln!("arbor-bench: {e}");
+            std::process::exit(1);
+        }
     }
 }
 
-fn run() -> Result<(), String> {
+/// Returns whether any workload failed.
+fn run(args: &Args, argv: &[String]) -> Result<bool, String> {
+    let cores = std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1);
+    if let Some(t) = args.threads {
+        // SAFETY: single-threaded here, before the loader and any driver are loaded.
+        unsafe { std::env::set_var("ARBOR_THREADS", t.to_string()) };
+    }
+    let arbor_threads = std::env::var("ARBOR_THREADS").ok().and_then(|v| v.parse::<usize>().ok()).unwrap_or(cores);
+    let mut manifests = Vec::new();
+    let mut wanted = Vec::new();
+    for d in &args.drivers {
+        match manifest_for(d) {
+            Ok(m) => {
+                manifests.push(m);
+                wanted.push(d.clone());
+            }
+            Err(e) => eprintln!("arbor-bench: skipping {d}: {e}"),
+        }
+    }
+    for m in &args.icds {
+        if !m.exists() {
+            return Err(format!("--icd {}: no such file", m.display()));
+        }
+        manifests.push(m.clone());
+    }
+    if manifests.is_empty() {
+        return Err("no driver to run".into());
+    }
+    let joined = std::env::join_paths(&manifests).map_err(|e| e.to_string())?;
+    // SAFETY: single-threaded here, before the loader is opened.
+    unsafe {
+        std::env::set_var("VK_ICD_FILENAMES", &joined);
+        std::env::set_var("VK_DRIVER_FILES", &joined);
+        // Mesa's implicit device-select layer reorders/filters devices: not under test.
+        std::env::set_var("NODEVICE_SELECT", "1");
+    }
+    let scenes = if args.list { Vec::new() } else { load_scenes(args)? };
+
     // SAFETY: loading the system Vulkan loader.
     let entry = unsafe { ash::Entry::load() }.map_err(|e| format!("cannot load libvulkan.so.1 ({e}); install libvulkan1"))?;
-    let app = vk::ApplicationInfo::default().api_version(vk::API_VERSION_1_1);
+    let app = vk::ApplicationInfo::default().application_name(c"arbor-bench").api_version(vk::API_VERSION_1_1);
     // SAFETY: valid create info.
     let instance = unsafe { entry.create_instance(&vk::InstanceCreateInfo::default().application_info(&app), None) }
-        .map_err(|e| format!("vkCreateInstance: {e}"))?;
-    // SAFETY: plain queries on a live instance.
-    unsafe {
-        for pd in instance.enumerate_physical_devices().map_err(|e| e.to_string())? {
-            let p = instance.get_physical_device_properties(pd);
-            let name = CStr::from_ptr(p.device_name.as_ptr()).to_string_lossy();
-            println!("device: {name} ({:?}), Vulkan {}.{}", p.device_type, vk::api_version_major(p.api_version), vk::api_version_minor(p.api_version));
-            for (i, q) in instance.get_physical_device_queue_family_properties(pd).iter().enumerate() {
-                println!("  queue family {i}: {:?} x{}", q.queue_flags, q.queue_count);
+        .map_err(|e| format!("vkCreateInstance: {e} (manifests: {})", joined.to_string_lossy()))?;
+    // SAFETY: plain queries.
+    let pds = unsafe { instance.enumerate_physical_devices() }.map_err(|e| format!("vkEnumeratePhysicalDevices: {e}"))?;
+    let mut devices: Vec<(String, vk::PhysicalDevice)> = pds
+        .iter()
+        .map(|&pd| {
+            // SAFETY: plain query.
+            let p = unsafe { instance.get_physical_device_properties(pd) };
+            // SAFETY: NUL-terminated by the driver.
+            let name = unsafe { CStr::from_ptr(p.device_name.as_ptr()) }.to_string_lossy().into_owned();
+            (classify(&p, &name), pd)
+        })
+        .collect();
+    // Order as asked: named drivers first in their order, then devices of --icd manifests.
+    devices.sort_by_key(|(label, _)| wanted.iter().position(|w| w == label).unwrap_or(usize::MAX));
+    for w in &wanted {
+        if !devices.iter().any(|(l, _)| l == w) {
+            eprintln!("arbor-bench: {w}: its manifest loaded but no device of it was found");
+        }
+    }
+    if args.list {
+        for (label, pd) in &devices {
+            // SAFETY: plain query.
+            let p = unsafe { instance.get_physical_device_properties(*pd) };
+            // SAFETY: NUL-terminated by the driver.
+            let name = unsafe { CStr::from_ptr(p.device_name.as_ptr()) }.to_string_lossy().into_owned();
+            println!("{label}: {name}");
+        }
+        // SAFETY: no child objects.
+        unsafe { instance.destroy_instance(None) };
+        return Ok(false);
+    }
+    let mut rows = Vec::new();
+    let mut meta = report::Meta {
+        command: std::iter::once("arbor-bench".to_string()).chain(argv.iter().cloned()).collect::<Vec<_>>().join(" "),
+        unix_time: std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map(|d| d.as_secs()).unwrap_or(0),
+        host_cpus: cores,
+        drivers: Vec::new(),
+        scenes: scenes.iter().map(|s| (s.name.clone(), s.primitives(), s.describe())).collect(),
+    };
+    let opts = work::Options { repeat: args.repeat, warmup: args.warmup, joiners: args.joiners, metrics: args.metrics };
+    let total = devices.len() * scenes.len() * args.workloads.len();
+    let mut step = 0usize;
+    let tty = std::io::stderr().is_terminal();
+    let render_scene = args.render_scene.clone().or_else(|| scenes.first().map(|s| s.name.clone()));
+    let mut render_data = None;
+    let mut failed = false;
+    let started = std::time::Instant::now();
+    for (label, pd) in &devices {
+        let gpu = match vkctx::Gpu::new(&instance, *pd, label.clone()) {
+            Ok(g) => g,
+            Err(e) => {
+                eprintln!("arbor-bench: {label}: {e}");
+                failed = true;
+                continue;
             }
-            let mp = instance.get_physical_device_memory_properties(pd);
-            for h in &mp.memory_heaps[..mp.memory_heap_count as usize] {
-                println!("  memory heap: {:.1} GiB {:?}", h.size as f64 / (1u64 << 30) as f64, h.flags);
+        };
+        let is_arbor = label == "arbor";
+        let threads = if is_arbor { arbor_threads.to_string() } else { "-".to_string() };
+        meta.drivers.push((
+            label.clone(),
+            gpu.name.clone(),
+            gpu.driver_version.clone(),
+            gpu.caps.host_commands,
+            gpu.caps.indirect_build,
+            gpu.caps.timestamps,
+        ));
+        if !args.quiet {
+            eprintln!(
+                "arbor-bench: {label}: {} (driver {}){}",
+                gpu.name,
+                gpu.driver_version,
+                gpu.caps.missing.as_ref().map(|m| format!(": {m}")).unwrap_or_default()
+            );
+        }
+        for scene in &scenes {
+            let want_render = args.render.is_some() && is_arbor && Some(&scene.name) == render_scene.as_ref();
+            let opts = work::Options { metrics: opts.metrics && is_arbor || want_render, ..opts };
+            let mut progress = |w: &str| {
+                step += 1;
+                if !args.quiet {
+                    let msg = format!("[{step}/{total}] {:.1}s {label} {} {w}", started.elapsed().as_secs_f64(), scene.name);
+                    if tty {
+                        eprint!("\r\x1b[K{msg}");
+                    } else {
+                        eprintln!("{msg}");
+                    }
+                    let _ = std::io::stderr().flush();
+                }
+            };
+            let r = work::run_scene(&gpu, &threads, scene, &args.workloads, &opts, want_render, &mut progress, &mut render_data);
+            failed |= r.iter().any(|r| matches!(r.status, work::Status::Failed(_)));
+            rows.extend(r);
+        }
+        gpu.destroy();
+    }
+    if tty && !args.quiet {
+        eprint!("\r\x1b[K");
+    }
+    // SAFETY: every device was destroyed.
+    unsafe { instance.destroy_instance(None) };
+
+    print!("{}", report::table(&rows));
+    let write = |path: &Path, data: &[u8]| -> Result<(), String> {
+        std::fs::write(path, data).map_err(|e| format!("{}: {e}", path.display()))?;
+        if !args.quiet {
+            eprintln!("arbor-bench: wrote {}", path.display());
+        }
+        Ok(())
+    };
+    if let Some(p) = &args.json {
+        write(p, report::json(&meta, &rows).as_bytes())?;
+    }
+    if let Some(p) = &args.csv {
+        write(p, report::csv(&rows).as_bytes())?;
+    }
+    if let Some(p) = &args.svg {
+        let title = format!("arbor-bench: {} (repeat {})", scenes.iter().map(|s| s.name.as_str()).collect::<Vec<_>>().join(", "), args.repeat);
+        write(p, report::svg(&rows, &title).as_bytes())?;
+    }
+    if let Some(p) = &args.render {
+        match &render_data {
+            Some(d) => {
+                let (w, h) = args.render_size;
+                let rgb = render::render(d, w, h)?;
+                write(p, &png::encode_rgb(w, h, &rgb))?;
             }
-            let exts = instance.enumerate_device_extension_properties(pd).map_err(|e| e.to_string())?;
-            println!("  extensions ({}):", exts.len());
-            for e in &exts {
-                println!("    {}", CStr::from_ptr(e.extension_name.as_ptr()).to_string_lossy());
+            None => {
+                eprintln!("arbor-bench: --render: no Arbor fast-trace build of scene {} to render", render_scene.unwrap_or_default());
+                failed = true;
             }
         }
-        instance.destroy_instance(None);
     }
-    Ok(())
+    Ok(failed)
 }
