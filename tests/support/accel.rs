@@ -243,3 +243,30 @@ pub fn payload(serialized: &[u8]) -> &[u8] {
     let n = u64::from_le_bytes(serialized[48..56].try_into().unwrap()) as usize;
     &serialized[56 + 8 * n..]
 }
+
+// Helpers for the negative tests (tests/accel_vuid.rs): placing structures inside larger,
+// guarded buffers and comparing whole buffers before/after a command.
+impl<'c> Accel<'c> {
+    /// Number of buffers created through this helper so far (valid indices for `buf`).
+    pub fn buffer_count(&self) -> usize {
+        self.buffers.borrow().len()
+    }
+
+    /// Fill the whole of buffer `b` with `byte`.
+    pub fn fill(&self, b: usize, byte: u8) {
+        let buf = self.buf(b);
+        // SAFETY: mapped host-visible memory of `size` bytes.
+        unsafe { std::ptr::write_bytes(buf.ptr, byte, buf.size as usize) };
+    }
+
+    /// An acceleration structure of `size` bytes at `offset` (a multiple of 256) inside buffer
+    /// `b`; destroyed by `destroy`.
+    pub fn structure_at(&self, b: usize, offset: u64, size: u64, ty: vk::AccelerationStructureTypeKHR) -> vk::AccelerationStructureKHR {
+        let buffer = self.buf(b).buffer;
+        let info = vk::AccelerationStructureCreateInfoKHR::default().buffer(buffer).offset(offset).size(size).ty(ty);
+        // SAFETY: valid create info.
+        let s = unsafe { self.ext.create_acceleration_structure(&info, None) }.unwrap();
+        self.structures.borrow_mut().push(s);
+        s
+    }
+}
