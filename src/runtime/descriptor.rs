@@ -220,7 +220,7 @@ impl DescriptorSetLayout {
             }
             if uab && is_dynamic(b.descriptor_type) {
                 return Err(violation(
-                    "VUID-VkDescriptorSetLayoutBindingFlagsCreateInfo-None-03005",
+                    "VUID-VkDescriptorSetLayoutBindingFlagsCreateInfo-None-03011",
                     format!("binding {}: dynamic buffer descriptors cannot be UPDATE_AFTER_BIND", b.binding),
                 ));
             }
@@ -232,8 +232,19 @@ impl DescriptorSetLayout {
                         | vk::DescriptorType::ACCELERATION_STRUCTURE_KHR
                 )
             {
+                let vuid = match b.descriptor_type {
+                    vk::DescriptorType::STORAGE_IMAGE => "VUID-VkDescriptorSetLayoutBindingFlagsCreateInfo-descriptorBindingStorageImageUpdateAfterBind-03007",
+                    vk::DescriptorType::UNIFORM_TEXEL_BUFFER => {
+                        "VUID-VkDescriptorSetLayoutBindingFlagsCreateInfo-descriptorBindingUniformTexelBufferUpdateAfterBind-03009"
+                    }
+                    vk::DescriptorType::STORAGE_TEXEL_BUFFER => {
+                        "VUID-VkDescriptorSetLayoutBindingFlagsCreateInfo-descriptorBindingStorageTexelBufferUpdateAfterBind-03010"
+                    }
+                    vk::DescriptorType::INPUT_ATTACHMENT => "VUID-VkDescriptorSetLayoutBindingFlagsCreateInfo-None-03011",
+                    _ => "VUID-VkDescriptorSetLayoutBindingFlagsCreateInfo-descriptorBindingSampledImageUpdateAfterBind-03006",
+                };
                 return Err(violation(
-                    "VUID-VkDescriptorSetLayoutBindingFlagsCreateInfo-descriptorBindingSampledImageUpdateAfterBind-03006",
+                    vuid,
                     format!(
                         "binding {}: UPDATE_AFTER_BIND for {:?} needs a feature Arbor does not offer",
                         b.binding, b.descriptor_type
