@@ -13,7 +13,32 @@
 //! [`CommandBuffer::record_custom`]; the executor calls [`Exec::execute`] with an
 //! [`ExecContext`] (device memory, timestamps, cancellable waits, the rayon pool via
 //! `crate::threads`). Returning `Err` reports the failure, skips the command and goes on (or
-//! loses the device in strict mode).
+//! loses the device in strict mode). Query results (compacted size, serialization size…) are
+//! written with [`QueryPool::write`], which makes the query available.
+//!
+//! ```
+//! use arbor::runtime::command::{Exec, ExecContext, ExecError};
+//!
+//! /// Everything the command needs, owned (deep copies, `Arc`s): nothing points into the
+//! /// application's memory once recording returns.
+//! struct WriteMarker {
+//!     address: u64,
+//! }
+//!
+//! impl Exec for WriteMarker {
+//!     fn name(&self) -> &'static str {
+//!         "vkCmdExampleMarker"
+//!     }
+//!     fn execute(&self, ctx: &ExecContext<'_>) -> Result<(), ExecError> {
+//!         // Device memory is read and written when the queue runs the command, through the
+//!         // checked address space; a refused access becomes a diagnostic, not a crash.
+//!         ctx.memory().write(self.address, &ctx.timestamp().to_le_bytes())?;
+//!         Ok(())
+//!     }
+//! }
+//! // Recording (in the dispatch function of the command):
+//! // command_buffer.record_custom(Box::new(WriteMarker { address }));
+//! ```
 use std::sync::atomic::{AtomicBool, AtomicU32, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard, Weak};
 
