@@ -104,6 +104,17 @@ impl ExecContext<'_> {
     pub fn cancelled(&self) -> bool {
         self.cancel.load(Ordering::Acquire)
     }
+
+    /// Report a valid-usage violation found while executing, for a command that handles it
+    /// itself (skips part of its work, marks a destination invalid) instead of returning
+    /// `Err`. In strict mode the device is lost and the submission stops after this command.
+    pub fn violation(&self, vuid: &str, command: &str, message: &str) {
+        diag::vuid(vuid, command, message);
+        if diag::strict() {
+            diag::report(diag::Level::Error, command, "strict mode: device lost");
+            self.device.mark_lost();
+        }
+    }
 }
 
 /// A command implemented outside this module (the acceleration-structure commands).
@@ -277,6 +288,7 @@ pub fn execute_recording(recording: &Recording, ctx: &ExecContext<'_>) -> Flow {
             return Flow::Stop;
         }
         let msg = match c.execute(ctx) {
+            Ok(()) if ctx.device.is_lost() => return Flow::Stop,
             Ok(()) => continue,
             Err(ExecError::Cancelled) => return Flow::Stop,
             Err(ExecError::Invalid { vuid, message }) => format!("[{vuid}] {message}"),
