@@ -95,6 +95,7 @@ fn events_set_by_commands() {
     unsafe {
         let a = d.create_event(&vk::EventCreateInfo::default(), None).unwrap();
         let b = d.create_event(&vk::EventCreateInfo::default(), None).unwrap();
+        let device_only = d.create_event(&vk::EventCreateInfo::default().flags(vk::EventCreateFlags::DEVICE_ONLY), None).unwrap();
         let f = fence(d, false);
         begin(d, cb);
         d.cmd_set_event(cb, a, vk::PipelineStageFlags::TRANSFER);
@@ -109,6 +110,9 @@ fn events_set_by_commands() {
         sync2.cmd_wait_events2(cb, &[b], std::slice::from_ref(&dep));
         sync2.cmd_pipeline_barrier2(cb, &dep);
         sync2.cmd_reset_event2(cb, b, vk::PipelineStageFlags2::TRANSFER);
+        // A DEVICE_ONLY event: set and waited on by the queue only.
+        sync2.cmd_set_event2(cb, device_only, &dep);
+        sync2.cmd_wait_events2(cb, &[device_only], std::slice::from_ref(&dep));
         d.end_command_buffer(cb).unwrap();
         let cbs = [cb];
         d.queue_submit(ctx.queues[1], &[vk::SubmitInfo::default().command_buffers(&cbs)], f).unwrap();
@@ -120,6 +124,7 @@ fn events_set_by_commands() {
         d.destroy_fence(f, None);
         d.destroy_event(a, None);
         d.destroy_event(b, None);
+        d.destroy_event(device_only, None);
         d.destroy_command_pool(pool, None);
     }
     ctx.finish();
