@@ -299,6 +299,12 @@ fn invalid_usage_is_reported() {
     unsafe {
         assert_eq!(d.create_buffer(&vk::BufferCreateInfo::default().size(0).usage(vk::BufferUsageFlags::STORAGE_BUFFER), None).err(), FAILED);
         assert_eq!(d.allocate_memory(&vk::MemoryAllocateInfo::default().allocation_size(4096).memory_type_index(3), None).err(), FAILED);
+        // More than the whole heap: invalid usage, answered honestly.
+        let heap = ctx.instance.get_physical_device_memory_properties(ctx.physical).memory_heaps[0].size;
+        assert_eq!(
+            d.allocate_memory(&vk::MemoryAllocateInfo::default().allocation_size(heap + 1).memory_type_index(0), None),
+            Err(vk::Result::ERROR_OUT_OF_DEVICE_MEMORY)
+        );
 
         // host_buffer leaves the memory mapped: a second map fails.
         let (b, m, _) = ctx.host_buffer(1024, vk::BufferUsageFlags::STORAGE_BUFFER);
@@ -318,6 +324,8 @@ fn invalid_usage_is_reported() {
         // No format supports texel buffers.
         let view = vk::BufferViewCreateInfo::default().buffer(b).format(vk::Format::R32_UINT).range(vk::WHOLE_SIZE);
         assert_eq!(d.create_buffer_view(&view, None).err(), FAILED);
+        // Memory is not lazily allocated: the query is reported, and answered with the size.
+        assert_eq!(d.get_device_memory_commitment(m), 1024);
         d.destroy_buffer(b2, None);
         d.destroy_buffer(b, None);
         d.free_memory(m, None);
@@ -325,6 +333,8 @@ fn invalid_usage_is_reported() {
     ctx.finish();
     let diag = support::diagnostics();
     for vuid in [
+        "VUID-vkAllocateMemory-pAllocateInfo-01713",
+        "VUID-vkGetDeviceMemoryCommitment-memory-00690",
         "VUID-VkBufferCreateInfo-size-00912",
         "VUID-vkAllocateMemory-pAllocateInfo-01714",
         "VUID-vkMapMemory-memory-00678",
