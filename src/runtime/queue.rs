@@ -235,3 +235,99 @@ fn run(device: &Arc<Device>, shared: &Shared, submission: Submission) {
         f.signal_from_queue();
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use std::sync::atomic::AtomicUsize;
+    use std::sync::OnceLock;
+
+    use super::*;
+    use crate::memory::{AddressSpace, Buffer};
+    use crate::runtime::command::{CommandPool, Exec, ExecError};
+    use crate::runtime::PhysicalDevice;
+
+    fn device() -> Arc<Device> {
+        Arc::new(Device {
+            physical: PhysicalDevice::new(),
+            enabled_extensions: Default::default(),
+            api_minor: 1,
+            features: Default::default(),
+            memory: Arc::new(AddressSpace::new(1 << 26)),
+            queues: OnceLock::new(),
+            epoch: std::time::Instant::now(),
+            lost: Default::default(),
+        })
+    }
+
+    fn buffer(dev: &Device, size: u64) -> Arc<Buffer> {
+        let usage = vk::BufferUsageFlags::TRANSFER_SRC | vk::BufferUsageFlags::TRANSFER_DST;
+        let b = Arc::new(Buffer::new(size, usage, vk::BufferCreateFlags::empty()));
+        b.bind(dev.memory.allocate(size, true, None).unwrap(), 0).unwrap();
+        b
+    }
+
+    /// A custom command (the extension point): reads what the previous command wrote through a
+    /// device address and writes its double after it.
+    struct Double {
+        address: u64,
+        ran: Arc<AtomicUsize>,
+    }
+
+    impl Exec for Double {
+        fn name(&self) -> &'static str {
+            "vkCmdTestDouble"
+        }
+        fn execute(&self, ctx: &ExecContext<'_>) -> Result<(), ExecError> {
+            let mut v = [0u8; 4];
+            ctx.memory().read(self.address, &mut v)?;
+            let d = u32::from_le_bytes(v) * 2;
+            ctx.memory().write(self.address + 4, &d.to_le_bytes())?;
+            self.ran.fetch_add(1, Ordering::Relaxed);
+            Ok(())
+        }
+    }
+
+    #[test]
+    fn custom_commands_run_in_order_with_the_built_in_ones() {
+        let dev = device();
+        let q = Queue::new(Arc::downgrade(&dev), 0, 0);
+        let b = buffer(&dev, 64);
+        let pool = Arc::new(CommandPool::new(vk::CommandPoolCreateFlags::empty(), 0));
+        let cb = pool.allocate(vk::CommandBufferLevel::PRIMARY);
+        let ran = Arc::new(AtomicUsize::new(0));
+        cb.begin(vk::CommandBufferUsageFlags::empty(), false);
+        cb.cmd_update_buffer(b.clone(), 0, 21u32.to_le_bytes().to_vec());
+        cb.record_custom(Box::new(Double { address: b.device_address().unwrap(), ran: ran.clone() }));
+        // A custom command whose access is refused: reported, skipped, the rest runs.
+        cb.record_custom(Box::new(Double { address: 0x10, ran: ran.clone() }));
+        cb.cmd_fill_buffer(b.clone(), 8, 4, 7);
+        cb.end();
+        let fence = Arc::new(sync::Fence::new(false));
+        let batch = BatchDesc { waits: vec![], command_buffers: vec![cb.clone()], signals: vec![] };
+        assert_eq!(q.submit("test", vec![batch], Some(fence.clone())), vk::Result::SUCCESS);
+        assert_eq!(sync::wait_fences(&[fence], true, Deadline::Never), WaitOutcome::Ready);
+        let mut out = [0u8; 12];
+        b.read(0, &mut out).unwrap();
+        assert_eq!(out, [21, 0, 0, 0, 42, 0, 0, 0, 7, 0, 0, 0]);
+        assert_eq!(ran.load(Ordering::Relaxed), 1);
+        assert!(!cb.is_pending());
+        assert_eq!(q.wait_idle(), vk::Result::SUCCESS);
+        q.shutdown();
+    }
+
+    #[test]
+    fn shutdown_cancels_a_blocked_worker_and_abandons_the_queue() {
+        let dev = device();
+        let q = Queue::new(Arc::downgrade(&dev), 0, 1);
+        let sem = Arc::new(Semaphore::new(SemaphoreKind::Timeline, 0));
+        let (f1, f2) = (Arc::new(sync::Fence::new(false)), Arc::new(sync::Fence::new(false)));
+        let blocked = BatchDesc { waits: vec![(sem.clone(), 1)], command_buffers: vec![], signals: vec![] };
+        assert_eq!(q.submit("test", vec![blocked], Some(f1.clone())), vk::Result::SUCCESS);
+        assert_eq!(q.submit("test", vec![], Some(f2.clone())), vk::Result::SUCCESS);
+        std::thread::sleep(std::time::Duration::from_millis(10));
+        assert!(!f1.is_signalled());
+        q.shutdown();
+        assert!(f1.is_signalled() && f2.is_signalled(), "abandoned submissions still signal so no host wait hangs");
+        assert_eq!(q.submit("test", vec![], None), vk::Result::ERROR_DEVICE_LOST);
+    }
+}
