@@ -36,7 +36,9 @@ Scenes (default: bunny):
   --terrain N          terrain grid cells per side, 2 triangles each (default 512)
   --instances N        instances of the TLAS scene (default 10000)
 Workloads (default: all; unsupported ones are reported as \"not supported\"):
-  --workloads LIST     fast-trace, fast-build, update, compact, indirect, host, host-deferred
+  --workloads LIST     fast-trace, fast-build, update, compact, indirect, host, host-deferred;
+                       also lib-fast-trace, lib-fast-build (Arbor: arbor::accel::build called
+                       directly, no Vulkan: the library's share of the driver's time)
   --repeat N           timed runs per workload (default 5), after --warmup N (default 1)
   --joiners N          threads joining deferred host builds (default: all cores)
   --no-metrics         skip Arbor's serialize + SAH/node metrics
@@ -290,7 +292,11 @@ fn run(args: &Args, argv: &[String]) -> Result<bool, String> {
     let cores = std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1);
     if let Some(t) = args.threads {
         // SAFETY: single-threaded here, before the loader and any driver are loaded.
-        unsafe { std::env::set_var("ARBOR_THREADS", t.to_string()) };
+        unsafe {
+            std::env::set_var("ARBOR_THREADS", t.to_string());
+            // The lib-* workloads call arbor::accel in this process's rayon pool.
+            std::env::set_var("RAYON_NUM_THREADS", t.to_string());
+        }
     }
     let arbor_threads = std::env::var("ARBOR_THREADS").ok().and_then(|v| v.parse::<usize>().ok()).unwrap_or(cores);
     let mut manifests = Vec::new();

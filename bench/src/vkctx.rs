@@ -87,11 +87,22 @@ impl Gpu {
             let props = instance.get_physical_device_properties(physical);
             let name = CStr::from_ptr(props.device_name.as_ptr()).to_string_lossy().into_owned();
             let dv = props.driver_version;
-            let driver_version = if props.vendor_id == 0x10DE {
+            let mut driver_version = if props.vendor_id == 0x10DE {
                 format!("{}.{}", dv >> 22, (dv >> 14) & 0xFF)
             } else {
                 format!("{}.{}.{}", vk::api_version_major(dv), vk::api_version_minor(dv), vk::api_version_patch(dv))
             };
+            if props.api_version >= vk::API_VERSION_1_2 {
+                // VkPhysicalDeviceDriverProperties (core in 1.2): the driver's own version text.
+                let mut dp = vk::PhysicalDeviceDriverProperties::default();
+                let mut p2 = vk::PhysicalDeviceProperties2::default().push_next(&mut dp);
+                instance.get_physical_device_properties2(physical, &mut p2);
+                let name = CStr::from_ptr(dp.driver_name.as_ptr()).to_string_lossy().into_owned();
+                let info = CStr::from_ptr(dp.driver_info.as_ptr()).to_string_lossy().into_owned();
+                if !name.is_empty() || !info.is_empty() {
+                    driver_version = format!("{name} {info}").trim().to_string();
+                }
+            }
             let exts: Vec<String> = instance
                 .enumerate_device_extension_properties(physical)
                 .map_err(vk_err("vkEnumerateDeviceExtensionProperties"))?

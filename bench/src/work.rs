@@ -48,6 +48,10 @@ pub enum Workload {
     Indirect,
     Host,
     HostDeferred,
+    /// Arbor only, not through Vulkan: `arbor::accel::build` called directly (mesh scenes), to
+    /// split the driver's time into library build and API overhead.
+    LibFastTrace,
+    LibFastBuild,
 }
 
 impl Workload {
@@ -69,10 +73,12 @@ impl Workload {
             Workload::Indirect => "indirect",
             Workload::Host => "host",
             Workload::HostDeferred => "host-deferred",
+            Workload::LibFastTrace => "lib-fast-trace",
+            Workload::LibFastBuild => "lib-fast-build",
         }
     }
     pub fn parse(s: &str) -> Option<Workload> {
-        Workload::ALL.iter().copied().find(|w| w.name() == s)
+        Workload::ALL.iter().chain(&[Workload::LibFastTrace, Workload::LibFastBuild]).copied().find(|w| w.name() == s)
     }
 }
 
@@ -409,6 +415,7 @@ pub fn run_scene(
                     Ok(())
                 }
             }
+            Workload::LibFastTrace | Workload::LibFastBuild => library_build(gpu, scene, w, opts, &mut row),
             Workload::Host | Workload::HostDeferred => {
                 if !gpu.caps.host_commands {
                     row.status = Status::NotSupported("accelerationStructureHostCommands = false".into());
@@ -705,4 +712,72 @@ fn join_deferred(
         gpu.deferred.destroy_deferred_operation(op, None);
         result
     }
+}
+
+/// `arbor::accel::build` on the host, in this process's rayon pool (RAYON_NUM_THREADS follows
+/// --threads): the library's share of Arbor's build time.
+fn library_build(gpu: &Gpu, scene: &Scene, w: Workload, opts: &Options, row: &mut Row) -> Result<(), String> {
+    use arbor::accel::{self, AsType, BuildDesc, BuildFlags, Geometry, GeometryData, GeometryFlags, GeometryShape, IndexType, VertexFormat};
+    if gpu.label != "arbor" {
+        row.status = Status::NotSupported("Arbor's library, called directly".into());
+        return Ok(());
+    }
+    let SceneKind::Mesh(mesh) = &scene.kind else {
+        row.status = Status::NotSupported("library rows for mesh scenes only".into());
+        return Ok(());
+    };
+    let vb = mesh.vertex_bytes();
+    let ib = mesh.index_bytes();
+    let max_vertex = mesh.vertex_count().saturating_sub(1) as u32;
+    let flags = BuildFlags(
+        BuildFlags::ALLOW_COMPACTION | if w == Workload::LibFastBuild { BuildFlags::PREFER_FAST_BUILD } else { BuildFlags::PREFER_FAST_TRACE },
+    );
+    let shape = GeometryShape::Triangles { format: VertexFormat::R32G32B32Sfloat, index_type: IndexType::U32, max_vertex, has_transform: false };
+    let n = mesh.triangle_count() as u32;
+    let sizes = accel::build_sizes(AsType::BottomLevel, flags, &[shape], &[n]);
+    let geoms = [Geometry {
+        flags: GeometryFlags(GeometryFlags::OPAQUE),
+        primitive_count: n,
+        data: GeometryData::Triangles {
+            format: VertexFormat::R32G32B32Sfloat,
+            vertices: &vb,
+            stride: 12,
+            max_vertex,
+            index_type: IndexType::U32,
+            indices: &ib,
+            transform: None,
+        },
+    }];
+    let desc = BuildDesc { ty: AsType::BottomLevel, flags, geometries: &geoms };
+    let mut dst = vec![0u8; sizes.acceleration_structure_size as usize];
+    let mut scratch = vec![0u8; sizes.build_scratch_size as usize];
+    let mut times = Vec::new();
+    let mut report = None;
+    for k in 0..opts.warmup + opts.repeat {
+        let t0 = Instant::now();
+        let r = accel::build(&desc, &accel::NoDevice, &mut dst, &mut scratch).map_err(|e| format!("arbor::accel::build: {e:?}"))?;
+        let ms = t0.elapsed().as_secs_f64() * 1e3;
+        if k >= opts.warmup {
+            times.push(ms);
+        }
+        report = Some(r);
+    }
+    row.time = Stats::of(&times);
+    row.wall = row.time;
+    row.timing = "host";
+    row.as_size = sizes.acceleration_structure_size;
+    row.scratch_size = sizes.build_scratch_size;
+    row.compacted_size = report.map(|r| r.used_size);
+    row.threads = rayon_threads();
+    if let Some(m) = accel::metrics(&dst) {
+        row.sah = Some(m.sah_cost as f64);
+        row.nodes = Some(m.node_count as u64);
+        row.leaves = Some(m.leaf_count as u64);
+    }
+    row.note = "arbor::accel::build called directly (no Vulkan)".into();
+    Ok(())
+}
+
+fn rayon_threads() -> String {
+    std::env::var("RAYON_NUM_THREADS").ok().unwrap_or_else(|| std::thread::available_parallelism().map(|n| n.get().to_string()).unwrap_or_default())
 }

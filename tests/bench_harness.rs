@@ -1,0 +1,210 @@
+//! Runs the built harness (target/release/arbor-bench, built by `cargo build --release
+//! --workspace`) on a small scene and checks the table, the JSON and the CSV: every column,
+//! one row per workload, sane values (times > 0, sizes > 0, compacted ≤ size, SAH and node counts
+//! for Arbor). Then the same against lavapipe when it is installed (skipped with a message when
+//! not), where host and indirect builds must read "not supported", not fail.
+use std::path::PathBuf;
+use std::process::Command;
+
+const WORKLOADS: [&str; 7] = ["fast-trace", "fast-build", "update", "compact", "indirect", "host", "host-deferred"];
+const TABLE_COLUMNS: [&str; 18] = [
+    "driver", "threads", "scene", "workload", "prims", "timing", "median ms", "min ms", "max ms", "wall ms", "Mprim/s", "AS size",
+    "compacted", "scratch", "B/prim", "SAH", "nodes", "leaves",
+];
+const FIELDS: [&str; 25] = [
+    "driver", "device", "threads", "scene", "workload", "primitives", "status", "reason", "timing", "repeat", "median_ms", "min_ms",
+    "max_ms", "wall_median_ms", "wall_min_ms", "wall_max_ms", "mprims_per_s", "as_size", "compacted_size", "scratch_size",
+    "bytes_per_prim", "sah_cost", "node_count", "leaf_count", "note",
+];
+
+fn bench_exe() -> PathBuf {
+    let exe = std::env::current_exe().expect("test executable path");
+    let profile_dir = exe.parent().and_then(|d| d.parent()).expect("target/<profile>");
+    // The README's test command builds the release workspace; prefer that binary.
+    let release = profile_dir.parent().map(|t| t.join("release").join("arbor-bench"));
+    let candidates = [release, Some(profile_dir.join("arbor-bench"))];
+    for c in candidates.into_iter().flatten() {
+        if c.exists() && c.parent().map(|d| d.join("libvulkan_arbor.so").exists()).unwrap_or(false) {
+            return c;
+        }
+    }
+    panic!("target/release/arbor-bench with libvulkan_arbor.so beside it is missing: run `cargo build --release --workspace` first");
+}
+
+fn out_dir(name: &str) -> PathBuf {
+    let d = std::env::temp_dir().join(format!("arbor-bench-test-{}-{name}", std::process::id()));
+    std::fs::create_dir_all(&d).unwrap();
+    d
+}
+
+/// A flat JSON object's fields (the harness writes one result object per line, no nesting).
+fn fields(obj: &str) -> Vec<(String, String)> {
+    let mut out = Vec::new();
+    let b = obj.trim().trim_start_matches('{').trim_end_matches(',').trim_end_matches('}');
+    let mut rest = b;
+    while let Some(start) = rest.find('"') {
+        let after = &rest[start + 1..];
+        let end = after.find('"').unwrap();
+        let key = after[..end].to_string();
+        let after = after[end + 1..].trim_start().strip_prefix(':').unwrap().trim_start();
+        let (value, tail) = if let Some(s) = after.strip_prefix('"') {
+            let mut i = 0;
+            let bytes = s.as_bytes();
+            while bytes[i] != b'"' {
+                i += if bytes[i] == b'\\' { 2 } else { 1 };
+            }
+            (s[..i].to_string(), &s[i + 1..])
+        } else {
+            let e = after.find(',').unwrap_or(after.len());
+            (after[..e].trim().to_string(), &after[e..])
+        };
+        out.push((key, value));
+        rest = tail.trim_start().trim_start_matches(',');
+    }
+    out
+}
+
+fn get<'a>(f: &'a [(String, String)], k: &str) -> &'a str {
+    &f.iter().find(|(key, _)| key == k).unwrap_or_else(|| panic!("field {k} missing in {f:?}")).1
+}
+
+fn num(f: &[(String, String)], k: &str) -> f64 {
+    get(f, k).parse().unwrap_or_else(|_| panic!("{k} = {:?} is not a number in {f:?}", get(f, k)))
+}
+
+struct Run {
+    stdout: String,
+    results: Vec<Vec<(String, String)>>,
+    csv: String,
+}
+
+fn run(driver: &str, extra: &[&str]) -> Run {
+    let dir = out_dir(driver);
+    let json = dir.join(format!("{driver}.json"));
+    let csv = dir.join(format!("{driver}.csv"));
+    let svg = dir.join(format!("{driver}.svg"));
+    let mut cmd = Command::new(bench_exe());
+    cmd.args(["--driver", driver, "--scene", "bunny", "--repeat", "2", "--joiners", "2"])
+        .arg("--json")
+        .arg(&json)
+        .arg("--csv")
+        .arg(&csv)
+        .arg("--svg")
+        .arg(&svg)
+        .args(extra)
+        .env("NODEVICE_SELECT", "1");
+    let out = cmd.output().expect("run arbor-bench");
+    let stdout = String::from_utf8_lossy(&out.stdout).into_owned();
+    let stderr = String::from_utf8_lossy(&out.stderr).into_owned();
+    assert!(out.status.success(), "arbor-bench --driver {driver} failed ({}):\n{stdout}\n{stderr}", out.status);
+    assert!(stderr.contains("[1/"), "no progress indicator on stderr:\n{stderr}");
+    let text = std::fs::read_to_string(&json).unwrap();
+    let results: Vec<Vec<(String, String)>> = text
+        .lines()
+        .skip_while(|l| !l.contains("\"results\""))
+        .skip(1)
+        .take_while(|l| l.trim_start().starts_with('{'))
+        .map(fields)
+        .collect();
+    for k in ["\"tool\": \"arbor-bench\"", "\"command\"", "\"drivers\"", "\"scenes\"", "\"results\""] {
+        assert!(text.contains(k), "{k} missing from the JSON:\n{text}");
+    }
+    let svg_text = std::fs::read_to_string(&svg).unwrap();
+    assert!(svg_text.starts_with("<svg") && svg_text.trim_end().ends_with("</svg>") && svg_text.contains("<rect"), "{svg_text}");
+    Run { stdout, results, csv: std::fs::read_to_string(&csv).unwrap() }
+}
+
+fn check_common(r: &Run, driver: &str) {
+    let header = r.stdout.lines().next().expect("a table");
+    for c in TABLE_COLUMNS {
+        assert!(header.contains(c), "table column {c:?} missing:\n{}", r.stdout);
+    }
+    let csv_header = r.csv.lines().next().unwrap();
+    assert_eq!(csv_header, FIELDS.join(","));
+    assert_eq!(r.csv.lines().count(), 1 + WORKLOADS.len());
+    assert_eq!(r.results.len(), WORKLOADS.len(), "one result per workload:\n{}", r.stdout);
+    for (res, w) in r.results.iter().zip(WORKLOADS) {
+        let keys: Vec<&str> = res.iter().map(|(k, _)| k.as_str()).collect();
+        assert_eq!(keys, FIELDS, "JSON fields");
+        assert_eq!(get(res, "driver"), driver);
+        assert_eq!(get(res, "workload"), w);
+        assert_eq!(get(res, "scene"), "bunny");
+        assert!(num(res, "primitives") > 1000.0);
+        let line = r.stdout.lines().find(|l| l.starts_with(driver) && l.split_whitespace().nth(3) == Some(w)).unwrap_or_else(|| {
+            panic!("no table line for {driver} {w}:\n{}", r.stdout);
+        });
+        if get(res, "status") != "ok" {
+            assert_eq!(get(res, "status"), "not supported", "{res:?}");
+            assert!(line.contains("not supported"), "{line}");
+            continue;
+        }
+        for k in ["median_ms", "min_ms", "max_ms", "wall_median_ms", "mprims_per_s"] {
+            assert!(num(res, k) > 0.0, "{k} must be > 0: {res:?}");
+        }
+        assert!(num(res, "min_ms") <= num(res, "median_ms") && num(res, "median_ms") <= num(res, "max_ms"), "{res:?}");
+        assert_eq!(num(res, "repeat"), 2.0);
+        assert!(num(res, "as_size") > 0.0, "{res:?}");
+        if w != "compact" {
+            assert!(num(res, "scratch_size") > 0.0, "{res:?}");
+        }
+        if w != "update" {
+            let c = num(res, "compacted_size");
+            assert!(c > 0.0 && c <= num(res, "as_size"), "compacted {c} vs size: {res:?}");
+        }
+        assert!(["timestamp", "fence", "host"].contains(&get(res, "timing")), "{res:?}");
+    }
+}
+
+#[test]
+fn harness_against_arbor_reports_every_column_with_sane_values() {
+    let dir = out_dir("arbor");
+    let png = dir.join("bunny.png");
+    let r = run("arbor", &["--render", png.to_str().unwrap(), "--render-size", "64x48"]);
+    check_common(&r, "arbor");
+    for res in &r.results {
+        assert_eq!(get(res, "status"), "ok", "Arbor supports every workload: {res:?}");
+        if ["fast-trace", "fast-build"].contains(&get(res, "workload")) {
+            let sah = num(res, "sah_cost");
+            assert!(sah > 1.0 && sah < 1000.0, "SAH {sah}");
+            assert!(num(res, "node_count") > 0.0 && num(res, "leaf_count") > 0.0, "{res:?}");
+        }
+    }
+    let host = r.results.iter().find(|f| get(f, "workload") == "host-deferred").unwrap();
+    assert_eq!(get(host, "timing"), "host");
+    // The PNG: signature, IHDR of the asked size, ends with IEND.
+    let p = std::fs::read(&png).unwrap();
+    assert_eq!(&p[..8], b"\x89PNG\r\n\x1a\n");
+    assert_eq!(&p[12..16], b"IHDR");
+    assert_eq!(u32::from_be_bytes(p[16..20].try_into().unwrap()), 64);
+    assert_eq!(u32::from_be_bytes(p[20..24].try_into().unwrap()), 48);
+    assert_eq!(&p[p.len() - 8..p.len() - 4], b"IEND");
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn harness_against_lavapipe_when_installed() {
+    let manifest = ["/usr/share/vulkan/icd.d/lvp_icd.json", "/usr/share/vulkan/icd.d/lvp_icd.x86_64.json"]
+        .into_iter()
+        .find(|p| std::path::Path::new(p).exists());
+    let Some(manifest) = manifest else {
+        eprintln!("SKIPPED: lavapipe is not installed (apt-get install -y -t bookworm-backports mesa-vulkan-drivers)");
+        return;
+    };
+    // Debian 12's own Mesa (22.3) has no VK_KHR_acceleration_structure: then every row must say so.
+    let r = run("lavapipe", &[]);
+    check_common(&r, "lavapipe");
+    let supported: Vec<&str> = r.results.iter().filter(|f| get(f, "status") == "ok").map(|f| get(f, "workload")).collect();
+    if supported.is_empty() {
+        eprintln!("NOTE: {manifest}: this lavapipe has no VK_KHR_acceleration_structure (Mesa 25 from bookworm-backports has)");
+        assert!(r.results.iter().all(|f| get(f, "reason").contains("VK_KHR_acceleration_structure")), "{:?}", r.results);
+        return;
+    }
+    for w in ["fast-trace", "fast-build", "update", "compact"] {
+        assert!(supported.contains(&w), "lavapipe should run {w}: {:?}", r.results);
+    }
+    for w in ["host", "host-deferred", "indirect"] {
+        let f = r.results.iter().find(|f| get(f, "workload") == w).unwrap();
+        assert_eq!(get(f, "status"), "not supported", "lavapipe has no {w} builds: {f:?}");
+    }
+    assert!(r.stdout.contains("not supported"));
+}
