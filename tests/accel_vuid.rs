@@ -2138,3 +2138,105 @@ fn deserialize_with_a_length_past_the_buffer_03742() {
         );
     });
 }
+
+// ---------------------------------------------------------------------------------------------
+// Updates whose inputs differ from the last build (checked when the update runs)
+
+/// Build the grid with ALLOW_UPDATE into a victim, then update it in place with `geom` and
+/// `range`: checks `vuid`.
+fn invalid_update(a: &Accel, m: &Mesh, geom: Geom, r: Range, vuid: &str, needles: &[&str]) {
+    let (victim, scratch) = valid_blas(a, m, ALLOW_UPDATE);
+    let geoms = [geom];
+    let inf = update_info(BLAS, ALLOW_UPDATE, &geoms, &victim, &victim, scratch.address(a));
+    expect_invalid(
+        a,
+        Expect { command: CMD, vuid: cmd_vuid(vuid), needles, writable: &[victim.r, scratch], invalidated: &[&victim] },
+        || cmd_build(a, &[inf], &[&[r]]),
+    );
+}
+
+#[test]
+fn update_with_changed_indices_03768() {
+    scenario(|a, m| {
+        let mut indices = m.index_bytes.clone();
+        // The first triangle's indices rotated: same triangle, other index values.
+        let first: Vec<u8> = indices[..12].to_vec();
+        indices[..4].copy_from_slice(&first[4..8]);
+        indices[4..8].copy_from_slice(&first[8..12]);
+        indices[8..12].copy_from_slice(&first[..4]);
+        let i = guarded_data(a, &indices);
+        let g = tri(m.v.address(a), i.address(a), m.max_vertex, 0);
+        invalid_update(a, m, g, range(m.count), "pInfos-03768", &["pInfos[0]: update does not match the last build"]);
+    });
+}
+
+#[test]
+#[ignore = "driver reports a primitiveCount that differs from the last build as pInfos-03768 (index values); the spec's VUID is primitiveCount-03769"]
+fn update_with_another_primitive_count_03769() {
+    scenario(|a, m| {
+        invalid_update(a, m, mesh_geom(a, m), range(m.count - 1), "primitiveCount-03769", &["pInfos[0]"]);
+    });
+}
+
+#[test]
+#[ignore = "driver reports geometry flags that differ from the last build as pInfos-03768 (index values); the spec's VUID is pInfos-03762"]
+fn update_with_other_geometry_flags_03762() {
+    scenario(|a, m| {
+        let g = mesh_geom(a, m).flags(vk::GeometryFlagsKHR::NO_DUPLICATE_ANY_HIT_INVOCATION);
+        invalid_update(a, m, g, range(m.count), "pInfos-03762", &["pInfos[0]"]);
+    });
+}
+
+#[test]
+#[ignore = "driver reports a maxVertex that differs from the last build as pInfos-03768 (index values); the spec's VUID is pInfos-03764"]
+fn update_with_another_max_vertex_03764() {
+    scenario(|a, m| {
+        let g = tri(m.v.address(a), m.i.address(a), m.max_vertex + 1, 0);
+        invalid_update(a, m, g, range(m.count), "pInfos-03764", &["pInfos[0]"]);
+    });
+}
+
+#[test]
+#[ignore = "driver bug: the size check (03675) is skipped for UPDATE mode; the library then rejects the update and it is reported as pInfos-03651 'build rejected: DestinationTooSmall'"]
+fn update_into_a_destination_too_small_03675() {
+    scenario(|a, m| {
+        let (src, scratch) = valid_blas(a, m, ALLOW_UPDATE);
+        let (victim, _) = prebuilt_blas(a, m, 0, 0, 2, ALLOW_UPDATE);
+        assert!(victim.r.len < src.r.len);
+        let geoms = [mesh_geom(a, m)];
+        let inf = update_info(BLAS, ALLOW_UPDATE, &geoms, &src, &victim, scratch.address(a));
+        expect_invalid(
+            a,
+            Expect {
+                command: CMD,
+                vuid: cmd_vuid("pInfos-03675"),
+                needles: &["pInfos[0]"],
+                writable: &[victim.r, scratch],
+                invalidated: &[&victim],
+            },
+            || cmd_build(a, &[inf], &[&[range(m.count)]]),
+        );
+        assert_guards(a, victim.r);
+        assert_grid_hits(&src.r.read(a), &NoDevice);
+    });
+}
+
+// ---------------------------------------------------------------------------------------------
+// Robustness: absurd counts
+
+#[test]
+fn primitive_count_of_u32_max_03675() {
+    scenario(|a, m| {
+        let (victim, scratch) = valid_blas(a, m, NO_FLAGS);
+        let geoms = [mesh_geom(a, m)];
+        let inf = info(BLAS, NO_FLAGS, &geoms).dst_acceleration_structure(victim.s).scratch_data(madr(scratch.address(a)));
+        let mark = support::diagnostics().len();
+        let snap = snapshot(a);
+        cmd_build(a, &[inf], &[&[range(u32::MAX)]]);
+        let tail = support::diagnostics()[mark..].to_string();
+        assert!(tail.contains(&format!("[VUID-{CMD}-pInfos-03675] pInfos[0]")), "{tail}");
+        assert!(!tail.contains("panic") && !tail.contains("internal error"), "{tail}");
+        verify(a, &snap, &[victim.r, scratch]);
+        assert!(header_of(a, &victim).is_none());
+    });
+}
