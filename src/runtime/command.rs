@@ -16,7 +16,10 @@
 //! loses the device in strict mode). Query results (compacted size, serialization size…) are
 //! written with [`QueryPool::write`], which makes the query available.
 //!
-//! ```
+//! (Not a doc test: `cargo test --release --workspace` cannot link doc tests here; the same
+//! pattern is compiled and run by `runtime::queue::tests`.)
+//!
+//! ```ignore
 //! use arbor::runtime::command::{Exec, ExecContext, ExecError};
 //!
 //! /// Everything the command needs, owned (deep copies, `Arc`s): nothing points into the
