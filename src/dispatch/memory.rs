@@ -315,7 +315,11 @@ fn mapped_ranges(command: &str, device: vk::Device, count: u32, p_ranges: *const
     }
     // SAFETY: valid array per the spec.
     let ranges = unsafe { util::slice(p_ranges, count) };
-    let all_valid = ranges.iter().fold(true, |ok, r| check_mapped_range(command, r) && ok);
+    // Every range is checked (and every problem reported), not just up to the first.
+    let mut all_valid = true;
+    for r in ranges {
+        all_valid &= check_mapped_range(command, r);
+    }
     if all_valid {
         vk::Result::SUCCESS
     } else {
@@ -550,7 +554,7 @@ fn bind_one(command: &str, prefix: &str, buffer: vk::Buffer, memory: vk::DeviceM
         );
     }
     let (req_size, alignment) = b.requirements();
-    if offset % alignment != 0 {
+    if !offset.is_multiple_of(alignment) {
         return invalid(
             &format!("VUID-{prefix}-memoryOffset-01036"),
             command,

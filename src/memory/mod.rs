@@ -4,7 +4,11 @@
 //! addresses are virtual: each allocation gets a range of the device's address space (aligned,
 //! non-zero, with unmapped gaps between allocations, never a host pointer); a buffer's address is
 //! its memory's base plus its bind offset. Resolving (address, length) finds the one live buffer
-//! that contains the whole range, or says what is wrong.
+//! that contains the whole range, or says what is wrong. Allocations made for capture/replay
+//! take addresses from a region of their own, so a replay can place them where they were
+//! captured ([`AddressSpace::allocate_with`]). [`AddressSpace::with_range`],
+//! [`AddressSpace::buffer_usage_at`] and [`AddressSpace::resolve_with_usage`] serve the
+//! acceleration-structure code and its VUID checks (usage of the buffer containing a range).
 //!
 //! Concurrency: device memory is shared with the application (mapped pointers) and with queue
 //! workers, exactly like GPU memory. Accesses are raw copies; the Vulkan synchronisation rules
@@ -276,7 +280,7 @@ impl Buffer {
         if self.binding.get().is_some() {
             return Err(BindError::AlreadyBound);
         }
-        if offset % BUFFER_ALIGNMENT != 0 {
+        if !offset.is_multiple_of(BUFFER_ALIGNMENT) {
             return Err(BindError::Misaligned);
         }
         memory.check(offset, self.size).map_err(BindError::Access)?;

@@ -748,7 +748,7 @@ pub fn buffer_descriptor(
     if !b.usage.contains(usage) {
         return Err(violation(usage_vuid, format!("{t:?} descriptor for a buffer without {usage:?} usage ({:?})", b.usage)));
     }
-    if offset % align.max(1) != 0 {
+    if !offset.is_multiple_of(align.max(1)) {
         return Err(violation(align_vuid, format!("offset {offset} is not a multiple of {align}")));
     }
     // For the dynamic types the effective range is only known at bind time.
