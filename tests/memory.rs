@@ -107,6 +107,16 @@ fn memory_requirements() {
             assert_eq!(dedicated.prefers_dedicated_allocation, vk::FALSE);
             ctx.device.destroy_buffer(b, None);
         }
+        // A dedicated allocation (VkMemoryDedicatedAllocateInfo) is accepted.
+        let b = ctx.device.create_buffer(&vk::BufferCreateInfo::default().size(1000).usage(STORAGE_ADDR), None).unwrap();
+        let r = ctx.device.get_buffer_memory_requirements(b);
+        let mut dedicated = vk::MemoryDedicatedAllocateInfo::default().buffer(b);
+        let mut flags = vk::MemoryAllocateFlagsInfo::default().flags(vk::MemoryAllocateFlags::DEVICE_ADDRESS);
+        let ai = vk::MemoryAllocateInfo::default().allocation_size(r.size).memory_type_index(0).push_next(&mut dedicated).push_next(&mut flags);
+        let m = ctx.device.allocate_memory(&ai, None).unwrap();
+        ctx.device.bind_buffer_memory2(&[vk::BindBufferMemoryInfo::default().buffer(b).memory(m)]).unwrap();
+        ctx.device.destroy_buffer(b, None);
+        ctx.device.free_memory(m, None);
         // The one memory type is device-local, host-visible and coherent.
         let mp = ctx.instance.get_physical_device_memory_properties(ctx.physical);
         assert_eq!(mp.memory_type_count, 1);
