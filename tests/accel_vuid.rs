@@ -1485,6 +1485,19 @@ fn strict_mode_child_invalid_build_loses_the_device() {
     // Misaligned scratch (03710): one invalid build.
     let geoms = [mesh_geom(&a, &m)];
     let inf = info(BLAS, NO_FLAGS, &geoms).dst_acceleration_structure(victim.s).scratch_data(madr(scratch.address(&a) + 64));
+    // A host build with a violation (BLAS build into a TOP_LEVEL structure) fails with
+    // DEVICE_LOST itself.
+    let host_geoms = [host_grid_geom(&a, &m)];
+    let host_inf = info(BLAS, NO_FLAGS, &host_geoms);
+    let sizes = a.sizes(vk::AccelerationStructureBuildTypeKHR::HOST, &host_inf, &[m.count]);
+    let tlas = guarded_structure(&a, TLAS, sizes.acceleration_structure_size);
+    let mut host_scratch = vec![0u8; sizes.build_scratch_size as usize];
+    let host_inf = host_inf
+        .dst_acceleration_structure(tlas.s)
+        .scratch_data(vk::DeviceOrHostAddressKHR { host_address: host_scratch.as_mut_ptr() as *mut c_void });
+    // SAFETY: host pointers into mapped memory and a live Vec, valid for the call.
+    let r = unsafe { a.ext.build_acceleration_structures(vk::DeferredOperationKHR::null(), &[host_inf], &[&[range(m.count)]]) };
+    assert_eq!(r, Err(vk::Result::ERROR_DEVICE_LOST));
     let d = &ctx.device;
     // SAFETY: valid objects; everything is destroyed with the device below.
     unsafe {
@@ -2238,5 +2251,248 @@ fn primitive_count_of_u32_max_03675() {
         assert!(!tail.contains("panic") && !tail.contains("internal error"), "{tail}");
         verify(a, &snap, &[victim.r, scratch]);
         assert!(header_of(a, &victim).is_none());
+    });
+}
+
+// ---------------------------------------------------------------------------------------------
+// Host commands: deferred builds, copies, property writes
+
+fn host_grid_geom(a: &Accel, m: &Mesh) -> Geom {
+    tri(m.v.host_ptr(a) as u64, m.i.host_ptr(a) as u64, m.max_vertex, 0)
+}
+
+#[test]
+fn deferred_host_build_into_a_structure_of_another_type_03700() {
+    scenario(|a, m| {
+        let (blas, _) = valid_blas(a, m, NO_FLAGS);
+        let geoms = [host_grid_geom(a, m)];
+        let inf = info(BLAS, NO_FLAGS, &geoms);
+        let sizes = a.sizes(vk::AccelerationStructureBuildTypeKHR::HOST, &inf, &[m.count]);
+        let (victim, _) = prebuilt_tlas(a, &blas, sizes.acceleration_structure_size, 0);
+        let mut host_scratch = vec![0u8; sizes.build_scratch_size as usize];
+        let inf = inf
+            .dst_acceleration_structure(victim.s)
+            .scratch_data(vk::DeviceOrHostAddressKHR { host_address: host_scratch.as_mut_ptr() as *mut c_void });
+        // SAFETY: plain create; destroyed below after completion.
+        let op = unsafe { a.deferred.create_deferred_operation(None) }.unwrap();
+        let mut joined = vk::Result::SUCCESS;
+        expect_invalid(
+            a,
+            Expect {
+                command: HOST,
+                vuid: format!("VUID-{HOST}-pInfos-03700"),
+                needles: &["pInfos[0]: dstAccelerationStructure was created with another type"],
+                writable: &[victim.r],
+                invalidated: &[&victim],
+            },
+            || {
+                // SAFETY: host pointers valid until the operation completes (joined here).
+                let r = unsafe { a.ext.build_acceleration_structures(op, &[inf], &[&[range(m.count)]]) };
+                assert!(matches!(r, Ok(()) | Err(vk::Result::OPERATION_DEFERRED_KHR) | Err(vk::Result::OPERATION_NOT_DEFERRED_KHR)), "{r:?}");
+                if r == Err(vk::Result::OPERATION_DEFERRED_KHR) {
+                    loop {
+                        // SAFETY: live operation.
+                        match unsafe { a.deferred.deferred_operation_join(op) } {
+                            Ok(()) => break,
+                            Err(vk::Result::THREAD_DONE_KHR) | Err(vk::Result::THREAD_IDLE_KHR) => std::thread::yield_now(),
+                            Err(e) => panic!("join: {e:?}"),
+                        }
+                    }
+                }
+                // SAFETY: live operation.
+                joined = unsafe { a.deferred.get_deferred_operation_result(op) }.err().unwrap_or(vk::Result::SUCCESS);
+            },
+        );
+        assert_eq!(joined, vk::Result::SUCCESS, "outside strict mode an invalid deferred build completes with SUCCESS");
+        // SAFETY: complete operation.
+        unsafe { a.deferred.destroy_deferred_operation(op, None) };
+    });
+}
+
+#[test]
+fn host_compact_without_allow_compaction_03411() {
+    scenario(|a, m| {
+        let (src, _) = valid_blas(a, m, NO_FLAGS);
+        let (victim, _) = valid_blas(a, m, NO_FLAGS);
+        let info = vk::CopyAccelerationStructureInfoKHR::default().src(src.s).dst(victim.s).mode(vk::CopyAccelerationStructureModeKHR::COMPACT);
+        let mut result = Ok(());
+        expect_invalid(
+            a,
+            Expect {
+                command: "vkCopyAccelerationStructureKHR",
+                vuid: "VUID-VkCopyAccelerationStructureInfoKHR-src-03411".into(),
+                needles: &["src was not built with ALLOW_COMPACTION"],
+                writable: &[victim.r],
+                invalidated: &[&victim],
+            },
+            // SAFETY: valid info, no deferred operation.
+            || result = unsafe { a.ext.copy_acceleration_structure(vk::DeferredOperationKHR::null(), &info) },
+        );
+        assert_eq!(result, Ok(()));
+    });
+}
+
+#[test]
+fn host_property_write_with_a_stride_not_a_multiple_of_8_03448() {
+    scenario(|a, m| {
+        let (s, _) = valid_blas(a, m, NO_FLAGS);
+        const HOST_WRITE: &str = "vkWriteAccelerationStructuresPropertiesKHR";
+        let mut data = [0xA5u8; 24];
+        expect_invalid(
+            a,
+            Expect { command: HOST_WRITE, vuid: format!("VUID-{HOST_WRITE}-queryType-03448"), needles: &["stride must be a multiple of 8"], writable: &[], invalidated: &[] },
+            // SAFETY: 24 bytes of output for one query; the stride is the invalid part.
+            || {
+                let _ = unsafe { a.ext.write_acceleration_structures_properties(&[s.s], vk::QueryType::ACCELERATION_STRUCTURE_SIZE_KHR, &mut data, 12) };
+            },
+        );
+        assert_eq!(data, [0xA5u8; 24]);
+    });
+}
+
+#[test]
+fn host_property_write_with_data_too_small_03452() {
+    scenario(|a, m| {
+        let (s0, _) = valid_blas(a, m, NO_FLAGS);
+        const HOST_WRITE: &str = "vkWriteAccelerationStructuresPropertiesKHR";
+        let mut data = [0xA5u8; 8];
+        expect_invalid(
+            a,
+            Expect { command: HOST_WRITE, vuid: format!("VUID-{HOST_WRITE}-dataSize-03452"), needles: &["dataSize is smaller than"], writable: &[], invalidated: &[] },
+            // SAFETY: two structures with stride 8 need 16 bytes; 8 are given (the invalid part).
+            || {
+                let _ = unsafe { a.ext.write_acceleration_structures_properties(&[s0.s, s0.s], vk::QueryType::ACCELERATION_STRUCTURE_SIZE_KHR, &mut data, 8) };
+            },
+        );
+        assert_eq!(data, [0xA5u8; 8]);
+    });
+}
+
+#[test]
+fn property_write_into_a_pool_of_another_type_02493() {
+    scenario(|a, m| {
+        let (s, _) = valid_blas(a, m, NO_FLAGS);
+        let d = &a.ctx.device;
+        // SAFETY: valid create info; destroyed below.
+        let pool = unsafe {
+            d.create_query_pool(&vk::QueryPoolCreateInfo::default().query_type(vk::QueryType::ACCELERATION_STRUCTURE_SIZE_KHR).query_count(1), None)
+        }
+        .unwrap();
+        const WRITE: &str = "vkCmdWriteAccelerationStructuresPropertiesKHR";
+        expect_invalid(
+            a,
+            Expect { command: WRITE, vuid: format!("VUID-{WRITE}-queryPool-02493"), needles: &["queryPool was created with another queryType"], writable: &[], invalidated: &[] },
+            || {
+                a.submit(|cb| {
+                    // SAFETY: recording command buffer, valid pool and structure.
+                    unsafe {
+                        d.cmd_reset_query_pool(cb, pool, 0, 1);
+                        a.ext.cmd_write_acceleration_structures_properties(cb, &[s.s], vk::QueryType::ACCELERATION_STRUCTURE_SERIALIZATION_SIZE_KHR, pool, 0);
+                    }
+                })
+            },
+        );
+        let mut out = [0u64; 1];
+        // SAFETY: valid pool.
+        let r = unsafe { d.get_query_pool_results(pool, 0, &mut out, vk::QueryResultFlags::TYPE_64) };
+        assert_eq!(r, Err(vk::Result::NOT_READY));
+        // SAFETY: idle pool.
+        unsafe { d.destroy_query_pool(pool, None) };
+    });
+}
+
+// ---------------------------------------------------------------------------------------------
+// The harness itself: each check above must be able to fail
+
+#[test]
+#[should_panic(expected = "outside destination and scratch")]
+fn harness_catches_a_write_outside_destination_and_scratch() {
+    scenario(|a, m| {
+        let snap = snapshot(a);
+        // One guard byte before the vertex data.
+        a.buf(m.v.buf).write((m.v.offset - 1) as usize, &[0]);
+        verify(a, &snap, &[]);
+    });
+}
+
+#[test]
+#[should_panic(expected = "expected a line starting with")]
+fn harness_catches_a_missing_diagnostic() {
+    scenario(|a, m| {
+        let (victim, scratch) = valid_blas(a, m, NO_FLAGS);
+        expect_invalid(
+            a,
+            Expect { command: CMD, vuid: cmd_vuid("pInfos-03675"), needles: &[], writable: &[victim.r, scratch], invalidated: &[] },
+            || build_grid_into(a, m, &victim, scratch.address(a), m.count, NO_FLAGS),
+        );
+    });
+}
+
+#[test]
+#[should_panic(expected = "still reads as a valid structure")]
+fn harness_catches_a_destination_left_valid() {
+    scenario(|a, m| {
+        let (victim, scratch) = valid_blas(a, m, NO_FLAGS);
+        let (bystander, _) = valid_blas(a, m, NO_FLAGS);
+        let geoms = [mesh_geom(a, m)];
+        let inf = info(BLAS, NO_FLAGS, &geoms).dst_acceleration_structure(victim.s).scratch_data(madr(scratch.address(a) + 64));
+        expect_invalid(
+            a,
+            Expect { command: CMD, vuid: cmd_vuid("pInfos-03710"), needles: &[], writable: &[victim.r, scratch], invalidated: &[&bystander] },
+            || cmd_build(a, &[inf], &[&[range(m.count)]]),
+        );
+    });
+}
+
+#[test]
+#[should_panic(expected = "unexpected diagnostic besides")]
+fn harness_catches_a_second_violation() {
+    scenario(|a, m| {
+        let (victim, scratch) = valid_blas(a, m, NO_FLAGS);
+        let geoms = [tri(m.v.address(a) + 2, m.i.address(a), m.max_vertex, 0)];
+        let inf = info(BLAS, NO_FLAGS, &geoms).dst_acceleration_structure(victim.s).scratch_data(madr(scratch.address(a) + 64));
+        expect_invalid(
+            a,
+            Expect { command: CMD, vuid: cmd_vuid("pInfos-03710"), needles: &[], writable: &[victim.r, scratch], invalidated: &[&victim] },
+            || cmd_build(a, &[inf], &[&[range(m.count)]]),
+        );
+    });
+}
+
+// ---------------------------------------------------------------------------------------------
+// Malformed build infos
+
+#[test]
+#[ignore = "driver reports geometryCount > 0 with both pGeometries and ppGeometries NULL as ppBuildRangeInfos-03676 ('the range array does not have geometryCount elements'); the spec's VUID is VkAccelerationStructureBuildGeometryInfoKHR-pGeometries-03788"]
+fn geometry_arrays_both_null_03788() {
+    scenario(|a, m| {
+        let (victim, scratch) = valid_blas(a, m, NO_FLAGS);
+        let mut inf = info(BLAS, NO_FLAGS, &[]).dst_acceleration_structure(victim.s).scratch_data(madr(scratch.address(a)));
+        // Both NULL (an empty slice's pointer is dangling, not NULL).
+        inf.p_geometries = std::ptr::null();
+        inf.pp_geometries = std::ptr::null();
+        inf.geometry_count = 1;
+        expect_invalid(
+            a,
+            Expect { command: CMD, vuid: "-pGeometries-03788".into(), needles: &["pInfos[0]"], writable: &[victim.r, scratch], invalidated: &[&victim] },
+            || cmd_build(a, &[inf], &[&[range(m.count)]]),
+        );
+    });
+}
+
+#[test]
+fn geometry_arrays_both_null_is_reported_and_skipped() {
+    scenario(|a, m| {
+        let (victim, scratch) = valid_blas(a, m, NO_FLAGS);
+        let mut inf = info(BLAS, NO_FLAGS, &[]).dst_acceleration_structure(victim.s).scratch_data(madr(scratch.address(a)));
+        // Both NULL (an empty slice's pointer is dangling, not NULL).
+        inf.p_geometries = std::ptr::null();
+        inf.pp_geometries = std::ptr::null();
+        inf.geometry_count = 1;
+        expect_invalid(
+            a,
+            Expect { command: CMD, vuid: "-03676".into(), needles: &["pInfos[0]"], writable: &[victim.r, scratch], invalidated: &[&victim] },
+            || cmd_build(a, &[inf], &[&[range(m.count)]]),
+        );
     });
 }
