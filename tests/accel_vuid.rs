@@ -1183,7 +1183,8 @@ fn update_with_another_type_03760() {
         let inst = guarded_data(a, &instance(a.address_of(src.s)));
         let geoms = [instances_geom(inst.address(a), false)];
         let sizes = a.sizes(DEVICE, &info(TLAS, ALLOW_UPDATE, &geoms), &[1]);
-        let (victim, scratch) = prebuilt_tlas(a, &src, sizes.acceleration_structure_size, sizes.update_scratch_size);
+        // Large enough for the TLAS and for the source's size (an update writes that much).
+        let (victim, scratch) = prebuilt_tlas(a, &src, sizes.acceleration_structure_size.max(src.r.len), sizes.update_scratch_size);
         let inf = update_info(TLAS, ALLOW_UPDATE, &geoms, &src, &victim, scratch.address(a));
         expect_invalid(
             a,
