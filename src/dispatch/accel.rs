@@ -229,6 +229,7 @@ unsafe fn lower_info(info: &vk::AccelerationStructureBuildGeometryInfoKHR, range
         dst_handle: info.dst_acceleration_structure.as_raw(),
         // SAFETY: valid info; the union is read as an address (device) or pointer value (host).
         scratch: unsafe { info.scratch_data.device_address },
+        geometry_count: info.geometry_count,
         // SAFETY: valid info.
         geometries: unsafe { lower_geometries(info) },
         ranges,
@@ -523,17 +524,10 @@ unsafe extern "system" fn build_acceleration_structures_khr(
 // ---------------------------------------------------------------------------------------------
 // Copies
 
-/// A copy between structures or to/from memory; `dst_address`/`src_address` are device
-/// addresses for commands and host pointers for host commands.
-enum CopyOp {
-    Structure { src: Option<Arc<AccelerationStructure>>, dst: Option<Arc<AccelerationStructure>>, mode: vk::CopyAccelerationStructureModeKHR },
-    ToMemory { src: Option<Arc<AccelerationStructure>>, dst_address: u64, mode: vk::CopyAccelerationStructureModeKHR },
-    FromMemory { src_address: u64, dst: Option<Arc<AccelerationStructure>>, mode: vk::CopyAccelerationStructureModeKHR },
-}
-
+/// A recorded copy (structure ↔ structure, to memory, from memory by device address).
 struct CopyCommand {
     name: &'static str,
-    op: CopyOp,
+    op: rt::Copy,
 }
 
 impl Exec for CopyCommand {
@@ -542,20 +536,10 @@ impl Exec for CopyCommand {
     }
     fn execute(&self, ctx: &ExecContext<'_>) -> Result<(), ExecError> {
         let inputs = DeviceInputs::new(ctx.memory(), self.name);
-        rt::execute_copy(&inputs, &self.op.lower()).map_err(|_| ExecError::Invalid {
+        rt::execute_copy(&inputs, &self.op).map_err(|_| ExecError::Invalid {
             vuid: "strict",
             message: "an acceleration-structure copy broke a valid-usage rule (ARBOR_STRICT)".into(),
         })
-    }
-}
-
-impl CopyOp {
-    fn lower(&self) -> rt::Copy {
-        match self {
-            CopyOp::Structure { src, dst, mode } => rt::Copy::Structure { src: src.clone(), dst: dst.clone(), mode: *mode },
-            CopyOp::ToMemory { src, dst_address, mode } => rt::Copy::ToMemory { src: src.clone(), dst: *dst_address, mode: *mode },
-            CopyOp::FromMemory { src_address, dst, mode } => rt::Copy::FromMemory { src: *src_address, dst: dst.clone(), mode: *mode },
-        }
     }
 }
 
@@ -568,7 +552,7 @@ unsafe extern "system" fn cmd_copy_acceleration_structure_khr(command_buffer: vk
         }
         // SAFETY: valid info (spec).
         let i = unsafe { &*p_info };
-        let op = CopyOp::Structure { src: structure_from(i.src), dst: structure_from(i.dst), mode: i.mode };
+        let op = rt::Copy::Structure { src: structure_from(i.src), dst: structure_from(i.dst), mode: i.mode };
         cb.record_custom(Box::new(CopyCommand { name: CMD, op }));
     })
 }
@@ -585,7 +569,7 @@ unsafe extern "system" fn cmd_copy_acceleration_structure_to_memory_khr(
         }
         // SAFETY: valid info (spec); the union is read as a device address.
         let (src, dst_address, mode) = unsafe { ((*p_info).src, (*p_info).dst.device_address, (*p_info).mode) };
-        let op = CopyOp::ToMemory { src: structure_from(src), dst_address, mode };
+        let op = rt::Copy::ToMemory { src: structure_from(src), dst: dst_address, mode };
         cb.record_custom(Box::new(CopyCommand { name: CMD, op }));
     })
 }
@@ -602,12 +586,12 @@ unsafe extern "system" fn cmd_copy_memory_to_acceleration_structure_khr(
         }
         // SAFETY: valid info (spec); the union is read as a device address.
         let (src_address, dst, mode) = unsafe { ((*p_info).src.device_address, (*p_info).dst, (*p_info).mode) };
-        let op = CopyOp::FromMemory { src_address, dst: structure_from(dst), mode };
+        let op = rt::Copy::FromMemory { src: src_address, dst: structure_from(dst), mode };
         cb.record_custom(Box::new(CopyCommand { name: CMD, op }));
     })
 }
 
-fn host_copy(device: vk::Device, deferred: vk::DeferredOperationKHR, name: &'static str, op: CopyOp) -> vk::Result {
+fn host_copy(device: vk::Device, deferred: vk::DeferredOperationKHR, name: &'static str, op: rt::Copy) -> vk::Result {
     let Some(dev) = device_from(device) else { return vk::Result::ERROR_INITIALIZATION_FAILED };
     let d = dev.clone();
     run_host(
@@ -617,7 +601,7 @@ fn host_copy(device: vk::Device, deferred: vk::DeferredOperationKHR, name: &'sta
         Box::new(move || {
             // SAFETY: host addresses of a host copy are valid until it completes (spec).
             let inputs = unsafe { HostInputs::new(&d.memory, name) };
-            match rt::execute_copy(&inputs, &op.lower()) {
+            match rt::execute_copy(&inputs, &op) {
                 Ok(()) => vk::Result::SUCCESS,
                 Err(_) => vk::Result::ERROR_DEVICE_LOST,
             }
@@ -637,7 +621,7 @@ unsafe extern "system" fn copy_acceleration_structure_khr(
         }
         // SAFETY: valid info (spec).
         let i = unsafe { &*p_info };
-        host_copy(device, deferred, CMD, CopyOp::Structure { src: structure_from(i.src), dst: structure_from(i.dst), mode: i.mode })
+        host_copy(device, deferred, CMD, rt::Copy::Structure { src: structure_from(i.src), dst: structure_from(i.dst), mode: i.mode })
     })
 }
 
@@ -653,7 +637,7 @@ unsafe extern "system" fn copy_acceleration_structure_to_memory_khr(
         }
         // SAFETY: valid info (spec); the union is read as a host pointer value.
         let (src, dst, mode) = unsafe { ((*p_info).src, (*p_info).dst.host_address as u64, (*p_info).mode) };
-        host_copy(device, deferred, CMD, CopyOp::ToMemory { src: structure_from(src), dst_address: dst, mode })
+        host_copy(device, deferred, CMD, rt::Copy::ToMemory { src: structure_from(src), dst, mode })
     })
 }
 
@@ -669,7 +653,7 @@ unsafe extern "system" fn copy_memory_to_acceleration_structure_khr(
         }
         // SAFETY: valid info (spec); the union is read as a host pointer value.
         let (src, dst, mode) = unsafe { ((*p_info).src.host_address as u64, (*p_info).dst, (*p_info).mode) };
-        host_copy(device, deferred, CMD, CopyOp::FromMemory { src_address: src, dst: structure_from(dst), mode })
+        host_copy(device, deferred, CMD, rt::Copy::FromMemory { src, dst: structure_from(dst), mode })
     })
 }
 

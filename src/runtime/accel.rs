@@ -122,6 +122,8 @@ pub struct BuildInfo {
     pub dst: Option<Arc<AccelerationStructure>>,
     pub dst_handle: u64,
     pub scratch: u64,
+    /// geometryCount as given (the arrays may have been missing).
+    pub geometry_count: u32,
     pub geometries: Vec<GeometryInfo>,
     pub ranges: Ranges,
 }
@@ -218,8 +220,10 @@ impl InputMemory for DeviceInputs<'_> {
 pub struct DeviceLost;
 
 /// A violation found while executing: reported once with its VUID and the offending index.
+/// `vuid` is either the part after `VUID-<command>-` or a full `VUID-...` of a structure rule.
 fn violation(command: &str, vuid: &str, index: usize, message: &str) {
-    diag::vuid(&format!("VUID-{command}-{vuid}"), command, &format!("pInfos[{index}]: {message}"));
+    let full = if vuid.starts_with("VUID-") { vuid.to_string() } else { format!("VUID-{command}-{vuid}") };
+    diag::vuid(&full, command, &format!("pInfos[{index}]: {message}"));
 }
 
 fn to_as_type(t: vk::AccelerationStructureTypeKHR) -> Option<AsType> {
@@ -429,15 +433,45 @@ fn prepare<'m>(mem: &dyn InputMemory, i: usize, info: &'m BuildInfo) -> Result<P
             }
         }
     }
+    if info.geometries.len() != info.geometry_count as usize {
+        fail(
+            "VUID-VkAccelerationStructureBuildGeometryInfoKHR-pGeometries-03788",
+            "geometryCount is not 0 but both pGeometries and ppGeometries are NULL",
+        );
+        return Err(());
+    }
+    // Formats and types the size query needs, named by geometry.
+    let mut shapes_ok = true;
+    for (j, g) in info.geometries.iter().enumerate() {
+        if shape_of(g).is_none() {
+            let (v, what) = match &g.desc {
+                GeometryDesc::Triangles { vertex_format, index_type, .. } if VertexFormat::from_vk(vertex_format.as_raw()).is_none() => (
+                    "VUID-VkAccelerationStructureGeometryTrianglesDataKHR-vertexFormat-03797",
+                    format!("vertex format {vertex_format:?} lacks ACCELERATION_STRUCTURE_VERTEX_BUFFER support (index type {index_type:?})"),
+                ),
+                GeometryDesc::Triangles { index_type, .. } => (
+                    "VUID-VkAccelerationStructureGeometryTrianglesDataKHR-indexType-03798",
+                    format!("index type {index_type:?} is not UINT16, UINT32 or NONE"),
+                ),
+                GeometryDesc::Unsupported(t) => ("VUID-VkAccelerationStructureGeometryKHR-geometryType-parameter", format!("geometry type {t:?} is not supported")),
+                _ => ("VUID-VkAccelerationStructureGeometryKHR-geometryType-parameter", "unsupported geometry".to_string()),
+            };
+            fail(v, &format!("geometry {j}: {what}"));
+            shapes_ok = false;
+        }
+    }
+    if !shapes_ok {
+        return Err(());
+    }
     // Geometry types.
     if ty == AsType::TopLevel {
         if info.geometries.len() != 1 || !matches!(info.geometries[0].desc, GeometryDesc::Instances { .. }) {
-            fail("type-03789", "a top-level build must have exactly one geometry of type INSTANCES");
+            fail("VUID-VkAccelerationStructureBuildGeometryInfoKHR-type-03789", "a top-level build must have exactly one geometry of type INSTANCES");
         }
     } else if info.geometries.iter().any(|g| matches!(g.desc, GeometryDesc::Instances { .. })) {
-        fail("type-03790", "a bottom-level build must not have INSTANCES geometry");
+        fail("VUID-VkAccelerationStructureBuildGeometryInfoKHR-type-03790", "a bottom-level build must not have INSTANCES geometry");
     } else if info.geometries.windows(2).any(|w| std::mem::discriminant(&w[0].desc) != std::mem::discriminant(&w[1].desc)) {
-        fail("type-03791", "all geometries of a bottom-level build must have the same type");
+        fail("VUID-VkAccelerationStructureBuildGeometryInfoKHR-type-03791", "all geometries of a bottom-level build must have the same type");
     }
     // Range records.
     let ranges: Vec<RangeInfo> = match &info.ranges {
@@ -496,12 +530,23 @@ fn prepare<'m>(mem: &dyn InputMemory, i: usize, info: &'m BuildInfo) -> Result<P
     let sizes = match build_sizes(info.ty, info.flags, &info.geometries, &counts) {
         Some(s) => s,
         None => {
-            fail("pInfos-03709", "a geometry has an unsupported type, vertex format or index type");
+            fail(
+                "VUID-VkAccelerationStructureGeometryTrianglesDataKHR-vertexFormat-03797",
+                "a geometry has an unsupported type, vertex format or index type",
+            );
             return Err(());
         }
     };
     let size_vuid = if matches!(info.ranges, Ranges::Indirect { .. }) { "pInfos-03652" } else { "pInfos-03675" };
-    if !update && dst.size < sizes.acceleration_structure_size {
+    if update {
+        // An update writes a structure of the source's size into dst.
+        let src_used = info.src.as_ref().and_then(|s| s.bytes().ok().and_then(accel::header)).map(|h| h.used_size);
+        if let Some(used) = src_used {
+            if dst.size < used {
+                fail(size_vuid, &format!("dstAccelerationStructure size {} is below the {used} bytes of the source", dst.size));
+            }
+        }
+    } else if dst.size < sizes.acceleration_structure_size {
         fail(size_vuid, &format!("dstAccelerationStructure size {} is below the {} the size query requires", dst.size, sizes.acceleration_structure_size));
     }
     let scratch_len = if update { sizes.update_scratch_size } else { sizes.build_scratch_size };
@@ -514,7 +559,8 @@ fn prepare<'m>(mem: &dyn InputMemory, i: usize, info: &'m BuildInfo) -> Result<P
         match mem.input(info.scratch, scratch_len, vk::BufferUsageFlags::STORAGE_BUFFER) {
             Ok(_) => mem.memory_range(info.scratch, scratch_len),
             Err(InputError::Usage(found)) => {
-                fail("pInfos-03674", &format!("the scratch buffer lacks STORAGE_BUFFER usage (has {found:?})"));
+                let v = if update { "pInfos-12260" } else { "pInfos-12261" };
+                fail(v, &format!("the scratch buffer lacks STORAGE_BUFFER usage (has {found:?})"));
                 None
             }
             Err(InputError::Access(e)) => {
@@ -590,13 +636,15 @@ fn check_geometry(
         })
     };
     match &g.desc {
-        GeometryDesc::Unsupported(t) => Err(("pInfos-parameter", format!("geometry type {t:?} is not supported"))),
+        GeometryDesc::Unsupported(t) => {
+            Err(("VUID-VkAccelerationStructureGeometryKHR-geometryType-parameter", format!("geometry type {t:?} is not supported")))
+        }
         GeometryDesc::Triangles { vertex_format, vertex_data, vertex_stride, max_vertex, index_type, index_data, transform_data } => {
             let Some(fmt) = VertexFormat::from_vk(vertex_format.as_raw()) else {
-                return Err(("vertexFormat-03797", format!("vertex format {vertex_format:?} lacks ACCELERATION_STRUCTURE_VERTEX_BUFFER support")));
+                return Err(("VUID-VkAccelerationStructureGeometryTrianglesDataKHR-vertexFormat-03797", format!("vertex format {vertex_format:?} lacks ACCELERATION_STRUCTURE_VERTEX_BUFFER support")));
             };
             let Some(it) = IndexType::from_vk(index_type.as_raw()) else {
-                return Err(("indexType-03798", format!("index type {index_type:?} is not UINT16, UINT32 or NONE")));
+                return Err(("VUID-VkAccelerationStructureGeometryTrianglesDataKHR-indexType-03798", format!("index type {index_type:?} is not UINT16, UINT32 or NONE")));
             };
             if count == 0 {
                 return Ok(());
@@ -605,24 +653,33 @@ fn check_geometry(
                 return Err(("pInfos-03711", format!("vertexData {vertex_data:#x} is not aligned to {}", fmt.component_size())));
             }
             if *vertex_stride % fmt.component_size() as u64 != 0 || *vertex_stride > u32::MAX as u64 {
-                return Err(("vertexStride-03735", format!("vertexStride {vertex_stride} is not a multiple of the component size")));
+                return Err(("VUID-VkAccelerationStructureGeometryTrianglesDataKHR-vertexStride-03735", format!("vertexStride {vertex_stride} is not a multiple of the component size")));
             }
             if it != IndexType::None {
                 if !mem.is_host() && index_data % it.size() as u64 != 0 {
                     return Err(("pInfos-03712", format!("indexData {index_data:#x} is not aligned to {}", it.size())));
                 }
                 if r.primitive_offset as u64 % it.size() as u64 != 0 {
-                    return Err(("pInfos-03651", format!("primitiveOffset {} is not a multiple of the index size", r.primitive_offset)));
+                    return Err((
+                        "VUID-VkAccelerationStructureBuildRangeInfoKHR-primitiveOffset-03656",
+                        format!("primitiveOffset {} is not a multiple of the index size", r.primitive_offset),
+                    ));
                 }
             } else if r.primitive_offset as u64 % fmt.component_size() as u64 != 0 {
-                return Err(("pInfos-03651", format!("primitiveOffset {} is not aligned to the vertex component size", r.primitive_offset)));
+                return Err((
+                    "VUID-VkAccelerationStructureBuildRangeInfoKHR-primitiveOffset-03657",
+                    format!("primitiveOffset {} is not aligned to the vertex component size", r.primitive_offset),
+                ));
             }
             if *transform_data != 0 {
                 if !mem.is_host() && transform_data % 16 != 0 {
                     return Err(("pInfos-03810", format!("transformData {transform_data:#x} is not aligned to 16")));
                 }
                 if r.transform_offset % 16 != 0 {
-                    return Err(("pInfos-03651", format!("transformOffset {} is not a multiple of 16", r.transform_offset)));
+                    return Err((
+                        "VUID-VkAccelerationStructureBuildRangeInfoKHR-transformOffset-03658",
+                        format!("transformOffset {} is not a multiple of 16", r.transform_offset),
+                    ));
                 }
                 input(transform_data + r.transform_offset as u64, 48, "pInfos-03808")?;
             }
@@ -643,10 +700,13 @@ fn check_geometry(
                 return Err(("pInfos-03714", format!("aabbs.data {data:#x} is not aligned to 8")));
             }
             if stride % 8 != 0 || *stride > u32::MAX as u64 {
-                return Err(("stride-03545", format!("aabbs.stride {stride} is not a multiple of 8")));
+                return Err(("VUID-VkAccelerationStructureGeometryAabbsDataKHR-stride-03545", format!("aabbs.stride {stride} is not a multiple of 8")));
             }
             if r.primitive_offset % 8 != 0 {
-                return Err(("pInfos-03651", format!("primitiveOffset {} is not a multiple of 8", r.primitive_offset)));
+                return Err((
+                    "VUID-VkAccelerationStructureBuildRangeInfoKHR-primitiveOffset-03659",
+                    format!("primitiveOffset {} is not a multiple of 8", r.primitive_offset),
+                ));
             }
             input(data + r.primitive_offset as u64, (count - 1) * stride + 24, "pInfos-03811")?;
             Ok(())
@@ -661,7 +721,10 @@ fn check_geometry(
                 return Err((v, format!("instances.data {data:#x} is not aligned to {align}")));
             }
             if r.primitive_offset % 16 != 0 {
-                return Err(("pInfos-03651", format!("primitiveOffset {} is not a multiple of 16", r.primitive_offset)));
+                return Err((
+                    "VUID-VkAccelerationStructureBuildRangeInfoKHR-primitiveOffset-03660",
+                    format!("primitiveOffset {} is not a multiple of 16", r.primitive_offset),
+                ));
             }
             let start = data + r.primitive_offset as u64;
             let bytes = input(start, count * if *array_of_pointers { 8 } else { 64 }, "pInfos-03813")?;
@@ -700,6 +763,26 @@ fn check_geometry(
             referenced.dedup();
             Ok(())
         }
+    }
+}
+
+/// The VUID of an update that does not match the source's last build, by what differs.
+fn update_vuid(what: &str) -> &'static str {
+    match what {
+        w if w.contains("ALLOW_UPDATE") => "pInfos-03667",
+        w if w.contains("type differs") && w.contains("geometry") => "pInfos-03761",
+        w if w.contains("structure type") => "pInfos-03760",
+        w if w.contains("build flags") => "pInfos-03759",
+        w if w.contains("geometry count") => "pInfos-03758",
+        w if w.contains("geometry flags") => "pInfos-03762",
+        w if w.contains("primitive count") => "primitiveCount-03769",
+        // The library compares the three together; maxVertex is the one applications change.
+        w if w.contains("maxVertex") => "pInfos-03764",
+        w if w.contains("transform") => "pInfos-03766",
+        w if w.contains("index values") => "pInfos-03768",
+        w if w.contains("became inactive") => "pInfos-03664",
+        w if w.contains("active/inactive") => "pInfos-03663",
+        _ => "pInfos-03768",
     }
 }
 
@@ -810,7 +893,7 @@ fn run(mem: &dyn InputMemory, p: &Prepared) -> bool {
                     "pInfos-03651",
                     format!("geometry {geometry} primitive {primitive}: index {index} exceeds maxVertex"),
                 ),
-                accel::BuildError::UpdateMismatch(what) => ("pInfos-03768", format!("update does not match the last build: {what}")),
+                accel::BuildError::UpdateMismatch(what) => (update_vuid(what), format!("update does not match the last build: {what}")),
                 accel::BuildError::InvalidAddress { geometry, primitive } => {
                     ("pInfos-03813", format!("geometry {geometry} instance {primitive}: pointer does not address a valid instance"))
                 }
@@ -852,7 +935,8 @@ fn built(command: &str, s: &Option<Arc<AccelerationStructure>>, what: &str) -> O
     match s.bytes().ok().and_then(accel::header) {
         Some(h) => Some((s.clone(), h)),
         None => {
-            copy_violation(command, &format!("{what}-04963"), &format!("{what} has not been built (or its last build was invalid)"));
+            let v = if command.contains("ToMemory") { "04959" } else { "04963" };
+            copy_violation(command, &format!("{what}-{v}"), &format!("{what} has not been built (or its last build was invalid)"));
             None
         }
     }
@@ -891,6 +975,7 @@ fn copy_structure(
     };
     if mode != vk::CopyAccelerationStructureModeKHR::CLONE && mode != vk::CopyAccelerationStructureModeKHR::COMPACT {
         copy_violation(cmd, "mode-03410", "mode must be CLONE or COMPACT");
+        mark_invalid(&dst);
         return false;
     }
     if mode == vk::CopyAccelerationStructureModeKHR::COMPACT && !h.flags.contains(BuildFlags::ALLOW_COMPACTION) {
