@@ -96,25 +96,33 @@ pub fn validate(structure: &[u8]) -> Result<(), String> {
     let n = r.primitive_count as usize;
     let mut seen = vec![false; n];
     let mut node_seen = vec![false; r.node_count as usize];
-    let mut stack: Vec<(u32, Option<Aabb>)> = Vec::new();
+    // Each entry carries the intersection of the decoded boxes on its path: every primitive
+    // must lie inside it (decoded boxes of a child need not lie inside the decoded parent box,
+    // since each level rounds outward in its own frame; what traversal needs is containment of
+    // the primitives in every box on the path).
+    let everything = Aabb { lo: [f32::NEG_INFINITY; 3], hi: [f32::INFINITY; 3] };
+    let mut stack: Vec<(u32, Aabb)> = Vec::new();
     if r.node_count > 0 {
-        stack.push((0, Some(to_aabb(r.bounds))));
+        stack.push((0, everything));
     } else if n > 0 {
         return Err("primitives but no nodes".into());
     }
-    while let Some((i, parent_box)) = stack.pop() {
+    let root = to_aabb(r.bounds);
+    let clip = |a: &Aabb, b: &Aabb| {
+        let mut c = *a;
+        for k in 0..3 {
+            c.lo[k] = c.lo[k].max(b.lo[k]);
+            c.hi[k] = c.hi[k].min(b.hi[k]);
+        }
+        c
+    };
+    while let Some((i, path)) = stack.pop() {
         let node = p.node(i).ok_or(format!("node {i} out of range"))?;
         let slot = node_seen.get_mut(i as usize).ok_or("node index")?;
         if *slot {
             return Err(format!("node {i} reached twice"));
         }
         *slot = true;
-        let ub = node_union(&node);
-        if let Some(pb) = parent_box {
-            if !contains(&pb, &ub) {
-                return Err(format!("node {i}: children box {ub:?} not inside parent box {pb:?}"));
-            }
-        }
         if node.child_count == 0 || node.child_count > 4 {
             return Err(format!("node {i}: child count {}", node.child_count));
         }
@@ -126,7 +134,7 @@ pub fn validate(structure: &[u8]) -> Result<(), String> {
                     if node.child[c] <= i {
                         return Err(format!("node {i}: child {} not after parent", node.child[c]));
                     }
-                    stack.push((node.child[c], Some(cb)));
+                    stack.push((node.child[c], clip(&path, &cb)));
                 }
                 k => {
                     for s in node.child[c]..node.child[c].saturating_add(k as u32) {
@@ -136,8 +144,12 @@ pub fn validate(structure: &[u8]) -> Result<(), String> {
                         }
                         *e = true;
                         if let Some(pb) = prim_box(&p, s, false) {
-                            if !contains(&cb, &pb) {
-                                return Err(format!("node {i}: primitive {s} box {pb:?} outside leaf box {cb:?}"));
+                            let lb = clip(&path, &cb);
+                            if !contains(&lb, &pb) {
+                                return Err(format!("node {i}: primitive {s} box {pb:?} outside its leaf/ancestor boxes {lb:?}"));
+                            }
+                            if !contains(&root, &pb) {
+                                return Err(format!("primitive {s} outside the header bounds"));
                             }
                         }
                         let rec = p.record(s).ok_or("record")?;

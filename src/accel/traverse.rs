@@ -121,20 +121,22 @@ pub fn intersect_triangle(ray: &Ray, v0: Vec3, v1: Vec3, v2: Vec3) -> Option<(f3
     if (u < 0.0 || v < 0.0 || w < 0.0) && (u > 0.0 || v > 0.0 || w > 0.0) {
         return None;
     }
-    let det = u + v + w;
+    // The final combination runs in f64: T / det is then correctly rounded for the common
+    // cases (an axis ray hitting the plane z = 5 gives t = 5, not 4.9999995). The sign tests
+    // above stay in f32/f64-fallback exactly as the watertight algorithm prescribes.
+    let (ud, vd, wd) = (u as f64, v as f64, w as f64);
+    let det = ud + vd + wd;
     if det == 0.0 || !det.is_finite() {
         return None;
     }
-    let az = sz * a[kz];
-    let bz = sz * b[kz];
-    let cz = sz * c[kz];
-    let tt = u * az + v * bz + w * cz;
-    let rcp = 1.0 / det;
-    let t = tt * rcp;
+    let az = (sz * a[kz]) as f64;
+    let bz = (sz * b[kz]) as f64;
+    let cz = (sz * c[kz]) as f64;
+    let t = ((ud * az + vd * bz + wd * cz) / det) as f32;
     if !(t >= ray.tmin && t <= ray.tmax) {
         return None;
     }
-    Some((t, v * rcp, w * rcp, det > 0.0))
+    Some((t, (vd / det) as f32, (wd / det) as f32, det > 0.0))
 }
 
 /// Slab test against a box; returns the entry distance clamped to tmin. The far distance is
@@ -262,7 +264,10 @@ impl<'a> RayQuery<'a> {
                         let Some(t) = ray_box(l.org, l.inv, &b, self.ray.tmin, self.tmax) else { continue };
                         let it = match n.kind[c] {
                             0 => continue,
-                            CHILD_INTERNAL => Item::Node { node: n.child[c], inner, tnear: t },
+                            // Children always follow their parent in the layout; refusing anything
+                            // else makes a corrupted blob unable to loop.
+                            CHILD_INTERNAL if n.child[c] > node => Item::Node { node: n.child[c], inner, tnear: t },
+                            CHILD_INTERNAL => continue,
                             k => Item::Prims { first: n.child[c], count: k as u32, inner },
                         };
                         hits[nh] = (t, it);
