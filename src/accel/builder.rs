@@ -6,7 +6,7 @@ use super::input::{self, read_aabb, read_instance, read_triangle, transform_poin
 use super::layout::{self, GeometryRecord, InstanceRecord, PrimRecord, RawHeader, WideNode, CHILD_INTERNAL, NODE_SIZE, PRIM_SIZE, RECORD_SIZE};
 use super::{AsType, BuildDesc, BuildError, BuildFlags, BuildReport, DeviceView, Geometry, GeometryData};
 use bytemuck::{Pod, Zeroable};
-use glam::Vec3;
+use glam::{UVec3, Vec3, Vec3A};
 use rayon::prelude::*;
 
 /// One primitive reference: its (sanitised, finite) bounds and where it came from.
@@ -182,60 +182,75 @@ pub fn carve<T: Pod>(bytes: &mut [u8], count: usize) -> Option<(&mut [T], &mut [
     Some((arr, rest))
 }
 
+/// Per-bin bounds for the three axes (SoA per axis). Only the first `k` entries of each axis
+/// are reset and used, so small nodes pay for few bins; one buffer is reused down a
+/// sequential recursion (a new one only at each parallel fork): O(threads) memory.
 #[derive(Clone, Copy)]
-struct Bins {
-    lo: [[[f32; 3]; MAX_BINS]; 3],
-    hi: [[[f32; 3]; MAX_BINS]; 3],
+pub struct Bins {
+    lo: [[Vec3A; MAX_BINS]; 3],
+    hi: [[Vec3A; MAX_BINS]; 3],
     count: [[u32; MAX_BINS]; 3],
 }
 impl Bins {
-    fn new() -> Self {
-        Bins { lo: [[[f32::INFINITY; 3]; MAX_BINS]; 3], hi: [[[f32::NEG_INFINITY; 3]; MAX_BINS]; 3], count: [[0; MAX_BINS]; 3] }
+    pub fn new() -> Self {
+        Bins { lo: [[Vec3A::INFINITY; MAX_BINS]; 3], hi: [[Vec3A::NEG_INFINITY; MAX_BINS]; 3], count: [[0; MAX_BINS]; 3] }
     }
-    fn merge(mut self, o: &Bins, k: usize) -> Bins {
+    fn reset(&mut self, k: usize) {
+        for a in 0..3 {
+            self.lo[a][..k].fill(Vec3A::INFINITY);
+            self.hi[a][..k].fill(Vec3A::NEG_INFINITY);
+            self.count[a][..k].fill(0);
+        }
+    }
+    fn merge(&mut self, o: &Bins, k: usize) {
         for a in 0..3 {
             for b in 0..k {
-                for c in 0..3 {
-                    self.lo[a][b][c] = self.lo[a][b][c].min(o.lo[a][b][c]);
-                    self.hi[a][b][c] = self.hi[a][b][c].max(o.hi[a][b][c]);
-                }
+                self.lo[a][b] = self.lo[a][b].min(o.lo[a][b]);
+                self.hi[a][b] = self.hi[a][b].max(o.hi[a][b]);
                 self.count[a][b] += o.count[a][b];
             }
         }
-        self
     }
 }
 
 #[derive(Clone, Copy)]
 struct Binning {
-    cmin: [f32; 3],
-    scale: [f32; 3],
-    k: usize,
+    cmin: Vec3A,
+    scale: Vec3A,
+    kmax: UVec3,
 }
 impl Binning {
-    #[inline]
-    fn bin(&self, c: f32, a: usize) -> usize {
-        // `as usize` saturates (NaN → 0), so no input can index out of range.
-        (((c - self.cmin[a]) * self.scale[a]) as usize).min(self.k - 1)
+    /// Bin indices of a reference on all three axes. `as u32` saturates (NaN → 0), so no
+    /// input can index out of range; binning and partitioning share this exact arithmetic.
+    #[inline(always)]
+    fn bins(&self, r: &PrimRef) -> UVec3 {
+        let c = Vec3A::from(r.lo) * 0.5 + Vec3A::from(r.hi) * 0.5;
+        ((c - self.cmin) * self.scale).as_uvec3().min(self.kmax)
     }
 }
 
-fn bin_refs(refs: &[PrimRef], bn: &Binning) -> Bins {
-    let mut bins = Bins::new();
+fn bin_refs(refs: &[PrimRef], bn: &Binning, bins: &mut Bins) {
     for r in refs {
-        let c = centroid(r);
+        let lo = Vec3A::from(r.lo);
+        let hi = Vec3A::from(r.hi);
+        let idx = bn.bins(r);
         for a in 0..3 {
-            let b = bn.bin(c[a], a);
-            let l = &mut bins.lo[a][b];
-            let h = &mut bins.hi[a][b];
-            for x in 0..3 {
-                l[x] = l[x].min(r.lo[x]);
-                h[x] = h[x].max(r.hi[x]);
-            }
+            let b = (idx[a] as usize).min(MAX_BINS - 1);
+            bins.lo[a][b] = bins.lo[a][b].min(lo);
+            bins.hi[a][b] = bins.hi[a][b].max(hi);
             bins.count[a][b] += 1;
         }
     }
-    bins
+}
+
+#[inline]
+fn half_area_v(lo: Vec3A, hi: Vec3A) -> f32 {
+    let d = (hi - lo).max(Vec3A::ZERO);
+    d.x * d.y + d.y * d.z + d.z * d.x
+}
+
+fn to_aabb(lo: Vec3A, hi: Vec3A) -> Aabb {
+    Aabb { lo: lo.to_array(), hi: hi.to_array() }
 }
 
 fn bounds_of(refs: &[PrimRef]) -> (Aabb, Aabb) {
@@ -254,7 +269,8 @@ struct Ctx {
 
 /// Builds the subtree over `refs` into `nodes[0..2n-1]`; returns its unnormalised SAH sum
 /// (Σ inner A + Σ leaf A·|l|, half areas) and its depth.
-fn build_rec(ctx: &Ctx, refs: &mut [PrimRef], nodes: &mut [BinNode], start: u32, bounds: Aabb, cb: Aabb, depth: u32) -> (f64, u32) {
+#[allow(clippy::too_many_arguments)]
+fn build_rec(ctx: &Ctx, refs: &mut [PrimRef], nodes: &mut [BinNode], start: u32, bounds: Aabb, cb: Aabb, depth: u32, bins: &mut Bins) -> (f64, u32) {
     let n = refs.len();
     let area = bounds.half_area();
     let make_leaf = |nodes: &mut [BinNode]| {
@@ -267,52 +283,69 @@ fn build_rec(ctx: &Ctx, refs: &mut [PrimRef], nodes: &mut [BinNode], start: u32,
         return make_leaf(nodes);
     }
     let p = &ctx.params;
-    // --- choose a split ---
+    // Small nodes get fewer bins (never more bins than primitives, at least 8).
+    let k = p.bins.clamp(2, MAX_BINS).min(n.max(8));
     let mut split: Option<(usize, usize, Aabb, Aabb, f32)> = None; // (axis, bin, left box, right box, cost)
-    let k = p.bins.clamp(2, MAX_BINS);
     if depth < MAX_SAH_DEPTH {
-        let mut bn = Binning { cmin: cb.lo, scale: [0.0; 3], k };
+        let mut scale = [0f32; 3];
         let mut any = false;
         for a in 0..3 {
             let ext = cb.hi[a] - cb.lo[a];
-            let s = k as f32 / ext;
-            if ext > 0.0 && s.is_finite() && s > 0.0 {
+            let sc = k as f32 / ext;
+            if ext > 0.0 && sc.is_finite() && sc > 0.0 {
                 // Shrink slightly so the max centroid lands in bin k-1, not k.
-                bn.scale[a] = s * (1.0 - 1.0 / 1024.0);
+                scale[a] = sc * (1.0 - 1.0 / 1024.0);
                 any = true;
             }
         }
+        let bn = Binning { cmin: Vec3A::from(cb.lo), scale: Vec3A::from(scale), kmax: UVec3::splat(k as u32 - 1) };
         if any {
-            let bins = if n >= PAR_BIN_CUTOFF {
-                refs.par_chunks(BIN_CHUNK).map(|c| bin_refs(c, &bn)).reduce(Bins::new, |x, y| x.merge(&y, k))
+            bins.reset(k);
+            if n >= PAR_BIN_CUTOFF {
+                let merged = refs
+                    .par_chunks(BIN_CHUNK)
+                    .map(|c| {
+                        let mut b = Bins::new();
+                        bin_refs(c, &bn, &mut b);
+                        b
+                    })
+                    .reduce(Bins::new, |mut x, y| {
+                        x.merge(&y, k);
+                        x
+                    });
+                bins.merge(&merged, k);
             } else {
-                bin_refs(refs, &bn)
-            };
+                bin_refs(refs, &bn, bins);
+            }
             for a in 0..3 {
-                if bn.scale[a] == 0.0 {
+                if scale[a] == 0.0 {
                     continue;
                 }
-                // Right-to-left suffix areas and counts.
-                let mut r_area = [0f32; MAX_BINS];
-                let mut r_box = [Aabb::EMPTY; MAX_BINS];
-                let mut acc = Aabb::EMPTY;
+                // Right-to-left suffix boxes and areas.
+                let mut r_lo = [Vec3A::INFINITY; MAX_BINS];
+                let mut r_hi = [Vec3A::NEG_INFINITY; MAX_BINS];
+                let mut acc_lo = Vec3A::INFINITY;
+                let mut acc_hi = Vec3A::NEG_INFINITY;
                 for b in (1..k).rev() {
-                    acc.grow(&bins.lo[a][b], &bins.hi[a][b]);
-                    r_box[b] = acc;
-                    r_area[b] = acc.half_area();
+                    acc_lo = acc_lo.min(bins.lo[a][b]);
+                    acc_hi = acc_hi.max(bins.hi[a][b]);
+                    r_lo[b] = acc_lo;
+                    r_hi[b] = acc_hi;
                 }
-                let mut lacc = Aabb::EMPTY;
+                let mut l_lo = Vec3A::INFINITY;
+                let mut l_hi = Vec3A::NEG_INFINITY;
                 let mut lcount = 0u32;
                 for b in 0..k - 1 {
-                    lacc.grow(&bins.lo[a][b], &bins.hi[a][b]);
+                    l_lo = l_lo.min(bins.lo[a][b]);
+                    l_hi = l_hi.max(bins.hi[a][b]);
                     lcount += bins.count[a][b];
                     let rcount = n as u32 - lcount;
                     if lcount == 0 || rcount == 0 {
                         continue;
                     }
-                    let cost = lacc.half_area() * lcount as f32 + r_area[b + 1] * rcount as f32;
+                    let cost = half_area_v(l_lo, l_hi) * lcount as f32 + half_area_v(r_lo[b + 1], r_hi[b + 1]) * rcount as f32;
                     if split.map_or(true, |s| cost < s.4) {
-                        split = Some((a, b, lacc, r_box[b + 1], cost));
+                        split = Some((a, b, to_aabb(l_lo, l_hi), to_aabb(r_lo[b + 1], r_hi[b + 1]), cost));
                     }
                 }
             }
@@ -327,21 +360,26 @@ fn build_rec(ctx: &Ctx, refs: &mut [PrimRef], nodes: &mut [BinNode], start: u32,
                 // Partition in place (deterministic: sequential, same bin function as binning).
                 let mut i = 0usize;
                 let mut j = n;
-                let mut lcb = Aabb::EMPTY;
-                let mut rcb = Aabb::EMPTY;
+                let mut lc_lo = Vec3A::INFINITY;
+                let mut lc_hi = Vec3A::NEG_INFINITY;
+                let mut rc_lo = Vec3A::INFINITY;
+                let mut rc_hi = Vec3A::NEG_INFINITY;
                 while i < j {
-                    let c = centroid(&refs[i]);
-                    if bn.bin(c[a], a) <= b {
-                        lcb.grow_point(&c);
+                    let r = &refs[i];
+                    let c = Vec3A::from(r.lo) * 0.5 + Vec3A::from(r.hi) * 0.5;
+                    if (bn.bins(r)[a] as usize) <= b {
+                        lc_lo = lc_lo.min(c);
+                        lc_hi = lc_hi.max(c);
                         i += 1;
                     } else {
-                        rcb.grow_point(&c);
+                        rc_lo = rc_lo.min(c);
+                        rc_hi = rc_hi.max(c);
                         j -= 1;
                         refs.swap(i, j);
                     }
                 }
                 if i > 0 && i < n {
-                    return finish_split(ctx, refs, nodes, start, bounds, i, (lbox, lcb), (rbox, rcb), depth);
+                    return finish_split(ctx, refs, nodes, start, bounds, i, (lbox, to_aabb(lc_lo, lc_hi)), (rbox, to_aabb(rc_lo, rc_hi)), depth, bins);
                 }
             }
         }
@@ -362,11 +400,11 @@ fn build_rec(ctx: &Ctx, refs: &mut [PrimRef], nodes: &mut [BinNode], start: u32,
     let (l, r) = refs.split_at(mid);
     let lb = bounds_of(l);
     let rb = bounds_of(r);
-    finish_split(ctx, refs, nodes, start, bounds, mid, lb, rb, depth)
+    finish_split(ctx, refs, nodes, start, bounds, mid, lb, rb, depth, bins)
 }
 
 #[allow(clippy::too_many_arguments)]
-fn finish_split(ctx: &Ctx, refs: &mut [PrimRef], nodes: &mut [BinNode], start: u32, bounds: Aabb, mid: usize, left: (Aabb, Aabb), right: (Aabb, Aabb), depth: u32) -> (f64, u32) {
+fn finish_split(ctx: &Ctx, refs: &mut [PrimRef], nodes: &mut [BinNode], start: u32, bounds: Aabb, mid: usize, left: (Aabb, Aabb), right: (Aabb, Aabb), depth: u32, bins: &mut Bins) -> (f64, u32) {
     let n = refs.len();
     if let Some(slot) = nodes.get_mut(0) {
         *slot = BinNode { lo: bounds.lo, start, hi: bounds.hi, count: n as u32, left_count: mid as u32, reserved: 0 };
@@ -379,13 +417,13 @@ fn finish_split(ctx: &Ctx, refs: &mut [PrimRef], nodes: &mut [BinNode], start: u
     let area = bounds.half_area() as f64;
     let (a, b) = if n as u32 >= ctx.params.parallel_cutoff {
         rayon::join(
-            || build_rec(ctx, lrefs, lnodes, start, left.0, left.1, depth + 1),
-            || build_rec(ctx, rrefs, rnodes, rstart, right.0, right.1, depth + 1),
+            || build_rec(ctx, lrefs, lnodes, start, left.0, left.1, depth + 1, bins),
+            || build_rec(ctx, rrefs, rnodes, rstart, right.0, right.1, depth + 1, &mut Bins::new()),
         )
     } else {
         (
-            build_rec(ctx, lrefs, lnodes, start, left.0, left.1, depth + 1),
-            build_rec(ctx, rrefs, rnodes, rstart, right.0, right.1, depth + 1),
+            build_rec(ctx, lrefs, lnodes, start, left.0, left.1, depth + 1, bins),
+            build_rec(ctx, rrefs, rnodes, rstart, right.0, right.1, depth + 1, bins),
         )
     };
     (area + a.0 + b.0, 1 + a.1.max(b.1))
@@ -459,11 +497,14 @@ pub fn encode_node(node_box: &Aabb, boxes: &[Aabb], child: &[u32], kind: &[u8]) 
         let s = f32::from_bits(e << 23);
         for (c, b) in boxes.iter().enumerate() {
             let dec = |q: u32| lo + q as f32 * s;
-            let mut ql = (((b.lo[a] - lo) / s).floor().max(0.0) as u32).min(255);
+            // Initial guesses by truncation (s is a power of two, so * inv_s is exact up to
+            // the subtraction's rounding); the loops then make them exact and outward.
+            let inv_s = 1.0 / s;
+            let mut ql = (((b.lo[a] - lo) * inv_s) as u32).min(255);
             while ql > 0 && dec(ql) > b.lo[a] {
                 ql -= 1;
             }
-            let mut qh = (((b.hi[a] - lo) / s).ceil().max(0.0) as u32).min(255);
+            let mut qh = (((b.hi[a] - lo) * inv_s) as u32).min(255);
             while qh < 255 && dec(qh) < b.hi[a] {
                 qh += 1;
             }
@@ -478,26 +519,8 @@ pub fn encode_node(node_box: &Aabb, boxes: &[Aabb], child: &[u32], kind: &[u8]) 
     n
 }
 
-/// Counts the wide nodes and leaves the collapse will produce.
-fn count_wide(nodes: &[BinNode], i: usize) -> (u32, u32) {
-    let (ch, cnt) = wide_children(nodes, i);
-    let mut wn = 1u32;
-    let mut leaves = 0u32;
-    for &c in &ch[..cnt] {
-        match nodes.get(c) {
-            Some(nd) if nd.left_count != 0 => {
-                let (a, b) = count_wide(nodes, c);
-                wn += a;
-                leaves += b;
-            }
-            _ => leaves += 1,
-        }
-    }
-    (wn, leaves)
-}
-
 /// Emits the wide node for binary node `i` and its subtree in preorder; returns its index.
-fn emit_wide(nodes: &[BinNode], i: usize, next: &mut u32, out: &mut [u8]) -> u32 {
+fn emit_wide(nodes: &[BinNode], i: usize, next: &mut u32, leaves: &mut u32, out: &mut [u8]) -> u32 {
     let me = *next;
     *next += 1;
     let (ch, cnt) = wide_children(nodes, i);
@@ -511,10 +534,11 @@ fn emit_wide(nodes: &[BinNode], i: usize, next: &mut u32, out: &mut [u8]) -> u32
         node_box = node_box.union(&boxes[k]);
         if nd.left_count != 0 && ch[k] != i {
             kind[k] = CHILD_INTERNAL;
-            child[k] = emit_wide(nodes, ch[k], next, out);
+            child[k] = emit_wide(nodes, ch[k], next, leaves, out);
         } else {
             kind[k] = nd.count.min(254) as u8;
             child[k] = nd.start;
+            *leaves += 1;
         }
     }
     let wn = encode_node(&node_box, &boxes[..cnt], &child, &kind);
@@ -802,7 +826,9 @@ pub fn build(desc: &BuildDesc, view: &dyn DeviceView, dst: &mut [u8], scratch: &
     let (refs, rest) = carve::<PrimRef>(scratch, total).ok_or(BuildError::ScratchTooSmall { needed: need_scratch, got: 0 })?;
     let (nodes, _) = carve::<BinNode>(rest, 2 * total).ok_or(BuildError::ScratchTooSmall { needed: need_scratch, got: 0 })?;
 
+    let t0 = std::time::Instant::now();
     let active = ingest(desc, view, refs)?;
+    let t1 = std::time::Instant::now();
     let refs = &mut refs[..active];
     // Geometry table now, while refs are still in geometry order (its offset is tree-independent).
     {
@@ -829,27 +855,26 @@ pub fn build(desc: &BuildDesc, view: &dyn DeviceView, dst: &mut [u8], scratch: &
         .map(bounds_of)
         .reduce(|| (Aabb::EMPTY, Aabb::EMPTY), |a, b| (a.0.union(&b.0), a.1.union(&b.1)));
     let (sah_sum, _depth) = if active > 0 {
-        build_rec(&ctx, refs, &mut nodes[..2 * active - 1], 0, root_box, root_cb, 0)
+        build_rec(&ctx, refs, &mut nodes[..2 * active - 1], 0, root_box, root_cb, 0, &mut Bins::new())
     } else {
         (0.0, 0)
     };
-    let (wide_count, leaf_count) = if active > 0 { count_wide(nodes, 0) } else { (0, 0) };
-
+    let t2 = std::time::Instant::now();
+    // Nodes are the last section, so their offset is known before their count: emit directly.
+    let nodes_at = layout::sections(desc.ty, 0, active as u64, ngeo).nodes as usize;
+    let mut wide_count = 0u32;
+    let mut leaf_count = 0u32;
+    if active > 0 {
+        let out = dst.get_mut(nodes_at..).unwrap_or(&mut []);
+        emit_wide(nodes, 0, &mut wide_count, &mut leaf_count, out);
+    }
     let s = layout::sections(desc.ty, wide_count as u64, active as u64, ngeo);
-    if s.end > dst.len() as u64 {
+    if s.end > dst.len() as u64 || s.nodes as usize != nodes_at {
         return Err(BuildError::DestinationTooSmall { needed: s.end, got: dst.len() as u64 });
     }
     let used = s.end;
     let dst = &mut dst[..used as usize];
 
-    // Nodes.
-    {
-        let nb = &mut dst[s.nodes as usize..s.nodes as usize + wide_count as usize * NODE_SIZE];
-        if active > 0 {
-            let mut next = 0u32;
-            emit_wide(nodes, 0, &mut next, nb);
-        }
-    }
     let mut blas_refs = 0u32;
     let instance_count;
     if is_tlas {
@@ -879,6 +904,8 @@ pub fn build(desc: &BuildDesc, view: &dyn DeviceView, dst: &mut [u8], scratch: &
         (s.blas_table, s.blas_table + if is_tlas { active as u64 * 8 } else { 0 }),
     ];
     zero_gaps(dst, &filled, used);
+    let t3 = std::time::Instant::now();
+    if std::env::var("ARBOR_PROFILE").is_ok() { eprintln!("ingest {:?} build {:?} encode {:?}", t1-t0, t2-t1, t3-t2); }
 
     let root_area = root_box.half_area() as f64;
     let sah = if active > 0 && root_area > 0.0 && root_area.is_finite() { (sah_sum / root_area) as f32 } else { 0.0 };

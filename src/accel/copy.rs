@@ -3,7 +3,7 @@
 use super::layout::{self, parse};
 
 /// Identifies this format version in serialized data; change with layout::FORMAT_VERSION.
-pub const ACCEL_FORMAT_UUID: [u8; 16] = *b"ArborAS-BVH4q-01";
+pub const ACCEL_FORMAT_UUID: [u8; 16] = *b"ArborAS-BVH4q-02";
 
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub enum CopyError {

@@ -682,3 +682,40 @@ fn aabb_blas_matches_brute_force() {
         assert_eq!(got, want);
     }
 }
+
+/// Dragon timing (not a test of correctness; run explicitly):
+/// `cargo test --release --lib accel::tests::dragon_timing -- --ignored --nocapture`
+#[test]
+#[ignore]
+fn dragon_timing() {
+    let path = std::env::var("ARBOR_MESH").unwrap_or_else(|_| concat!(env!("CARGO_MANIFEST_DIR"), "/data/dragon_vrip.ply.gz").to_string());
+    let mesh = crate::scene::load(&path).expect("mesh");
+    let vb = mesh.vertex_bytes();
+    let ib = mesh.index_bytes();
+    let ntri = mesh.triangle_count() as u32;
+    let nv = mesh.vertex_count() as u32;
+    let g = tri_geom(&vb, nv, &ib, ntri, GeometryFlags::OPAQUE);
+    let shapes = [shape_of(&g)];
+    let reps: usize = std::env::var("ARBOR_REPS").ok().and_then(|s| s.parse().ok()).unwrap_or(5);
+    for (name, flags) in [("FAST_BUILD", BuildFlags::PREFER_FAST_BUILD), ("default", 0), ("FAST_TRACE", BuildFlags::PREFER_FAST_TRACE)] {
+        let sz = build_sizes(AsType::BottomLevel, BuildFlags(flags), &shapes, &[ntri]);
+        let mut dst = vec![0u8; sz.acceleration_structure_size as usize];
+        let mut scratch = vec![0u8; sz.build_scratch_size as usize];
+        for threads in [1, 2] {
+            let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
+            let desc = BuildDesc { ty: AsType::BottomLevel, flags: BuildFlags(flags), geometries: &[g] };
+            let mut times = Vec::new();
+            for _ in 0..reps {
+                let t = std::time::Instant::now();
+                pool.install(|| build(&desc, &NoDevice, &mut dst, &mut scratch)).unwrap();
+                times.push(t.elapsed().as_secs_f64() * 1e3);
+            }
+            times.sort_by(|a, b| a.total_cmp(b));
+            let m = metrics(&dst).unwrap();
+            println!(
+                "{name:10} threads {threads}: min {:.1} ms median {:.1} ms | SAH {:.2} wide {:.2} | {:.1} B/tri | nodes {} leaves {} depth {}",
+                times[0], times[times.len() / 2], m.sah_cost, m.wide_sah_cost, m.bytes_per_primitive * m.node_count.max(1) as f32 / m.node_count.max(1) as f32 * header(&dst).unwrap().primitive_count as f32 / ntri as f32, m.node_count, m.leaf_count, m.max_depth
+            );
+        }
+    }
+}
