@@ -458,3 +458,143 @@ fn ray_query_protocol_candidates_and_commits() {
         assert_eq!(got.map(|g| g.0), want.map(|w| w.0), "ray {i}: committed t");
     }
 }
+
+/// Axis-aligned rays (zero and negative-zero direction components) through the exact grid
+/// vertices and edges of a terrain, and rays along its grid lines: these lie exactly in the
+/// face planes of node boxes (0 x inf = NaN in a slab test).
+#[test]
+fn axis_aligned_rays_in_box_planes() {
+    let terr = scene::terrain(32);
+    let data = TriData::from_mesh(&terr, GEOMETRY_OPAQUE);
+    let geoms = [data.geometry()];
+    let scene = RefScene::Blas(&geoms);
+    let v = glam::Vec3::new;
+    let mut rays = Vec::new();
+    for i in 0..=64 {
+        for j in (0..=64).step_by(4) {
+            let (x, z) = (i as f32 / 64.0, j as f32 / 64.0);
+            rays.push(Ray { origin: v(x, 1.0, z), direction: v(0.0, -1.0, 0.0), tmin: 0.0, tmax: f32::INFINITY });
+            rays.push(Ray { origin: v(x, 1.0, z), direction: v(-0.0, -2.0, 0.0), tmin: 0.0, tmax: f32::INFINITY });
+            rays.push(Ray { origin: v(x, -1.0, z), direction: v(0.0, 1.0, -0.0), tmin: 0.0, tmax: f32::INFINITY });
+        }
+        // Horizontal rays along grid lines at a few heights.
+        for y in [-0.05f32, 0.0, 0.03] {
+            let c = i as f32 / 64.0;
+            rays.push(Ray { origin: v(-1.0, y, c), direction: v(1.0, 0.0, 0.0), tmin: 0.0, tmax: f32::INFINITY });
+            rays.push(Ray { origin: v(c, y, 2.0), direction: v(0.0, 0.0, -1.0), tmin: 0.0, tmax: f32::INFINITY });
+            rays.push(Ray { origin: v(c, y, 2.0), direction: v(-0.0, -0.0, -1.0), tmin: 0.0, tmax: 1.5 });
+        }
+    }
+    for tier in TIERS {
+        let built = build_blas(tier, &geoms);
+        let mut hits = 0;
+        for (i, ray) in rays.iter().enumerate() {
+            hits += compare_ray(&built.bytes, &accel::NoDevice, &scene, ray, 0, 0xFF, EXACT, &format!("axis tier {tier:#x} ray {i} {:?} dir {:?}", ray.origin, ray.direction));
+        }
+        assert!(hits > rays.len() / 2, "{hits}");
+    }
+}
+
+/// Empty, inverted and single-point [tmin, tmax] intervals, and tmin/tmax equal to a hit's t:
+/// the interval is inclusive on both ends.
+#[test]
+fn interval_rays_are_inclusive() {
+    let m = scene::load(data_path("bunny.ply")).unwrap();
+    let data = TriData::from_mesh(&m, GEOMETRY_OPAQUE);
+    let geoms = [data.geometry()];
+    let scene = RefScene::Blas(&geoms);
+    let rays = random_rays(m.bounds(), 600, 4);
+    for tier in TIERS {
+        let built = build_blas(tier, &geoms);
+        let mut pinned = 0;
+        for (i, ray) in rays.iter().enumerate() {
+            let Some(h) = accel::closest_hit(&built.bytes, &accel::NoDevice, copy_ray(ray), accel::RayFlags(0), 0xFF) else { continue };
+            let t = h.t;
+            for (tmin, tmax) in [(t, t), (0.0, t), (t, f32::INFINITY), (t + 1e-3, t - 1e-3), (0.0, 0.0), (f32::INFINITY, f32::INFINITY)] {
+                let r = Ray { tmin, tmax, ..copy_ray(ray) };
+                let n = compare_ray(&built.bytes, &accel::NoDevice, &scene, &r, 0, 0xFF, EXACT, &format!("tier {tier:#x} interval [{tmin}, {tmax}] ray {i}"));
+                if tmin == t && tmax >= t {
+                    assert!(n > 0, "ray {i}: hit at t = tmin = {t} not reported (interval is inclusive)");
+                    pinned += 1;
+                }
+                if tmin == 0.0 && tmax == t {
+                    assert!(n > 0, "ray {i}: hit at t = tmax = {t} not reported (interval is inclusive)");
+                }
+            }
+        }
+        assert!(pinned > 200, "{pinned}");
+    }
+}
+
+/// TLAS update: new transforms, masks, flags, custom indices (instance definitions may change),
+/// same active set; and a BLAS of AABBs refitted to moved boxes. Brute-force equal afterwards.
+#[test]
+fn tlas_and_aabb_refit_match_brute_force() {
+    let f = tlas_fixture(50, 41, FAST_TRACE);
+    let geoms = geoms_of(&f);
+    let blases: HashMap<u64, &[Geometry]> = geoms.iter().map(|(a, g)| (*a, g.as_slice())).collect();
+    let flags = FAST_TRACE | BuildFlags::ALLOW_UPDATE;
+    let packed = InstanceRecord::pack(&f.instances);
+    let g = [Geometry { flags: GeometryFlags(0), primitive_count: f.instances.len() as u32, data: GeometryData::Instances { array_of_pointers: false, data: &packed } }];
+    let mut tlas = build(AsType::TopLevel, flags, &g, &f.view);
+    // Move every active instance: new rotation/translation from another seed; shuffle masks/flags.
+    let refs: Vec<u64> = f.blas_geoms.iter().map(|b| b.0).collect();
+    let fresh = scene::instance_records(f.instances.len(), &refs, 4242);
+    let mut rng = Rng::new(8);
+    let combos = all_instance_flag_combinations();
+    let moved: Vec<InstanceRecord> = f
+        .instances
+        .iter()
+        .zip(&fresh)
+        .map(|(old, new)| InstanceRecord {
+            transform: new.transform,
+            mask: [0xFF, 0x01, 0x0F][rng.below(3) as usize],
+            flags: combos[rng.below(combos.len() as u32) as usize],
+            custom_index: rng.next_u32() & 0xFF_FFFF,
+            ..*old
+        })
+        .collect();
+    let mpacked = InstanceRecord::pack(&moved);
+    let mg = [Geometry { flags: GeometryFlags(0), primitive_count: moved.len() as u32, data: GeometryData::Instances { array_of_pointers: false, data: &mpacked } }];
+    let desc = accel::BuildDesc { ty: AsType::TopLevel, flags: BuildFlags(flags), geometries: &mg };
+    let mut scratch = vec![0u8; tlas.sizes.update_scratch_size as usize];
+    accel::update(&desc, &f.view, None, &mut tlas.bytes, &mut scratch).expect("TLAS update");
+    accel::validate(&tlas.bytes).expect("validate after TLAS update");
+    let scene = RefScene::Tlas { instances: moved.clone(), blases };
+    let mut corners = Vec::new();
+    for r in &moved {
+        corners.push([r.transform[3], r.transform[7], r.transform[11]]);
+    }
+    let b = union_bounds(corners);
+    let bounds = [b[0] - 2.0, b[1] - 2.0, b[2] - 2.0, b[3] + 2.0, b[4] + 2.0, b[5] + 2.0];
+    let mut hits = 0;
+    for (i, ray) in random_rays(bounds, 400, 3).iter().enumerate() {
+        hits += compare_ray(&tlas.bytes, &f.view, &scene, ray, 0, 0xFF, TLAS_TOL, &format!("refit TLAS ray {i}"));
+    }
+    assert!(hits > 100, "{hits}");
+    // Making an active instance inactive is an update rule violation.
+    let mut bad = moved.clone();
+    let k = bad.iter().position(|r| r.reference != 0).unwrap();
+    bad[k].reference = 0;
+    let bpacked = InstanceRecord::pack(&bad);
+    let bg = [Geometry { flags: GeometryFlags(0), primitive_count: bad.len() as u32, data: GeometryData::Instances { array_of_pointers: false, data: &bpacked } }];
+    let bdesc = accel::BuildDesc { ty: AsType::TopLevel, flags: BuildFlags(flags), geometries: &bg };
+    let mut copy = tlas.bytes.clone();
+    assert!(accel::update(&bdesc, &f.view, None, &mut copy, &mut scratch).is_err(), "TLAS update making an instance inactive accepted");
+
+    // AABB BLAS refit.
+    let boxes = boxes_of(&scene::random_soup(2000, 5));
+    let a = AabbData::new(&boxes, 32, 0);
+    let ag = [a.geometry()];
+    let mut built = build_blas(flags, &ag);
+    let moved_boxes: Vec<[f32; 6]> = boxes.iter().map(|b| [b[0] * 2.0, b[1] + b[0], b[2], b[3] * 2.0, b[4] + b[3], b[5] + 0.1]).collect();
+    let ma = AabbData::new(&moved_boxes, 32, 0);
+    let mag = [ma.geometry()];
+    let mdesc = accel::BuildDesc { ty: AsType::BottomLevel, flags: BuildFlags(flags), geometries: &mag };
+    let mut scratch = vec![0u8; built.sizes.update_scratch_size as usize];
+    accel::update(&mdesc, &accel::NoDevice, None, &mut built.bytes, &mut scratch).expect("AABB update");
+    let scene = RefScene::Blas(&mag);
+    for (i, ray) in random_rays([0.0, 0.0, 0.0, 2.0, 2.0, 1.1], 300, 9).iter().enumerate() {
+        compare_ray(&built.bytes, &accel::NoDevice, &scene, ray, 0, 0xFF, EXACT, &format!("refit AABB ray {i}"));
+    }
+}

@@ -426,6 +426,8 @@ pub struct RefHit {
     pub opaque: bool,
     pub custom_index: u32,
     pub sbt_offset: u32,
+    /// Barycentrics (weights of v1, v2) from `intersect_triangle` on the reference's ray.
+    pub uv: [f32; 2],
     /// How far this decision is from flipping, computed in f64: for triangles the smallest
     /// barycentric / the relative distance of t to tmin/tmax; for boxes the relative slab gap.
     /// Mismatches with the library are forgiven only when the margin is tiny and the ray went
@@ -563,9 +565,10 @@ fn ref_blas(
                 };
                 let hit = accel::intersect_triangle(ray, a, b, c).filter(|&(t, ..)| t >= tmin && t <= tmax);
                 match hit {
-                    Some((t, ..)) if !culled => out.hits.push(RefHit {
+                    Some((t, u, v, _)) if !culled => out.hits.push(RefHit {
                         id,
                         t,
+                        uv: [u, v],
                         triangle: true,
                         front,
                         opaque,
@@ -595,6 +598,7 @@ fn ref_blas(
                         opaque,
                         custom_index,
                         sbt_offset,
+                        uv: [0.0; 2],
                         margin: gap.abs(),
                     });
                 } else if gap.abs() < AMBIGUOUS || !gap.is_finite() {
@@ -674,6 +678,12 @@ fn check_hit_fields(h: &Hit, r: &RefHit, tol: Tolerance, ctx: &str) {
         assert!(tol.t_equal(h.t, r.t, true), "{ctx}: t of {:?}: lib {} ref {}", r.id, h.t, r.t);
         if r.margin > AMBIGUOUS {
             assert_eq!(h.front_face, r.front, "{ctx}: front_face of {:?}", r.id);
+        }
+        if tol.exact {
+            assert_eq!(h.barycentrics, r.uv, "{ctx}: barycentrics of {:?}", r.id);
+        } else if r.margin > 1e-3 {
+            let close = (h.barycentrics[0] - r.uv[0]).abs() < 1e-3 && (h.barycentrics[1] - r.uv[1]).abs() < 1e-3;
+            assert!(close, "{ctx}: barycentrics of {:?}: {:?} vs {:?}", r.id, h.barycentrics, r.uv);
         }
     }
     assert_eq!(h.opaque, r.opaque, "{ctx}: opaque of {:?}", r.id);
