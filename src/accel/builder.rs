@@ -317,37 +317,62 @@ fn build_rec(ctx: &Ctx, refs: &mut [PrimRef], nodes: &mut [BinNode], start: u32,
             } else {
                 bin_refs(refs, &bn, bins);
             }
+            // Sweep: prefix areas/counts left to right, then the right side accumulated on the
+            // fly; boxes of the winning split are recomputed afterwards (keeps per-node stack
+            // traffic proportional to k).
+            let mut best: Option<(usize, usize, f32)> = None;
             for a in 0..3 {
                 if scale[a] == 0.0 {
                     continue;
                 }
-                // Right-to-left suffix boxes and areas.
-                let mut r_lo = [Vec3A::INFINITY; MAX_BINS];
-                let mut r_hi = [Vec3A::NEG_INFINITY; MAX_BINS];
-                let mut acc_lo = Vec3A::INFINITY;
-                let mut acc_hi = Vec3A::NEG_INFINITY;
-                for b in (1..k).rev() {
-                    acc_lo = acc_lo.min(bins.lo[a][b]);
-                    acc_hi = acc_hi.max(bins.hi[a][b]);
-                    r_lo[b] = acc_lo;
-                    r_hi[b] = acc_hi;
-                }
-                let mut l_lo = Vec3A::INFINITY;
-                let mut l_hi = Vec3A::NEG_INFINITY;
-                let mut lcount = 0u32;
+                let mut l_area = [0f32; MAX_BINS];
+                let mut l_count = [0u32; MAX_BINS];
+                let mut lo = Vec3A::INFINITY;
+                let mut hi = Vec3A::NEG_INFINITY;
+                let mut cnt = 0u32;
                 for b in 0..k - 1 {
-                    l_lo = l_lo.min(bins.lo[a][b]);
-                    l_hi = l_hi.max(bins.hi[a][b]);
-                    lcount += bins.count[a][b];
-                    let rcount = n as u32 - lcount;
+                    lo = lo.min(bins.lo[a][b]);
+                    hi = hi.max(bins.hi[a][b]);
+                    cnt += bins.count[a][b];
+                    l_area[b] = half_area_v(lo, hi);
+                    l_count[b] = cnt;
+                }
+                let mut lo = Vec3A::INFINITY;
+                let mut hi = Vec3A::NEG_INFINITY;
+                let mut rcount = 0u32;
+                // Right-to-left; ties resolved to the lowest (axis, bin) for determinism.
+                let mut axis_best: Option<(usize, f32)> = None;
+                for b in (0..k - 1).rev() {
+                    lo = lo.min(bins.lo[a][b + 1]);
+                    hi = hi.max(bins.hi[a][b + 1]);
+                    rcount += bins.count[a][b + 1];
+                    let lcount = l_count[b];
                     if lcount == 0 || rcount == 0 {
                         continue;
                     }
-                    let cost = half_area_v(l_lo, l_hi) * lcount as f32 + half_area_v(r_lo[b + 1], r_hi[b + 1]) * rcount as f32;
-                    if split.map_or(true, |s| cost < s.4) {
-                        split = Some((a, b, to_aabb(l_lo, l_hi), to_aabb(r_lo[b + 1], r_hi[b + 1]), cost));
+                    let cost = l_area[b] * lcount as f32 + half_area_v(lo, hi) * rcount as f32;
+                    if axis_best.map_or(true, |x| cost <= x.1) {
+                        axis_best = Some((b, cost));
                     }
                 }
+                if let Some((b, cost)) = axis_best {
+                    if best.map_or(true, |x| cost < x.2) {
+                        best = Some((a, b, cost));
+                    }
+                }
+            }
+            if let Some((a, b, cost)) = best {
+                let (mut llo, mut lhi, mut rlo, mut rhi) = (Vec3A::INFINITY, Vec3A::NEG_INFINITY, Vec3A::INFINITY, Vec3A::NEG_INFINITY);
+                for x in 0..k {
+                    if x <= b {
+                        llo = llo.min(bins.lo[a][x]);
+                        lhi = lhi.max(bins.hi[a][x]);
+                    } else {
+                        rlo = rlo.min(bins.lo[a][x]);
+                        rhi = rhi.max(bins.hi[a][x]);
+                    }
+                }
+                split = Some((a, b, to_aabb(llo, lhi), to_aabb(rlo, rhi), cost));
             }
             // SAH termination: a leaf costs A·n, a split A + children (C_T = C_I = 1).
             if let Some(s) = split {
@@ -571,6 +596,12 @@ pub fn index_hash(g: &Geometry) -> [u32; 2] {
 /// Reads primitive `p` of geometry `gi` as a reference; None = not stored (inactive, or a
 /// degenerate triangle that may be dropped).
 pub fn make_ref(gi: u32, g: &Geometry, p: u32, view: &dyn DeviceView, allow_update: bool) -> Result<Option<PrimRef>, BuildError> {
+    Ok(make_ref_data(gi, g, p, view, allow_update)?.map(|x| x.0))
+}
+
+/// `make_ref` plus the primitive data the format stores (vertices, or the AABB).
+pub fn make_ref_data(gi: u32, g: &Geometry, p: u32, view: &dyn DeviceView, allow_update: bool) -> Result<Option<(PrimRef, [f32; 9])>, BuildError> {
+    let mut data = [0f32; 9];
     let (lo, hi) = match g.data {
         GeometryData::Triangles { .. } => {
             let Some(v) = read_triangle(gi, g, p)? else { return Ok(None) };
@@ -590,10 +621,12 @@ pub fn make_ref(gi: u32, g: &Geometry, p: u32, view: &dyn DeviceView, allow_upda
                     }
                 }
             }
+            data = [v[0].x, v[0].y, v[0].z, v[1].x, v[1].y, v[1].z, v[2].x, v[2].y, v[2].z];
             triangle_bounds(&v)
         }
         GeometryData::Aabbs { .. } => {
             let Some(b) = read_aabb(gi, g, p)? else { return Ok(None) };
+            data[..6].copy_from_slice(&b);
             sanitize([b[0], b[1], b[2]], [b[3], b[4], b[5]])
         }
         GeometryData::Instances { .. } => {
@@ -601,7 +634,7 @@ pub fn make_ref(gi: u32, g: &Geometry, p: u32, view: &dyn DeviceView, allow_upda
             instance_bounds(&inst.transform, inst.reference, view)
         }
     };
-    Ok(Some(PrimRef { lo, geom: gi, hi, prim: p }))
+    Ok(Some((PrimRef { lo, geom: gi, hi, prim: p }, data)))
 }
 
 /// Deterministic first error: the one with the lowest (geometry, chunk) position wins.
@@ -617,28 +650,54 @@ pub const INGEST_CHUNK: usize = 4096;
 
 /// Fills `refs[..total]` (slot = global primitive ID), then compacts active ones to the front
 /// in order. Returns (active count, per-geometry active counts written into `active`).
-fn ingest(desc: &BuildDesc, view: &dyn DeviceView, refs: &mut [PrimRef]) -> Result<usize, BuildError> {
+/// Staged primitive data: what the format stores plus the primitive's index in its geometry.
+pub const STAGE_SIZE: usize = 40;
+
+/// Fills `refs[..total]` (slot = global primitive ID), then compacts active ones to the front
+/// in order; returns the active count. With `stage`, the primitive data is also written there
+/// at the global ID (one sequential pass over the input) and `PrimRef::prim` holds the global
+/// ID until `gather_leaf_data` puts data and records in leaf order.
+fn ingest(desc: &BuildDesc, view: &dyn DeviceView, refs: &mut [PrimRef], mut stage: Option<&mut [u8]>) -> Result<usize, BuildError> {
     let allow_update = desc.flags.contains(BuildFlags::ALLOW_UPDATE);
     let mut base = 0usize;
     for (gi, g) in desc.geometries.iter().enumerate() {
         let count = g.primitive_count as usize;
         let slice = refs.get_mut(base..base + count).ok_or(BuildError::TooManyPrimitives)?;
         let gi32 = gi as u32;
-        let res = slice
-            .par_chunks_mut(INGEST_CHUNK)
-            .enumerate()
-            .map(|(ci, chunk)| {
-                for (k, slot) in chunk.iter_mut().enumerate() {
-                    let p = (ci * INGEST_CHUNK + k) as u32;
-                    match make_ref(gi32, g, p, view, allow_update) {
-                        Ok(Some(r)) => *slot = r,
-                        Ok(None) => *slot = PrimRef { lo: [0.0; 3], geom: DROPPED, hi: [0.0; 3], prim: p },
-                        Err(e) => return Err(((gi as u64) << 32 | p as u64, e)),
+        let gbase = base;
+        let work = |ci: usize, chunk: &mut [PrimRef], st: Option<&mut [u8]>| -> Result<(), (u64, BuildError)> {
+            let mut st = st;
+            for (k, slot) in chunk.iter_mut().enumerate() {
+                let p = (ci * INGEST_CHUNK + k) as u32;
+                match make_ref_data(gi32, g, p, view, allow_update) {
+                    Ok(Some((mut r, data))) => {
+                        if let Some(st) = st.as_deref_mut() {
+                            if let Some(d) = st.get_mut(k * STAGE_SIZE..(k + 1) * STAGE_SIZE) {
+                                d[..36].copy_from_slice(bytemuck::bytes_of(&data));
+                                d[36..].copy_from_slice(&p.to_le_bytes());
+                            }
+                            r.prim = (gbase + ci * INGEST_CHUNK + k) as u32;
+                        }
+                        *slot = r
                     }
+                    Ok(None) => *slot = PrimRef { lo: [0.0; 3], geom: DROPPED, hi: [0.0; 3], prim: p },
+                    Err(e) => return Err(((gi as u64) << 32 | p as u64, e)),
                 }
-                Ok(())
-            })
-            .reduce(|| Ok(()), first_err);
+            }
+            Ok(())
+        };
+        let res = match stage.as_deref_mut() {
+            Some(st) => {
+                let st = st.get_mut(base * STAGE_SIZE..(base + count) * STAGE_SIZE).ok_or(BuildError::TooManyPrimitives)?;
+                slice
+                    .par_chunks_mut(INGEST_CHUNK)
+                    .zip(st.par_chunks_mut(INGEST_CHUNK * STAGE_SIZE))
+                    .enumerate()
+                    .map(|(ci, (chunk, st))| work(ci, chunk, Some(st)))
+                    .reduce(|| Ok(()), first_err)
+            }
+            None => slice.par_chunks_mut(INGEST_CHUNK).enumerate().map(|(ci, chunk)| work(ci, chunk, None)).reduce(|| Ok(()), first_err),
+        };
         res.map_err(|e| e.1)?;
         base += count;
     }
@@ -651,6 +710,31 @@ fn ingest(desc: &BuildDesc, view: &dyn DeviceView, refs: &mut [PrimRef]) -> Resu
         }
     }
     Ok(w)
+}
+
+/// Leaf-order primitive data and records from the staging area; restores `PrimRef::prim` to
+/// the index within the geometry.
+fn gather_leaf_data(refs: &mut [PrimRef], stage: &[u8], prims: &mut [u8], records: &mut [u8]) {
+    const CH: usize = 4096;
+    prims
+        .par_chunks_mut(CH * PRIM_SIZE)
+        .zip(records.par_chunks_mut(CH * RECORD_SIZE))
+        .zip(refs.par_chunks_mut(CH))
+        .for_each(|((pd, rd), rs)| {
+            for (k, r) in rs.iter_mut().enumerate() {
+                let o = r.prim as usize * STAGE_SIZE;
+                let Some(st) = stage.get(o..o + STAGE_SIZE) else { continue };
+                if let Some(d) = pd.get_mut(k * PRIM_SIZE..(k + 1) * PRIM_SIZE) {
+                    d.copy_from_slice(&st[..36]);
+                }
+                let prim = u32::from_le_bytes([st[36], st[37], st[38], st[39]]);
+                r.prim = prim;
+                let rec = PrimRecord { geometry: r.geom, primitive: prim };
+                if let Some(d) = rd.get_mut(k * RECORD_SIZE..(k + 1) * RECORD_SIZE) {
+                    d.copy_from_slice(bytemuck::bytes_of(&rec));
+                }
+            }
+        });
 }
 
 fn check_types(desc: &BuildDesc) -> Result<(), BuildError> {
@@ -827,7 +911,12 @@ pub fn build(desc: &BuildDesc, view: &dyn DeviceView, dst: &mut [u8], scratch: &
     let (nodes, _) = carve::<BinNode>(rest, 2 * total).ok_or(BuildError::ScratchTooSmall { needed: need_scratch, got: 0 })?;
 
     let t0 = std::time::Instant::now();
-    let active = ingest(desc, view, refs)?;
+    // BLAS primitive data is staged in the (still unused) node area of dst during ingest, so
+    // the leaf-order pass reads one 40-byte record per primitive instead of indices and three
+    // vertices at random. Needs 40·total <= the worst-case node area (true for total >= 3).
+    let stage_at = layout::sections(desc.ty, 0, total as u64, ngeo).nodes as usize;
+    let staged = !is_tlas && total >= 3 && stage_at.checked_add(total * STAGE_SIZE).is_some_and(|e| e <= dst.len());
+    let active = ingest(desc, view, refs, if staged { dst.get_mut(stage_at..) } else { None })?;
     let t1 = std::time::Instant::now();
     let refs = &mut refs[..active];
     // Geometry table now, while refs are still in geometry order (its offset is tree-independent).
@@ -860,8 +949,22 @@ pub fn build(desc: &BuildDesc, view: &dyn DeviceView, dst: &mut [u8], scratch: &
         (0.0, 0)
     };
     let t2 = std::time::Instant::now();
+    // Leaf data first: with staging, the node section overlaps the staging area.
+    let pre = layout::sections(desc.ty, 0, active as u64, ngeo);
+    if !is_tlas {
+        let (head, tail) = dst.split_at_mut(stage_at.min(dst.len()));
+        let (head, rec_part) = head.split_at_mut(pre.records as usize);
+        let prims = &mut head[pre.prims as usize..pre.prims as usize + active * PRIM_SIZE];
+        let records = &mut rec_part[..active * RECORD_SIZE];
+        if staged {
+            gather_leaf_data(refs, &tail[..total * STAGE_SIZE], prims, records);
+        } else {
+            write_leaf_data(desc, refs, prims, records);
+        }
+    }
+    let t25 = std::time::Instant::now();
     // Nodes are the last section, so their offset is known before their count: emit directly.
-    let nodes_at = layout::sections(desc.ty, 0, active as u64, ngeo).nodes as usize;
+    let nodes_at = pre.nodes as usize;
     let mut wide_count = 0u32;
     let mut leaf_count = 0u32;
     if active > 0 {
@@ -876,7 +979,7 @@ pub fn build(desc: &BuildDesc, view: &dyn DeviceView, dst: &mut [u8], scratch: &
     let dst = &mut dst[..used as usize];
 
     let mut blas_refs = 0u32;
-    let instance_count;
+    let mut instance_count = 0;
     if is_tlas {
         let (head, tail) = dst.split_at_mut(s.instances as usize);
         let records = &mut head[s.records as usize..s.records as usize + active * RECORD_SIZE];
@@ -888,12 +991,6 @@ pub fn build(desc: &BuildDesc, view: &dyn DeviceView, dst: &mut [u8], scratch: &
         let keys: &mut [u64] = bytemuck::try_cast_slice_mut(&mut node_bytes[..active * 8]).map_err(|_| BuildError::ScratchTooSmall { needed: need_scratch, got: 0 })?;
         blas_refs = write_instances(desc, view, refs, keys, inst, records, table);
         instance_count = active as u32;
-    } else {
-        let (head, tail) = dst.split_at_mut(s.records as usize);
-        let prims = &mut head[s.prims as usize..s.prims as usize + active * PRIM_SIZE];
-        let records = &mut tail[..active * RECORD_SIZE];
-        write_leaf_data(desc, refs, prims, records);
-        instance_count = 0;
     }
     let filled = [
         (s.nodes, s.nodes + wide_count as u64 * NODE_SIZE as u64),
@@ -905,7 +1002,7 @@ pub fn build(desc: &BuildDesc, view: &dyn DeviceView, dst: &mut [u8], scratch: &
     ];
     zero_gaps(dst, &filled, used);
     let t3 = std::time::Instant::now();
-    if std::env::var("ARBOR_PROFILE").is_ok() { eprintln!("ingest {:?} build {:?} encode {:?}", t1-t0, t2-t1, t3-t2); }
+    if std::env::var("ARBOR_PROFILE").is_ok() { eprintln!("ingest {:?} build {:?} leafdata {:?} emit+rest {:?}", t1-t0, t2-t1, t25-t2, t3-t25); }
 
     let root_area = root_box.half_area() as f64;
     let sah = if active > 0 && root_area > 0.0 && root_area.is_finite() { (sah_sum / root_area) as f32 } else { 0.0 };

@@ -697,23 +697,38 @@ fn dragon_timing() {
     let g = tri_geom(&vb, nv, &ib, ntri, GeometryFlags::OPAQUE);
     let shapes = [shape_of(&g)];
     let reps: usize = std::env::var("ARBOR_REPS").ok().and_then(|s| s.parse().ok()).unwrap_or(5);
+    let only = std::env::var("ARBOR_TIER").ok();
+    let thread_list: Vec<usize> = std::env::var("ARBOR_THREADS").ok().map(|s| s.split(',').filter_map(|x| x.parse().ok()).collect()).unwrap_or(vec![1, 2]);
     for (name, flags) in [("FAST_BUILD", BuildFlags::PREFER_FAST_BUILD), ("default", 0), ("FAST_TRACE", BuildFlags::PREFER_FAST_TRACE)] {
+        if only.as_deref().is_some_and(|o| o != name) {
+            continue;
+        }
         let sz = build_sizes(AsType::BottomLevel, BuildFlags(flags), &shapes, &[ntri]);
         let mut dst = vec![0u8; sz.acceleration_structure_size as usize];
         let mut scratch = vec![0u8; sz.build_scratch_size as usize];
-        for threads in [1, 2] {
+        for &threads in &thread_list {
             let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
             let desc = BuildDesc { ty: AsType::BottomLevel, flags: BuildFlags(flags), geometries: &[g] };
             let mut times = Vec::new();
+            // Process CPU time (utime + stime, clock ticks of 10 ms) next to wall time: on a
+            // shared 2-core machine wall time includes waiting for the CPU.
+            let cpu = || -> f64 {
+                let s = std::fs::read_to_string("/proc/self/stat").unwrap_or_default();
+                let f: Vec<&str> = s.rsplit(')').next().unwrap_or("").split_whitespace().collect();
+                let t = |i: usize| f.get(i).and_then(|x| x.parse::<f64>().ok()).unwrap_or(0.0);
+                (t(11) + t(12)) * 10.0
+            };
+            let c0 = cpu();
             for _ in 0..reps {
                 let t = std::time::Instant::now();
                 pool.install(|| build(&desc, &NoDevice, &mut dst, &mut scratch)).unwrap();
                 times.push(t.elapsed().as_secs_f64() * 1e3);
             }
+            let cpu_ms = (cpu() - c0) / reps as f64;
             times.sort_by(|a, b| a.total_cmp(b));
             let m = metrics(&dst).unwrap();
             println!(
-                "{name:10} threads {threads}: min {:.1} ms median {:.1} ms | SAH {:.2} wide {:.2} | {:.1} B/tri | nodes {} leaves {} depth {}",
+                "{name:10} threads {threads}: wall min {:.1} ms median {:.1} ms, CPU {cpu_ms:.0} ms/build | SAH {:.2} wide {:.2} | {:.1} B/tri | nodes {} leaves {} depth {}",
                 times[0], times[times.len() / 2], m.sah_cost, m.wide_sah_cost, m.bytes_per_primitive * m.node_count.max(1) as f32 / m.node_count.max(1) as f32 * header(&dst).unwrap().primitive_count as f32 / ntri as f32, m.node_count, m.leaf_count, m.max_depth
             );
         }
