@@ -479,3 +479,38 @@ fn four_million_primitives() {
     assert!(b.report.primitive_count as usize <= n && b.report.primitive_count as usize > n - 1000);
     compare_blas(&b.bytes, &geoms, &random_rays([0.0, 0.0, 0.0, 1.0, 1.0, 1.0], 6, 1), "2^22");
 }
+
+#[test]
+fn deterministic_aabbs_multi_geometry_and_pointer_tlas() {
+    let boxes = boxes_of(&scene::random_soup(40_000, 17));
+    let (a, b) = (AabbData::new(&boxes[..25_000], 24, GEOMETRY_OPAQUE), AabbData::new(&boxes[25_000..], 48, 0));
+    let geoms = [a.geometry(), b.geometry()];
+    for tier in [FAST_TRACE, FAST_BUILD, BuildFlags::ALLOW_UPDATE] {
+        let one = with_threads(1, || build_blas(tier, &geoms));
+        let eight = with_threads(8, || build_blas(tier, &geoms));
+        assert!(used(&one) == used(&eight), "AABB tier {tier:#x}: bytes differ");
+    }
+    // Array-of-pointers TLAS: the same bytes whatever the thread count, and the same
+    // traversal results as the packed layout of the same instances.
+    let blas = build_blas(FAST_TRACE, &[TriData::from_mesh(&scene::random_soup(300, 3), GEOMETRY_OPAQUE).geometry()]);
+    let n = 5000usize;
+    let recs = scene::instance_records(n, &[0x1000_0000], 5);
+    let mut view = MapView::new();
+    view.insert(0x1000_0000, blas.bytes);
+    let base = 0x2000_0000u64;
+    view.insert(base, InstanceRecord::pack(&recs));
+    let ptrs: Vec<u8> = (0..n as u64).flat_map(|i| (base + 64 * i).to_le_bytes()).collect();
+    let g = [Geometry { flags: GeometryFlags(0), primitive_count: n as u32, data: GeometryData::Instances { array_of_pointers: true, data: &ptrs } }];
+    let one = with_threads(1, || build(AsType::TopLevel, FAST_TRACE, &g, &view));
+    let eight = with_threads(8, || build(AsType::TopLevel, FAST_TRACE, &g, &view));
+    assert!(used(&one) == used(&eight), "pointer TLAS bytes differ");
+    let packed = InstanceRecord::pack(&recs);
+    let gp = [Geometry { flags: GeometryFlags(0), primitive_count: n as u32, data: GeometryData::Instances { array_of_pointers: false, data: &packed } }];
+    let p = build(AsType::TopLevel, FAST_TRACE, &gp, &view);
+    let ext = 2.0 * (n as f32).cbrt() + 2.0;
+    for ray in random_rays([-1.0, -1.0, -1.0, ext, ext, ext], 300, 6) {
+        let x = accel::closest_hit(&one.bytes, &view, copy_ray(&ray), RayFlags(0), 0xFF).map(|h| (h.t, hit_id(&h)));
+        let y = accel::closest_hit(&p.bytes, &view, copy_ray(&ray), RayFlags(0), 0xFF).map(|h| (h.t, hit_id(&h)));
+        assert_eq!(x, y);
+    }
+}

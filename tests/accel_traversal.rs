@@ -598,3 +598,53 @@ fn tlas_and_aabb_refit_match_brute_force() {
         compare_ray(&built.bytes, &accel::NoDevice, &scene, ray, 0, 0xFF, EXACT, &format!("refit AABB ray {i}"));
     }
 }
+
+/// AABB candidates through the RayQuery protocol: generate_intersection commits at the given t
+/// only within [tmin, current tmax]; terminate() ends the query keeping the committed hit.
+#[test]
+fn ray_query_aabb_generate_intersection_and_terminate() {
+    let boxes = boxes_of(&scene::random_soup(800, 61));
+    let a = AabbData::new(&boxes, 24, 0);
+    let geoms = [a.geometry()];
+    let scene = RefScene::Blas(&geoms);
+    let built = build_blas(FAST_TRACE, &geoms);
+    let rays = random_rays([0.0, 0.0, 0.0, 1.0, 1.0, 1.0], 300, 62);
+    let mut checked = 0;
+    for (i, ray) in rays.iter().enumerate() {
+        let r = reference(&scene, ray, 0, 0xFF);
+        // Commit each candidate at the midpoint of its (reference) entry t and tmax cap 2.0:
+        // t_commit = entry + 0.5 (farther than the entry, so order matters).
+        let mut q = accel::RayQuery::new(&built.bytes, &accel::NoDevice, copy_ray(ray), accel::RayFlags(0), 0xFF);
+        let mut want: Option<f32> = None;
+        let mut seen = 0;
+        while let Some(c) = q.proceed() {
+            assert!(matches!(c.kind, accel::HitKind::Aabb));
+            let id = hit_id(&c);
+            let rh = r.hits.iter().find(|h| h.id == id);
+            assert!(rh.is_some() || EXACT.near_miss(&r, id), "ray {i}: candidate {id:?} not a reference box");
+            seen += 1;
+            let tc = ray.tmin + (id.primitive % 7) as f32 * 0.1;
+            // Valid only within [tmin, committed t].
+            let limit = q.committed().map_or(ray.tmax, |h| h.t);
+            q.generate_intersection(tc);
+            if tc >= ray.tmin && tc <= limit {
+                want = Some(want.map_or(tc, |w: f32| w.min(tc)));
+            }
+            // Outside the interval: ignored.
+            q.generate_intersection(ray.tmin - 1.0);
+        }
+        assert_eq!(q.committed().map(|h| h.t), want, "ray {i}: committed t after generate_intersection");
+        if seen > 1 {
+            checked += 1;
+            // terminate() after the first candidate: that one stays committed, nothing else comes.
+            let mut q = accel::RayQuery::new(&built.bytes, &accel::NoDevice, copy_ray(ray), accel::RayFlags(0), 0xFF);
+            let first = q.proceed().unwrap();
+            q.generate_intersection(ray.tmin);
+            q.terminate();
+            assert!(q.proceed().is_none(), "ray {i}: candidates after terminate()");
+            let c = q.committed().expect("committed before terminate");
+            assert_eq!((c.t, hit_id(&c)), (ray.tmin, hit_id(&first)));
+        }
+    }
+    assert!(checked > 30, "{checked}");
+}

@@ -657,7 +657,7 @@ impl Tolerance {
         margin < AMBIGUOUS && (!self.exact || !triangle)
     }
 
-    fn near_miss(&self, r: &RefResult, id: PrimId) -> bool {
+    pub fn near_miss(&self, r: &RefResult, id: PrimId) -> bool {
         r.near_misses.iter().any(|&(n, tri)| n == id && (!self.exact || !tri))
     }
 
