@@ -514,3 +514,92 @@ fn deterministic_aabbs_multi_geometry_and_pointer_tlas() {
         assert_eq!(x, y);
     }
 }
+
+/// Spec: degenerate primitives may become non-degenerate in an update, so a build with
+/// ALLOW_UPDATE must keep them. Build with zero-area triangles (points and lines) and
+/// infinite-vertex triangles, refit to proper triangles, compare with brute force.
+#[test]
+fn refit_revives_degenerate_primitives() {
+    let good = scene::random_soup(3000, 71);
+    let mut degen = good.clone();
+    for (i, t) in good.indices.iter().enumerate() {
+        match i % 4 {
+            0 => {
+                let p = good.positions[t[0] as usize];
+                for &k in t {
+                    degen.positions[k as usize] = p; // a point
+                }
+            }
+            1 => {
+                let (a, b) = (good.positions[t[0] as usize], good.positions[t[1] as usize]);
+                degen.positions[t[2] as usize] = [2.0 * b[0] - a[0], 2.0 * b[1] - a[1], 2.0 * b[2] - a[2]]; // a line
+            }
+            2 => degen.positions[t[1] as usize][1] = f32::INFINITY, // active, infinite
+            _ => {}
+        }
+    }
+    let d = TriData::from_mesh(&degen, 0);
+    let flags = BuildFlags::ALLOW_UPDATE | FAST_TRACE;
+    let mut built = build_blas(flags, &[d.geometry()]);
+    let g = TriData::from_mesh(&good, 0);
+    let geoms = [g.geometry()];
+    let desc = BuildDesc { ty: AsType::BottomLevel, flags: BuildFlags(flags), geometries: &geoms };
+    let mut scratch = vec![0u8; built.sizes.update_scratch_size as usize];
+    accel::update(&desc, &accel::NoDevice, None, &mut built.bytes, &mut scratch).expect("update");
+    accel::validate(&built.bytes).expect("validate after update");
+    let hits = compare_blas(&built.bytes, &geoms, &random_rays([0.0, 0.0, 0.0, 1.0, 1.0, 1.0], 500, 72), "revived");
+    assert!(hits > 200, "{hits}");
+}
+
+#[test]
+fn hostile_rays_and_instance_transforms_do_not_panic() {
+    let blas = build_blas(0, &[TriData::from_mesh(&scene::random_soup(200, 1), 0).geometry()]);
+    let mut view = MapView::new();
+    view.insert(0x1000, blas.bytes.clone());
+    let mut recs = scene::instance_records(40, &[0x1000], 2);
+    let nan = f32::NAN;
+    let inf = f32::INFINITY;
+    recs[0].transform = [0.0; 12]; // singular
+    recs[1].transform = [nan; 12];
+    recs[2].transform = [inf, 0.0, 0.0, 0.0, 0.0, inf, 0.0, 0.0, 0.0, 0.0, inf, 0.0];
+    recs[3].transform = [1e30, 0.0, 0.0, 1e30, 0.0, 1e-30, 0.0, 0.0, 0.0, 0.0, 1.0, -1e30];
+    recs[4].transform[3] = nan;
+    let packed = InstanceRecord::pack(&recs);
+    let g = [Geometry { flags: GeometryFlags(0), primitive_count: 40, data: GeometryData::Instances { array_of_pointers: false, data: &packed } }];
+    let t = build(AsType::TopLevel, FAST_TRACE, &g, &view);
+    let v = glam::Vec3::new;
+    let odd = [
+        Ray { origin: v(nan, 0.0, 0.0), direction: v(1.0, 0.0, 0.0), tmin: 0.0, tmax: inf },
+        Ray { origin: v(0.0, 0.0, 0.0), direction: v(0.0, 0.0, 0.0), tmin: 0.0, tmax: inf },
+        Ray { origin: v(0.0, 0.0, 0.0), direction: v(nan, 1.0, 0.0), tmin: 0.0, tmax: inf },
+        Ray { origin: v(-inf, 0.5, 0.5), direction: v(1.0, 0.0, 0.0), tmin: 0.0, tmax: inf },
+        Ray { origin: v(0.5, 0.5, -5.0), direction: v(0.0, 0.0, inf), tmin: 0.0, tmax: inf },
+        Ray { origin: v(0.5, 0.5, -5.0), direction: v(0.0, 0.0, 1.0), tmin: nan, tmax: inf },
+        Ray { origin: v(0.5, 0.5, -5.0), direction: v(0.0, 0.0, 1.0), tmin: -inf, tmax: nan },
+        Ray { origin: v(0.5, 0.5, -5.0), direction: v(1e-38, 1e-38, 1e-38), tmin: 0.0, tmax: inf },
+    ];
+    for (i, r) in odd.iter().enumerate() {
+        for s in [&t.bytes, &blas.bytes] {
+            let _ = accel::closest_hit(s, &view, copy_ray(r), RayFlags(0), 0xFF);
+            let _ = accel::any_hit(s, &view, copy_ray(r), RayFlags(0), 0xFF);
+            let all = accel::all_hits(s, &view, copy_ray(r), RayFlags(0), 0xFF);
+            for h in all {
+                assert!(h.t.is_finite() || h.t == f32::INFINITY, "ray {i}: hit with t {}", h.t);
+            }
+        }
+    }
+    // Normal rays still agree with brute force on the healthy instances (5..40), since the
+    // reference skips instances whose transform it cannot invert and traverses the rest.
+    let healthy: Vec<InstanceRecord> = recs.iter().enumerate().map(|(i, r)| if i < 5 { InstanceRecord { reference: 0, ..*r } } else { *r }).collect();
+    let hp = InstanceRecord::pack(&healthy);
+    let hg = [Geometry { flags: GeometryFlags(0), primitive_count: 40, data: GeometryData::Instances { array_of_pointers: false, data: &hp } }];
+    let ht = build(AsType::TopLevel, FAST_TRACE, &hg, &view);
+    let geoms = [TriData::from_mesh(&scene::random_soup(200, 1), 0)];
+    let gg: Vec<Geometry> = geoms.iter().map(|d| d.geometry()).collect();
+    let blases: HashMap<u64, &[Geometry]> = [(0x1000u64, gg.as_slice())].into_iter().collect();
+    let scene = RefScene::Tlas { instances: healthy.clone(), blases };
+    let ext = 2.0 * 40f32.cbrt() + 2.0;
+    for (i, ray) in random_rays([-1.0, -1.0, -1.0, ext, ext, ext], 200, 9).iter().enumerate() {
+        compare_ray(&ht.bytes, &view, &scene, ray, 0, 0xFF, Tolerance { exact: false }, &format!("healthy ray {i}"));
+    }
+}
