@@ -142,6 +142,9 @@ pub fn instance_bounds(transform: &[f32; 12], reference: u64, view: &dyn DeviceV
 #[derive(Clone, Copy, Debug)]
 pub struct BuildParams {
     pub bins: usize,
+    /// Bin only along the widest centroid axis (fast-build tier: a third of the binning work
+    /// for a few percent of SAH).
+    pub single_axis: bool,
     pub max_leaf: u32,
     /// Below this many primitives a subtree is built on the calling thread.
     pub parallel_cutoff: u32,
@@ -157,11 +160,11 @@ const BIN_CHUNK: usize = 1 << 14;
 impl BuildParams {
     pub fn from_flags(flags: BuildFlags) -> Self {
         if flags.contains(BuildFlags::PREFER_FAST_TRACE) {
-            BuildParams { bins: 32, max_leaf: 8, parallel_cutoff: 4096 }
+            BuildParams { bins: 32, single_axis: false, max_leaf: 8, parallel_cutoff: 4096 }
         } else if flags.contains(BuildFlags::PREFER_FAST_BUILD) {
-            BuildParams { bins: 8, max_leaf: 8, parallel_cutoff: 4096 }
+            BuildParams { bins: 8, single_axis: true, max_leaf: 8, parallel_cutoff: 4096 }
         } else {
-            BuildParams { bins: 16, max_leaf: 8, parallel_cutoff: 4096 }
+            BuildParams { bins: 16, single_axis: false, max_leaf: 8, parallel_cutoff: 4096 }
         }
     }
 }
@@ -218,10 +221,18 @@ struct Binning {
     cmin: Vec3A,
     scale: Vec3A,
     kmax: UVec3,
+    /// Axes binned: a..b (all three, or the single widest one).
+    axes: (usize, usize),
 }
 impl Binning {
     /// Bin indices of a reference on all three axes. `as u32` saturates (NaN → 0), so no
     /// input can index out of range; binning and partitioning share this exact arithmetic.
+    /// The same arithmetic for one axis (bit-identical to the vector lane: same IEEE ops).
+    #[inline(always)]
+    fn bin_axis(&self, r: &PrimRef, a: usize) -> usize {
+        let c = r.lo[a] * 0.5 + r.hi[a] * 0.5;
+        (((c - self.cmin[a]) * self.scale[a]) as u32).min(self.kmax.x) as usize
+    }
     #[inline(always)]
     fn bins(&self, r: &PrimRef) -> UVec3 {
         let c = Vec3A::from(r.lo) * 0.5 + Vec3A::from(r.hi) * 0.5;
@@ -229,18 +240,47 @@ impl Binning {
     }
 }
 
-fn bin_refs(refs: &[PrimRef], bn: &Binning, bins: &mut Bins) {
-    for r in refs {
-        let lo = Vec3A::from(r.lo);
-        let hi = Vec3A::from(r.hi);
-        let idx = bn.bins(r);
-        for a in 0..3 {
-            let b = (idx[a] as usize).min(MAX_BINS - 1);
-            bins.lo[a][b] = bins.lo[a][b].min(lo);
-            bins.hi[a][b] = bins.hi[a][b].max(hi);
-            bins.count[a][b] += 1;
-        }
+#[inline(always)]
+fn bin_one(r: &PrimRef, bn: &Binning, bins: &mut Bins) {
+    let lo = Vec3A::from(r.lo);
+    let hi = Vec3A::from(r.hi);
+    if bn.axes.1 - bn.axes.0 == 1 {
+        let a = bn.axes.0.min(2);
+        let b = bn.bin_axis(r, a).min(MAX_BINS - 1);
+        bins.lo[a][b] = bins.lo[a][b].min(lo);
+        bins.hi[a][b] = bins.hi[a][b].max(hi);
+        bins.count[a][b] += 1;
+        return;
     }
+    let idx = bn.bins(r);
+    for a in bn.axes.0..bn.axes.1 {
+        let b = (idx[a] as usize).min(MAX_BINS - 1);
+        bins.lo[a][b] = bins.lo[a][b].min(lo);
+        bins.hi[a][b] = bins.hi[a][b].max(hi);
+        bins.count[a][b] += 1;
+    }
+}
+
+fn bin_refs(refs: &[PrimRef], bn: &Binning, bins: &mut Bins) {
+    if refs.len() < 512 {
+        for r in refs {
+            bin_one(r, bn, bins);
+        }
+        return;
+    }
+    // Two interleaved bin sets: neighbouring primitives often fall into the same bin, and one
+    // set would chain every min/max through memory. Merging is exact (min/max, integer counts).
+    let k = (bn.kmax.x as usize + 1).min(MAX_BINS);
+    let mut other = Bins::new();
+    let mut pairs = refs.chunks_exact(2);
+    for p in &mut pairs {
+        bin_one(&p[0], bn, bins);
+        bin_one(&p[1], bn, &mut other);
+    }
+    for r in pairs.remainder() {
+        bin_one(r, bn, bins);
+    }
+    bins.merge(&other, k);
 }
 
 #[inline]
@@ -289,7 +329,9 @@ fn build_rec(ctx: &Ctx, refs: &mut [PrimRef], nodes: &mut [BinNode], start: u32,
     if depth < MAX_SAH_DEPTH {
         let mut scale = [0f32; 3];
         let mut any = false;
-        for a in 0..3 {
+        let widest = (0..3).fold(0, |w, a| if cb.hi[a] - cb.lo[a] > cb.hi[w] - cb.lo[w] { a } else { w });
+        let axes = if p.single_axis { (widest, widest + 1) } else { (0, 3) };
+        for a in axes.0..axes.1 {
             let ext = cb.hi[a] - cb.lo[a];
             let sc = k as f32 / ext;
             if ext > 0.0 && sc.is_finite() && sc > 0.0 {
@@ -298,7 +340,7 @@ fn build_rec(ctx: &Ctx, refs: &mut [PrimRef], nodes: &mut [BinNode], start: u32,
                 any = true;
             }
         }
-        let bn = Binning { cmin: Vec3A::from(cb.lo), scale: Vec3A::from(scale), kmax: UVec3::splat(k as u32 - 1) };
+        let bn = Binning { cmin: Vec3A::from(cb.lo), scale: Vec3A::from(scale), kmax: UVec3::splat(k as u32 - 1), axes };
         if any {
             bins.reset(k);
             if n >= PAR_BIN_CUTOFF {
@@ -392,7 +434,7 @@ fn build_rec(ctx: &Ctx, refs: &mut [PrimRef], nodes: &mut [BinNode], start: u32,
                 while i < j {
                     let r = &refs[i];
                     let c = Vec3A::from(r.lo) * 0.5 + Vec3A::from(r.hi) * 0.5;
-                    if (bn.bins(r)[a] as usize) <= b {
+                    if bn.bin_axis(r, a) <= b {
                         lc_lo = lc_lo.min(c);
                         lc_hi = lc_hi.max(c);
                         i += 1;
@@ -910,14 +952,12 @@ pub fn build(desc: &BuildDesc, view: &dyn DeviceView, dst: &mut [u8], scratch: &
     let (refs, rest) = carve::<PrimRef>(scratch, total).ok_or(BuildError::ScratchTooSmall { needed: need_scratch, got: 0 })?;
     let (nodes, _) = carve::<BinNode>(rest, 2 * total).ok_or(BuildError::ScratchTooSmall { needed: need_scratch, got: 0 })?;
 
-    let t0 = std::time::Instant::now();
     // BLAS primitive data is staged in the (still unused) node area of dst during ingest, so
     // the leaf-order pass reads one 40-byte record per primitive instead of indices and three
     // vertices at random. Needs 40·total <= the worst-case node area (true for total >= 3).
     let stage_at = layout::sections(desc.ty, 0, total as u64, ngeo).nodes as usize;
     let staged = !is_tlas && total >= 3 && stage_at.checked_add(total * STAGE_SIZE).is_some_and(|e| e <= dst.len());
     let active = ingest(desc, view, refs, if staged { dst.get_mut(stage_at..) } else { None })?;
-    let t1 = std::time::Instant::now();
     let refs = &mut refs[..active];
     // Geometry table now, while refs are still in geometry order (its offset is tree-independent).
     {
@@ -948,7 +988,6 @@ pub fn build(desc: &BuildDesc, view: &dyn DeviceView, dst: &mut [u8], scratch: &
     } else {
         (0.0, 0)
     };
-    let t2 = std::time::Instant::now();
     // Leaf data first: with staging, the node section overlaps the staging area.
     let pre = layout::sections(desc.ty, 0, active as u64, ngeo);
     if !is_tlas {
@@ -962,7 +1001,6 @@ pub fn build(desc: &BuildDesc, view: &dyn DeviceView, dst: &mut [u8], scratch: &
             write_leaf_data(desc, refs, prims, records);
         }
     }
-    let t25 = std::time::Instant::now();
     // Nodes are the last section, so their offset is known before their count: emit directly.
     let nodes_at = pre.nodes as usize;
     let mut wide_count = 0u32;
@@ -1001,8 +1039,6 @@ pub fn build(desc: &BuildDesc, view: &dyn DeviceView, dst: &mut [u8], scratch: &
         (s.blas_table, s.blas_table + if is_tlas { active as u64 * 8 } else { 0 }),
     ];
     zero_gaps(dst, &filled, used);
-    let t3 = std::time::Instant::now();
-    if std::env::var("ARBOR_PROFILE").is_ok() { eprintln!("ingest {:?} build {:?} leafdata {:?} emit+rest {:?}", t1-t0, t2-t1, t25-t2, t3-t25); }
 
     let root_area = root_box.half_area() as f64;
     let sah = if active > 0 && root_area > 0.0 && root_area.is_finite() { (sah_sum / root_area) as f32 } else { 0.0 };
