@@ -4,8 +4,11 @@
 //! binary, leaves 1–8) and obvhs (PLOC) are measured in the same run.
 //!
 //!   cargo bench --bench accel_build [--features peers] -- [filter]
+//!   ARBOR_DATA_DIR=dir   where dragon_vrip.ply.gz is (default: data/ of the checkout)
 //!   ARBOR_BENCH_SECS=N   measurement time per benchmark (default 3; 10 samples minimum)
 //!   ARBOR_BENCH_SCENES=dragon,soup  which scenes (default both)
+//!   ARBOR_BENCH_THREADS=1,4,16      thread counts (default: 1 and all)
+//!   ARBOR_BENCH_PEERS=embree,obvhs  which peers with --features peers (default both)
 
 #[cfg(feature = "peers")]
 mod peers;
@@ -15,6 +18,11 @@ use arbor::scene::{self, Mesh};
 use criterion::{criterion_group, criterion_main, BatchSize, Criterion, SamplingMode, Throughput};
 use std::time::Duration;
 
+/// data/ of the checkout; ARBOR_DATA_DIR overrides it (a bench binary run on another machine).
+fn data_dir() -> std::path::PathBuf {
+    std::env::var_os("ARBOR_DATA_DIR").map(Into::into).unwrap_or_else(|| std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("data"))
+}
+
 fn secs() -> u64 {
     std::env::var("ARBOR_BENCH_SECS").ok().and_then(|s| s.parse().ok()).unwrap_or(3)
 }
@@ -23,7 +31,7 @@ fn scenes() -> Vec<(&'static str, Mesh)> {
     let want = std::env::var("ARBOR_BENCH_SCENES").unwrap_or_else(|_| "dragon,soup".into());
     let mut out = Vec::new();
     if want.contains("dragon") {
-        let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("data/dragon_vrip.ply.gz");
+        let path = data_dir().join("dragon_vrip.ply.gz");
         out.push(("dragon", scene::load(path).expect("data/dragon_vrip.ply.gz")));
     }
     if want.contains("soup") {
@@ -63,7 +71,11 @@ fn pool(threads: usize) -> rayon::ThreadPool {
 
 fn bench_build(c: &mut Criterion) {
     let all = std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1);
-    let thread_counts: Vec<usize> = if all > 1 { vec![1, all] } else { vec![1] };
+    let thread_counts: Vec<usize> = match std::env::var("ARBOR_BENCH_THREADS") {
+        Ok(list) => list.split(',').filter_map(|t| t.trim().parse().ok()).collect(),
+        Err(_) if all > 1 => vec![1, all],
+        Err(_) => vec![1],
+    };
     for (name, mesh) in scenes() {
         let n = mesh.indices.len();
         let input = Input { vertices: mesh.vertex_bytes(), indices: mesh.index_bytes(), max_vertex: mesh.max_index(), count: n as u32 };
@@ -114,8 +126,9 @@ fn bench_build(c: &mut Criterion) {
 fn peer_benches(group: &mut criterion::BenchmarkGroup<'_, criterion::measurement::WallTime>, mesh: &Mesh, thread_counts: &[usize]) {
     use peers::{embree, obvhs_peer};
     let n = mesh.indices.len();
+    let want = std::env::var("ARBOR_BENCH_PEERS").unwrap_or_else(|_| "embree,obvhs".into());
     let prims = embree::primitives(mesh, 2 * n);
-    for &threads in thread_counts {
+    for &threads in thread_counts.iter().filter(|_| want.contains("embree")) {
         let dev = embree::Device::new(threads);
         for (qname, q) in [("low", 0u32), ("medium", 1), ("high", 2)] {
             let mut copy = prims.clone();
@@ -128,7 +141,7 @@ fn peer_benches(group: &mut criterion::BenchmarkGroup<'_, criterion::measurement
         }
     }
     let tris = obvhs_peer::triangles(mesh);
-    for &threads in thread_counts {
+    for &threads in thread_counts.iter().filter(|_| want.contains("obvhs")) {
         let p = pool(threads);
         let bvh = p.install(|| obvhs_peer::build(&tris));
         println!("obvhs ploc-fastest {threads}t: SAH {:.2}", obvhs_peer::sah(&bvh));

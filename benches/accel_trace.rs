@@ -3,6 +3,7 @@
 //! on 1 thread and on all threads (rayon over the batch).
 //!
 //!   cargo bench --bench accel_trace
+//!   ARBOR_DATA_DIR=dir   where dragon_vrip.ply.gz is (default: data/ of the checkout)
 //!   ARBOR_BENCH_SECS=N   measurement time per benchmark (default 3)
 
 use arbor::accel::{self, AsType, BuildDesc, BuildFlags, Geometry, GeometryData, GeometryFlags, IndexType, Ray, RayFlags, VertexFormat};
@@ -53,12 +54,17 @@ fn random_rays(b: [f32; 6], n: usize, seed: u64) -> Vec<Ray> {
         .collect()
 }
 
+/// data/ of the checkout; ARBOR_DATA_DIR overrides it (a bench binary run on another machine).
+fn data_dir() -> std::path::PathBuf {
+    std::env::var_os("ARBOR_DATA_DIR").map(Into::into).unwrap_or_else(|| std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("data"))
+}
+
 fn copy(r: &Ray) -> Ray {
     Ray { origin: r.origin, direction: r.direction, tmin: r.tmin, tmax: r.tmax }
 }
 
 fn bench_trace(c: &mut Criterion) {
-    let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("data/dragon_vrip.ply.gz");
+    let path = data_dir().join("dragon_vrip.ply.gz");
     let mesh = scene::load(path).expect("dragon");
     let (vb, ib) = (mesh.vertex_bytes(), mesh.index_bytes());
     let geoms = [Geometry {
