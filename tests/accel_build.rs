@@ -230,7 +230,24 @@ fn tlas_serialize_rewrites_blas_references() {
     insts[3].reference = 0;
     let packed = InstanceRecord::pack(&insts);
     let g = [Geometry { flags: GeometryFlags(0), primitive_count: 30, data: GeometryData::Instances { array_of_pointers: false, data: &packed } }];
-    let tlas = build(AsType::TopLevel, FAST_TRACE, &g, &view);
+    let tlas = build(AsType::TopLevel, FAST_TRACE | BuildFlags::ALLOW_COMPACTION, &g, &view);
+    // Clone and compaction of a TLAS: same traversal results as the original.
+    let mut cloned = vec![0u8; tlas.bytes.len()];
+    accel::clone_into(&tlas.bytes, &mut cloned).unwrap();
+    let mut compact = vec![0u8; tlas.report.used_size as usize];
+    accel::compact_into(&tlas.bytes, &mut compact).unwrap();
+    accel::validate(&compact).expect("validate compacted TLAS");
+    {
+        let blases: HashMap<u64, &[Geometry]> = [(a1, &g1[..]), (a2, &g2[..])].into_iter().collect();
+        let scene = RefScene::Tlas { instances: insts.clone(), blases };
+        let b = union_bounds(insts.iter().map(|r| [r.transform[3], r.transform[7], r.transform[11]]));
+        let bounds = [b[0] - 2.0, b[1] - 2.0, b[2] - 2.0, b[3] + 2.0, b[4] + 2.0, b[5] + 2.0];
+        for (i, ray) in random_rays(bounds, 200, 8).iter().enumerate() {
+            for (name, s) in [("original", &tlas.bytes), ("clone", &cloned), ("compacted", &compact)] {
+                compare_ray(s, &view, &scene, ray, 0, 0xFF, Tolerance { exact: false }, &format!("{name} TLAS ray {i}"));
+            }
+        }
+    }
     let mut refs = accel::blas_references(&tlas.bytes);
     refs.sort();
     refs.dedup();
