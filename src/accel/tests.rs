@@ -734,3 +734,27 @@ fn dragon_timing() {
         }
     }
 }
+
+#[test]
+fn axis_rays_on_box_planes() {
+    // A 4x4 grid of quads in y = 0; axis rays whose origin lies exactly on node box planes
+    // (x or z = 0 or 1) with zero direction components must still find the hits.
+    let mut v = Vec::new();
+    for i in 0..4 {
+        for j in 0..4 {
+            let (x0, z0, x1, z1) = (i as f32 / 4.0, j as f32 / 4.0, (i + 1) as f32 / 4.0, (j + 1) as f32 / 4.0);
+            v.extend([Vec3::new(x0, 0.0, z0), Vec3::new(x1, 0.0, z0), Vec3::new(x1, 0.0, z1)]);
+            v.extend([Vec3::new(x0, 0.0, z0), Vec3::new(x1, 0.0, z1), Vec3::new(x0, 0.0, z1)]);
+        }
+    }
+    let vb = f32_bytes(&v);
+    let g = tri_geom(&vb, v.len() as u32, &[], 32, GeometryFlags::OPAQUE);
+    let blas = build_ok(AsType::BottomLevel, 0, &[g], &NoDevice);
+    for i in 0..=8 {
+        for j in 0..=8 {
+            let o = Vec3::new(i as f32 / 8.0, 1.0, j as f32 / 8.0);
+            let ray = Ray { origin: o, direction: Vec3::new(0.0, -1.0, -0.0), tmin: 0.0, tmax: f32::INFINITY };
+            assert_eq!(closest_hit(&blas, &NoDevice, ray, RayFlags(0), 0xff).map(|h| h.t), brute_closest(&v, &ray, 0).map(|b| b.0), "{o:?}");
+        }
+    }
+}

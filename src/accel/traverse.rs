@@ -148,8 +148,12 @@ fn ray_box(org: Vec3, inv: Vec3, b: &[f32; 6], tmin: f32, tmax: f32) -> Option<f
     for a in 0..3 {
         let t0 = (b[a] - org[a]) * inv[a];
         let t1 = (b[a + 3] - org[a]) * inv[a];
-        // f32::min/max ignore a NaN operand (0 * inf on a slab plane): that axis then
-        // constrains nothing, which is conservative.
+        // NaN = 0 * inf: a zero direction component with the origin exactly on a slab plane,
+        // so the origin lies in the closed slab and this axis constrains nothing. (f32::min
+        // alone would drop the NaN and return the infinite other bound: a false miss.)
+        if t0.is_nan() || t1.is_nan() {
+            continue;
+        }
         let lo = t0.min(t1);
         let hi = t0.max(t1);
         tn = tn.max(lo);
