@@ -139,6 +139,9 @@ fn peer_benches(group: &mut criterion::BenchmarkGroup<'_, criterion::measurement
                 b.iter_batched_ref(|| prims.clone(), |p| dev.build(q, mesh, p, n), BatchSize::PerIteration)
             });
         }
+        // Embree's own scene build (its BVH8 for tracing), MEDIUM; SAH not exposed. Includes
+        // copying the mesh into the shared buffers (a few ms).
+        group.bench_function(format!("embree/scene_commit_medium/{threads}t"), |b| b.iter_with_large_drop(|| embree::Scene::new(&dev, mesh, 1)));
     }
     let tris = obvhs_peer::triangles(mesh);
     for &threads in thread_counts.iter().filter(|_| want.contains("obvhs")) {

@@ -2,9 +2,15 @@
 //! primary camera rays and random rays (closest hit), random rays with any hit (shadow-like),
 //! on 1 thread and on all threads (rayon over the batch).
 //!
-//!   cargo bench --bench accel_trace
+//! With `--features peers`, Embree 3 (rtcIntersect1/rtcOccluded1 on its own MEDIUM scene BVH)
+//! traces the same rays in the same run, after a check that both find the same hits.
+//!
+//!   cargo bench --bench accel_trace [--features peers]
 //!   ARBOR_DATA_DIR=dir   where dragon_vrip.ply.gz is (default: data/ of the checkout)
 //!   ARBOR_BENCH_SECS=N   measurement time per benchmark (default 3)
+
+#[cfg(feature = "peers")]
+mod peers;
 
 use arbor::accel::{self, AsType, BuildDesc, BuildFlags, Geometry, GeometryData, GeometryFlags, IndexType, Ray, RayFlags, VertexFormat};
 use arbor::scene::{self, Rng};
@@ -99,7 +105,7 @@ fn bench_trace(c: &mut Criterion) {
     let all = std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1);
     for (name, rays, any) in [("primary_closest", &primary, false), ("random_closest", &random, false), ("random_any", &random, true)] {
         let flags = RayFlags(if any { 4 } else { 0 });
-        group.bench_function(format!("{name}/1t"), |bn| {
+        group.bench_function(format!("arbor/{name}/1t"), |bn| {
             bn.iter(|| {
                 let mut hits = 0usize;
                 for r in rays.iter() {
@@ -110,7 +116,7 @@ fn bench_trace(c: &mut Criterion) {
         });
         if all > 1 {
             let pool = rayon::ThreadPoolBuilder::new().num_threads(all).build().unwrap();
-            group.bench_function(format!("{name}/{all}t"), |bn| {
+            group.bench_function(format!("arbor/{name}/{all}t"), |bn| {
                 bn.iter(|| {
                     pool.install(|| {
                         rays.par_chunks(1024)
@@ -119,6 +125,39 @@ fn bench_trace(c: &mut Criterion) {
                     })
                 })
             });
+        }
+    }
+    #[cfg(feature = "peers")]
+    {
+        use peers::embree;
+        let dev = embree::Device::new(all);
+        let scene = embree::Scene::new(&dev, &mesh, 1);
+        // Agreement check: same hit/miss and t within 1e-4 relative on nearly every ray.
+        for (name, rays) in [("primary", &primary), ("random", &random)] {
+            let mut agree = 0;
+            for r in rays.iter() {
+                let a = accel::closest_hit(bvh, &accel::NoDevice, copy(r), RayFlags(0), 0xFF).map(|h| h.t);
+                let e = scene.intersect(r.origin.to_array(), r.direction.to_array(), r.tmin, r.tmax).map(|h| h.0);
+                agree += match (a, e) {
+                    (None, None) => 1,
+                    (Some(x), Some(y)) => ((x - y).abs() <= 1e-4 * x.abs().max(1e-3)) as usize,
+                    _ => 0,
+                };
+            }
+            println!("arbor vs embree, {name} rays: {:.3}% agree (hit/miss and t)", 100.0 * agree as f64 / rays.len() as f64);
+        }
+        for (name, rays, any) in [("primary_closest", &primary, false), ("random_closest", &random, false), ("random_any", &random, true)] {
+            let trace = |r: &Ray| {
+                let (o, d) = (r.origin.to_array(), r.direction.to_array());
+                if any { scene.occluded(o, d, r.tmin, r.tmax) } else { scene.intersect(o, d, r.tmin, r.tmax).is_some() }
+            };
+            group.bench_function(format!("embree/{name}/1t"), |bn| bn.iter(|| rays.iter().filter(|r| trace(r)).count()));
+            if all > 1 {
+                let pool = rayon::ThreadPoolBuilder::new().num_threads(all).build().unwrap();
+                group.bench_function(format!("embree/{name}/{all}t"), |bn| {
+                    bn.iter(|| pool.install(|| rays.par_chunks(1024).map(|c| c.iter().filter(|r| trace(r)).count()).sum::<usize>()))
+                });
+            }
         }
     }
     group.finish();

@@ -94,6 +94,127 @@ pub mod embree {
         fn rtcReleaseBVH(bvh: *mut c_void);
         fn rtcBuildBVH(args: *const BuildArguments) -> *mut c_void;
         fn rtcThreadLocalAlloc(allocator: *mut c_void, bytes: usize, align: usize) -> *mut c_void;
+        fn rtcNewScene(device: *mut c_void) -> *mut c_void;
+        fn rtcSetSceneBuildQuality(scene: *mut c_void, quality: c_uint);
+        fn rtcReleaseScene(scene: *mut c_void);
+        fn rtcAttachGeometry(scene: *mut c_void, geometry: *mut c_void) -> c_uint;
+        fn rtcCommitScene(scene: *mut c_void);
+        fn rtcNewGeometry(device: *mut c_void, ty: c_uint) -> *mut c_void;
+        fn rtcSetSharedGeometryBuffer(geometry: *mut c_void, ty: c_uint, slot: c_uint, format: c_uint, ptr: *const c_void, offset: usize, stride: usize, count: usize);
+        fn rtcSetGeometryBuildQuality(geometry: *mut c_void, quality: c_uint);
+        fn rtcCommitGeometry(geometry: *mut c_void);
+        fn rtcReleaseGeometry(geometry: *mut c_void);
+        fn rtcIntersect1(scene: *mut c_void, context: *mut IntersectContext, rayhit: *mut RayHit);
+        fn rtcOccluded1(scene: *mut c_void, context: *mut IntersectContext, ray: *mut RtcRay);
+    }
+
+    #[repr(C, align(16))]
+    #[derive(Clone, Copy, Default)]
+    pub struct RtcRay {
+        pub org: [f32; 3],
+        pub tnear: f32,
+        pub dir: [f32; 3],
+        pub time: f32,
+        pub tfar: f32,
+        pub mask: c_uint,
+        pub id: c_uint,
+        pub flags: c_uint,
+    }
+
+    #[repr(C, align(16))]
+    #[derive(Clone, Copy, Default)]
+    pub struct RtcHit {
+        pub ng: [f32; 3],
+        pub u: f32,
+        pub v: f32,
+        pub prim_id: c_uint,
+        pub geom_id: c_uint,
+        pub inst_id: [c_uint; 1],
+    }
+
+    #[repr(C)]
+    #[derive(Clone, Copy, Default)]
+    pub struct RayHit {
+        pub ray: RtcRay,
+        pub hit: RtcHit,
+    }
+
+    #[repr(C)]
+    pub struct IntersectContext {
+        flags: c_uint,
+        filter: *const c_void,
+        inst_id: [c_uint; 1],
+    }
+
+    const INVALID_ID: c_uint = u32::MAX;
+
+    fn context() -> IntersectContext {
+        IntersectContext { flags: 0, filter: std::ptr::null(), inst_id: [INVALID_ID] }
+    }
+
+    /// An Embree scene (its own BVH, rtcCommitScene) over one triangle mesh, for tracing.
+    pub struct Scene {
+        scene: *mut c_void,
+        // Shared buffers must outlive the scene; Embree reads vertices with 16-byte loads, so
+        // the vertex buffer has 16 bytes of padding after the last vertex.
+        _vertices: Vec<f32>,
+        _indices: Vec<u32>,
+    }
+
+    // SAFETY: a committed Embree scene may be traced from several threads at once.
+    unsafe impl Sync for Scene {}
+    // SAFETY: as above.
+    unsafe impl Send for Scene {}
+
+    impl Scene {
+        pub fn new(device: &Device, mesh: &Mesh, quality: u32) -> Self {
+            let mut vertices: Vec<f32> = mesh.positions.iter().flatten().copied().collect();
+            vertices.extend_from_slice(&[0.0; 4]);
+            let indices: Vec<u32> = mesh.indices.iter().flatten().copied().collect();
+            // SAFETY: valid device; buffers alive as long as the scene (owned by Self).
+            unsafe {
+                let scene = rtcNewScene(device.0);
+                rtcSetSceneBuildQuality(scene, quality);
+                let g = rtcNewGeometry(device.0, 0 /* TRIANGLE */);
+                rtcSetGeometryBuildQuality(g, quality);
+                rtcSetSharedGeometryBuffer(g, 1 /* VERTEX */, 0, 0x9003 /* FLOAT3 */, vertices.as_ptr() as *const c_void, 0, 12, mesh.positions.len());
+                rtcSetSharedGeometryBuffer(g, 0 /* INDEX */, 0, 0x5003 /* UINT3 */, indices.as_ptr() as *const c_void, 0, 12, mesh.indices.len());
+                rtcCommitGeometry(g);
+                rtcAttachGeometry(scene, g);
+                rtcReleaseGeometry(g);
+                rtcCommitScene(scene);
+                let err = rtcGetDeviceError(device.0);
+                assert!(err == 0, "Embree scene build failed (error {err})");
+                Scene { scene, _vertices: vertices, _indices: indices }
+            }
+        }
+
+        /// Closest hit: (t, primitive) or None.
+        pub fn intersect(&self, org: [f32; 3], dir: [f32; 3], tnear: f32, tfar: f32) -> Option<(f32, u32)> {
+            let mut rh = RayHit { ray: RtcRay { org, tnear, dir, time: 0.0, tfar, mask: u32::MAX, id: 0, flags: 0 }, hit: RtcHit::default() };
+            rh.hit.geom_id = INVALID_ID;
+            rh.hit.inst_id = [INVALID_ID];
+            let mut ctx = context();
+            // SAFETY: committed scene, valid ray/hit and context.
+            unsafe { rtcIntersect1(self.scene, &mut ctx, &mut rh) };
+            (rh.hit.geom_id != INVALID_ID).then_some((rh.ray.tfar, rh.hit.prim_id))
+        }
+
+        /// Any hit (occlusion).
+        pub fn occluded(&self, org: [f32; 3], dir: [f32; 3], tnear: f32, tfar: f32) -> bool {
+            let mut r = RtcRay { org, tnear, dir, time: 0.0, tfar, mask: u32::MAX, id: 0, flags: 0 };
+            let mut ctx = context();
+            // SAFETY: as above.
+            unsafe { rtcOccluded1(self.scene, &mut ctx, &mut r) };
+            r.tfar == f32::NEG_INFINITY
+        }
+    }
+
+    impl Drop for Scene {
+        fn drop(&mut self) {
+            // SAFETY: created by rtcNewScene, released once.
+            unsafe { rtcReleaseScene(self.scene) };
+        }
     }
 
     /// Node of the tree Embree builds through our callbacks (in Embree's thread-local memory).
