@@ -648,3 +648,80 @@ fn ray_query_aabb_generate_intersection_and_terminate() {
     }
     assert!(checked > 30, "{checked}");
 }
+
+/// Grid-aligned AABB primitives (touching voxels) and instances with identity/axis-permuting
+/// transforms at integer offsets, hit by axis-aligned rays along the lattice planes.
+#[test]
+fn axis_aligned_rays_on_voxel_aabbs_and_instances() {
+    let mut boxes = Vec::new();
+    for x in 0..6 {
+        for y in 0..6 {
+            for z in 0..6 {
+                if (x + 2 * y + 3 * z) % 4 != 0 {
+                    let (x, y, z) = (x as f32 * 0.25, y as f32 * 0.25, z as f32 * 0.25);
+                    boxes.push([x, y, z, x + 0.25, y + 0.25, z + 0.25]);
+                }
+            }
+        }
+    }
+    let a = AabbData::new(&boxes, 24, 0);
+    let geoms = [a.geometry()];
+    let scene = RefScene::Blas(&geoms);
+    let v = glam::Vec3::new;
+    let mut rays = Vec::new();
+    for i in 0..=12 {
+        for j in 0..=12 {
+            let (p, q) = (i as f32 * 0.125, j as f32 * 0.125);
+            rays.push(Ray { origin: v(p, q, -1.0), direction: v(0.0, 0.0, 1.0), tmin: 0.0, tmax: f32::INFINITY });
+            rays.push(Ray { origin: v(-1.0, p, q), direction: v(1.0, -0.0, 0.0), tmin: 0.0, tmax: f32::INFINITY });
+            rays.push(Ray { origin: v(p, 3.0, q), direction: v(0.0, -1.0, 0.0), tmin: 0.5, tmax: 3.5 });
+        }
+    }
+    for tier in TIERS {
+        let built = build_blas(tier, &geoms);
+        let mut hits = 0;
+        for (i, ray) in rays.iter().enumerate() {
+            hits += compare_ray(&built.bytes, &accel::NoDevice, &scene, ray, 0, 0xFF, EXACT, &format!("voxel tier {tier:#x} ray {i} {:?} {:?}", ray.origin, ray.direction));
+        }
+        assert!(hits > rays.len(), "{hits}");
+    }
+    // Instances of a unit-grid terrain at integer offsets, axis-permuting transforms.
+    let terr = TriData::from_mesh(&scene::terrain(8), GEOMETRY_OPAQUE);
+    let tg = [terr.geometry()];
+    let blas = build_blas(FAST_TRACE, &tg);
+    let mut view = MapView::new();
+    view.insert(BLAS_BASE, blas.bytes);
+    let perms: [[f32; 9]; 3] = [[1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0], [0.0, 0.0, 1.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0], [0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 1.0, 0.0, 0.0]];
+    let mut insts = Vec::new();
+    for k in 0..27u32 {
+        let m = perms[(k % 3) as usize];
+        let t = [(k % 3) as f32, ((k / 3) % 3) as f32, (k / 9) as f32];
+        insts.push(InstanceRecord {
+            transform: [m[0], m[1], m[2], t[0], m[3], m[4], m[5], t[1], m[6], m[7], m[8], t[2]],
+            custom_index: k,
+            mask: 0xFF,
+            sbt_offset: 0,
+            flags: 0,
+            reference: BLAS_BASE,
+        });
+    }
+    let packed = InstanceRecord::pack(&insts);
+    let g = [Geometry { flags: GeometryFlags(0), primitive_count: 27, data: GeometryData::Instances { array_of_pointers: false, data: &packed } }];
+    let tlas = build(AsType::TopLevel, FAST_TRACE, &g, &view);
+    let blases: HashMap<u64, &[Geometry]> = [(BLAS_BASE, &tg[..])].into_iter().collect();
+    let scene = RefScene::Tlas { instances: insts, blases };
+    let mut rays = Vec::new();
+    for i in 0..=24 {
+        for j in 0..=24 {
+            let (p, q) = (i as f32 * 0.125, j as f32 * 0.125);
+            rays.push(Ray { origin: v(p, q, -1.0), direction: v(0.0, 0.0, 1.0), tmin: 0.0, tmax: f32::INFINITY });
+            rays.push(Ray { origin: v(-1.0, p, q), direction: v(1.0, 0.0, 0.0), tmin: 0.0, tmax: f32::INFINITY });
+            rays.push(Ray { origin: v(p, 4.0, q), direction: v(0.0, -1.0, 0.0), tmin: 0.0, tmax: f32::INFINITY });
+        }
+    }
+    let mut hits = 0;
+    for (i, ray) in rays.iter().enumerate() {
+        hits += compare_ray(&tlas.bytes, &view, &scene, ray, 0, 0xFF, EXACT, &format!("grid TLAS ray {i} {:?} {:?}", ray.origin, ray.direction));
+    }
+    assert!(hits > rays.len() / 2, "{hits}");
+}
