@@ -493,6 +493,20 @@ fn finish_split(ctx: &Ctx, refs: &mut [PrimRef], nodes: &mut [BinNode], start: u
             build_rec(ctx, rrefs, rnodes, rstart, right.0, right.1, depth + 1, bins),
         )
     };
+    // Wide-subtree size if this node becomes a BVH4 node (kept in `reserved`): computed here,
+    // while the subtree is cache-hot, so emission can hand disjoint output ranges to threads.
+    let (ch, cnt) = wide_children(nodes, 0);
+    let mut w = 1u32;
+    for &c in &ch[..cnt] {
+        if let Some(nd) = nodes.get(c) {
+            if nd.left_count != 0 {
+                w = w.saturating_add(nd.reserved);
+            }
+        }
+    }
+    if let Some(slot) = nodes.get_mut(0) {
+        slot.reserved = w;
+    }
     (area + a.0 + b.0, 1 + a.1.max(b.1))
 }
 
@@ -586,34 +600,82 @@ pub fn encode_node(node_box: &Aabb, boxes: &[Aabb], child: &[u32], kind: &[u8]) 
     n
 }
 
-/// Emits the wide node for binary node `i` and its subtree in preorder; returns its index.
-fn emit_wide(nodes: &[BinNode], i: usize, next: &mut u32, leaves: &mut u32, out: &mut [u8]) -> u32 {
-    let me = *next;
-    *next += 1;
-    let (ch, cnt) = wide_children(nodes, i);
+/// Wide nodes of a subtree in preorder; `W` of an internal binary node is in `reserved`.
+pub fn wide_size(nodes: &[BinNode]) -> u32 {
+    match nodes.first() {
+        Some(n) if n.left_count != 0 => n.reserved,
+        Some(_) => 1,
+        None => 0,
+    }
+}
+
+/// One pending subtree emission: binary subtree (slice rooted at its node), its wide index,
+/// and exactly its output range.
+type EmitTask<'a> = Option<(&'a [BinNode], u32, &'a mut [u8])>;
+const PAR_EMIT_CUTOFF: u32 = 1024;
+
+fn run_emit(tasks: &mut [EmitTask<'_>]) -> u32 {
+    match tasks.len() {
+        0 => 0,
+        1 => match tasks[0].take() {
+            Some((n, me, out)) => emit_wide(n, me, out),
+            None => 0,
+        },
+        len => {
+            let size: u32 = tasks.iter().map(|t| t.as_ref().map_or(0, |t| wide_size(t.0))).sum();
+            let (a, b) = tasks.split_at_mut(len / 2);
+            if size >= PAR_EMIT_CUTOFF {
+                let (x, y) = rayon::join(|| run_emit(a), || run_emit(b));
+                x + y
+            } else {
+                run_emit(a) + run_emit(b)
+            }
+        }
+    }
+}
+
+/// Emits the wide node made from the binary subtree rooted at `nodes[0]` as node `me` into
+/// `out[..64]` and its descendants (preorder) after it; returns the number of leaf children.
+/// Child indices follow from subtree sizes, never from timing: same bytes for any thread count.
+fn emit_wide(nodes: &[BinNode], me: u32, out: &mut [u8]) -> u32 {
+    let (ch, cnt) = wide_children(nodes, 0);
     let mut boxes = [Aabb::EMPTY; 4];
     let mut child = [0u32; 4];
     let mut kind = [0u8; 4];
     let mut node_box = Aabb::EMPTY;
+    let mut leaves = 0u32;
+    let mut next = me + 1;
+    let mut pending: [(usize, u32, u32); 4] = [(0, 0, 0); 4];
+    let mut np = 0;
     for k in 0..cnt {
         let Some(nd) = nodes.get(ch[k]).copied() else { continue };
         boxes[k] = Aabb { lo: nd.lo, hi: nd.hi };
         node_box = node_box.union(&boxes[k]);
-        if nd.left_count != 0 && ch[k] != i {
+        if nd.left_count != 0 && ch[k] != 0 {
             kind[k] = CHILD_INTERNAL;
-            child[k] = emit_wide(nodes, ch[k], next, leaves, out);
+            child[k] = next;
+            pending[np] = (ch[k], next, nd.reserved);
+            np += 1;
+            next = next.saturating_add(nd.reserved);
         } else {
             kind[k] = nd.count.min(254) as u8;
             child[k] = nd.start;
-            *leaves += 1;
+            leaves += 1;
         }
     }
     let wn = encode_node(&node_box, &boxes[..cnt], &child, &kind);
-    let off = me as usize * NODE_SIZE;
-    if let Some(d) = out.get_mut(off..off + NODE_SIZE) {
-        d.copy_from_slice(bytemuck::bytes_of(&wn));
+    let (head, mut rest) = out.split_at_mut(NODE_SIZE.min(out.len()));
+    if head.len() == NODE_SIZE {
+        head.copy_from_slice(bytemuck::bytes_of(&wn));
     }
-    me
+    let mut tasks: [EmitTask<'_>; 4] = [None, None, None, None];
+    for (t, &(rel, idx, w)) in tasks.iter_mut().zip(pending[..np].iter()) {
+        let len = (w as usize * NODE_SIZE).min(rest.len());
+        let (mine, others) = std::mem::take(&mut rest).split_at_mut(len);
+        rest = others;
+        *t = nodes.get(rel..).map(|n| (n, idx, mine));
+    }
+    leaves + run_emit(&mut tasks[..np])
 }
 
 /// FNV-style 64-bit hash over the index bytes, word at a time (the update's index check).
@@ -1003,11 +1065,13 @@ pub fn build(desc: &BuildDesc, view: &dyn DeviceView, dst: &mut [u8], scratch: &
     }
     // Nodes are the last section, so their offset is known before their count: emit directly.
     let nodes_at = pre.nodes as usize;
-    let mut wide_count = 0u32;
+    let wide_count = if active > 0 { wide_size(nodes) } else { 0 };
     let mut leaf_count = 0u32;
     if active > 0 {
-        let out = dst.get_mut(nodes_at..).unwrap_or(&mut []);
-        emit_wide(nodes, 0, &mut wide_count, &mut leaf_count, out);
+        let end = nodes_at.saturating_add(wide_count as usize * NODE_SIZE);
+        let got = dst.len() as u64;
+        let out = dst.get_mut(nodes_at..end).ok_or(BuildError::DestinationTooSmall { needed: end as u64, got })?;
+        leaf_count = emit_wide(nodes, 0, out);
     }
     let s = layout::sections(desc.ty, wide_count as u64, active as u64, ngeo);
     if s.end > dst.len() as u64 || s.nodes as usize != nodes_at {
