@@ -620,3 +620,89 @@ fn hostile_rays_and_instance_transforms_do_not_panic() {
         compare_ray(&ht.bytes, &view, &scene, ray, 0, 0xFF, Tolerance { exact: false }, &format!("healthy ray {i}"));
     }
 }
+
+/// Pathological distributions that make deep or lopsided trees: geometric spacing along a line
+/// (down to subnormals), a dense cluster with a few far outliers, many copies of one triangle.
+#[test]
+fn pathological_distributions_match_brute_force() {
+    let mut cases: Vec<(&str, Mesh, [f32; 6])> = Vec::new();
+    // Geometric: triangle k at x = 0.7^k (k < 300 reaches subnormals and zero).
+    let mut m = Mesh::default();
+    for k in 0..300u32 {
+        let x = 0.7f32.powi(k as i32);
+        let s = x * 0.1;
+        let b = m.positions.len() as u32;
+        m.positions.extend([[x, 0.0, 0.0], [x + s, 1.0, 0.0], [x, 0.0, 1.0]]);
+        m.indices.push([b, b + 1, b + 2]);
+    }
+    cases.push(("geometric", m, [0.0, 0.0, 0.0, 1.1, 1.0, 1.0]));
+    // Cluster + outliers.
+    let mut c = scene::random_soup(20_000, 3);
+    for p in c.positions.iter_mut() {
+        for x in p.iter_mut() {
+            *x = 0.5 + (*x - 0.5) * 1e-3;
+        }
+    }
+    for (i, far) in [1e6f32, -1e6, 3e5].iter().enumerate() {
+        c.positions[3 * i] = [*far, 0.5, 0.5];
+    }
+    cases.push(("cluster+outliers", c, [0.499, 0.499, 0.499, 0.501, 0.501, 0.501]));
+    // 5000 copies of the same triangle (distinct vertices, same positions) plus a few others.
+    let mut d = Mesh::default();
+    for k in 0..5000u32 {
+        d.positions.extend([[0.2, 0.2, 0.5], [0.8, 0.3, 0.5], [0.4, 0.9, 0.5]]);
+        d.indices.push([3 * k, 3 * k + 1, 3 * k + 2]);
+    }
+    cases.push(("copies", d, [0.0, 0.0, 0.0, 1.0, 1.0, 1.0]));
+    for (name, mesh, bounds) in cases {
+        let data = TriData::from_mesh(&mesh, 0);
+        let geoms = [data.geometry()];
+        let rays = random_rays(bounds, 300, 5);
+        for tier in TIERS {
+            let b = build_blas(tier, &geoms);
+            let m = accel::metrics(&b.bytes).unwrap();
+            assert!(m.max_depth < 200, "{name}: depth {}", m.max_depth);
+            compare_blas(&b.bytes, &geoms, &rays, &format!("{name} tier {tier:#x}"));
+        }
+    }
+}
+
+#[test]
+fn odd_descriptions_do_not_panic() {
+    // No geometries at all, BLAS and TLAS.
+    for ty in [AsType::BottomLevel, AsType::TopLevel] {
+        let b = build(ty, 0, &[], &accel::NoDevice);
+        assert!(accel::closest_hit(&b.bytes, &accel::NoDevice, Ray { origin: glam::Vec3::ZERO, direction: glam::Vec3::X, tmin: 0.0, tmax: 1e30 }, RayFlags(0), 0xFF).is_none());
+    }
+    // Instances referring to nothing known, and to a TLAS, must not panic at build or trace.
+    let blas = build_blas(0, &[TriData::from_mesh(&scene::random_soup(100, 1), 0).geometry()]);
+    let mut view = MapView::new();
+    view.insert(0x1000, blas.bytes);
+    let recs = scene::instance_records(8, &[0x1000], 1);
+    let packed = InstanceRecord::pack(&recs);
+    let g = [Geometry { flags: GeometryFlags(0), primitive_count: 8, data: GeometryData::Instances { array_of_pointers: false, data: &packed } }];
+    let tlas = build(AsType::TopLevel, 0, &g, &view);
+    view.insert(0x9000, tlas.bytes);
+    let bad = scene::instance_records(8, &[0x1000, 0xBAD0, 0x9000], 2);
+    let bp = InstanceRecord::pack(&bad);
+    let bg = [Geometry { flags: GeometryFlags(0), primitive_count: 8, data: GeometryData::Instances { array_of_pointers: false, data: &bp } }];
+    if let Ok(t) = try_build(AsType::TopLevel, 0, &bg, &view) {
+        for r in random_rays([-2.0, -2.0, -2.0, 6.0, 6.0, 6.0], 100, 3) {
+            let _ = accel::closest_hit(&t.bytes, &view, copy_ray(&r), RayFlags(0), 0xFF);
+            let _ = accel::all_hits(&t.bytes, &view, r, RayFlags(0), 0xFF);
+        }
+    }
+    // Update scratch too small / destination too small: typed errors.
+    let data = TriData::from_mesh(&scene::random_soup(5000, 2), 0);
+    let geoms = [data.geometry()];
+    let built = build_blas(BuildFlags::ALLOW_UPDATE, &geoms);
+    let desc = BuildDesc { ty: AsType::BottomLevel, flags: BuildFlags(BuildFlags::ALLOW_UPDATE), geometries: &geoms };
+    if built.sizes.update_scratch_size > 0 {
+        let mut s = vec![0u8; 4];
+        let mut dst = built.bytes.clone();
+        assert!(accel::update(&desc, &accel::NoDevice, None, &mut dst, &mut s).is_err());
+    }
+    let mut small = vec![0u8; 100];
+    let mut s = vec![0u8; built.sizes.update_scratch_size as usize];
+    assert!(accel::update(&desc, &accel::NoDevice, Some(&built.bytes), &mut small, &mut s).is_err());
+}
