@@ -323,6 +323,22 @@ fn build_rec(ctx: &Ctx, refs: &mut [PrimRef], nodes: &mut [BinNode], start: u32,
         return make_leaf(nodes);
     }
     let p = &ctx.params;
+    if n <= SMALL_N && depth < MAX_SAH_DEPTH {
+        // Exact SAH sweep over sorted centroids: cheaper than binning for a handful of
+        // primitives, and these nodes are most of the tree.
+        let widest = (0..3).fold(0, |w, a| if cb.hi[a] - cb.lo[a] > cb.hi[w] - cb.lo[w] { a } else { w });
+        let axes = if p.single_axis { (widest, widest + 1) } else { (0, 3) };
+        if let Some((mid, cost)) = small_split(refs, axes) {
+            if n as u32 <= p.max_leaf && area * n as f32 <= area + cost {
+                return make_leaf(nodes);
+            }
+            let (l, r) = refs.split_at(mid);
+            let lb = bounds_of(l);
+            let rb = bounds_of(r);
+            return finish_split(ctx, refs, nodes, start, bounds, mid, lb, rb, depth, bins);
+        }
+        return make_leaf(nodes);
+    }
     // Small nodes get fewer bins (never more bins than primitives, at least 8).
     let k = p.bins.clamp(2, MAX_BINS).min(n.max(8));
     let mut split: Option<(usize, usize, Aabb, Aabb, f32)> = None; // (axis, bin, left box, right box, cost)
@@ -468,6 +484,59 @@ fn build_rec(ctx: &Ctx, refs: &mut [PrimRef], nodes: &mut [BinNode], start: u32,
     let lb = bounds_of(l);
     let rb = bounds_of(r);
     finish_split(ctx, refs, nodes, start, bounds, mid, lb, rb, depth, bins)
+}
+
+/// Nodes up to this size use the exact sorted sweep (must be <= the smallest max_leaf so a
+/// node too big for a leaf always comes out split).
+const SMALL_N: usize = 8;
+
+/// Best SAH split of <= SMALL_N references over the given axes: reorders `refs` along the
+/// winning axis (stable insertion sort: ties keep input order, so the result is deterministic)
+/// and returns (left count, A_L·N_L + A_R·N_R).
+fn small_split(refs: &mut [PrimRef], axes: (usize, usize)) -> Option<(usize, f32)> {
+    let n = refs.len();
+    if !(2..=SMALL_N).contains(&n) {
+        return None;
+    }
+    let mut best: Option<(usize, usize, f32, [u8; SMALL_N])> = None;
+    for a in axes.0..axes.1.min(3) {
+        let mut order = [0u8; SMALL_N];
+        let mut key = [0f32; SMALL_N];
+        for i in 0..n {
+            order[i] = i as u8;
+            key[i] = refs[i].lo[a] * 0.5 + refs[i].hi[a] * 0.5;
+        }
+        for i in 1..n {
+            let mut j = i;
+            while j > 0 && key[order[j - 1] as usize].total_cmp(&key[order[j] as usize]).is_gt() {
+                order.swap(j - 1, j);
+                j -= 1;
+            }
+        }
+        let mut l_area = [0f32; SMALL_N];
+        let mut acc = Aabb::EMPTY;
+        for i in 0..n - 1 {
+            let r = &refs[order[i] as usize];
+            acc.grow(&r.lo, &r.hi);
+            l_area[i] = acc.half_area();
+        }
+        let mut racc = Aabb::EMPTY;
+        for i in (0..n - 1).rev() {
+            let r = &refs[order[i + 1] as usize];
+            racc.grow(&r.lo, &r.hi);
+            let cost = l_area[i] * (i + 1) as f32 + racc.half_area() * (n - i - 1) as f32;
+            if best.map_or(true, |b| cost < b.2 || (cost == b.2 && a == b.0 && i + 1 < b.1)) {
+                best = Some((a, i + 1, cost, order));
+            }
+        }
+    }
+    let (_, mid, cost, order) = best?;
+    let mut tmp = [PrimRef::zeroed(); SMALL_N];
+    tmp[..n].copy_from_slice(refs);
+    for i in 0..n {
+        refs[i] = tmp[order[i] as usize];
+    }
+    Some((mid, cost))
 }
 
 #[allow(clippy::too_many_arguments)]

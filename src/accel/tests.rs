@@ -758,3 +758,32 @@ fn axis_rays_on_box_planes() {
         }
     }
 }
+
+#[test]
+fn dag_blob_terminates() {
+    // Forge a structure whose node i has four internal children all pointing at node i+1:
+    // without a visit budget a ray would do 4^depth work.
+    let mut rng = Rng::new(2);
+    let v = random_soup(&mut rng, 3000, 1.0, 0.3);
+    let vb = f32_bytes(&v);
+    let g = tri_geom(&vb, v.len() as u32, &[], 3000, 0);
+    let mut blas = build_ok(AsType::BottomLevel, 0, &[g], &NoDevice);
+    let p = layout::parse(&blas).unwrap().raw;
+    let nc = p.node_count as usize;
+    for i in 0..nc - 1 {
+        let off = p.nodes_offset as usize + i * layout::NODE_SIZE;
+        let mut n: layout::WideNode = bytemuck::pod_read_unaligned(&blas[off..off + layout::NODE_SIZE]);
+        n.child_count = 4;
+        n.child = [i as u32 + 1; 4];
+        n.kind = [layout::CHILD_INTERNAL; 4];
+        n.qlo = [[0; 4]; 3];
+        n.qhi = [[255; 4]; 3];
+        blas[off..off + layout::NODE_SIZE].copy_from_slice(bytemuck::bytes_of(&n));
+    }
+    let ray = Ray { origin: Vec3::new(0.0, 0.0, -5.0), direction: Vec3::Z, tmin: 0.0, tmax: 100.0 };
+    let t = std::time::Instant::now();
+    let _ = closest_hit(&blas, &NoDevice, ray, RayFlags(0), 0xff);
+    let _ = all_hits(&blas, &NoDevice, ray, RayFlags(0), 0xff);
+    assert!(validate(&blas).is_err());
+    assert!(t.elapsed().as_secs() < 5);
+}

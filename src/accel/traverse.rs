@@ -203,6 +203,11 @@ pub struct RayQuery<'a> {
     done: bool,
     /// all_hits mode: opaque hits are reported as candidates too, and nothing shrinks tmax.
     collect_all: bool,
+    /// Remaining node visits + primitive tests for the top structure and the current instance.
+    /// In a valid tree a ray meets every node and primitive at most once, so running out means
+    /// the blob is corrupt (e.g. a DAG that would make traversal exponential): stop that level.
+    budget_top: u64,
+    budget_inner: u64,
 }
 
 fn ray_ok(r: &Ray) -> bool {
@@ -229,6 +234,8 @@ impl<'a> RayQuery<'a> {
             committed: None,
             done: false,
             collect_all: false,
+            budget_top: top.map_or(0, |l| l.s.raw.node_count as u64 + l.s.raw.primitive_count as u64),
+            budget_inner: 0,
         };
         match top {
             Some(l) if ray_ok(&ray) && l.s.raw.node_count > 0 => q.stack.push(Item::Node { node: 0, inner: false, tnear: ray.tmin }),
@@ -253,6 +260,20 @@ impl<'a> RayQuery<'a> {
                 self.done = true;
                 break;
             };
+            let inner = match item {
+                Item::Node { inner, .. } | Item::Prims { inner, .. } => Some(inner),
+                Item::ExitInstance => None,
+            };
+            match inner {
+                Some(true) if self.budget_inner == 0 => continue,
+                Some(true) => self.budget_inner -= 1,
+                Some(false) if self.budget_top == 0 => {
+                    self.terminate();
+                    break;
+                }
+                Some(false) => self.budget_top -= 1,
+                None => {}
+            }
             match item {
                 Item::ExitInstance => self.inst = None,
                 Item::Node { node, inner, tnear } => {
@@ -321,6 +342,7 @@ impl<'a> RayQuery<'a> {
         if org.is_nan() || dir.is_nan() || dir == Vec3::ZERO {
             return;
         }
+        self.budget_inner = blas.raw.node_count as u64 + blas.raw.primitive_count as u64;
         self.inst = Some(InstCtx { level: make_level(blas, org, dir), rec });
         self.stack.push(Item::ExitInstance);
         self.stack.push(Item::Node { node: 0, inner: true, tnear: self.ray.tmin });
