@@ -633,8 +633,7 @@ pub fn encode_node(node_box: &Aabb, boxes: &[Aabb], child: &[u32], kind: &[u8]) 
         let ext = (hi - lo).max(0.0);
         // Smallest power of two s with lo + 255*s >= hi, found from the extent then verified.
         let mut e: u32 = if ext > 0.0 && ext.is_finite() {
-            let s = ext / 255.0;
-            ((s.to_bits() >> 23) & 0xff).max(1)
+            ((ext * (1.0 / 255.0)).to_bits() >> 23 & 0xff).max(1)
         } else if ext > 0.0 {
             254
         } else {
@@ -645,16 +644,18 @@ pub fn encode_node(node_box: &Aabb, boxes: &[Aabb], child: &[u32], kind: &[u8]) 
         }
         n.exp[a] = e as u8;
         let s = f32::from_bits(e << 23);
-        for (c, b) in boxes.iter().enumerate() {
-            let dec = |q: u32| lo + q as f32 * s;
-            // Initial guesses by truncation (s is a power of two, so * inv_s is exact up to
-            // the subtraction's rounding); the loops then make them exact and outward.
-            let inv_s = 1.0 / s;
-            let mut ql = (((b.lo[a] - lo) * inv_s) as u32).min(255);
+        let inv_s = 1.0 / s; // exact: s is a power of two
+        let dec = |q: u32| lo + q as f32 * s;
+        for (c, b) in boxes.iter().enumerate().take(4) {
+            // Guesses by truncation, then made exact and outward with the decode arithmetic
+            // (usually zero or one step).
+            let x = (b.lo[a] - lo) * inv_s;
+            let mut ql = if x > 0.0 { (x as u32).min(255) } else { 0 };
             while ql > 0 && dec(ql) > b.lo[a] {
                 ql -= 1;
             }
-            let mut qh = (((b.hi[a] - lo) * inv_s) as u32).min(255);
+            let y = (b.hi[a] - lo) * inv_s;
+            let mut qh = if y > 0.0 { (y as u32).min(255) } else { 0 };
             while qh < 255 && dec(qh) < b.hi[a] {
                 qh += 1;
             }
