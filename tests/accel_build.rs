@@ -706,3 +706,38 @@ fn odd_descriptions_do_not_panic() {
     let mut s = vec![0u8; built.sizes.update_scratch_size as usize];
     assert!(accel::update(&desc, &accel::NoDevice, Some(&built.bytes), &mut small, &mut s).is_err());
 }
+
+/// Refit and serialization are deterministic too: update with 1 and 8 threads gives the same
+/// bytes, and serializing twice gives the same blob.
+#[test]
+fn refit_and_serialize_are_deterministic() {
+    let base = scene::random_soup(50_000, 91);
+    let moved = Mesh { positions: base.positions.iter().map(|p| [p[0] * 1.3, p[1] + 0.2 * p[0], p[2]]).collect(), indices: base.indices.clone() };
+    let (d0, d1) = (TriData::from_mesh(&base, 0), TriData::from_mesh(&moved, 0));
+    let flags = BuildFlags::ALLOW_UPDATE | FAST_TRACE;
+    let built = build_blas(flags, &[d0.geometry()]);
+    let g1 = [d1.geometry()];
+    let desc = BuildDesc { ty: AsType::BottomLevel, flags: BuildFlags(flags), geometries: &g1 };
+    let run = |threads| {
+        with_threads(threads, || {
+            let mut dst = vec![0u8; built.bytes.len()];
+            let mut scratch = vec![0u8; built.sizes.update_scratch_size as usize];
+            let r = accel::update(&desc, &accel::NoDevice, Some(&built.bytes), &mut dst, &mut scratch).expect("update");
+            dst.truncate(r.used_size as usize);
+            dst
+        })
+    };
+    let one = run(1);
+    assert!(one == run(8), "refit bytes differ between 1 and 8 threads");
+    assert!(one == run(2), "refit bytes differ between 1 and 2 threads");
+    let ser = |s: &[u8]| {
+        let mut out = vec![0u8; accel::serialized_size(s).unwrap() as usize];
+        accel::serialize(s, [1; 16], &mut out).unwrap();
+        out
+    };
+    assert!(ser(&built.bytes) == ser(&built.bytes));
+    // Deserializing into too small a destination is an error, not a panic.
+    let blob = ser(&built.bytes);
+    let mut tiny = vec![0u8; 64];
+    assert!(accel::deserialize(&blob, [1; 16], &mut tiny).is_err());
+}

@@ -51,7 +51,67 @@ unsafe impl GlobalAlloc for Counting {
 #[global_allocator]
 static GLOBAL: Counting = Counting;
 
+fn reset() {
+    ALLOCATED.store(0, Ordering::SeqCst);
+    LIVE.store(0, Ordering::SeqCst);
+    PEAK.store(0, Ordering::SeqCst);
+    COUNT.store(0, Ordering::SeqCst);
+}
+
+fn measure<R>(f: impl FnOnce() -> R) -> (R, usize, usize, usize) {
+    reset();
+    ENABLED.store(true, Ordering::SeqCst);
+    let r = f();
+    ENABLED.store(false, Ordering::SeqCst);
+    (r, ALLOCATED.load(Ordering::SeqCst), PEAK.load(Ordering::SeqCst), COUNT.load(Ordering::SeqCst))
+}
+
+/// One test function: the counters are global, so the measurements must not run concurrently.
 #[test]
+fn host_memory_is_o_threads() {
+    build_of_one_million_triangles_allocates_o_threads();
+    update_and_tlas_build_allocate_o_threads();
+}
+
+fn update_and_tlas_build_allocate_o_threads() {
+    use arbor::accel::{GeometryData, GeometryFlags, MapView};
+    use arbor::scene::InstanceRecord;
+    let n = 1_000_000usize;
+    let mesh = arbor::scene::random_soup(n, 2);
+    let data = common::TriData::from_mesh(&mesh, 0);
+    let geoms = [data.geometry()];
+    let flags = BuildFlags(BuildFlags::ALLOW_UPDATE | BuildFlags::PREFER_FAST_TRACE);
+    let sizes = accel::build_sizes(AsType::BottomLevel, flags, &[common::shape_of(&geoms[0])], &[n as u32]);
+    let mut dst = vec![0u8; sizes.acceleration_structure_size as usize];
+    let mut scratch = vec![0u8; sizes.build_scratch_size.max(sizes.update_scratch_size) as usize];
+    let desc = BuildDesc { ty: AsType::BottomLevel, flags, geometries: &geoms };
+    let pool = rayon::ThreadPoolBuilder::new().num_threads(2).build().unwrap();
+    pool.install(|| rayon::join(|| (), || ()));
+    pool.install(|| accel::build(&desc, &accel::NoDevice, &mut dst, &mut scratch)).expect("build");
+    let (r, total, peak, count) = measure(|| pool.install(|| accel::update(&desc, &accel::NoDevice, None, &mut dst, &mut scratch[..sizes.update_scratch_size as usize])));
+    r.expect("update");
+    eprintln!("update of 1M: {count} allocations, {total} bytes, peak {peak}");
+    assert!(total < n * 8 / 16, "update allocated {total} bytes on the host");
+    // TLAS of 200k instances.
+    let m = 200_000usize;
+    let small = arbor::scene::random_soup(100, 3);
+    let sd = common::TriData::from_mesh(&small, 0);
+    let blas = common::build_blas(0, &[sd.geometry()]);
+    let mut view = MapView::new();
+    view.insert(0x1000_0000, blas.bytes);
+    let packed = InstanceRecord::pack(&arbor::scene::instance_records(m, &[0x1000_0000], 4));
+    let g = [accel::Geometry { flags: GeometryFlags(0), primitive_count: m as u32, data: GeometryData::Instances { array_of_pointers: false, data: &packed } }];
+    let tflags = BuildFlags(BuildFlags::PREFER_FAST_TRACE);
+    let tsizes = accel::build_sizes(AsType::TopLevel, tflags, &[accel::GeometryShape::Instances], &[m as u32]);
+    let mut tdst = vec![0u8; tsizes.acceleration_structure_size as usize];
+    let mut tscratch = vec![0u8; tsizes.build_scratch_size as usize];
+    let tdesc = BuildDesc { ty: AsType::TopLevel, flags: tflags, geometries: &g };
+    let (r, total, peak, count) = measure(|| pool.install(|| accel::build(&tdesc, &view, &mut tdst, &mut tscratch)));
+    r.expect("TLAS build");
+    eprintln!("TLAS of {m} instances: {count} allocations, {total} bytes, peak {peak}");
+    assert!(total < m * 8 / 16, "TLAS build allocated {total} bytes on the host");
+}
+
 fn build_of_one_million_triangles_allocates_o_threads() {
     let n = 1_000_000usize;
     let mesh = arbor::scene::random_soup(n, 1);
