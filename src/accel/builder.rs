@@ -145,7 +145,12 @@ pub struct BuildParams {
     /// Bin only along the widest centroid axis (fast-build tier: a third of the binning work
     /// for a few percent of SAH).
     pub single_axis: bool,
+    /// C_T relative to C_I in the leaf/split decision (the reported SAH always uses 1): above
+    /// 1 the fast-build tier makes bigger leaves, hence fewer nodes to build and encode.
+    pub traversal_cost: f32,
     pub max_leaf: u32,
+    /// Nodes up to this size use the exact sorted SAH sweep instead of binning (<= MAX_SMALL).
+    pub small_n: usize,
     /// Below this many primitives a subtree is built on the calling thread.
     pub parallel_cutoff: u32,
 }
@@ -160,11 +165,11 @@ const BIN_CHUNK: usize = 1 << 14;
 impl BuildParams {
     pub fn from_flags(flags: BuildFlags) -> Self {
         if flags.contains(BuildFlags::PREFER_FAST_TRACE) {
-            BuildParams { bins: 32, single_axis: false, max_leaf: 8, parallel_cutoff: 4096 }
+            BuildParams { bins: 32, single_axis: false, traversal_cost: 1.0, max_leaf: 8, small_n: MAX_SMALL, parallel_cutoff: 4096 }
         } else if flags.contains(BuildFlags::PREFER_FAST_BUILD) {
-            BuildParams { bins: 8, single_axis: true, max_leaf: 8, parallel_cutoff: 4096 }
+            BuildParams { bins: 8, single_axis: true, traversal_cost: 2.0, max_leaf: 8, small_n: SMALL_N, parallel_cutoff: 4096 }
         } else {
-            BuildParams { bins: 16, single_axis: false, max_leaf: 8, parallel_cutoff: 4096 }
+            BuildParams { bins: 16, single_axis: false, traversal_cost: 1.0, max_leaf: 8, small_n: SMALL_N, parallel_cutoff: 4096 }
         }
     }
 }
@@ -323,13 +328,13 @@ fn build_rec(ctx: &Ctx, refs: &mut [PrimRef], nodes: &mut [BinNode], start: u32,
         return make_leaf(nodes);
     }
     let p = &ctx.params;
-    if n <= SMALL_N && depth < MAX_SAH_DEPTH {
+    if n <= p.small_n.min(MAX_SMALL) && depth < MAX_SAH_DEPTH {
         // Exact SAH sweep over sorted centroids: cheaper than binning for a handful of
         // primitives, and these nodes are most of the tree.
         let widest = (0..3).fold(0, |w, a| if cb.hi[a] - cb.lo[a] > cb.hi[w] - cb.lo[w] { a } else { w });
         let axes = if p.single_axis { (widest, widest + 1) } else { (0, 3) };
         if let Some((mid, cost)) = small_split(refs, axes) {
-            if n as u32 <= p.max_leaf && area * n as f32 <= area + cost {
+            if n as u32 <= p.max_leaf && area * n as f32 <= area * p.traversal_cost + cost {
                 return make_leaf(nodes);
             }
             let (l, r) = refs.split_at(mid);
@@ -435,7 +440,7 @@ fn build_rec(ctx: &Ctx, refs: &mut [PrimRef], nodes: &mut [BinNode], start: u32,
             // SAH termination: a leaf costs A·n, a split A + children (C_T = C_I = 1).
             if let Some(s) = split {
                 let leaf_cost = area * n as f32;
-                if n as u32 <= p.max_leaf && leaf_cost <= area + s.4 {
+                if n as u32 <= p.max_leaf && leaf_cost <= area * p.traversal_cost + s.4 {
                     return make_leaf(nodes);
                 }
             }
@@ -486,22 +491,22 @@ fn build_rec(ctx: &Ctx, refs: &mut [PrimRef], nodes: &mut [BinNode], start: u32,
     finish_split(ctx, refs, nodes, start, bounds, mid, lb, rb, depth, bins)
 }
 
-/// Nodes up to this size use the exact sorted sweep (must be <= the smallest max_leaf so a
-/// node too big for a leaf always comes out split).
+/// Default size up to which nodes use the exact sorted sweep, and the largest allowed.
 const SMALL_N: usize = 8;
+const MAX_SMALL: usize = 16;
 
-/// Best SAH split of <= SMALL_N references over the given axes: reorders `refs` along the
+/// Best SAH split of <= MAX_SMALL references over the given axes: reorders `refs` along the
 /// winning axis (stable insertion sort: ties keep input order, so the result is deterministic)
 /// and returns (left count, A_L·N_L + A_R·N_R).
 fn small_split(refs: &mut [PrimRef], axes: (usize, usize)) -> Option<(usize, f32)> {
     let n = refs.len();
-    if !(2..=SMALL_N).contains(&n) {
+    if !(2..=MAX_SMALL).contains(&n) {
         return None;
     }
-    let mut best: Option<(usize, usize, f32, [u8; SMALL_N])> = None;
+    let mut best: Option<(usize, usize, f32, [u8; MAX_SMALL])> = None;
     for a in axes.0..axes.1.min(3) {
-        let mut order = [0u8; SMALL_N];
-        let mut key = [0f32; SMALL_N];
+        let mut order = [0u8; MAX_SMALL];
+        let mut key = [0f32; MAX_SMALL];
         for i in 0..n {
             order[i] = i as u8;
             key[i] = refs[i].lo[a] * 0.5 + refs[i].hi[a] * 0.5;
@@ -513,7 +518,7 @@ fn small_split(refs: &mut [PrimRef], axes: (usize, usize)) -> Option<(usize, f32
                 j -= 1;
             }
         }
-        let mut l_area = [0f32; SMALL_N];
+        let mut l_area = [0f32; MAX_SMALL];
         let mut acc = Aabb::EMPTY;
         for i in 0..n - 1 {
             let r = &refs[order[i] as usize];
@@ -531,7 +536,7 @@ fn small_split(refs: &mut [PrimRef], axes: (usize, usize)) -> Option<(usize, f32
         }
     }
     let (_, mid, cost, order) = best?;
-    let mut tmp = [PrimRef::zeroed(); SMALL_N];
+    let mut tmp = [PrimRef::zeroed(); MAX_SMALL];
     tmp[..n].copy_from_slice(refs);
     for i in 0..n {
         refs[i] = tmp[order[i] as usize];
