@@ -1,1 +1,167 @@
-fn main() {}
+//! Ray throughput (rays/s) of Arbor's traversal on the full Stanford dragon (FAST_TRACE BLAS):
+//! primary camera rays and random rays (closest hit), random rays with any hit (shadow-like),
+//! on 1 thread and on all threads (rayon over the batch).
+//!
+//! With `--features peers`, Embree 3 (rtcIntersect1/rtcOccluded1 on its own MEDIUM scene BVH)
+//! traces the same rays in the same run, after a check that both find the same hits.
+//!
+//!   cargo bench --bench accel_trace [--features peers]
+//!   ARBOR_DATA_DIR=dir   where dragon_vrip.ply.gz is (default: data/ of the checkout)
+//!   ARBOR_BENCH_SECS=N   measurement time per benchmark (default 3)
+
+#[cfg(feature = "peers")]
+mod peers;
+
+use arbor::accel::{self, AsType, BuildDesc, BuildFlags, Geometry, GeometryData, GeometryFlags, IndexType, Ray, RayFlags, VertexFormat};
+use arbor::scene::{self, Rng};
+use criterion::{criterion_group, criterion_main, Criterion, Throughput};
+use glam::Vec3;
+use rayon::prelude::*;
+use std::hint::black_box;
+use std::time::Duration;
+
+const BATCH: usize = 65_536;
+
+fn primary_rays(b: [f32; 6], width: usize, height: usize) -> Vec<Ray> {
+    let centre = Vec3::new((b[0] + b[3]) / 2.0, (b[1] + b[4]) / 2.0, (b[2] + b[5]) / 2.0);
+    let ext = Vec3::new(b[3] - b[0], b[4] - b[1], b[5] - b[2]);
+    let eye = centre + Vec3::new(0.0, 0.1 * ext.y, 2.0 * ext.x.max(ext.y));
+    let forward = (centre - eye).normalize();
+    let right = forward.cross(Vec3::Y).normalize();
+    let up = right.cross(forward);
+    let half = (0.6 * ext.x.max(ext.y)) / (centre - eye).length();
+    let mut out = Vec::with_capacity(width * height);
+    for y in 0..height {
+        for x in 0..width {
+            let u = (2.0 * (x as f32 + 0.5) / width as f32 - 1.0) * half;
+            let v = (1.0 - 2.0 * (y as f32 + 0.5) / height as f32) * half;
+            out.push(Ray { origin: eye, direction: (forward + right * u + up * v).normalize(), tmin: 0.0, tmax: f32::INFINITY });
+        }
+    }
+    out
+}
+
+fn random_rays(b: [f32; 6], n: usize, seed: u64) -> Vec<Ray> {
+    let mut rng = Rng::new(seed);
+    let lo = Vec3::new(b[0], b[1], b[2]);
+    let ext = Vec3::new(b[3] - b[0], b[4] - b[1], b[5] - b[2]);
+    (0..n)
+        .map(|i| {
+            let p = lo + ext * Vec3::new(rng.next_f32(), rng.next_f32(), rng.next_f32());
+            if i % 2 == 0 {
+                // From outside the box towards a random point in it.
+                let o = lo + ext * 0.5 + Vec3::from(rng.unit_vector()) * ext.length();
+                Ray { origin: o, direction: (p - o).normalize(), tmin: 0.0, tmax: f32::INFINITY }
+            } else {
+                // From inside in a random direction.
+                Ray { origin: p, direction: Vec3::from(rng.unit_vector()), tmin: 0.0, tmax: f32::INFINITY }
+            }
+        })
+        .collect()
+}
+
+/// data/ of the checkout; ARBOR_DATA_DIR overrides it (a bench binary run on another machine).
+fn data_dir() -> std::path::PathBuf {
+    std::env::var_os("ARBOR_DATA_DIR").map(Into::into).unwrap_or_else(|| std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("data"))
+}
+
+fn copy(r: &Ray) -> Ray {
+    Ray { origin: r.origin, direction: r.direction, tmin: r.tmin, tmax: r.tmax }
+}
+
+fn bench_trace(c: &mut Criterion) {
+    let path = data_dir().join("dragon_vrip.ply.gz");
+    let mesh = scene::load(path).expect("dragon");
+    let (vb, ib) = (mesh.vertex_bytes(), mesh.index_bytes());
+    let geoms = [Geometry {
+        flags: GeometryFlags(1),
+        primitive_count: mesh.indices.len() as u32,
+        data: GeometryData::Triangles { format: VertexFormat::R32G32B32Sfloat, vertices: &vb, stride: 12, max_vertex: mesh.max_index(), index_type: IndexType::U32, indices: &ib, transform: None },
+    }];
+    let flags = BuildFlags(BuildFlags::PREFER_FAST_TRACE);
+    let sizes = accel::build_sizes(AsType::BottomLevel, flags, &[accel::GeometryShape::Triangles {
+        format: VertexFormat::R32G32B32Sfloat,
+        index_type: IndexType::U32,
+        max_vertex: mesh.max_index(),
+        has_transform: false,
+    }], &[mesh.indices.len() as u32]);
+    let mut dst = vec![0u8; sizes.acceleration_structure_size as usize];
+    let mut scratch = vec![0u8; sizes.build_scratch_size as usize];
+    accel::build(&BuildDesc { ty: AsType::BottomLevel, flags, geometries: &geoms }, &accel::NoDevice, &mut dst, &mut scratch).expect("build");
+    drop(scratch);
+    let bvh = &dst[..];
+    let b = mesh.bounds();
+    let primary = primary_rays(b, 256, 256);
+    let random = random_rays(b, BATCH, 7);
+    let hit_rate = |rays: &[Ray]| rays.iter().filter(|r| accel::closest_hit(bvh, &accel::NoDevice, copy(r), RayFlags(0), 0xFF).is_some()).count() as f64 / rays.len() as f64;
+    println!("\ndragon {} triangles; primary rays hit {:.1}%, random rays hit {:.1}%", mesh.indices.len(), 100.0 * hit_rate(&primary), 100.0 * hit_rate(&random));
+
+    let secs = std::env::var("ARBOR_BENCH_SECS").ok().and_then(|s| s.parse().ok()).unwrap_or(3);
+    let mut group = c.benchmark_group("trace/dragon");
+    group.throughput(Throughput::Elements(BATCH as u64));
+    group.sample_size(10);
+    group.warm_up_time(Duration::from_secs(1));
+    group.measurement_time(Duration::from_secs(secs));
+    let all = std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1);
+    for (name, rays, any) in [("primary_closest", &primary, false), ("random_closest", &random, false), ("random_any", &random, true)] {
+        let flags = RayFlags(if any { 4 } else { 0 });
+        group.bench_function(format!("arbor/{name}/1t"), |bn| {
+            bn.iter(|| {
+                let mut hits = 0usize;
+                for r in rays.iter() {
+                    hits += accel::closest_hit(bvh, &accel::NoDevice, copy(r), RayFlags(flags.0), 0xFF).is_some() as usize;
+                }
+                black_box(hits)
+            })
+        });
+        if all > 1 {
+            let pool = rayon::ThreadPoolBuilder::new().num_threads(all).build().unwrap();
+            group.bench_function(format!("arbor/{name}/{all}t"), |bn| {
+                bn.iter(|| {
+                    pool.install(|| {
+                        rays.par_chunks(1024)
+                            .map(|c| c.iter().filter(|r| accel::closest_hit(bvh, &accel::NoDevice, copy(r), RayFlags(flags.0), 0xFF).is_some()).count())
+                            .sum::<usize>()
+                    })
+                })
+            });
+        }
+    }
+    #[cfg(feature = "peers")]
+    {
+        use peers::embree;
+        let dev = embree::Device::new(all);
+        let scene = embree::Scene::new(&dev, &mesh, 1);
+        // Agreement check: same hit/miss and t within 1e-4 relative on nearly every ray.
+        for (name, rays) in [("primary", &primary), ("random", &random)] {
+            let mut agree = 0;
+            for r in rays.iter() {
+                let a = accel::closest_hit(bvh, &accel::NoDevice, copy(r), RayFlags(0), 0xFF).map(|h| h.t);
+                let e = scene.intersect(r.origin.to_array(), r.direction.to_array(), r.tmin, r.tmax).map(|h| h.0);
+                agree += match (a, e) {
+                    (None, None) => 1,
+                    (Some(x), Some(y)) => ((x - y).abs() <= 1e-4 * x.abs().max(1e-3)) as usize,
+                    _ => 0,
+                };
+            }
+            println!("arbor vs embree, {name} rays: {:.3}% agree (hit/miss and t)", 100.0 * agree as f64 / rays.len() as f64);
+        }
+        for (name, rays, any) in [("primary_closest", &primary, false), ("random_closest", &random, false), ("random_any", &random, true)] {
+            let trace = |r: &Ray| {
+                let (o, d) = (r.origin.to_array(), r.direction.to_array());
+                if any { scene.occluded(o, d, r.tmin, r.tmax) } else { scene.intersect(o, d, r.tmin, r.tmax).is_some() }
+            };
+            group.bench_function(format!("embree/{name}/1t"), |bn| bn.iter(|| rays.iter().filter(|r| trace(r)).count()));
+            if all > 1 {
+                let pool = rayon::ThreadPoolBuilder::new().num_threads(all).build().unwrap();
+                group.bench_function(format!("embree/{name}/{all}t"), |bn| {
+                    bn.iter(|| pool.install(|| rays.par_chunks(1024).map(|c| c.iter().filter(|r| trace(r)).count()).sum::<usize>()))
+                });
+            }
+        }
+    }
+    group.finish();
+}
+
+criterion_group!(benches, bench_trace);
+criterion_main!(benches);

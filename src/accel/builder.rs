@@ -6,7 +6,7 @@ use super::input::{self, read_aabb, read_instance, read_triangle, transform_poin
 use super::layout::{self, GeometryRecord, InstanceRecord, PrimRecord, RawHeader, WideNode, CHILD_INTERNAL, NODE_SIZE, PRIM_SIZE, RECORD_SIZE};
 use super::{AsType, BuildDesc, BuildError, BuildFlags, BuildReport, DeviceView, Geometry, GeometryData};
 use bytemuck::{Pod, Zeroable};
-use glam::Vec3;
+use glam::{UVec3, Vec3, Vec3A};
 use rayon::prelude::*;
 
 /// One primitive reference: its (sanitised, finite) bounds and where it came from.
@@ -142,7 +142,15 @@ pub fn instance_bounds(transform: &[f32; 12], reference: u64, view: &dyn DeviceV
 #[derive(Clone, Copy, Debug)]
 pub struct BuildParams {
     pub bins: usize,
+    /// Bin only along the widest centroid axis (fast-build tier: a third of the binning work
+    /// for a few percent of SAH).
+    pub single_axis: bool,
+    /// C_T relative to C_I in the leaf/split decision (the reported SAH always uses 1): above
+    /// 1 the fast-build tier makes bigger leaves, hence fewer nodes to build and encode.
+    pub traversal_cost: f32,
     pub max_leaf: u32,
+    /// Nodes up to this size use the exact sorted SAH sweep instead of binning (<= MAX_SMALL).
+    pub small_n: usize,
     /// Below this many primitives a subtree is built on the calling thread.
     pub parallel_cutoff: u32,
 }
@@ -157,11 +165,11 @@ const BIN_CHUNK: usize = 1 << 14;
 impl BuildParams {
     pub fn from_flags(flags: BuildFlags) -> Self {
         if flags.contains(BuildFlags::PREFER_FAST_TRACE) {
-            BuildParams { bins: 32, max_leaf: 8, parallel_cutoff: 4096 }
+            BuildParams { bins: 32, single_axis: false, traversal_cost: 1.0, max_leaf: 8, small_n: MAX_SMALL, parallel_cutoff: 4096 }
         } else if flags.contains(BuildFlags::PREFER_FAST_BUILD) {
-            BuildParams { bins: 8, max_leaf: 8, parallel_cutoff: 4096 }
+            BuildParams { bins: 8, single_axis: true, traversal_cost: 2.0, max_leaf: 8, small_n: SMALL_N, parallel_cutoff: 4096 }
         } else {
-            BuildParams { bins: 16, max_leaf: 8, parallel_cutoff: 4096 }
+            BuildParams { bins: 16, single_axis: false, traversal_cost: 1.0, max_leaf: 8, small_n: SMALL_N, parallel_cutoff: 4096 }
         }
     }
 }
@@ -182,60 +190,112 @@ pub fn carve<T: Pod>(bytes: &mut [u8], count: usize) -> Option<(&mut [T], &mut [
     Some((arr, rest))
 }
 
+/// Per-bin bounds for the three axes (SoA per axis). Only the first `k` entries of each axis
+/// are reset and used, so small nodes pay for few bins; one buffer is reused down a
+/// sequential recursion (a new one only at each parallel fork): O(threads) memory.
 #[derive(Clone, Copy)]
-struct Bins {
-    lo: [[[f32; 3]; MAX_BINS]; 3],
-    hi: [[[f32; 3]; MAX_BINS]; 3],
+pub struct Bins {
+    lo: [[Vec3A; MAX_BINS]; 3],
+    hi: [[Vec3A; MAX_BINS]; 3],
     count: [[u32; MAX_BINS]; 3],
 }
 impl Bins {
-    fn new() -> Self {
-        Bins { lo: [[[f32::INFINITY; 3]; MAX_BINS]; 3], hi: [[[f32::NEG_INFINITY; 3]; MAX_BINS]; 3], count: [[0; MAX_BINS]; 3] }
+    pub fn new() -> Self {
+        Bins { lo: [[Vec3A::INFINITY; MAX_BINS]; 3], hi: [[Vec3A::NEG_INFINITY; MAX_BINS]; 3], count: [[0; MAX_BINS]; 3] }
     }
-    fn merge(mut self, o: &Bins, k: usize) -> Bins {
+    fn reset(&mut self, k: usize) {
+        for a in 0..3 {
+            self.lo[a][..k].fill(Vec3A::INFINITY);
+            self.hi[a][..k].fill(Vec3A::NEG_INFINITY);
+            self.count[a][..k].fill(0);
+        }
+    }
+    fn merge(&mut self, o: &Bins, k: usize) {
         for a in 0..3 {
             for b in 0..k {
-                for c in 0..3 {
-                    self.lo[a][b][c] = self.lo[a][b][c].min(o.lo[a][b][c]);
-                    self.hi[a][b][c] = self.hi[a][b][c].max(o.hi[a][b][c]);
-                }
+                self.lo[a][b] = self.lo[a][b].min(o.lo[a][b]);
+                self.hi[a][b] = self.hi[a][b].max(o.hi[a][b]);
                 self.count[a][b] += o.count[a][b];
             }
         }
-        self
     }
 }
 
 #[derive(Clone, Copy)]
 struct Binning {
-    cmin: [f32; 3],
-    scale: [f32; 3],
-    k: usize,
+    cmin: Vec3A,
+    scale: Vec3A,
+    kmax: UVec3,
+    /// Axes binned: a..b (all three, or the single widest one).
+    axes: (usize, usize),
 }
 impl Binning {
-    #[inline]
-    fn bin(&self, c: f32, a: usize) -> usize {
-        // `as usize` saturates (NaN → 0), so no input can index out of range.
-        (((c - self.cmin[a]) * self.scale[a]) as usize).min(self.k - 1)
+    /// Bin indices of a reference on all three axes. `as u32` saturates (NaN → 0), so no
+    /// input can index out of range; binning and partitioning share this exact arithmetic.
+    /// The same arithmetic for one axis (bit-identical to the vector lane: same IEEE ops).
+    #[inline(always)]
+    fn bin_axis(&self, r: &PrimRef, a: usize) -> usize {
+        let c = r.lo[a] * 0.5 + r.hi[a] * 0.5;
+        (((c - self.cmin[a]) * self.scale[a]) as u32).min(self.kmax.x) as usize
+    }
+    #[inline(always)]
+    fn bins(&self, r: &PrimRef) -> UVec3 {
+        let c = Vec3A::from(r.lo) * 0.5 + Vec3A::from(r.hi) * 0.5;
+        ((c - self.cmin) * self.scale).as_uvec3().min(self.kmax)
     }
 }
 
-fn bin_refs(refs: &[PrimRef], bn: &Binning) -> Bins {
-    let mut bins = Bins::new();
-    for r in refs {
-        let c = centroid(r);
-        for a in 0..3 {
-            let b = bn.bin(c[a], a);
-            let l = &mut bins.lo[a][b];
-            let h = &mut bins.hi[a][b];
-            for x in 0..3 {
-                l[x] = l[x].min(r.lo[x]);
-                h[x] = h[x].max(r.hi[x]);
-            }
-            bins.count[a][b] += 1;
-        }
+#[inline(always)]
+fn bin_one(r: &PrimRef, bn: &Binning, bins: &mut Bins) {
+    let lo = Vec3A::from(r.lo);
+    let hi = Vec3A::from(r.hi);
+    if bn.axes.1 - bn.axes.0 == 1 {
+        let a = bn.axes.0.min(2);
+        let b = bn.bin_axis(r, a).min(MAX_BINS - 1);
+        bins.lo[a][b] = bins.lo[a][b].min(lo);
+        bins.hi[a][b] = bins.hi[a][b].max(hi);
+        bins.count[a][b] += 1;
+        return;
     }
-    bins
+    let idx = bn.bins(r);
+    for a in bn.axes.0..bn.axes.1 {
+        let b = (idx[a] as usize).min(MAX_BINS - 1);
+        bins.lo[a][b] = bins.lo[a][b].min(lo);
+        bins.hi[a][b] = bins.hi[a][b].max(hi);
+        bins.count[a][b] += 1;
+    }
+}
+
+fn bin_refs(refs: &[PrimRef], bn: &Binning, bins: &mut Bins) {
+    if refs.len() < 512 {
+        for r in refs {
+            bin_one(r, bn, bins);
+        }
+        return;
+    }
+    // Two interleaved bin sets: neighbouring primitives often fall into the same bin, and one
+    // set would chain every min/max through memory. Merging is exact (min/max, integer counts).
+    let k = (bn.kmax.x as usize + 1).min(MAX_BINS);
+    let mut other = Bins::new();
+    let mut pairs = refs.chunks_exact(2);
+    for p in &mut pairs {
+        bin_one(&p[0], bn, bins);
+        bin_one(&p[1], bn, &mut other);
+    }
+    for r in pairs.remainder() {
+        bin_one(r, bn, bins);
+    }
+    bins.merge(&other, k);
+}
+
+#[inline]
+fn half_area_v(lo: Vec3A, hi: Vec3A) -> f32 {
+    let d = (hi - lo).max(Vec3A::ZERO);
+    d.x * d.y + d.y * d.z + d.z * d.x
+}
+
+fn to_aabb(lo: Vec3A, hi: Vec3A) -> Aabb {
+    Aabb { lo: lo.to_array(), hi: hi.to_array() }
 }
 
 fn bounds_of(refs: &[PrimRef]) -> (Aabb, Aabb) {
@@ -254,7 +314,8 @@ struct Ctx {
 
 /// Builds the subtree over `refs` into `nodes[0..2n-1]`; returns its unnormalised SAH sum
 /// (Σ inner A + Σ leaf A·|l|, half areas) and its depth.
-fn build_rec(ctx: &Ctx, refs: &mut [PrimRef], nodes: &mut [BinNode], start: u32, bounds: Aabb, cb: Aabb, depth: u32) -> (f64, u32) {
+#[allow(clippy::too_many_arguments)]
+fn build_rec(ctx: &Ctx, refs: &mut [PrimRef], nodes: &mut [BinNode], start: u32, bounds: Aabb, cb: Aabb, depth: u32, bins: &mut Bins) -> (f64, u32) {
     let n = refs.len();
     let area = bounds.half_area();
     let make_leaf = |nodes: &mut [BinNode]| {
@@ -267,59 +328,119 @@ fn build_rec(ctx: &Ctx, refs: &mut [PrimRef], nodes: &mut [BinNode], start: u32,
         return make_leaf(nodes);
     }
     let p = &ctx.params;
-    // --- choose a split ---
+    if n <= p.small_n.min(MAX_SMALL) && depth < MAX_SAH_DEPTH {
+        // Exact SAH sweep over sorted centroids: cheaper than binning for a handful of
+        // primitives, and these nodes are most of the tree.
+        let widest = (0..3).fold(0, |w, a| if cb.hi[a] - cb.lo[a] > cb.hi[w] - cb.lo[w] { a } else { w });
+        let axes = if p.single_axis { (widest, widest + 1) } else { (0, 3) };
+        if let Some((mid, cost)) = small_split(refs, axes) {
+            if n as u32 <= p.max_leaf && area * n as f32 <= area * p.traversal_cost + cost {
+                return make_leaf(nodes);
+            }
+            let (l, r) = refs.split_at(mid);
+            let lb = bounds_of(l);
+            let rb = bounds_of(r);
+            return finish_split(ctx, refs, nodes, start, bounds, mid, lb, rb, depth, bins);
+        }
+        return make_leaf(nodes);
+    }
+    // Small nodes get fewer bins (never more bins than primitives, at least 8).
+    let k = p.bins.clamp(2, MAX_BINS).min(n.max(8));
     let mut split: Option<(usize, usize, Aabb, Aabb, f32)> = None; // (axis, bin, left box, right box, cost)
-    let k = p.bins.clamp(2, MAX_BINS);
     if depth < MAX_SAH_DEPTH {
-        let mut bn = Binning { cmin: cb.lo, scale: [0.0; 3], k };
+        let mut scale = [0f32; 3];
         let mut any = false;
-        for a in 0..3 {
+        let widest = (0..3).fold(0, |w, a| if cb.hi[a] - cb.lo[a] > cb.hi[w] - cb.lo[w] { a } else { w });
+        let axes = if p.single_axis { (widest, widest + 1) } else { (0, 3) };
+        for a in axes.0..axes.1 {
             let ext = cb.hi[a] - cb.lo[a];
-            let s = k as f32 / ext;
-            if ext > 0.0 && s.is_finite() && s > 0.0 {
+            let sc = k as f32 / ext;
+            if ext > 0.0 && sc.is_finite() && sc > 0.0 {
                 // Shrink slightly so the max centroid lands in bin k-1, not k.
-                bn.scale[a] = s * (1.0 - 1.0 / 1024.0);
+                scale[a] = sc * (1.0 - 1.0 / 1024.0);
                 any = true;
             }
         }
+        let bn = Binning { cmin: Vec3A::from(cb.lo), scale: Vec3A::from(scale), kmax: UVec3::splat(k as u32 - 1), axes };
         if any {
-            let bins = if n >= PAR_BIN_CUTOFF {
-                refs.par_chunks(BIN_CHUNK).map(|c| bin_refs(c, &bn)).reduce(Bins::new, |x, y| x.merge(&y, k))
+            bins.reset(k);
+            if n >= PAR_BIN_CUTOFF {
+                let merged = refs
+                    .par_chunks(BIN_CHUNK)
+                    .map(|c| {
+                        let mut b = Bins::new();
+                        bin_refs(c, &bn, &mut b);
+                        b
+                    })
+                    .reduce(Bins::new, |mut x, y| {
+                        x.merge(&y, k);
+                        x
+                    });
+                bins.merge(&merged, k);
             } else {
-                bin_refs(refs, &bn)
-            };
+                bin_refs(refs, &bn, bins);
+            }
+            // Sweep: prefix areas/counts left to right, then the right side accumulated on the
+            // fly; boxes of the winning split are recomputed afterwards (keeps per-node stack
+            // traffic proportional to k).
+            let mut best: Option<(usize, usize, f32)> = None;
             for a in 0..3 {
-                if bn.scale[a] == 0.0 {
+                if scale[a] == 0.0 {
                     continue;
                 }
-                // Right-to-left suffix areas and counts.
-                let mut r_area = [0f32; MAX_BINS];
-                let mut r_box = [Aabb::EMPTY; MAX_BINS];
-                let mut acc = Aabb::EMPTY;
-                for b in (1..k).rev() {
-                    acc.grow(&bins.lo[a][b], &bins.hi[a][b]);
-                    r_box[b] = acc;
-                    r_area[b] = acc.half_area();
-                }
-                let mut lacc = Aabb::EMPTY;
-                let mut lcount = 0u32;
+                let mut l_area = [0f32; MAX_BINS];
+                let mut l_count = [0u32; MAX_BINS];
+                let mut lo = Vec3A::INFINITY;
+                let mut hi = Vec3A::NEG_INFINITY;
+                let mut cnt = 0u32;
                 for b in 0..k - 1 {
-                    lacc.grow(&bins.lo[a][b], &bins.hi[a][b]);
-                    lcount += bins.count[a][b];
-                    let rcount = n as u32 - lcount;
+                    lo = lo.min(bins.lo[a][b]);
+                    hi = hi.max(bins.hi[a][b]);
+                    cnt += bins.count[a][b];
+                    l_area[b] = half_area_v(lo, hi);
+                    l_count[b] = cnt;
+                }
+                let mut lo = Vec3A::INFINITY;
+                let mut hi = Vec3A::NEG_INFINITY;
+                let mut rcount = 0u32;
+                // Right-to-left; ties resolved to the lowest (axis, bin) for determinism.
+                let mut axis_best: Option<(usize, f32)> = None;
+                for b in (0..k - 1).rev() {
+                    lo = lo.min(bins.lo[a][b + 1]);
+                    hi = hi.max(bins.hi[a][b + 1]);
+                    rcount += bins.count[a][b + 1];
+                    let lcount = l_count[b];
                     if lcount == 0 || rcount == 0 {
                         continue;
                     }
-                    let cost = lacc.half_area() * lcount as f32 + r_area[b + 1] * rcount as f32;
-                    if split.map_or(true, |s| cost < s.4) {
-                        split = Some((a, b, lacc, r_box[b + 1], cost));
+                    let cost = l_area[b] * lcount as f32 + half_area_v(lo, hi) * rcount as f32;
+                    if axis_best.map_or(true, |x| cost <= x.1) {
+                        axis_best = Some((b, cost));
                     }
                 }
+                if let Some((b, cost)) = axis_best {
+                    if best.map_or(true, |x| cost < x.2) {
+                        best = Some((a, b, cost));
+                    }
+                }
+            }
+            if let Some((a, b, cost)) = best {
+                let (mut llo, mut lhi, mut rlo, mut rhi) = (Vec3A::INFINITY, Vec3A::NEG_INFINITY, Vec3A::INFINITY, Vec3A::NEG_INFINITY);
+                for x in 0..k {
+                    if x <= b {
+                        llo = llo.min(bins.lo[a][x]);
+                        lhi = lhi.max(bins.hi[a][x]);
+                    } else {
+                        rlo = rlo.min(bins.lo[a][x]);
+                        rhi = rhi.max(bins.hi[a][x]);
+                    }
+                }
+                split = Some((a, b, to_aabb(llo, lhi), to_aabb(rlo, rhi), cost));
             }
             // SAH termination: a leaf costs A·n, a split A + children (C_T = C_I = 1).
             if let Some(s) = split {
                 let leaf_cost = area * n as f32;
-                if n as u32 <= p.max_leaf && leaf_cost <= area + s.4 {
+                if n as u32 <= p.max_leaf && leaf_cost <= area * p.traversal_cost + s.4 {
                     return make_leaf(nodes);
                 }
             }
@@ -327,21 +448,26 @@ fn build_rec(ctx: &Ctx, refs: &mut [PrimRef], nodes: &mut [BinNode], start: u32,
                 // Partition in place (deterministic: sequential, same bin function as binning).
                 let mut i = 0usize;
                 let mut j = n;
-                let mut lcb = Aabb::EMPTY;
-                let mut rcb = Aabb::EMPTY;
+                let mut lc_lo = Vec3A::INFINITY;
+                let mut lc_hi = Vec3A::NEG_INFINITY;
+                let mut rc_lo = Vec3A::INFINITY;
+                let mut rc_hi = Vec3A::NEG_INFINITY;
                 while i < j {
-                    let c = centroid(&refs[i]);
-                    if bn.bin(c[a], a) <= b {
-                        lcb.grow_point(&c);
+                    let r = &refs[i];
+                    let c = Vec3A::from(r.lo) * 0.5 + Vec3A::from(r.hi) * 0.5;
+                    if bn.bin_axis(r, a) <= b {
+                        lc_lo = lc_lo.min(c);
+                        lc_hi = lc_hi.max(c);
                         i += 1;
                     } else {
-                        rcb.grow_point(&c);
+                        rc_lo = rc_lo.min(c);
+                        rc_hi = rc_hi.max(c);
                         j -= 1;
                         refs.swap(i, j);
                     }
                 }
                 if i > 0 && i < n {
-                    return finish_split(ctx, refs, nodes, start, bounds, i, (lbox, lcb), (rbox, rcb), depth);
+                    return finish_split(ctx, refs, nodes, start, bounds, i, (lbox, to_aabb(lc_lo, lc_hi)), (rbox, to_aabb(rc_lo, rc_hi)), depth, bins);
                 }
             }
         }
@@ -362,11 +488,64 @@ fn build_rec(ctx: &Ctx, refs: &mut [PrimRef], nodes: &mut [BinNode], start: u32,
     let (l, r) = refs.split_at(mid);
     let lb = bounds_of(l);
     let rb = bounds_of(r);
-    finish_split(ctx, refs, nodes, start, bounds, mid, lb, rb, depth)
+    finish_split(ctx, refs, nodes, start, bounds, mid, lb, rb, depth, bins)
+}
+
+/// Default size up to which nodes use the exact sorted sweep, and the largest allowed.
+const SMALL_N: usize = 8;
+const MAX_SMALL: usize = 16;
+
+/// Best SAH split of <= MAX_SMALL references over the given axes: reorders `refs` along the
+/// winning axis (stable insertion sort: ties keep input order, so the result is deterministic)
+/// and returns (left count, A_L·N_L + A_R·N_R).
+fn small_split(refs: &mut [PrimRef], axes: (usize, usize)) -> Option<(usize, f32)> {
+    let n = refs.len();
+    if !(2..=MAX_SMALL).contains(&n) {
+        return None;
+    }
+    let mut best: Option<(usize, usize, f32, [u8; MAX_SMALL])> = None;
+    for a in axes.0..axes.1.min(3) {
+        let mut order = [0u8; MAX_SMALL];
+        let mut key = [0f32; MAX_SMALL];
+        for i in 0..n {
+            order[i] = i as u8;
+            key[i] = refs[i].lo[a] * 0.5 + refs[i].hi[a] * 0.5;
+        }
+        for i in 1..n {
+            let mut j = i;
+            while j > 0 && key[order[j - 1] as usize].total_cmp(&key[order[j] as usize]).is_gt() {
+                order.swap(j - 1, j);
+                j -= 1;
+            }
+        }
+        let mut l_area = [0f32; MAX_SMALL];
+        let mut acc = Aabb::EMPTY;
+        for i in 0..n - 1 {
+            let r = &refs[order[i] as usize];
+            acc.grow(&r.lo, &r.hi);
+            l_area[i] = acc.half_area();
+        }
+        let mut racc = Aabb::EMPTY;
+        for i in (0..n - 1).rev() {
+            let r = &refs[order[i + 1] as usize];
+            racc.grow(&r.lo, &r.hi);
+            let cost = l_area[i] * (i + 1) as f32 + racc.half_area() * (n - i - 1) as f32;
+            if best.map_or(true, |b| cost < b.2 || (cost == b.2 && a == b.0 && i + 1 < b.1)) {
+                best = Some((a, i + 1, cost, order));
+            }
+        }
+    }
+    let (_, mid, cost, order) = best?;
+    let mut tmp = [PrimRef::zeroed(); MAX_SMALL];
+    tmp[..n].copy_from_slice(refs);
+    for i in 0..n {
+        refs[i] = tmp[order[i] as usize];
+    }
+    Some((mid, cost))
 }
 
 #[allow(clippy::too_many_arguments)]
-fn finish_split(ctx: &Ctx, refs: &mut [PrimRef], nodes: &mut [BinNode], start: u32, bounds: Aabb, mid: usize, left: (Aabb, Aabb), right: (Aabb, Aabb), depth: u32) -> (f64, u32) {
+fn finish_split(ctx: &Ctx, refs: &mut [PrimRef], nodes: &mut [BinNode], start: u32, bounds: Aabb, mid: usize, left: (Aabb, Aabb), right: (Aabb, Aabb), depth: u32, bins: &mut Bins) -> (f64, u32) {
     let n = refs.len();
     if let Some(slot) = nodes.get_mut(0) {
         *slot = BinNode { lo: bounds.lo, start, hi: bounds.hi, count: n as u32, left_count: mid as u32, reserved: 0 };
@@ -379,15 +558,29 @@ fn finish_split(ctx: &Ctx, refs: &mut [PrimRef], nodes: &mut [BinNode], start: u
     let area = bounds.half_area() as f64;
     let (a, b) = if n as u32 >= ctx.params.parallel_cutoff {
         rayon::join(
-            || build_rec(ctx, lrefs, lnodes, start, left.0, left.1, depth + 1),
-            || build_rec(ctx, rrefs, rnodes, rstart, right.0, right.1, depth + 1),
+            || build_rec(ctx, lrefs, lnodes, start, left.0, left.1, depth + 1, bins),
+            || build_rec(ctx, rrefs, rnodes, rstart, right.0, right.1, depth + 1, &mut Bins::new()),
         )
     } else {
         (
-            build_rec(ctx, lrefs, lnodes, start, left.0, left.1, depth + 1),
-            build_rec(ctx, rrefs, rnodes, rstart, right.0, right.1, depth + 1),
+            build_rec(ctx, lrefs, lnodes, start, left.0, left.1, depth + 1, bins),
+            build_rec(ctx, rrefs, rnodes, rstart, right.0, right.1, depth + 1, bins),
         )
     };
+    // Wide-subtree size if this node becomes a BVH4 node (kept in `reserved`): computed here,
+    // while the subtree is cache-hot, so emission can hand disjoint output ranges to threads.
+    let (ch, cnt) = wide_children(nodes, 0);
+    let mut w = 1u32;
+    for &c in &ch[..cnt] {
+        if let Some(nd) = nodes.get(c) {
+            if nd.left_count != 0 {
+                w = w.saturating_add(nd.reserved);
+            }
+        }
+    }
+    if let Some(slot) = nodes.get_mut(0) {
+        slot.reserved = w;
+    }
     (area + a.0 + b.0, 1 + a.1.max(b.1))
 }
 
@@ -445,8 +638,7 @@ pub fn encode_node(node_box: &Aabb, boxes: &[Aabb], child: &[u32], kind: &[u8]) 
         let ext = (hi - lo).max(0.0);
         // Smallest power of two s with lo + 255*s >= hi, found from the extent then verified.
         let mut e: u32 = if ext > 0.0 && ext.is_finite() {
-            let s = ext / 255.0;
-            ((s.to_bits() >> 23) & 0xff).max(1)
+            ((ext * (1.0 / 255.0)).to_bits() >> 23 & 0xff).max(1)
         } else if ext > 0.0 {
             254
         } else {
@@ -457,13 +649,18 @@ pub fn encode_node(node_box: &Aabb, boxes: &[Aabb], child: &[u32], kind: &[u8]) 
         }
         n.exp[a] = e as u8;
         let s = f32::from_bits(e << 23);
-        for (c, b) in boxes.iter().enumerate() {
-            let dec = |q: u32| lo + q as f32 * s;
-            let mut ql = (((b.lo[a] - lo) / s).floor().max(0.0) as u32).min(255);
+        let inv_s = 1.0 / s; // exact: s is a power of two
+        let dec = |q: u32| lo + q as f32 * s;
+        for (c, b) in boxes.iter().enumerate().take(4) {
+            // Guesses by truncation, then made exact and outward with the decode arithmetic
+            // (usually zero or one step).
+            let x = (b.lo[a] - lo) * inv_s;
+            let mut ql = if x > 0.0 { (x as u32).min(255) } else { 0 };
             while ql > 0 && dec(ql) > b.lo[a] {
                 ql -= 1;
             }
-            let mut qh = (((b.hi[a] - lo) / s).ceil().max(0.0) as u32).min(255);
+            let y = (b.hi[a] - lo) * inv_s;
+            let mut qh = if y > 0.0 { (y as u32).min(255) } else { 0 };
             while qh < 255 && dec(qh) < b.hi[a] {
                 qh += 1;
             }
@@ -478,51 +675,82 @@ pub fn encode_node(node_box: &Aabb, boxes: &[Aabb], child: &[u32], kind: &[u8]) 
     n
 }
 
-/// Counts the wide nodes and leaves the collapse will produce.
-fn count_wide(nodes: &[BinNode], i: usize) -> (u32, u32) {
-    let (ch, cnt) = wide_children(nodes, i);
-    let mut wn = 1u32;
-    let mut leaves = 0u32;
-    for &c in &ch[..cnt] {
-        match nodes.get(c) {
-            Some(nd) if nd.left_count != 0 => {
-                let (a, b) = count_wide(nodes, c);
-                wn += a;
-                leaves += b;
-            }
-            _ => leaves += 1,
-        }
+/// Wide nodes of a subtree in preorder; `W` of an internal binary node is in `reserved`.
+pub fn wide_size(nodes: &[BinNode]) -> u32 {
+    match nodes.first() {
+        Some(n) if n.left_count != 0 => n.reserved,
+        Some(_) => 1,
+        None => 0,
     }
-    (wn, leaves)
 }
 
-/// Emits the wide node for binary node `i` and its subtree in preorder; returns its index.
-fn emit_wide(nodes: &[BinNode], i: usize, next: &mut u32, out: &mut [u8]) -> u32 {
-    let me = *next;
-    *next += 1;
-    let (ch, cnt) = wide_children(nodes, i);
+/// One pending subtree emission: binary subtree (slice rooted at its node), its wide index,
+/// and exactly its output range.
+type EmitTask<'a> = Option<(&'a [BinNode], u32, &'a mut [u8])>;
+const PAR_EMIT_CUTOFF: u32 = 1024;
+
+fn run_emit(tasks: &mut [EmitTask<'_>]) -> u32 {
+    match tasks.len() {
+        0 => 0,
+        1 => match tasks[0].take() {
+            Some((n, me, out)) => emit_wide(n, me, out),
+            None => 0,
+        },
+        len => {
+            let size: u32 = tasks.iter().map(|t| t.as_ref().map_or(0, |t| wide_size(t.0))).sum();
+            let (a, b) = tasks.split_at_mut(len / 2);
+            if size >= PAR_EMIT_CUTOFF {
+                let (x, y) = rayon::join(|| run_emit(a), || run_emit(b));
+                x + y
+            } else {
+                run_emit(a) + run_emit(b)
+            }
+        }
+    }
+}
+
+/// Emits the wide node made from the binary subtree rooted at `nodes[0]` as node `me` into
+/// `out[..64]` and its descendants (preorder) after it; returns the number of leaf children.
+/// Child indices follow from subtree sizes, never from timing: same bytes for any thread count.
+fn emit_wide(nodes: &[BinNode], me: u32, out: &mut [u8]) -> u32 {
+    let (ch, cnt) = wide_children(nodes, 0);
     let mut boxes = [Aabb::EMPTY; 4];
     let mut child = [0u32; 4];
     let mut kind = [0u8; 4];
     let mut node_box = Aabb::EMPTY;
+    let mut leaves = 0u32;
+    let mut next = me + 1;
+    let mut pending: [(usize, u32, u32); 4] = [(0, 0, 0); 4];
+    let mut np = 0;
     for k in 0..cnt {
         let Some(nd) = nodes.get(ch[k]).copied() else { continue };
         boxes[k] = Aabb { lo: nd.lo, hi: nd.hi };
         node_box = node_box.union(&boxes[k]);
-        if nd.left_count != 0 && ch[k] != i {
+        if nd.left_count != 0 && ch[k] != 0 {
             kind[k] = CHILD_INTERNAL;
-            child[k] = emit_wide(nodes, ch[k], next, out);
+            child[k] = next;
+            pending[np] = (ch[k], next, nd.reserved);
+            np += 1;
+            next = next.saturating_add(nd.reserved);
         } else {
             kind[k] = nd.count.min(254) as u8;
             child[k] = nd.start;
+            leaves += 1;
         }
     }
     let wn = encode_node(&node_box, &boxes[..cnt], &child, &kind);
-    let off = me as usize * NODE_SIZE;
-    if let Some(d) = out.get_mut(off..off + NODE_SIZE) {
-        d.copy_from_slice(bytemuck::bytes_of(&wn));
+    let (head, mut rest) = out.split_at_mut(NODE_SIZE.min(out.len()));
+    if head.len() == NODE_SIZE {
+        head.copy_from_slice(bytemuck::bytes_of(&wn));
     }
-    me
+    let mut tasks: [EmitTask<'_>; 4] = [None, None, None, None];
+    for (t, &(rel, idx, w)) in tasks.iter_mut().zip(pending[..np].iter()) {
+        let len = (w as usize * NODE_SIZE).min(rest.len());
+        let (mine, others) = std::mem::take(&mut rest).split_at_mut(len);
+        rest = others;
+        *t = nodes.get(rel..).map(|n| (n, idx, mine));
+    }
+    leaves + run_emit(&mut tasks[..np])
 }
 
 /// FNV-style 64-bit hash over the index bytes, word at a time (the update's index check).
@@ -547,6 +775,12 @@ pub fn index_hash(g: &Geometry) -> [u32; 2] {
 /// Reads primitive `p` of geometry `gi` as a reference; None = not stored (inactive, or a
 /// degenerate triangle that may be dropped).
 pub fn make_ref(gi: u32, g: &Geometry, p: u32, view: &dyn DeviceView, allow_update: bool) -> Result<Option<PrimRef>, BuildError> {
+    Ok(make_ref_data(gi, g, p, view, allow_update)?.map(|x| x.0))
+}
+
+/// `make_ref` plus the primitive data the format stores (vertices, or the AABB).
+pub fn make_ref_data(gi: u32, g: &Geometry, p: u32, view: &dyn DeviceView, allow_update: bool) -> Result<Option<(PrimRef, [f32; 9])>, BuildError> {
+    let mut data = [0f32; 9];
     let (lo, hi) = match g.data {
         GeometryData::Triangles { .. } => {
             let Some(v) = read_triangle(gi, g, p)? else { return Ok(None) };
@@ -566,10 +800,12 @@ pub fn make_ref(gi: u32, g: &Geometry, p: u32, view: &dyn DeviceView, allow_upda
                     }
                 }
             }
+            data = [v[0].x, v[0].y, v[0].z, v[1].x, v[1].y, v[1].z, v[2].x, v[2].y, v[2].z];
             triangle_bounds(&v)
         }
         GeometryData::Aabbs { .. } => {
             let Some(b) = read_aabb(gi, g, p)? else { return Ok(None) };
+            data[..6].copy_from_slice(&b);
             sanitize([b[0], b[1], b[2]], [b[3], b[4], b[5]])
         }
         GeometryData::Instances { .. } => {
@@ -577,7 +813,7 @@ pub fn make_ref(gi: u32, g: &Geometry, p: u32, view: &dyn DeviceView, allow_upda
             instance_bounds(&inst.transform, inst.reference, view)
         }
     };
-    Ok(Some(PrimRef { lo, geom: gi, hi, prim: p }))
+    Ok(Some((PrimRef { lo, geom: gi, hi, prim: p }, data)))
 }
 
 /// Deterministic first error: the one with the lowest (geometry, chunk) position wins.
@@ -593,28 +829,54 @@ pub const INGEST_CHUNK: usize = 4096;
 
 /// Fills `refs[..total]` (slot = global primitive ID), then compacts active ones to the front
 /// in order. Returns (active count, per-geometry active counts written into `active`).
-fn ingest(desc: &BuildDesc, view: &dyn DeviceView, refs: &mut [PrimRef]) -> Result<usize, BuildError> {
+/// Staged primitive data: what the format stores plus the primitive's index in its geometry.
+pub const STAGE_SIZE: usize = 40;
+
+/// Fills `refs[..total]` (slot = global primitive ID), then compacts active ones to the front
+/// in order; returns the active count. With `stage`, the primitive data is also written there
+/// at the global ID (one sequential pass over the input) and `PrimRef::prim` holds the global
+/// ID until `gather_leaf_data` puts data and records in leaf order.
+fn ingest(desc: &BuildDesc, view: &dyn DeviceView, refs: &mut [PrimRef], mut stage: Option<&mut [u8]>) -> Result<usize, BuildError> {
     let allow_update = desc.flags.contains(BuildFlags::ALLOW_UPDATE);
     let mut base = 0usize;
     for (gi, g) in desc.geometries.iter().enumerate() {
         let count = g.primitive_count as usize;
         let slice = refs.get_mut(base..base + count).ok_or(BuildError::TooManyPrimitives)?;
         let gi32 = gi as u32;
-        let res = slice
-            .par_chunks_mut(INGEST_CHUNK)
-            .enumerate()
-            .map(|(ci, chunk)| {
-                for (k, slot) in chunk.iter_mut().enumerate() {
-                    let p = (ci * INGEST_CHUNK + k) as u32;
-                    match make_ref(gi32, g, p, view, allow_update) {
-                        Ok(Some(r)) => *slot = r,
-                        Ok(None) => *slot = PrimRef { lo: [0.0; 3], geom: DROPPED, hi: [0.0; 3], prim: p },
-                        Err(e) => return Err(((gi as u64) << 32 | p as u64, e)),
+        let gbase = base;
+        let work = |ci: usize, chunk: &mut [PrimRef], st: Option<&mut [u8]>| -> Result<(), (u64, BuildError)> {
+            let mut st = st;
+            for (k, slot) in chunk.iter_mut().enumerate() {
+                let p = (ci * INGEST_CHUNK + k) as u32;
+                match make_ref_data(gi32, g, p, view, allow_update) {
+                    Ok(Some((mut r, data))) => {
+                        if let Some(st) = st.as_deref_mut() {
+                            if let Some(d) = st.get_mut(k * STAGE_SIZE..(k + 1) * STAGE_SIZE) {
+                                d[..36].copy_from_slice(bytemuck::bytes_of(&data));
+                                d[36..].copy_from_slice(&p.to_le_bytes());
+                            }
+                            r.prim = (gbase + ci * INGEST_CHUNK + k) as u32;
+                        }
+                        *slot = r
                     }
+                    Ok(None) => *slot = PrimRef { lo: [0.0; 3], geom: DROPPED, hi: [0.0; 3], prim: p },
+                    Err(e) => return Err(((gi as u64) << 32 | p as u64, e)),
                 }
-                Ok(())
-            })
-            .reduce(|| Ok(()), first_err);
+            }
+            Ok(())
+        };
+        let res = match stage.as_deref_mut() {
+            Some(st) => {
+                let st = st.get_mut(base * STAGE_SIZE..(base + count) * STAGE_SIZE).ok_or(BuildError::TooManyPrimitives)?;
+                slice
+                    .par_chunks_mut(INGEST_CHUNK)
+                    .zip(st.par_chunks_mut(INGEST_CHUNK * STAGE_SIZE))
+                    .enumerate()
+                    .map(|(ci, (chunk, st))| work(ci, chunk, Some(st)))
+                    .reduce(|| Ok(()), first_err)
+            }
+            None => slice.par_chunks_mut(INGEST_CHUNK).enumerate().map(|(ci, chunk)| work(ci, chunk, None)).reduce(|| Ok(()), first_err),
+        };
         res.map_err(|e| e.1)?;
         base += count;
     }
@@ -627,6 +889,31 @@ fn ingest(desc: &BuildDesc, view: &dyn DeviceView, refs: &mut [PrimRef]) -> Resu
         }
     }
     Ok(w)
+}
+
+/// Leaf-order primitive data and records from the staging area; restores `PrimRef::prim` to
+/// the index within the geometry.
+fn gather_leaf_data(refs: &mut [PrimRef], stage: &[u8], prims: &mut [u8], records: &mut [u8]) {
+    const CH: usize = 4096;
+    prims
+        .par_chunks_mut(CH * PRIM_SIZE)
+        .zip(records.par_chunks_mut(CH * RECORD_SIZE))
+        .zip(refs.par_chunks_mut(CH))
+        .for_each(|((pd, rd), rs)| {
+            for (k, r) in rs.iter_mut().enumerate() {
+                let o = r.prim as usize * STAGE_SIZE;
+                let Some(st) = stage.get(o..o + STAGE_SIZE) else { continue };
+                if let Some(d) = pd.get_mut(k * PRIM_SIZE..(k + 1) * PRIM_SIZE) {
+                    d.copy_from_slice(&st[..36]);
+                }
+                let prim = u32::from_le_bytes([st[36], st[37], st[38], st[39]]);
+                r.prim = prim;
+                let rec = PrimRecord { geometry: r.geom, primitive: prim };
+                if let Some(d) = rd.get_mut(k * RECORD_SIZE..(k + 1) * RECORD_SIZE) {
+                    d.copy_from_slice(bytemuck::bytes_of(&rec));
+                }
+            }
+        });
 }
 
 fn check_types(desc: &BuildDesc) -> Result<(), BuildError> {
@@ -802,7 +1089,12 @@ pub fn build(desc: &BuildDesc, view: &dyn DeviceView, dst: &mut [u8], scratch: &
     let (refs, rest) = carve::<PrimRef>(scratch, total).ok_or(BuildError::ScratchTooSmall { needed: need_scratch, got: 0 })?;
     let (nodes, _) = carve::<BinNode>(rest, 2 * total).ok_or(BuildError::ScratchTooSmall { needed: need_scratch, got: 0 })?;
 
-    let active = ingest(desc, view, refs)?;
+    // BLAS primitive data is staged in the (still unused) node area of dst during ingest, so
+    // the leaf-order pass reads one 40-byte record per primitive instead of indices and three
+    // vertices at random. Needs 40·total <= the worst-case node area (true for total >= 3).
+    let stage_at = layout::sections(desc.ty, 0, total as u64, ngeo).nodes as usize;
+    let staged = !is_tlas && total >= 3 && stage_at.checked_add(total * STAGE_SIZE).is_some_and(|e| e <= dst.len());
+    let active = ingest(desc, view, refs, if staged { dst.get_mut(stage_at..) } else { None })?;
     let refs = &mut refs[..active];
     // Geometry table now, while refs are still in geometry order (its offset is tree-independent).
     {
@@ -829,29 +1121,42 @@ pub fn build(desc: &BuildDesc, view: &dyn DeviceView, dst: &mut [u8], scratch: &
         .map(bounds_of)
         .reduce(|| (Aabb::EMPTY, Aabb::EMPTY), |a, b| (a.0.union(&b.0), a.1.union(&b.1)));
     let (sah_sum, _depth) = if active > 0 {
-        build_rec(&ctx, refs, &mut nodes[..2 * active - 1], 0, root_box, root_cb, 0)
+        build_rec(&ctx, refs, &mut nodes[..2 * active - 1], 0, root_box, root_cb, 0, &mut Bins::new())
     } else {
         (0.0, 0)
     };
-    let (wide_count, leaf_count) = if active > 0 { count_wide(nodes, 0) } else { (0, 0) };
-
+    // Leaf data first: with staging, the node section overlaps the staging area.
+    let pre = layout::sections(desc.ty, 0, active as u64, ngeo);
+    if !is_tlas {
+        let (head, tail) = dst.split_at_mut(stage_at.min(dst.len()));
+        let (head, rec_part) = head.split_at_mut(pre.records as usize);
+        let prims = &mut head[pre.prims as usize..pre.prims as usize + active * PRIM_SIZE];
+        let records = &mut rec_part[..active * RECORD_SIZE];
+        if staged {
+            gather_leaf_data(refs, &tail[..total * STAGE_SIZE], prims, records);
+        } else {
+            write_leaf_data(desc, refs, prims, records);
+        }
+    }
+    // Nodes are the last section, so their offset is known before their count: emit directly.
+    let nodes_at = pre.nodes as usize;
+    let wide_count = if active > 0 { wide_size(nodes) } else { 0 };
+    let mut leaf_count = 0u32;
+    if active > 0 {
+        let end = nodes_at.saturating_add(wide_count as usize * NODE_SIZE);
+        let got = dst.len() as u64;
+        let out = dst.get_mut(nodes_at..end).ok_or(BuildError::DestinationTooSmall { needed: end as u64, got })?;
+        leaf_count = emit_wide(nodes, 0, out);
+    }
     let s = layout::sections(desc.ty, wide_count as u64, active as u64, ngeo);
-    if s.end > dst.len() as u64 {
+    if s.end > dst.len() as u64 || s.nodes as usize != nodes_at {
         return Err(BuildError::DestinationTooSmall { needed: s.end, got: dst.len() as u64 });
     }
     let used = s.end;
     let dst = &mut dst[..used as usize];
 
-    // Nodes.
-    {
-        let nb = &mut dst[s.nodes as usize..s.nodes as usize + wide_count as usize * NODE_SIZE];
-        if active > 0 {
-            let mut next = 0u32;
-            emit_wide(nodes, 0, &mut next, nb);
-        }
-    }
     let mut blas_refs = 0u32;
-    let instance_count;
+    let mut instance_count = 0;
     if is_tlas {
         let (head, tail) = dst.split_at_mut(s.instances as usize);
         let records = &mut head[s.records as usize..s.records as usize + active * RECORD_SIZE];
@@ -863,12 +1168,6 @@ pub fn build(desc: &BuildDesc, view: &dyn DeviceView, dst: &mut [u8], scratch: &
         let keys: &mut [u64] = bytemuck::try_cast_slice_mut(&mut node_bytes[..active * 8]).map_err(|_| BuildError::ScratchTooSmall { needed: need_scratch, got: 0 })?;
         blas_refs = write_instances(desc, view, refs, keys, inst, records, table);
         instance_count = active as u32;
-    } else {
-        let (head, tail) = dst.split_at_mut(s.records as usize);
-        let prims = &mut head[s.prims as usize..s.prims as usize + active * PRIM_SIZE];
-        let records = &mut tail[..active * RECORD_SIZE];
-        write_leaf_data(desc, refs, prims, records);
-        instance_count = 0;
     }
     let filled = [
         (s.nodes, s.nodes + wide_count as u64 * NODE_SIZE as u64),

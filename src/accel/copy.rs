@@ -1,9 +1,9 @@
 //! Clone, compaction, serialization. The blob is position-independent, so all of these are
 //! byte copies; serialization adds the Vulkan header and takes BLAS addresses from its list.
-use super::layout::{self, parse};
+use super::layout::parse;
 
 /// Identifies this format version in serialized data; change with layout::FORMAT_VERSION.
-pub const ACCEL_FORMAT_UUID: [u8; 16] = *b"ArborAS-BVH4q-01";
+pub const ACCEL_FORMAT_UUID: [u8; 16] = *b"ArborAS-BVH4q-02";
 
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub enum CopyError {
@@ -107,7 +107,6 @@ pub fn deserialize(data: &[u8], driver_uuid: [u8; 16], dst: &mut [u8]) -> Result
         }
     }
     // BLAS indices in instances refer to table slots, so a non-sorted rewritten table is fine.
-    let _ = layout::HEADER_SIZE;
     Ok(())
 }
 

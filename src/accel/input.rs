@@ -160,6 +160,21 @@ fn vertex_index(geometry_index: u32, p: u32, k: u32, index_type: IndexType, indi
 
 /// The three vertex indices of triangle `p`.
 pub fn triangle_indices(geometry_index: u32, g: &Geometry, p: u32) -> Result<[u32; 3], BuildError> {
+    // Fast path for the common 32-bit indices: one bounds check for the three.
+    if let GeometryData::Triangles { index_type: IndexType::U32, indices, max_vertex, .. } = g.data {
+        let off = p as usize * 12;
+        if let Some(b) = indices.get(off..off + 12) {
+            let i = [
+                u32::from_le_bytes([b[0], b[1], b[2], b[3]]),
+                u32::from_le_bytes([b[4], b[5], b[6], b[7]]),
+                u32::from_le_bytes([b[8], b[9], b[10], b[11]]),
+            ];
+            if i[0] <= max_vertex && i[1] <= max_vertex && i[2] <= max_vertex {
+                return Ok(i);
+            }
+        }
+        // Errors (and their exact position) come from the general path below.
+    }
     match g.data {
         GeometryData::Triangles { index_type, indices, max_vertex, .. } => Ok([
             vertex_index(geometry_index, p, 0, index_type, indices, max_vertex)?,
@@ -181,7 +196,23 @@ pub fn read_triangle(geometry_index: u32, g: &Geometry, p: u32) -> Result<Option
     let size = format.size() as u64;
     let mut v = [Vec3::ZERO; 3];
     let mut inactive = false;
+    let is_f32x3 = matches!(format, VertexFormat::R32G32B32Sfloat | VertexFormat::R32G32B32A32Sfloat);
     for k in 0..3 {
+        if is_f32x3 {
+            // Fast path: plain f32 positions.
+            let off = (idx[k] as u64).checked_mul(stride).and_then(|o| usize::try_from(o).ok());
+            if let Some(b) = off.and_then(|o| vertices.get(o..o.checked_add(12)?)) {
+                v[k] = Vec3::new(
+                    f32::from_le_bytes([b[0], b[1], b[2], b[3]]),
+                    f32::from_le_bytes([b[4], b[5], b[6], b[7]]),
+                    f32::from_le_bytes([b[8], b[9], b[10], b[11]]),
+                );
+                if size == 12 || off.and_then(|o| o.checked_add(size as usize)).is_some_and(|e| e <= vertices.len()) {
+                    inactive |= v[k].x.is_nan();
+                    continue;
+                }
+            }
+        }
         let off = (idx[k] as u64).checked_mul(stride).ok_or(short.clone())?;
         let end = off.checked_add(size).ok_or(short.clone())?;
         if end > vertices.len() as u64 {

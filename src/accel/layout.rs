@@ -6,7 +6,7 @@ use bytemuck::{Pod, Zeroable};
 
 pub const MAGIC: u32 = u32::from_le_bytes(*b"ARBR");
 /// Bump whenever any stored layout or its meaning changes (and change ACCEL_FORMAT_UUID).
-pub const FORMAT_VERSION: u32 = 1;
+pub const FORMAT_VERSION: u32 = 2;
 const VALID: u32 = 0x5641_4c44;
 /// Sections start at multiples of this (keeps nodes cache-line aligned when dst is).
 pub const SECTION_ALIGN: u64 = 64;
@@ -179,14 +179,14 @@ pub fn sections(ty: AsType, nodes: u64, prims: u64, geometries: u64) -> Sections
         off = align_up(off.saturating_add(bytes));
         start
     };
-    // The geometry table comes first: its offset does not depend on the tree, so the builder
-    // can fill it before the node count is known.
+    // Nodes come last: every other offset is then independent of the tree, so the builder
+    // fills the tables before the node count is known and emits nodes in one pass.
     let geo_off = next(geometries.saturating_mul(GEOMETRY_SIZE as u64));
-    let nodes_off = next(nodes.saturating_mul(NODE_SIZE as u64));
     let prims_off = next(if tri { prims.saturating_mul(PRIM_SIZE as u64) } else { 0 });
     let records_off = next(prims.saturating_mul(RECORD_SIZE as u64));
     let inst_off = next(if tri { 0 } else { prims.saturating_mul(INSTANCE_RECORD_SIZE as u64) });
     let blas_off = next(if tri { 0 } else { prims.saturating_mul(8) });
+    let nodes_off = next(nodes.saturating_mul(NODE_SIZE as u64));
     Sections { nodes: nodes_off, prims: prims_off, records: records_off, geometries: geo_off, instances: inst_off, blas_table: blas_off, end: off }
 }
 

@@ -72,10 +72,9 @@ fn contains(outer: &Aabb, inner: &Aabb) -> bool {
     (0..3).all(|a| outer.lo[a] <= inner.lo[a] && inner.hi[a] <= outer.hi[a])
 }
 
-fn prim_box(p: &Parsed, s: u32, view_bounds: bool) -> Option<Aabb> {
+fn prim_box(p: &Parsed, s: u32) -> Option<Aabb> {
     if p.is_tlas() {
-        let _ = view_bounds;
-        return None; // instance boxes depend on the BLASes; checked by traversal tests instead
+        return None; // instance boxes depend on the BLASes (no view here); traversal tests cover them
     }
     let d = p.prim(s)?;
     let g = p.record(s).and_then(|r| p.geometry(r.geometry))?;
@@ -96,25 +95,33 @@ pub fn validate(structure: &[u8]) -> Result<(), String> {
     let n = r.primitive_count as usize;
     let mut seen = vec![false; n];
     let mut node_seen = vec![false; r.node_count as usize];
-    let mut stack: Vec<(u32, Option<Aabb>)> = Vec::new();
+    // Each entry carries the intersection of the decoded boxes on its path: every primitive
+    // must lie inside it (decoded boxes of a child need not lie inside the decoded parent box,
+    // since each level rounds outward in its own frame; what traversal needs is containment of
+    // the primitives in every box on the path).
+    let everything = Aabb { lo: [f32::NEG_INFINITY; 3], hi: [f32::INFINITY; 3] };
+    let mut stack: Vec<(u32, Aabb)> = Vec::new();
     if r.node_count > 0 {
-        stack.push((0, Some(to_aabb(r.bounds))));
+        stack.push((0, everything));
     } else if n > 0 {
         return Err("primitives but no nodes".into());
     }
-    while let Some((i, parent_box)) = stack.pop() {
+    let root = to_aabb(r.bounds);
+    let clip = |a: &Aabb, b: &Aabb| {
+        let mut c = *a;
+        for k in 0..3 {
+            c.lo[k] = c.lo[k].max(b.lo[k]);
+            c.hi[k] = c.hi[k].min(b.hi[k]);
+        }
+        c
+    };
+    while let Some((i, path)) = stack.pop() {
         let node = p.node(i).ok_or(format!("node {i} out of range"))?;
         let slot = node_seen.get_mut(i as usize).ok_or("node index")?;
         if *slot {
             return Err(format!("node {i} reached twice"));
         }
         *slot = true;
-        let ub = node_union(&node);
-        if let Some(pb) = parent_box {
-            if !contains(&pb, &ub) {
-                return Err(format!("node {i}: children box {ub:?} not inside parent box {pb:?}"));
-            }
-        }
         if node.child_count == 0 || node.child_count > 4 {
             return Err(format!("node {i}: child count {}", node.child_count));
         }
@@ -126,7 +133,7 @@ pub fn validate(structure: &[u8]) -> Result<(), String> {
                     if node.child[c] <= i {
                         return Err(format!("node {i}: child {} not after parent", node.child[c]));
                     }
-                    stack.push((node.child[c], Some(cb)));
+                    stack.push((node.child[c], clip(&path, &cb)));
                 }
                 k => {
                     for s in node.child[c]..node.child[c].saturating_add(k as u32) {
@@ -135,9 +142,13 @@ pub fn validate(structure: &[u8]) -> Result<(), String> {
                             return Err(format!("primitive slot {s} in two leaves"));
                         }
                         *e = true;
-                        if let Some(pb) = prim_box(&p, s, false) {
-                            if !contains(&cb, &pb) {
-                                return Err(format!("node {i}: primitive {s} box {pb:?} outside leaf box {cb:?}"));
+                        if let Some(pb) = prim_box(&p, s) {
+                            let lb = clip(&path, &cb);
+                            if !contains(&lb, &pb) {
+                                return Err(format!("node {i}: primitive {s} box {pb:?} outside its leaf/ancestor boxes {lb:?}"));
+                            }
+                            if !contains(&root, &pb) {
+                                return Err(format!("primitive {s} outside the header bounds"));
                             }
                         }
                         let rec = p.record(s).ok_or("record")?;

@@ -1,1 +1,789 @@
+//! Unit tests for the core pieces: decode, intersection, trees vs brute force, determinism
+//! across thread counts, refit, copies, degenerate and hostile inputs.
+use super::*;
+use glam::Vec3;
 
+/// Small deterministic generator (no dev-dependencies needed).
+pub struct Rng(u64);
+impl Rng {
+    pub fn new(seed: u64) -> Self {
+        Rng(seed.wrapping_mul(0x9E37_79B9_7F4A_7C15) | 1)
+    }
+    pub fn next_u32(&mut self) -> u32 {
+        self.0 ^= self.0 << 13;
+        self.0 ^= self.0 >> 7;
+        self.0 ^= self.0 << 17;
+        (self.0 >> 16) as u32
+    }
+    pub fn f(&mut self) -> f32 {
+        (self.next_u32() >> 8) as f32 / (1u32 << 24) as f32
+    }
+    pub fn range(&mut self, lo: f32, hi: f32) -> f32 {
+        lo + (hi - lo) * self.f()
+    }
+    pub fn v3(&mut self, s: f32) -> Vec3 {
+        Vec3::new(self.range(-s, s), self.range(-s, s), self.range(-s, s))
+    }
+}
+
+pub fn f32_bytes(v: &[Vec3]) -> Vec<u8> {
+    v.iter().flat_map(|p| p.to_array()).flat_map(|x| x.to_le_bytes()).collect()
+}
+pub fn u32_bytes(v: &[u32]) -> Vec<u8> {
+    v.iter().flat_map(|x| x.to_le_bytes()).collect()
+}
+
+pub fn tri_geom<'a>(verts: &'a [u8], nverts: u32, idx: &'a [u8], ntri: u32, flags: u32) -> Geometry<'a> {
+    Geometry {
+        flags: GeometryFlags(flags),
+        primitive_count: ntri,
+        data: GeometryData::Triangles {
+            format: VertexFormat::R32G32B32Sfloat,
+            vertices: verts,
+            stride: 12,
+            max_vertex: nverts.saturating_sub(1),
+            index_type: if idx.is_empty() { IndexType::None } else { IndexType::U32 },
+            indices: idx,
+            transform: None,
+        },
+    }
+}
+
+pub fn shape_of(g: &Geometry) -> GeometryShape {
+    match g.data {
+        GeometryData::Triangles { format, index_type, max_vertex, transform, .. } => GeometryShape::Triangles { format, index_type, max_vertex, has_transform: transform.is_some() },
+        GeometryData::Aabbs { .. } => GeometryShape::Aabbs,
+        GeometryData::Instances { .. } => GeometryShape::Instances,
+    }
+}
+
+pub fn try_build(ty: AsType, flags: u32, geoms: &[Geometry], view: &dyn DeviceView) -> (Result<BuildReport, BuildError>, Vec<u8>) {
+    let shapes: Vec<_> = geoms.iter().map(shape_of).collect();
+    let counts: Vec<_> = geoms.iter().map(|g| g.primitive_count).collect();
+    let sz = build_sizes(ty, BuildFlags(flags), &shapes, &counts);
+    let mut dst = vec![0xAAu8; sz.acceleration_structure_size as usize];
+    // Odd offset: the builder must align scratch itself.
+    let mut scratch = vec![0u8; sz.build_scratch_size as usize + 3];
+    let desc = BuildDesc { ty, flags: BuildFlags(flags), geometries: geoms };
+    let r = build(&desc, view, &mut dst, &mut scratch[3..]);
+    (r, dst)
+}
+
+pub fn build_ok(ty: AsType, flags: u32, geoms: &[Geometry], view: &dyn DeviceView) -> Vec<u8> {
+    let (r, dst) = try_build(ty, flags, geoms, view);
+    let r = r.expect("build");
+    assert_eq!(header(&dst).unwrap().used_size, r.used_size);
+    validate(&dst).expect("validate");
+    dst
+}
+
+fn random_soup(rng: &mut Rng, n: usize, scale: f32, size: f32) -> Vec<Vec3> {
+    let mut v = Vec::with_capacity(n * 3);
+    for _ in 0..n {
+        let c = rng.v3(scale);
+        for _ in 0..3 {
+            v.push(c + rng.v3(size));
+        }
+    }
+    v
+}
+
+fn random_ray(rng: &mut Rng, s: f32) -> Ray {
+    let o = rng.v3(s * 1.5);
+    let target = rng.v3(s * 0.5);
+    Ray { origin: o, direction: target - o, tmin: 0.0, tmax: if rng.f() < 0.2 { rng.range(0.1, 1.0) } else { f32::INFINITY } }
+}
+
+/// Brute force closest t with the same exact test and face culling rules (no instances).
+fn brute_closest(v: &[Vec3], ray: &Ray, flags: u32) -> Option<(f32, u32)> {
+    let mut best: Option<(f32, u32)> = None;
+    let mut r = *ray;
+    for (i, t) in v.chunks_exact(3).enumerate() {
+        if let Some((tt, _, _, front)) = intersect_triangle(&r, t[0], t[1], t[2]) {
+            if (flags & RayFlags::CULL_BACK_FACING_TRIANGLES != 0 && !front) || (flags & RayFlags::CULL_FRONT_FACING_TRIANGLES != 0 && front) {
+                continue;
+            }
+            best = Some((tt, i as u32));
+            r.tmax = tt;
+        }
+    }
+    best
+}
+
+#[test]
+fn half_and_norm_decode() {
+    use super::input::half_to_f32;
+    assert_eq!(half_to_f32(0x3c00), 1.0);
+    assert_eq!(half_to_f32(0xc000), -2.0);
+    assert_eq!(half_to_f32(0x0001), 5.960_464_5e-8);
+    assert!(half_to_f32(0x7e00).is_nan());
+    assert_eq!(half_to_f32(0x7c00), f32::INFINITY);
+    assert_eq!(half_to_f32(0x7bff), 65504.0);
+    let d = |f: VertexFormat, b: &[u8]| super::input::decode_vertex(f, b).unwrap();
+    assert_eq!(d(VertexFormat::R16G16Snorm, &[0xff, 0x7f, 0x00, 0x80]), Vec3::new(1.0, -1.0, 0.0));
+    assert_eq!(d(VertexFormat::R8G8B8A8Snorm, &[0x7f, 0x81, 0x80, 0x00]), Vec3::new(1.0, -1.0, -1.0));
+    assert_eq!(d(VertexFormat::R8G8Unorm, &[255, 0]), Vec3::new(1.0, 0.0, 0.0));
+    assert_eq!(d(VertexFormat::R16G16B16A16Unorm, &[0xff, 0xff, 0, 0, 0xff, 0xff, 9, 9]), Vec3::new(1.0, 0.0, 1.0));
+    let w: u32 = 1023 | (0 << 10) | (1023 << 20) | (3 << 30);
+    assert_eq!(d(VertexFormat::A2B10G10R10UnormPack32, &w.to_le_bytes()), Vec3::new(1.0, 0.0, 1.0));
+    assert_eq!(d(VertexFormat::R16G16B16A16Sfloat, &[0, 0x3c, 0, 0xc0, 0, 0x38, 0xff, 0xff]), Vec3::new(1.0, -2.0, 0.5));
+    for f in VertexFormat::all() {
+        assert_eq!(VertexFormat::from_vk(f.to_vk()), Some(*f));
+        assert!(super::input::decode_vertex(*f, &vec![0u8; f.size() as usize]).is_some());
+        assert!(f.size() % f.component_size() == 0);
+    }
+    assert_eq!(IndexType::from_vk(1000165000), Some(IndexType::None));
+}
+
+#[test]
+fn every_format_builds_and_hits() {
+    // One triangle in the z = 0.5 plane (z = 0 for 2-component formats) in every format.
+    for &f in VertexFormat::all() {
+        let comps: [[f32; 3]; 3] = [[0.0, 0.0, 0.5], [1.0, 0.0, 0.5], [0.0, 1.0, 0.5]];
+        let mut bytes = Vec::new();
+        for c in comps {
+            let mut vb = vec![0u8; f.size() as usize];
+            let n = f.size() / f.component_size();
+            for k in 0..(n as usize).min(3) {
+                let x = c[k];
+                match f {
+                    VertexFormat::R32G32Sfloat | VertexFormat::R32G32B32Sfloat | VertexFormat::R32G32B32A32Sfloat => vb[4 * k..4 * k + 4].copy_from_slice(&x.to_le_bytes()),
+                    VertexFormat::R16G16Sfloat | VertexFormat::R16G16B16Sfloat | VertexFormat::R16G16B16A16Sfloat => {
+                        let h: u16 = if x == 1.0 { 0x3c00 } else if x == 0.5 { 0x3800 } else { 0 };
+                        vb[2 * k..2 * k + 2].copy_from_slice(&h.to_le_bytes())
+                    }
+                    VertexFormat::R16G16Snorm | VertexFormat::R16G16B16A16Snorm => vb[2 * k..2 * k + 2].copy_from_slice(&((x * 32767.0) as i16).to_le_bytes()),
+                    VertexFormat::R16G16Unorm | VertexFormat::R16G16B16A16Unorm => vb[2 * k..2 * k + 2].copy_from_slice(&((x * 65535.0) as u16).to_le_bytes()),
+                    VertexFormat::R8G8Snorm | VertexFormat::R8G8B8A8Snorm => vb[k] = (x * 127.0) as i8 as u8,
+                    VertexFormat::R8G8Unorm | VertexFormat::R8G8B8A8Unorm => vb[k] = (x * 255.0) as u8,
+                    VertexFormat::A2B10G10R10UnormPack32 => {}
+                }
+            }
+            if f == VertexFormat::A2B10G10R10UnormPack32 {
+                let q = |x: f32| (x * 1023.0).round() as u32;
+                let w = q(c[0]) | q(c[1]) << 10 | q(c[2]) << 20;
+                vb.copy_from_slice(&w.to_le_bytes());
+            }
+            bytes.extend(vb);
+        }
+        let g = Geometry {
+            flags: GeometryFlags(1),
+            primitive_count: 1,
+            data: GeometryData::Triangles { format: f, vertices: &bytes, stride: f.size() as u64, max_vertex: 2, index_type: IndexType::None, indices: &[], transform: None },
+        };
+        let tri = fetch_triangle(&g, 0).unwrap();
+        assert!((tri[1].x - 1.0).abs() < 1e-2 && (tri[2].y - 1.0).abs() < 1e-2, "{f:?} {tri:?}");
+        let blas = build_ok(AsType::BottomLevel, 0, &[g], &NoDevice);
+        let ray = Ray { origin: Vec3::new(0.25, 0.25, -1.0), direction: Vec3::Z, tmin: 0.0, tmax: 10.0 };
+        let h = closest_hit(&blas, &NoDevice, ray, RayFlags(0), 0xff).unwrap_or_else(|| panic!("{f:?}"));
+        assert!((h.t - (1.0 + tri[0].z)).abs() < 1e-2);
+    }
+}
+
+#[test]
+fn facing_matches_normal_rule() {
+    let mut rng = Rng::new(7);
+    let mut checked = 0;
+    for _ in 0..5000 {
+        let (a, b, c) = (rng.v3(1.0), rng.v3(1.0), rng.v3(1.0));
+        let ray = Ray { origin: rng.v3(3.0), direction: rng.v3(1.0), tmin: 0.0, tmax: f32::INFINITY };
+        let ray = Ray { direction: (a + b + c) / 3.0 - ray.origin, ..ray };
+        if let Some((t, u, v, front)) = intersect_triangle(&ray, a, b, c) {
+            let n = (b - a).cross(c - a);
+            assert_eq!(front, n.dot(ray.direction) < 0.0);
+            assert!(u >= 0.0 && v >= 0.0 && u + v <= 1.0 + 1e-5);
+            let p = ray.origin + ray.direction * t;
+            let q = a * (1.0 - u - v) + b * u + c * v;
+            assert!((p - q).length() < 1e-3);
+            checked += 1;
+        }
+    }
+    assert!(checked > 4000);
+    // The documented example: v0 (0,0), v1 (0,1), v2 (1,0) seen along +z is front-facing.
+    let ray = Ray { origin: Vec3::new(0.2, 0.2, 0.0), direction: Vec3::Z, tmin: 0.0, tmax: 5.0 };
+    assert!(intersect_triangle(&ray, Vec3::new(0.0, 0.0, 1.0), Vec3::new(0.0, 1.0, 1.0), Vec3::new(1.0, 0.0, 1.0)).unwrap().3);
+}
+
+#[test]
+fn watertight_shared_edge() {
+    // Rays through a shared edge must hit at least one of the two triangles.
+    let a = Vec3::new(-1.0, -1.0, 1.0);
+    let b = Vec3::new(1.0, 1.0, 1.0);
+    let c = Vec3::new(1.0, -1.0, 1.0);
+    let d = Vec3::new(-1.0, 1.0, 1.0);
+    let mut rng = Rng::new(3);
+    for _ in 0..2000 {
+        let s = rng.range(-0.99, 0.99);
+        let p = Vec3::new(s, s, 1.0);
+        let o = rng.v3(0.5) - Vec3::Z * 2.0;
+        let ray = Ray { origin: o, direction: p - o, tmin: 0.0, tmax: f32::INFINITY };
+        let h1 = intersect_triangle(&ray, a, b, c);
+        let h2 = intersect_triangle(&ray, a, d, b);
+        assert!(h1.is_some() || h2.is_some());
+    }
+}
+
+#[test]
+fn random_soup_matches_brute_force() {
+    for &flags in &[BuildFlags::PREFER_FAST_BUILD, 0, BuildFlags::PREFER_FAST_TRACE, BuildFlags::ALLOW_UPDATE] {
+        let mut rng = Rng::new(11 + flags as u64);
+        let v = random_soup(&mut rng, 3000, 10.0, 0.8);
+        let vb = f32_bytes(&v);
+        let g = tri_geom(&vb, v.len() as u32, &[], 3000, GeometryFlags::OPAQUE);
+        let blas = build_ok(AsType::BottomLevel, flags, &[g], &NoDevice);
+        let m = metrics(&blas).unwrap();
+        assert!(m.sah_cost > 1.0 && m.wide_sah_cost > 0.0, "{m:?}");
+        for k in 0..600 {
+            let ray = random_ray(&mut rng, 10.0);
+            let rf = [0, RayFlags::CULL_BACK_FACING_TRIANGLES, RayFlags::CULL_FRONT_FACING_TRIANGLES][k % 3];
+            let h = closest_hit(&blas, &NoDevice, ray, RayFlags(rf), 0xff);
+            let b = brute_closest(&v, &ray, rf);
+            assert_eq!(h.map(|h| h.t), b.map(|b| b.0), "ray {ray:?}");
+            if let (Some(h), Some(b)) = (h, b) {
+                // Ties in t may pick either primitive; the t must match exactly.
+                if v[3 * b.1 as usize] != v[3 * h.primitive_index as usize] {
+                    let tri = &v[3 * h.primitive_index as usize..3 * h.primitive_index as usize + 3];
+                    assert_eq!(intersect_triangle(&ray, tri[0], tri[1], tri[2]).unwrap().0, h.t);
+                }
+            }
+            // all_hits equals the brute-force set.
+            let mut all: Vec<u32> = all_hits(&blas, &NoDevice, ray, RayFlags(rf), 0xff).iter().map(|h| h.primitive_index).collect();
+            all.sort_unstable();
+            let mut bf: Vec<u32> = v
+                .chunks_exact(3)
+                .enumerate()
+                .filter_map(|(i, t)| {
+                    let (_, _, _, front) = intersect_triangle(&ray, t[0], t[1], t[2])?;
+                    let culled = (rf & RayFlags::CULL_BACK_FACING_TRIANGLES != 0 && !front) || (rf & RayFlags::CULL_FRONT_FACING_TRIANGLES != 0 && front);
+                    (!culled).then_some(i as u32)
+                })
+                .collect();
+            bf.sort_unstable();
+            assert_eq!(all, bf);
+            assert_eq!(any_hit(&blas, &NoDevice, ray, RayFlags(rf), 0xff).is_some(), b.is_some());
+        }
+    }
+}
+
+#[test]
+fn determinism_across_thread_counts() {
+    let mut rng = Rng::new(5);
+    let v = random_soup(&mut rng, 40_000, 50.0, 1.0);
+    let vb = f32_bytes(&v);
+    for &flags in &[BuildFlags::PREFER_FAST_BUILD, 0, BuildFlags::PREFER_FAST_TRACE] {
+        let mut out: Vec<Vec<u8>> = Vec::new();
+        for threads in [1, 2, 8] {
+            let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
+            let g = tri_geom(&vb, v.len() as u32, &[], 40_000, 0);
+            let blas = pool.install(|| build_ok(AsType::BottomLevel, flags, &[g], &NoDevice));
+            let used = header(&blas).unwrap().used_size as usize;
+            out.push(blas[..used].to_vec());
+        }
+        assert!(out[0] == out[1] && out[1] == out[2], "flags {flags}");
+    }
+}
+
+#[test]
+fn indexed_multi_geometry_transform_and_ids() {
+    // Two geometries, indexed U16 and U32, one with a transform, with inactive triangles.
+    let verts = [Vec3::new(0.0, 0.0, 0.0), Vec3::new(1.0, 0.0, 0.0), Vec3::new(0.0, 1.0, 0.0), Vec3::new(f32::NAN, 0.0, 0.0)];
+    let vb = f32_bytes(&verts);
+    let idx16: Vec<u8> = [3u16, 1, 2, 0, 1, 2].iter().flat_map(|x| x.to_le_bytes()).collect();
+    let idx32 = u32_bytes(&[0, 1, 2]);
+    let tf = [1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 5.0];
+    let g0 = Geometry {
+        flags: GeometryFlags(1),
+        primitive_count: 2,
+        data: GeometryData::Triangles { format: VertexFormat::R32G32B32Sfloat, vertices: &vb, stride: 12, max_vertex: 3, index_type: IndexType::U16, indices: &idx16, transform: None },
+    };
+    let g1 = Geometry {
+        flags: GeometryFlags(1),
+        primitive_count: 1,
+        data: GeometryData::Triangles { format: VertexFormat::R32G32B32Sfloat, vertices: &vb, stride: 12, max_vertex: 3, index_type: IndexType::U32, indices: &idx32, transform: Some(tf) },
+    };
+    assert!(fetch_triangle(&g0, 0).is_none());
+    let blas = build_ok(AsType::BottomLevel, 0, &[g0, g1], &NoDevice);
+    let h = header(&blas).unwrap();
+    assert_eq!(h.primitive_count, 2);
+    let ray = Ray { origin: Vec3::new(0.2, 0.2, -1.0), direction: Vec3::Z, tmin: 0.0, tmax: 100.0 };
+    let hit = closest_hit(&blas, &NoDevice, ray, RayFlags(0), 0xff).unwrap();
+    assert_eq!((hit.geometry_index, hit.primitive_index, hit.t), (0, 1, 1.0));
+    let ray2 = Ray { tmin: 2.0, ..ray };
+    let hit = closest_hit(&blas, &NoDevice, ray2, RayFlags(0), 0xff).unwrap();
+    assert_eq!((hit.geometry_index, hit.primitive_index, hit.t), (1, 0, 6.0));
+    // tmin/tmax inclusive.
+    let exact = Ray { tmin: 6.0, tmax: 6.0, ..ray };
+    assert_eq!(closest_hit(&blas, &NoDevice, exact, RayFlags(0), 0xff).unwrap().t, 6.0);
+}
+
+#[test]
+fn typed_errors_not_panics() {
+    let verts = [Vec3::ZERO, Vec3::X, Vec3::Y];
+    let vb = f32_bytes(&verts);
+    let bad_idx = u32_bytes(&[0, 1, 7]);
+    let g = tri_geom(&vb, 3, &bad_idx, 1, 0);
+    assert_eq!(try_build(AsType::BottomLevel, 0, &[g], &NoDevice).0, Err(BuildError::IndexOutOfRange { geometry: 0, primitive: 0, index: 7 }));
+    let short_idx = u32_bytes(&[0, 1]);
+    let g = tri_geom(&vb, 3, &short_idx, 1, 0);
+    assert_eq!(try_build(AsType::BottomLevel, 0, &[g], &NoDevice).0, Err(BuildError::InputTooShort { geometry: 0 }));
+    let g = tri_geom(&vb[..30], 3, &[], 1, 0);
+    assert_eq!(try_build(AsType::BottomLevel, 0, &[g], &NoDevice).0, Err(BuildError::InputTooShort { geometry: 0 }));
+    let aabb = Geometry { flags: GeometryFlags(0), primitive_count: 2, data: GeometryData::Aabbs { data: &[0u8; 40], stride: 24 } };
+    assert_eq!(try_build(AsType::BottomLevel, 0, &[aabb], &NoDevice).0, Err(BuildError::InputTooShort { geometry: 0 }));
+    let inst = Geometry { flags: GeometryFlags(0), primitive_count: 1, data: GeometryData::Instances { array_of_pointers: true, data: &[1u8; 8] } };
+    assert_eq!(try_build(AsType::TopLevel, 0, &[inst], &NoDevice).0, Err(BuildError::InvalidAddress { geometry: 0, primitive: 0 }));
+    // Too small destination/scratch: typed errors, dst marked invalid.
+    let g = tri_geom(&vb, 3, &[], 1, 0);
+    let desc = BuildDesc { ty: AsType::BottomLevel, flags: BuildFlags(0), geometries: &[g] };
+    let mut dst = vec![0u8; 100];
+    assert!(matches!(build(&desc, &NoDevice, &mut dst, &mut vec![0u8; 4096]), Err(BuildError::DestinationTooSmall { .. })));
+    let mut dst = vec![0u8; 4096];
+    assert!(matches!(build(&desc, &NoDevice, &mut dst, &mut [0u8; 8]), Err(BuildError::ScratchTooSmall { .. })));
+    assert!(header(&dst).is_none());
+    // Geometry type mismatch.
+    assert!(matches!(try_build(AsType::TopLevel, 0, &[g], &NoDevice).0, Err(BuildError::WrongGeometryType { .. })));
+}
+
+#[test]
+fn sizes_do_not_overflow() {
+    let s = build_sizes(AsType::BottomLevel, BuildFlags(0), &[GeometryShape::Aabbs; 3], &[u32::MAX; 3]);
+    assert!(s.acceleration_structure_size > 3 * u32::MAX as u64 * 36);
+    let s = build_sizes(AsType::TopLevel, BuildFlags(0), &[GeometryShape::Instances], &[u32::MAX]);
+    assert!(s.acceleration_structure_size > u32::MAX as u64 * 120 && s.build_scratch_size < u64::MAX);
+    let z = build_sizes(AsType::BottomLevel, BuildFlags(0), &[], &[]);
+    assert!(z.acceleration_structure_size >= 144);
+}
+
+#[test]
+fn degenerate_inputs() {
+    // Empty.
+    let g = tri_geom(&[], 0, &[], 0, 0);
+    let blas = build_ok(AsType::BottomLevel, 0, &[g], &NoDevice);
+    let ray = Ray { origin: Vec3::ZERO, direction: Vec3::X, tmin: 0.0, tmax: 1.0 };
+    assert!(closest_hit(&blas, &NoDevice, ray, RayFlags(0), 0xff).is_none());
+    assert_eq!(build_ok(AsType::BottomLevel, 0, &[], &NoDevice).len() > 0, true);
+    // One triangle.
+    let vb = f32_bytes(&[Vec3::new(0.0, 0.0, 1.0), Vec3::new(1.0, 0.0, 1.0), Vec3::new(0.0, 1.0, 1.0)]);
+    let g = tri_geom(&vb, 3, &[], 1, 0);
+    let blas = build_ok(AsType::BottomLevel, 0, &[g], &NoDevice);
+    let ray = Ray { origin: Vec3::new(0.1, 0.1, 0.0), direction: Vec3::Z, tmin: 0.0, tmax: 10.0 };
+    assert_eq!(closest_hit(&blas, &NoDevice, ray, RayFlags(0), 0xff).unwrap().t, 1.0);
+    // 5000 identical triangles (kept with ALLOW_UPDATE), and 5000 points (dropped without).
+    let same: Vec<Vec3> = (0..5000).flat_map(|_| [Vec3::new(0.0, 0.0, 1.0), Vec3::new(1.0, 0.0, 1.0), Vec3::new(0.0, 1.0, 1.0)]).collect();
+    let sb = f32_bytes(&same);
+    let g = tri_geom(&sb, 15000, &[], 5000, 0);
+    let blas = build_ok(AsType::BottomLevel, BuildFlags::ALLOW_UPDATE, &[g], &NoDevice);
+    assert_eq!(all_hits(&blas, &NoDevice, ray, RayFlags(0), 0xff).len(), 5000);
+    let points = f32_bytes(&vec![Vec3::splat(2.0); 15000]);
+    let g = tri_geom(&points, 15000, &[], 5000, 0);
+    let blas = build_ok(AsType::BottomLevel, 0, &[g], &NoDevice);
+    assert_eq!(header(&blas).unwrap().primitive_count, 0);
+    let blas = build_ok(AsType::BottomLevel, BuildFlags::ALLOW_UPDATE, &[g], &NoDevice);
+    assert_eq!(header(&blas).unwrap().primitive_count, 5000);
+    // NaN/Inf/huge/tiny coordinates mixed with normal ones.
+    let mut rng = Rng::new(9);
+    let mut v = random_soup(&mut rng, 2000, 1.0, 0.1);
+    v[0] = Vec3::new(f32::INFINITY, 0.0, 0.0);
+    v[4] = Vec3::new(0.0, f32::NAN, 0.0);
+    v[7] = Vec3::new(f32::MAX, -f32::MAX, 1e38);
+    v[9] = Vec3::new(1e-40, -1e-42, 1e-45);
+    v[10] = Vec3::new(-f32::INFINITY, f32::INFINITY, 0.0);
+    v[13] = Vec3::new(f32::NAN, 0.0, 0.0);
+    let vb = f32_bytes(&v);
+    for flags in [0, BuildFlags::ALLOW_UPDATE, BuildFlags::PREFER_FAST_TRACE] {
+        let g = tri_geom(&vb, v.len() as u32, &[], 2000, 0);
+        let blas = build_ok(AsType::BottomLevel, flags, &[g], &NoDevice);
+        for _ in 0..200 {
+            let ray = random_ray(&mut rng, 1.0);
+            let h = closest_hit(&blas, &NoDevice, ray, RayFlags(0), 0xff);
+            let b = brute_closest(&v[15..], &ray, 0).map(|x| x.0);
+            if let (Some(h), Some(b)) = (h, b) {
+                assert!(h.t <= b);
+            } else if b.is_some() {
+                panic!("missed a hit");
+            }
+        }
+    }
+    // Huge coordinates only.
+    let v: Vec<Vec3> = random_soup(&mut rng, 500, 1e37, 1e36);
+    let vb = f32_bytes(&v);
+    let g = tri_geom(&vb, v.len() as u32, &[], 500, 0);
+    build_ok(AsType::BottomLevel, 0, &[g], &NoDevice);
+    // Tiny coordinates only.
+    let v: Vec<Vec3> = random_soup(&mut rng, 500, 1e-30, 1e-31);
+    let vb = f32_bytes(&v);
+    let g = tri_geom(&vb, v.len() as u32, &[], 500, 0);
+    let blas = build_ok(AsType::BottomLevel, 0, &[g], &NoDevice);
+    for _ in 0..100 {
+        let ray = random_ray(&mut rng, 1e-30);
+        assert_eq!(closest_hit(&blas, &NoDevice, ray, RayFlags(0), 0xff).map(|h| h.t), brute_closest(&v, &ray, 0).map(|b| b.0));
+    }
+}
+
+#[test]
+fn hostile_rays_and_blobs() {
+    let mut rng = Rng::new(1);
+    let v = random_soup(&mut rng, 500, 1.0, 0.2);
+    let vb = f32_bytes(&v);
+    let g = tri_geom(&vb, v.len() as u32, &[], 500, 0);
+    let blas = build_ok(AsType::BottomLevel, 0, &[g], &NoDevice);
+    let bad = [
+        Ray { origin: Vec3::ZERO, direction: Vec3::ZERO, tmin: 0.0, tmax: 1.0 },
+        Ray { origin: Vec3::NAN, direction: Vec3::X, tmin: 0.0, tmax: 1.0 },
+        Ray { origin: Vec3::ZERO, direction: Vec3::new(f32::NAN, 1.0, 0.0), tmin: 0.0, tmax: 1.0 },
+        Ray { origin: Vec3::ZERO, direction: Vec3::X, tmin: 2.0, tmax: 1.0 },
+        Ray { origin: Vec3::ZERO, direction: Vec3::new(0.0, 0.0, 1.0), tmin: f32::NAN, tmax: 1.0 },
+        Ray { origin: Vec3::splat(f32::INFINITY), direction: Vec3::X, tmin: 0.0, tmax: f32::INFINITY },
+    ];
+    for r in bad {
+        assert!(closest_hit(&blas, &NoDevice, r, RayFlags(0), 0xff).is_none());
+        let _ = all_hits(&blas, &NoDevice, r, RayFlags(0), 0xff);
+    }
+    // Axis-aligned rays (zero direction components) still find hits.
+    let r = Ray { origin: Vec3::new(v[0].x * 0.34 + v[1].x * 0.33 + v[2].x * 0.33, v[0].y * 0.34 + v[1].y * 0.33 + v[2].y * 0.33, -5.0), direction: Vec3::Z, tmin: 0.0, tmax: 100.0 };
+    assert_eq!(closest_hit(&blas, &NoDevice, r, RayFlags(0), 0xff).map(|h| h.t), brute_closest(&v, &r, 0).map(|b| b.0));
+    // Garbage: random bytes, truncated and bit-flipped structures.
+    let ray = Ray { origin: Vec3::new(0.0, 0.0, -5.0), direction: Vec3::Z, tmin: 0.0, tmax: 100.0 };
+    for k in 0..300 {
+        let mut g = blas.clone();
+        let n = g.len();
+        for _ in 0..(1 + k % 16) {
+            let i = (rng.next_u32() as usize) % n.min(4096);
+            g[i] ^= 1 << (rng.next_u32() % 8);
+        }
+        let _ = closest_hit(&g, &NoDevice, ray, RayFlags(0), 0xff);
+        let _ = validate(&g);
+        let _ = metrics(&g);
+        let _ = closest_hit(&g[..(rng.next_u32() as usize % n)], &NoDevice, ray, RayFlags(0), 0xff);
+        let junk: Vec<u8> = (0..(rng.next_u32() % 512)).map(|_| rng.next_u32() as u8).collect();
+        assert!(header(&junk).is_none());
+        let _ = closest_hit(&junk, &NoDevice, ray, RayFlags(0), 0xff);
+    }
+    let mut m = blas.clone();
+    mark_invalid(&mut m);
+    assert!(header(&m).is_none() && closest_hit(&m, &NoDevice, ray, RayFlags(0), 0xff).is_none());
+}
+
+fn instance_bytes(transform: [f32; 12], custom: u32, mask: u8, sbt: u32, flags: u8, reference: u64) -> Vec<u8> {
+    let mut b = Vec::with_capacity(64);
+    for x in transform {
+        b.extend(x.to_le_bytes());
+    }
+    b.extend((custom & 0xff_ffff | (mask as u32) << 24).to_le_bytes());
+    b.extend((sbt & 0xff_ffff | (flags as u32) << 24).to_le_bytes());
+    b.extend(reference.to_le_bytes());
+    b
+}
+
+fn translate(x: f32, y: f32, z: f32) -> [f32; 12] {
+    [1.0, 0.0, 0.0, x, 0.0, 1.0, 0.0, y, 0.0, 0.0, 1.0, z]
+}
+
+#[test]
+fn tlas_instances_flags_masks_and_copies() {
+    // BLAS A: one triangle facing -z viewers (front for rays along +z), non-opaque geometry.
+    let vb = f32_bytes(&[Vec3::new(0.0, 0.0, 0.0), Vec3::new(0.0, 1.0, 0.0), Vec3::new(1.0, 0.0, 0.0)]);
+    let ga = tri_geom(&vb, 3, &[], 1, 0);
+    let blas_a = build_ok(AsType::BottomLevel, 0, &[ga], &NoDevice);
+    // BLAS B: one AABB.
+    let ab: Vec<u8> = [0.0f32, 0.0, 0.0, 1.0, 1.0, 1.0].iter().flat_map(|x| x.to_le_bytes()).collect();
+    let gb = Geometry { flags: GeometryFlags(1), primitive_count: 1, data: GeometryData::Aabbs { data: &ab, stride: 24 } };
+    let blas_b = build_ok(AsType::BottomLevel, 0, &[gb], &NoDevice);
+    let mut view = MapView::new();
+    view.insert(0x1000, blas_a.clone());
+    view.insert(0x9000, blas_b.clone());
+    let mut inst = Vec::new();
+    inst.extend(instance_bytes(translate(0.0, 0.0, 5.0), 7, 0x01, 3, 0, 0x1000)); // 0
+    inst.extend(instance_bytes(translate(0.0, 0.0, 9.0), 8, 0x02, 4, 0, 0x9000)); // 1
+    inst.extend(instance_bytes(translate(0.0, 0.0, 3.0), 9, 0xff, 5, 0, 0)); // 2 inactive
+    inst.extend(instance_bytes(translate(0.0, 0.0, 7.0), 10, 0x04, 6, 2 | 4, 0x1000)); // 3 flipped, opaque
+    let g = Geometry { flags: GeometryFlags(0), primitive_count: 4, data: GeometryData::Instances { array_of_pointers: false, data: &inst } };
+    let tlas = build_ok(AsType::TopLevel, BuildFlags::ALLOW_UPDATE, &[g], &view);
+    let h = header(&tlas).unwrap();
+    assert_eq!((h.instance_count, h.blas_reference_count), (3, 2));
+    assert_eq!(blas_references(&tlas), vec![0x1000, 0x9000]);
+    let ray = Ray { origin: Vec3::new(0.2, 0.2, 0.0), direction: Vec3::Z, tmin: 0.0, tmax: 100.0 };
+    let hit = closest_hit(&tlas, &view, ray, RayFlags(0), 0xff).unwrap();
+    assert_eq!((hit.t, hit.instance_index, hit.instance_custom_index, hit.sbt_record_offset, hit.front_face, hit.opaque), (5.0, 0, 7, 3, true, false));
+    assert_eq!(hit.object_ray_origin, Vec3::new(0.2, 0.2, -5.0));
+    // Mask 0x02 sees only the AABB instance.
+    let hit = closest_hit(&tlas, &view, ray, RayFlags(0), 0x02).unwrap();
+    assert_eq!((hit.kind, hit.t, hit.instance_index), (HitKind::Aabb, 9.0, 1));
+    // Flipped instance: back face from this side, culled by CULL_BACK; cull disabled would keep it.
+    let hit = closest_hit(&tlas, &view, ray, RayFlags(RayFlags::CULL_BACK_FACING_TRIANGLES), 0x04);
+    assert!(hit.is_none());
+    let hit = closest_hit(&tlas, &view, ray, RayFlags(RayFlags::CULL_FRONT_FACING_TRIANGLES), 0x04).unwrap();
+    assert!(!hit.front_face && hit.opaque);
+    // Ray query: non-opaque triangle comes back as a candidate; opaque one is committed internally.
+    let mut q = RayQuery::new(&tlas, &view, ray, RayFlags(0), 0x05);
+    let c = q.proceed().unwrap();
+    assert_eq!((c.kind, c.t, c.instance_index), (HitKind::Triangle, 5.0, 0));
+    assert!(q.proceed().is_none());
+    assert_eq!(q.committed().unwrap().t, 7.0);
+    // Ray flags override: OPAQUE makes everything committed internally; CULL_OPAQUE then drops all.
+    assert!(closest_hit(&tlas, &view, ray, RayFlags(RayFlags::OPAQUE | RayFlags::CULL_OPAQUE), 0xff).is_none());
+    assert_eq!(closest_hit(&tlas, &view, ray, RayFlags(RayFlags::SKIP_TRIANGLES), 0xff).unwrap().kind, HitKind::Aabb);
+    assert!(closest_hit(&tlas, &view, ray, RayFlags(RayFlags::SKIP_TRIANGLES | RayFlags::SKIP_AABBS), 0xff).is_none());
+    // Copies.
+    let used = compacted_size(&tlas).unwrap() as usize;
+    let mut c = vec![0u8; used];
+    compact_into(&tlas, &mut c).unwrap();
+    assert_eq!(closest_hit(&c, &view, ray, RayFlags(0), 0xff), closest_hit(&tlas, &view, ray, RayFlags(0), 0xff));
+    let mut small = vec![0u8; used - 1];
+    assert!(clone_into(&tlas, &mut small).is_err());
+    let uuid = [7u8; 16];
+    let ss = serialized_size(&tlas).unwrap() as usize;
+    assert_eq!(ss, 56 + 16 + used);
+    let mut ser = vec![0u8; ss];
+    assert_eq!(serialize(&tlas, uuid, &mut ser).unwrap(), ss as u64);
+    assert!(compatible(ser[..32].try_into().unwrap(), uuid));
+    assert!(!compatible(ser[..32].try_into().unwrap(), [8u8; 16]));
+    // Rewrite the addresses: BLASes moved.
+    ser[56..64].copy_from_slice(&0x5000u64.to_le_bytes());
+    ser[64..72].copy_from_slice(&0x7000u64.to_le_bytes());
+    let mut view2 = MapView::new();
+    view2.insert(0x5000, blas_a.clone());
+    view2.insert(0x7000, blas_b.clone());
+    let mut de = vec![0u8; used];
+    deserialize(&ser, uuid, &mut de).unwrap();
+    assert_eq!(blas_references(&de), vec![0x5000, 0x7000]);
+    assert_eq!(closest_hit(&de, &view2, ray, RayFlags(0), 0xff).map(|h| h.t), Some(5.0));
+    assert!(deserialize(&ser, [1u8; 16], &mut de).is_err());
+    assert!(deserialize(&ser[..100], uuid, &mut de).is_err());
+    // TLAS update: move instance 0 and retarget it to BLAS B.
+    let mut inst2 = inst.clone();
+    inst2[..64].copy_from_slice(&instance_bytes(translate(0.0, 0.0, 2.0), 70, 0x01, 3, 0, 0x9000));
+    let g2 = Geometry { flags: GeometryFlags(0), primitive_count: 4, data: GeometryData::Instances { array_of_pointers: false, data: &inst2 } };
+    let sz = build_sizes(AsType::TopLevel, BuildFlags(BuildFlags::ALLOW_UPDATE), &[GeometryShape::Instances], &[4]);
+    let mut scratch = vec![0u8; sz.update_scratch_size as usize];
+    let desc = BuildDesc { ty: AsType::TopLevel, flags: BuildFlags(BuildFlags::ALLOW_UPDATE), geometries: &[g2] };
+    let mut upd = tlas.clone();
+    update(&desc, &view, None, &mut upd, &mut scratch).unwrap();
+    validate(&upd).unwrap();
+    let hit = closest_hit(&upd, &view, ray, RayFlags(0), 0xff).unwrap();
+    assert_eq!((hit.t, hit.instance_custom_index, hit.kind), (2.0, 70, HitKind::Aabb));
+    // Activating the inactive instance is an update mismatch.
+    let mut inst3 = inst.clone();
+    inst3[128 + 56..128 + 64].copy_from_slice(&0x1000u64.to_le_bytes());
+    let g3 = Geometry { flags: GeometryFlags(0), primitive_count: 4, data: GeometryData::Instances { array_of_pointers: false, data: &inst3 } };
+    let desc = BuildDesc { ty: AsType::TopLevel, flags: BuildFlags(BuildFlags::ALLOW_UPDATE), geometries: &[g3] };
+    let mut upd2 = vec![0u8; tlas.len()];
+    assert!(matches!(update(&desc, &view, Some(&tlas), &mut upd2, &mut scratch), Err(BuildError::UpdateMismatch(_))));
+    // Array of pointers.
+    let mut pv = MapView::new();
+    pv.insert(0x1000, blas_a.clone());
+    pv.insert(0x9000, blas_b.clone());
+    pv.insert(0x20000, inst.clone());
+    let ptrs: Vec<u8> = [0x20000u64 + 64, 0x20000].iter().flat_map(|x| x.to_le_bytes()).collect();
+    let gp = Geometry { flags: GeometryFlags(0), primitive_count: 2, data: GeometryData::Instances { array_of_pointers: true, data: &ptrs } };
+    let tp = build_ok(AsType::TopLevel, 0, &[gp], &pv);
+    let hit = closest_hit(&tp, &pv, ray, RayFlags(0), 0xff).unwrap();
+    assert_eq!((hit.t, hit.instance_index), (5.0, 1));
+}
+
+#[test]
+fn refit_matches_rebuild_and_checks_rules() {
+    let mut rng = Rng::new(21);
+    let n = 5000;
+    let mut v = random_soup(&mut rng, n, 10.0, 0.5);
+    let idx: Vec<u32> = (0..3 * n as u32).collect();
+    let ib = u32_bytes(&idx);
+    let vb = f32_bytes(&v);
+    let flags = BuildFlags::ALLOW_UPDATE;
+    let g = tri_geom(&vb, v.len() as u32, &ib, n as u32, 0);
+    let blas = build_ok(AsType::BottomLevel, flags, &[g], &NoDevice);
+    // Deform.
+    for p in v.iter_mut() {
+        *p = *p * 1.3 + Vec3::new(p.y.sin(), p.z.cos(), 0.5);
+    }
+    let vb2 = f32_bytes(&v);
+    let g2 = tri_geom(&vb2, v.len() as u32, &ib, n as u32, 0);
+    let sz = build_sizes(AsType::BottomLevel, BuildFlags(flags), &[shape_of(&g2)], &[n as u32]);
+    let mut scratch = vec![0u8; sz.update_scratch_size as usize + 1];
+    let desc = BuildDesc { ty: AsType::BottomLevel, flags: BuildFlags(flags), geometries: &[g2] };
+    let mut dst = vec![0u8; blas.len()];
+    update(&desc, &NoDevice, Some(&blas), &mut dst, &mut scratch[1..]).unwrap();
+    validate(&dst).unwrap();
+    let mut inplace = blas.clone();
+    update(&desc, &NoDevice, None, &mut inplace, &mut scratch).unwrap();
+    assert_eq!(inplace[..header(&dst).unwrap().used_size as usize], dst[..header(&dst).unwrap().used_size as usize]);
+    for _ in 0..500 {
+        let ray = random_ray(&mut rng, 13.0);
+        assert_eq!(closest_hit(&dst, &NoDevice, ray, RayFlags(0), 0xff).map(|h| h.t), brute_closest(&v, &ray, 0).map(|b| b.0));
+    }
+    // Update from a compacted copy works too.
+    let mut compact = vec![0u8; compacted_size(&blas).unwrap() as usize];
+    compact_into(&blas, &mut compact).unwrap();
+    update(&desc, &NoDevice, None, &mut compact, &mut scratch).unwrap();
+    validate(&compact).unwrap();
+    // Rule checks.
+    let mut ib2 = idx.clone();
+    ib2.swap(0, 1);
+    let ibb = u32_bytes(&ib2);
+    let g3 = tri_geom(&vb2, v.len() as u32, &ibb, n as u32, 0);
+    let d3 = BuildDesc { ty: AsType::BottomLevel, flags: BuildFlags(flags), geometries: &[g3] };
+    assert_eq!(update(&d3, &NoDevice, Some(&blas), &mut dst, &mut scratch), Err(BuildError::UpdateMismatch("index values differ")));
+    let g4 = tri_geom(&vb2, v.len() as u32, &ib, n as u32 - 1, 0);
+    let d4 = BuildDesc { ty: AsType::BottomLevel, flags: BuildFlags(flags), geometries: &[g4] };
+    assert!(matches!(update(&d4, &NoDevice, Some(&blas), &mut dst, &mut scratch), Err(BuildError::UpdateMismatch(_))));
+    let mut v5 = v.clone();
+    v5[30].x = f32::NAN;
+    let vb5 = f32_bytes(&v5);
+    let g5 = tri_geom(&vb5, v.len() as u32, &ib, n as u32, 0);
+    let d5 = BuildDesc { ty: AsType::BottomLevel, flags: BuildFlags(flags), geometries: &[g5] };
+    assert!(matches!(update(&d5, &NoDevice, Some(&blas), &mut dst, &mut scratch), Err(BuildError::UpdateMismatch(_))));
+    // Not built with ALLOW_UPDATE.
+    let g6 = tri_geom(&vb, v.len() as u32, &ib, n as u32, 0);
+    let b6 = build_ok(AsType::BottomLevel, 0, &[g6], &NoDevice);
+    let d6 = BuildDesc { ty: AsType::BottomLevel, flags: BuildFlags(0), geometries: &[g6] };
+    assert!(matches!(update(&d6, &NoDevice, Some(&b6), &mut dst, &mut scratch), Err(BuildError::UpdateMismatch(_))));
+}
+
+#[test]
+fn aabb_blas_matches_brute_force() {
+    let mut rng = Rng::new(33);
+    let n = 2000;
+    let mut data = Vec::new();
+    let mut boxes = Vec::new();
+    for i in 0..n {
+        let c = rng.v3(10.0);
+        let e = rng.v3(0.5).abs();
+        let b = if i % 97 == 0 { [f32::NAN, 0.0, 0.0, 0.0, 0.0, 0.0] } else { [c.x - e.x, c.y - e.y, c.z - e.z, c.x + e.x, c.y + e.y, c.z + e.z] };
+        boxes.push(b);
+        for x in b {
+            data.extend(x.to_le_bytes());
+        }
+        data.extend([0u8; 8]); // stride 32
+    }
+    let g = Geometry { flags: GeometryFlags(0), primitive_count: n, data: GeometryData::Aabbs { data: &data, stride: 32 } };
+    let blas = build_ok(AsType::BottomLevel, 0, &[g], &NoDevice);
+    for _ in 0..300 {
+        let ray = random_ray(&mut rng, 10.0);
+        let mut got: Vec<u32> = all_hits(&blas, &NoDevice, ray, RayFlags(0), 0xff).iter().map(|h| h.primitive_index).collect();
+        got.sort_unstable();
+        let mut want: Vec<u32> = Vec::new();
+        for (i, b) in boxes.iter().enumerate() {
+            if b[0].is_nan() {
+                continue;
+            }
+            let mut tn = ray.tmin as f64;
+            let mut tf = ray.tmax as f64;
+            for a in 0..3 {
+                let (o, d) = (ray.origin[a] as f64, ray.direction[a] as f64);
+                let t0 = (b[a] as f64 - o) / d;
+                let t1 = (b[a + 3] as f64 - o) / d;
+                tn = tn.max(t0.min(t1));
+                tf = tf.min(t0.max(t1));
+            }
+            if tn <= tf {
+                want.push(i as u32);
+            }
+        }
+        assert_eq!(got, want);
+    }
+}
+
+/// Dragon timing (not a test of correctness; run explicitly):
+/// `cargo test --release --lib accel::tests::dragon_timing -- --ignored --nocapture`
+#[test]
+#[ignore]
+fn dragon_timing() {
+    let path = std::env::var("ARBOR_MESH").unwrap_or_else(|_| concat!(env!("CARGO_MANIFEST_DIR"), "/data/dragon_vrip.ply.gz").to_string());
+    let mesh = crate::scene::load(&path).expect("mesh");
+    let vb = mesh.vertex_bytes();
+    let ib = mesh.index_bytes();
+    let ntri = mesh.triangle_count() as u32;
+    let nv = mesh.vertex_count() as u32;
+    let g = tri_geom(&vb, nv, &ib, ntri, GeometryFlags::OPAQUE);
+    let shapes = [shape_of(&g)];
+    let reps: usize = std::env::var("ARBOR_REPS").ok().and_then(|s| s.parse().ok()).unwrap_or(5);
+    let only = std::env::var("ARBOR_TIER").ok();
+    let thread_list: Vec<usize> = std::env::var("ARBOR_THREADS").ok().map(|s| s.split(',').filter_map(|x| x.parse().ok()).collect()).unwrap_or(vec![1, 2]);
+    for (name, flags) in [("FAST_BUILD", BuildFlags::PREFER_FAST_BUILD), ("default", 0), ("FAST_TRACE", BuildFlags::PREFER_FAST_TRACE)] {
+        if only.as_deref().is_some_and(|o| o != name) {
+            continue;
+        }
+        let sz = build_sizes(AsType::BottomLevel, BuildFlags(flags), &shapes, &[ntri]);
+        let mut dst = vec![0u8; sz.acceleration_structure_size as usize];
+        let mut scratch = vec![0u8; sz.build_scratch_size as usize];
+        for &threads in &thread_list {
+            let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
+            let desc = BuildDesc { ty: AsType::BottomLevel, flags: BuildFlags(flags), geometries: &[g] };
+            let mut times = Vec::new();
+            // Process CPU time (utime + stime, clock ticks of 10 ms) next to wall time: on a
+            // shared 2-core machine wall time includes waiting for the CPU.
+            let cpu = || -> f64 {
+                let s = std::fs::read_to_string("/proc/self/stat").unwrap_or_default();
+                let f: Vec<&str> = s.rsplit(')').next().unwrap_or("").split_whitespace().collect();
+                let t = |i: usize| f.get(i).and_then(|x| x.parse::<f64>().ok()).unwrap_or(0.0);
+                (t(11) + t(12)) * 10.0
+            };
+            let c0 = cpu();
+            for _ in 0..reps {
+                let t = std::time::Instant::now();
+                pool.install(|| build(&desc, &NoDevice, &mut dst, &mut scratch)).unwrap();
+                times.push(t.elapsed().as_secs_f64() * 1e3);
+            }
+            let cpu_ms = (cpu() - c0) / reps as f64;
+            times.sort_by(|a, b| a.total_cmp(b));
+            let m = metrics(&dst).unwrap();
+            println!(
+                "{name:10} threads {threads}: wall min {:.1} ms median {:.1} ms, CPU {cpu_ms:.0} ms/build | SAH {:.2} wide {:.2} | {:.1} B/tri | nodes {} leaves {} depth {}",
+                times[0], times[times.len() / 2], m.sah_cost, m.wide_sah_cost, m.bytes_per_primitive * m.node_count.max(1) as f32 / m.node_count.max(1) as f32 * header(&dst).unwrap().primitive_count as f32 / ntri as f32, m.node_count, m.leaf_count, m.max_depth
+            );
+        }
+    }
+}
+
+#[test]
+fn axis_rays_on_box_planes() {
+    // A 4x4 grid of quads in y = 0; axis rays whose origin lies exactly on node box planes
+    // (x or z = 0 or 1) with zero direction components must still find the hits.
+    let mut v = Vec::new();
+    for i in 0..4 {
+        for j in 0..4 {
+            let (x0, z0, x1, z1) = (i as f32 / 4.0, j as f32 / 4.0, (i + 1) as f32 / 4.0, (j + 1) as f32 / 4.0);
+            v.extend([Vec3::new(x0, 0.0, z0), Vec3::new(x1, 0.0, z0), Vec3::new(x1, 0.0, z1)]);
+            v.extend([Vec3::new(x0, 0.0, z0), Vec3::new(x1, 0.0, z1), Vec3::new(x0, 0.0, z1)]);
+        }
+    }
+    let vb = f32_bytes(&v);
+    let g = tri_geom(&vb, v.len() as u32, &[], 32, GeometryFlags::OPAQUE);
+    let blas = build_ok(AsType::BottomLevel, 0, &[g], &NoDevice);
+    for i in 0..=8 {
+        for j in 0..=8 {
+            let o = Vec3::new(i as f32 / 8.0, 1.0, j as f32 / 8.0);
+            let ray = Ray { origin: o, direction: Vec3::new(0.0, -1.0, -0.0), tmin: 0.0, tmax: f32::INFINITY };
+            assert_eq!(closest_hit(&blas, &NoDevice, ray, RayFlags(0), 0xff).map(|h| h.t), brute_closest(&v, &ray, 0).map(|b| b.0), "{o:?}");
+        }
+    }
+}
+
+#[test]
+fn dag_blob_terminates() {
+    // Forge a structure whose node i has four internal children all pointing at node i+1:
+    // without a visit budget a ray would do 4^depth work.
+    let mut rng = Rng::new(2);
+    let v = random_soup(&mut rng, 3000, 1.0, 0.3);
+    let vb = f32_bytes(&v);
+    let g = tri_geom(&vb, v.len() as u32, &[], 3000, 0);
+    let mut blas = build_ok(AsType::BottomLevel, 0, &[g], &NoDevice);
+    let p = layout::parse(&blas).unwrap().raw;
+    let nc = p.node_count as usize;
+    for i in 0..nc - 1 {
+        let off = p.nodes_offset as usize + i * layout::NODE_SIZE;
+        let mut n: layout::WideNode = bytemuck::pod_read_unaligned(&blas[off..off + layout::NODE_SIZE]);
+        n.child_count = 4;
+        n.child = [i as u32 + 1; 4];
+        n.kind = [layout::CHILD_INTERNAL; 4];
+        n.qlo = [[0; 4]; 3];
+        n.qhi = [[255; 4]; 3];
+        blas[off..off + layout::NODE_SIZE].copy_from_slice(bytemuck::bytes_of(&n));
+    }
+    let ray = Ray { origin: Vec3::new(0.0, 0.0, -5.0), direction: Vec3::Z, tmin: 0.0, tmax: 100.0 };
+    let t = std::time::Instant::now();
+    let _ = closest_hit(&blas, &NoDevice, ray, RayFlags(0), 0xff);
+    let _ = all_hits(&blas, &NoDevice, ray, RayFlags(0), 0xff);
+    assert!(validate(&blas).is_err());
+    assert!(t.elapsed().as_secs() < 5);
+}

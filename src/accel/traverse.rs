@@ -121,20 +121,22 @@ pub fn intersect_triangle(ray: &Ray, v0: Vec3, v1: Vec3, v2: Vec3) -> Option<(f3
     if (u < 0.0 || v < 0.0 || w < 0.0) && (u > 0.0 || v > 0.0 || w > 0.0) {
         return None;
     }
-    let det = u + v + w;
+    // The final combination runs in f64: T / det is then correctly rounded for the common
+    // cases (an axis ray hitting the plane z = 5 gives t = 5, not 4.9999995). The sign tests
+    // above stay in f32/f64-fallback exactly as the watertight algorithm prescribes.
+    let (ud, vd, wd) = (u as f64, v as f64, w as f64);
+    let det = ud + vd + wd;
     if det == 0.0 || !det.is_finite() {
         return None;
     }
-    let az = sz * a[kz];
-    let bz = sz * b[kz];
-    let cz = sz * c[kz];
-    let tt = u * az + v * bz + w * cz;
-    let rcp = 1.0 / det;
-    let t = tt * rcp;
+    let az = (sz * a[kz]) as f64;
+    let bz = (sz * b[kz]) as f64;
+    let cz = (sz * c[kz]) as f64;
+    let t = ((ud * az + vd * bz + wd * cz) / det) as f32;
     if !(t >= ray.tmin && t <= ray.tmax) {
         return None;
     }
-    Some((t, v * rcp, w * rcp, det > 0.0))
+    Some((t, (vd / det) as f32, (wd / det) as f32, det > 0.0))
 }
 
 /// Slab test against a box; returns the entry distance clamped to tmin. The far distance is
@@ -146,8 +148,12 @@ fn ray_box(org: Vec3, inv: Vec3, b: &[f32; 6], tmin: f32, tmax: f32) -> Option<f
     for a in 0..3 {
         let t0 = (b[a] - org[a]) * inv[a];
         let t1 = (b[a + 3] - org[a]) * inv[a];
-        // f32::min/max ignore a NaN operand (0 * inf on a slab plane): that axis then
-        // constrains nothing, which is conservative.
+        // NaN = 0 * inf: a zero direction component with the origin exactly on a slab plane,
+        // so the origin lies in the closed slab and this axis constrains nothing. (f32::min
+        // alone would drop the NaN and return the infinite other bound: a false miss.)
+        if t0.is_nan() || t1.is_nan() {
+            continue;
+        }
         let lo = t0.min(t1);
         let hi = t0.max(t1);
         tn = tn.max(lo);
@@ -197,6 +203,11 @@ pub struct RayQuery<'a> {
     done: bool,
     /// all_hits mode: opaque hits are reported as candidates too, and nothing shrinks tmax.
     collect_all: bool,
+    /// Remaining node visits + primitive tests for the top structure and the current instance.
+    /// In a valid tree a ray meets every node and primitive at most once, so running out means
+    /// the blob is corrupt (e.g. a DAG that would make traversal exponential): stop that level.
+    budget_top: u64,
+    budget_inner: u64,
 }
 
 fn ray_ok(r: &Ray) -> bool {
@@ -223,6 +234,8 @@ impl<'a> RayQuery<'a> {
             committed: None,
             done: false,
             collect_all: false,
+            budget_top: top.map_or(0, |l| l.s.raw.node_count as u64 + l.s.raw.primitive_count as u64),
+            budget_inner: 0,
         };
         match top {
             Some(l) if ray_ok(&ray) && l.s.raw.node_count > 0 => q.stack.push(Item::Node { node: 0, inner: false, tnear: ray.tmin }),
@@ -247,6 +260,20 @@ impl<'a> RayQuery<'a> {
                 self.done = true;
                 break;
             };
+            let inner = match item {
+                Item::Node { inner, .. } | Item::Prims { inner, .. } => Some(inner),
+                Item::ExitInstance => None,
+            };
+            match inner {
+                Some(true) if self.budget_inner == 0 => continue,
+                Some(true) => self.budget_inner -= 1,
+                Some(false) if self.budget_top == 0 => {
+                    self.terminate();
+                    break;
+                }
+                Some(false) => self.budget_top -= 1,
+                None => {}
+            }
             match item {
                 Item::ExitInstance => self.inst = None,
                 Item::Node { node, inner, tnear } => {
@@ -262,7 +289,10 @@ impl<'a> RayQuery<'a> {
                         let Some(t) = ray_box(l.org, l.inv, &b, self.ray.tmin, self.tmax) else { continue };
                         let it = match n.kind[c] {
                             0 => continue,
-                            CHILD_INTERNAL => Item::Node { node: n.child[c], inner, tnear: t },
+                            // Children always follow their parent in the layout; refusing anything
+                            // else makes a corrupted blob unable to loop.
+                            CHILD_INTERNAL if n.child[c] > node => Item::Node { node: n.child[c], inner, tnear: t },
+                            CHILD_INTERNAL => continue,
                             k => Item::Prims { first: n.child[c], count: k as u32, inner },
                         };
                         hits[nh] = (t, it);
@@ -312,6 +342,7 @@ impl<'a> RayQuery<'a> {
         if org.is_nan() || dir.is_nan() || dir == Vec3::ZERO {
             return;
         }
+        self.budget_inner = blas.raw.node_count as u64 + blas.raw.primitive_count as u64;
         self.inst = Some(InstCtx { level: make_level(blas, org, dir), rec });
         self.stack.push(Item::ExitInstance);
         self.stack.push(Item::Node { node: 0, inner: true, tnear: self.ray.tmin });

@@ -239,3 +239,37 @@ fn byte_views() {
     let big = Mesh { positions: vec![[0.0; 3]; 70000], indices: vec![[0, 1, 69999]] };
     assert!(big.index_bytes_u16().is_none());
 }
+
+#[test]
+fn hostile_bytes_never_panic() {
+    let mut rng = Rng::new(99);
+    let (pos, faces) = poly_fixture();
+    let seeds: Vec<Vec<u8>> = vec![
+        write_ply("ascii", &pos, &faces),
+        write_ply("binary_little_endian", &pos, &faces),
+        write_ply("binary_big_endian", &pos, &faces),
+        b"v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\nf -1 -2 -3\n".to_vec(),
+    ];
+    for round in 0..4000 {
+        let mut b = seeds[round % seeds.len()].clone();
+        for _ in 0..1 + round % 6 {
+            let i = rng.below(b.len() as u32) as usize;
+            match rng.below(3) {
+                0 => b[i] = rng.next_u32() as u8,
+                1 => b.truncate(i),
+                _ => b.insert(i, b"0123456789 -\n/e."[rng.below(16) as usize]),
+            }
+            if b.is_empty() {
+                break;
+            }
+        }
+        // Any result is fine; a panic or an out-of-range index is not.
+        for m in [parse_ply(&b), parse_obj(&b)].into_iter().flatten() {
+            let n = m.positions.len() as u32;
+            assert!(m.indices.iter().flatten().all(|&i| i < n));
+        }
+    }
+    // A header that declares billions of elements must not allocate them up front.
+    let huge = b"ply\nformat binary_little_endian 1.0\nelement vertex 4000000000\nproperty float x\nproperty float y\nproperty float z\nend_header\n\0\0\0\0";
+    assert!(parse_ply(huge).is_err());
+}
