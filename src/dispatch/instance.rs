@@ -1,5 +1,5 @@
 //! Loader interface, global commands and instance commands.
-use std::ffi::{c_char, CStr};
+use std::ffi::c_char;
 use std::sync::Arc;
 
 use ash::vk;
@@ -237,13 +237,4 @@ unsafe extern "system" fn enumerate_physical_device_groups(
         }
         vk::Result::SUCCESS
     })
-}
-
-/// Name of a command for messages.
-pub fn name_of(p: *const c_char) -> String {
-    if p.is_null() {
-        return "(null)".into();
-    }
-    // SAFETY: callers pass valid strings.
-    unsafe { CStr::from_ptr(p) }.to_string_lossy().into_owned()
 }

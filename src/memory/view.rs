@@ -24,6 +24,9 @@ impl Buffer {
     /// No other view (shared or mutable) of any byte of this range may exist while the returned
     /// slice lives. Arbor's build and copy paths check that destination, scratch and source
     /// regions do not overlap (the spec's aliasing VUIDs) before making views.
+    // A device-memory view is interior mutability by nature (memory shared with the queue and
+    // the application); exclusivity is this unsafe fn's contract, not the borrow of `self`.
+    #[allow(clippy::mut_from_ref)]
     pub unsafe fn bytes_mut(&self, offset: u64, len: u64) -> Result<&mut [u8], AccessError> {
         let (m, o) = self.locate(offset, len)?;
         m.check(o, len)?;

@@ -138,6 +138,7 @@ pub trait InputMemory: accel::DeviceView {
     /// # Safety
     /// No other view of the range may exist while the slice lives (checked by the caller's
     /// overlap checks on device; the application's obligation on the host).
+    #[allow(clippy::mut_from_ref)] // exclusivity is the contract above, as in Buffer::bytes_mut
     unsafe fn scratch(&self, address: u64, len: u64) -> Result<&mut [u8], InputError>;
     /// The backing memory range of a device-memory region, for overlap checks (None on host).
     fn memory_range(&self, address: u64, len: u64) -> Option<(usize, u64, u64)>;
