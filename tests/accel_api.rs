@@ -597,3 +597,68 @@ fn limits_and_size_queries_for_maximum_counts() {
     a.destroy();
     ctx.finish();
 }
+
+/// accelerationStructureCaptureReplay: a structure created with a captured deviceAddress on a
+/// replay device gets exactly that address (its memory replayed at the captured address); a
+/// deviceAddress that cannot be honoured is refused with VK_ERROR_INVALID_OPAQUE_CAPTURE_ADDRESS.
+#[test]
+fn capture_replay_reproduces_structure_addresses() {
+    let usage = support::accel::ALL_USAGE;
+    let flags = vk::MemoryAllocateFlags::DEVICE_ADDRESS | vk::MemoryAllocateFlags::DEVICE_ADDRESS_CAPTURE_REPLAY;
+    let size = 1u64 << 20;
+    // Returns (memory capture address, structure address, serialization of a build into it).
+    let session = |replay: Option<(u64, u64)>| -> (u64, u64, Vec<u8>) {
+        let ctx = as_context();
+        let a = Accel::new(&ctx);
+        let mesh = bunny();
+        let m = upload_mesh(&a, &mesh);
+        // SAFETY: valid create infos; everything is destroyed before the context.
+        let out = unsafe {
+            let d = &ctx.device;
+            let b = d
+                .create_buffer(&vk::BufferCreateInfo::default().size(size).usage(usage).flags(vk::BufferCreateFlags::DEVICE_ADDRESS_CAPTURE_REPLAY), None)
+                .unwrap();
+            let mut f = vk::MemoryAllocateFlagsInfo::default().flags(flags);
+            let mut opaque = vk::MemoryOpaqueCaptureAddressAllocateInfo::default().opaque_capture_address(replay.map_or(0, |r| r.0));
+            let ai = vk::MemoryAllocateInfo::default().allocation_size(size).memory_type_index(0).push_next(&mut f).push_next(&mut opaque);
+            let mem = d.allocate_memory(&ai, None).unwrap();
+            d.bind_buffer_memory(b, mem, 0).unwrap();
+            let mem_addr = a.bda.get_device_memory_opaque_capture_address(&vk::DeviceMemoryOpaqueCaptureAddressInfo::default().memory(mem));
+            let ci = vk::AccelerationStructureCreateInfoKHR::default()
+                .buffer(b)
+                .offset(256)
+                .size(size - 256)
+                .ty(vk::AccelerationStructureTypeKHR::BOTTOM_LEVEL)
+                .create_flags(vk::AccelerationStructureCreateFlagsKHR::DEVICE_ADDRESS_CAPTURE_REPLAY)
+                .device_address(replay.map_or(0, |r| r.1));
+            let s = a.ext.create_acceleration_structure(&ci, None).unwrap();
+            let addr = a.address_of(s);
+            if let Some((_, wanted)) = replay {
+                assert_eq!(addr, wanted, "replayed structure address");
+                let bad = ci.device_address(wanted + 256);
+                assert_eq!(a.ext.create_acceleration_structure(&bad, None).err(), Some(vk::Result::ERROR_INVALID_OPAQUE_CAPTURE_ADDRESS_KHR));
+            }
+            let geoms = [triangles(a.buf(m.vertices).address, a.buf(m.indices).address, m.max_vertex)];
+            let info = blas_info(&geoms, vk::BuildAccelerationStructureFlagsKHR::empty());
+            let sizes = a.sizes(vk::AccelerationStructureBuildTypeKHR::DEVICE, &info, &[m.count]);
+            assert!(sizes.acceleration_structure_size <= size - 256);
+            let scratch = a.buffer(sizes.build_scratch_size);
+            let info = info.dst_acceleration_structure(s).scratch_data(vk::DeviceOrHostAddressKHR { device_address: a.buf(scratch).address });
+            let range = [vk::AccelerationStructureBuildRangeInfoKHR::default().primitive_count(m.count)];
+            a.submit(|cb| a.ext.cmd_build_acceleration_structures(cb, &[info], &[&range]));
+            let ser = a.serialize(s);
+            a.ext.destroy_acceleration_structure(s, None);
+            d.destroy_buffer(b, None);
+            d.free_memory(mem, None);
+            (mem_addr, addr, ser)
+        };
+        a.destroy();
+        ctx.finish();
+        out
+    };
+    let (mem_addr, addr, captured) = session(None);
+    assert_eq!(addr % 256, 0);
+    let (_, replayed_addr, replayed) = session(Some((mem_addr, addr)));
+    assert_eq!(replayed_addr, addr);
+    assert_eq!(replayed, captured, "the same build at the same address gives the same bytes");
+}
