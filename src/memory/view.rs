@@ -51,11 +51,13 @@ pub const STRUCTURE_PROBE: u64 = 16;
 pub struct DeviceMemoryView<'a> {
     space: &'a AddressSpace,
     pins: Mutex<Vec<Arc<Buffer>>>,
+    /// Structures already resolved (a TLAS build looks each BLAS up once per instance).
+    structures: Mutex<std::collections::HashMap<u64, (usize, usize)>>,
 }
 
 impl<'a> DeviceMemoryView<'a> {
     pub fn new(space: &'a AddressSpace) -> Self {
-        DeviceMemoryView { space, pins: Mutex::new(Vec::new()) }
+        DeviceMemoryView { space, pins: Mutex::new(Vec::new()), structures: Mutex::new(std::collections::HashMap::new()) }
     }
 
     fn pinned_slice(&self, buffer: Arc<Buffer>, offset: u64, len: u64) -> Option<&[u8]> {
@@ -79,8 +81,14 @@ impl accel::DeviceView for DeviceMemoryView<'_> {
     }
 
     fn acceleration_structure(&self, reference: u64) -> Option<&[u8]> {
+        if let Some(&(ptr, len)) = self.structures.lock().unwrap_or_else(|e| e.into_inner()).get(&reference) {
+            // SAFETY: recorded below from a slice whose buffer is pinned for the view's lifetime.
+            return Some(unsafe { std::slice::from_raw_parts(ptr as *const u8, len) });
+        }
         let r = self.space.resolve(reference, STRUCTURE_PROBE).ok()?;
         let len = r.buffer.size - r.offset;
-        self.pinned_slice(r.buffer, r.offset, len)
+        let s = self.pinned_slice(r.buffer, r.offset, len)?;
+        self.structures.lock().unwrap_or_else(|e| e.into_inner()).insert(reference, (s.as_ptr() as usize, s.len()));
+        Some(s)
     }
 }
