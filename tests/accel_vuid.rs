@@ -1854,11 +1854,9 @@ fn instance_pointer_not_mapped_03813() {
 }
 
 // ---------------------------------------------------------------------------------------------
-// Checks the driver makes under another VUID than the current specification's (ignored until
-// the driver names them right; see the ignore reasons)
+// Checks whose VUID names were corrected in the driver (6f2b917)
 
 #[test]
-#[ignore = "driver reports the retired VUID pInfos-03674 for scratch without STORAGE_BUFFER usage; the spec names it pInfos-12261 (build) / pInfos-12260 (update)"]
 fn scratch_without_storage_usage_12261() {
     scenario(|a, m| {
         let (victim, _) = valid_blas(a, m, NO_FLAGS);
@@ -1880,7 +1878,6 @@ fn scratch_without_storage_usage_12261() {
 }
 
 #[test]
-#[ignore = "driver reports an unsupported vertex format as pInfos-03709 (which is about instance-referenced structures being bound to memory); the spec's VUID is VkAccelerationStructureGeometryTrianglesDataKHR-vertexFormat-03797"]
 fn unsupported_vertex_format_03797() {
     scenario(|a, m| {
         let mut g = mesh_geom(a, m);
@@ -1890,7 +1887,6 @@ fn unsupported_vertex_format_03797() {
 }
 
 #[test]
-#[ignore = "driver reports a primitiveOffset that is not a multiple of the index size as pInfos-03651; the spec's VUID is VkAccelerationStructureBuildRangeInfoKHR-primitiveOffset-03656"]
 fn primitive_offset_not_a_multiple_of_the_index_size_03656() {
     scenario(|a, m| {
         let (victim, scratch) = valid_blas(a, m, NO_FLAGS);
@@ -1971,7 +1967,6 @@ fn clone_between_overlapping_structures_07791() {
 }
 
 #[test]
-#[ignore = "driver bug: an invalid copy mode (03410) is reported but the destination is not marked invalid (copy_structure returns before mark_invalid)"]
 fn copy_with_an_invalid_mode_03410() {
     scenario(|a, m| {
         let (src, _) = valid_blas(a, m, NO_FLAGS);
@@ -1991,26 +1986,6 @@ fn copy_with_an_invalid_mode_03410() {
 }
 
 #[test]
-fn copy_with_an_invalid_mode_03410_is_reported_and_skipped() {
-    scenario(|a, m| {
-        let (src, _) = valid_blas(a, m, NO_FLAGS);
-        let (dst, _) = valid_blas(a, m, NO_FLAGS);
-        expect_invalid(
-            a,
-            Expect {
-                command: "vkCmdCopyAccelerationStructureKHR",
-                vuid: "VUID-VkCopyAccelerationStructureInfoKHR-mode-03410".into(),
-                needles: &["mode must be CLONE or COMPACT"],
-                writable: &[dst.r],
-                invalidated: &[],
-            },
-            || cmd_copy(a, &src, &dst, vk::CopyAccelerationStructureModeKHR::SERIALIZE),
-        );
-    });
-}
-
-#[test]
-#[ignore = "driver reports serializing a never-built structure as VkCopyAccelerationStructureToMemoryInfoKHR-src-04963; the spec's VUID is VkCopyAccelerationStructureToMemoryInfoKHR-src-04959"]
 fn serialize_a_structure_never_built_04959() {
     scenario(|a, m| {
         let _ = m;
@@ -2185,7 +2160,6 @@ fn update_with_changed_indices_03768() {
 }
 
 #[test]
-#[ignore = "driver reports a primitiveCount that differs from the last build as pInfos-03768 (index values); the spec's VUID is primitiveCount-03769"]
 fn update_with_another_primitive_count_03769() {
     scenario(|a, m| {
         invalid_update(a, m, mesh_geom(a, m), range(m.count - 1), "primitiveCount-03769", &["pInfos[0]"]);
@@ -2193,7 +2167,6 @@ fn update_with_another_primitive_count_03769() {
 }
 
 #[test]
-#[ignore = "driver reports geometry flags that differ from the last build as pInfos-03768 (index values); the spec's VUID is pInfos-03762"]
 fn update_with_other_geometry_flags_03762() {
     scenario(|a, m| {
         let g = mesh_geom(a, m).flags(vk::GeometryFlagsKHR::NO_DUPLICATE_ANY_HIT_INVOCATION);
@@ -2202,7 +2175,6 @@ fn update_with_other_geometry_flags_03762() {
 }
 
 #[test]
-#[ignore = "driver reports a maxVertex that differs from the last build as pInfos-03768 (index values); the spec's VUID is pInfos-03764"]
 fn update_with_another_max_vertex_03764() {
     scenario(|a, m| {
         let g = tri(m.v.address(a), m.i.address(a), m.max_vertex + 1, 0);
@@ -2211,7 +2183,6 @@ fn update_with_another_max_vertex_03764() {
 }
 
 #[test]
-#[ignore = "driver bug: the size check (03675) is skipped for UPDATE mode; the library then rejects the update and it is reported as pInfos-03651 'build rejected: DestinationTooSmall'"]
 fn update_into_a_destination_too_small_03675() {
     scenario(|a, m| {
         let (src, scratch) = valid_blas(a, m, ALLOW_UPDATE);
@@ -2464,7 +2435,6 @@ fn harness_catches_a_second_violation() {
 // Malformed build infos
 
 #[test]
-#[ignore = "driver reports geometryCount > 0 with both pGeometries and ppGeometries NULL as ppBuildRangeInfos-03676 ('the range array does not have geometryCount elements'); the spec's VUID is VkAccelerationStructureBuildGeometryInfoKHR-pGeometries-03788"]
 fn geometry_arrays_both_null_03788() {
     scenario(|a, m| {
         let (victim, scratch) = valid_blas(a, m, NO_FLAGS);
@@ -2476,23 +2446,6 @@ fn geometry_arrays_both_null_03788() {
         expect_invalid(
             a,
             Expect { command: CMD, vuid: "-pGeometries-03788".into(), needles: &["pInfos[0]"], writable: &[victim.r, scratch], invalidated: &[&victim] },
-            || cmd_build(a, &[inf], &[&[range(m.count)]]),
-        );
-    });
-}
-
-#[test]
-fn geometry_arrays_both_null_is_reported_and_skipped() {
-    scenario(|a, m| {
-        let (victim, scratch) = valid_blas(a, m, NO_FLAGS);
-        let mut inf = info(BLAS, NO_FLAGS, &[]).dst_acceleration_structure(victim.s).scratch_data(madr(scratch.address(a)));
-        // Both NULL (an empty slice's pointer is dangling, not NULL).
-        inf.p_geometries = std::ptr::null();
-        inf.pp_geometries = std::ptr::null();
-        inf.geometry_count = 1;
-        expect_invalid(
-            a,
-            Expect { command: CMD, vuid: "-03676".into(), needles: &["pInfos[0]"], writable: &[victim.r, scratch], invalidated: &[&victim] },
             || cmd_build(a, &[inf], &[&[range(m.count)]]),
         );
     });
