@@ -358,12 +358,23 @@ pub fn execute_builds(mem: &dyn InputMemory, infos: &[BuildInfo]) -> Result<(), 
             runnable.push(p);
         }
     }
-    let results: Vec<bool> = crate::threads::pool().install(|| runnable.par_iter().map(|p| run(mem, p)).collect());
+    let results: Vec<bool> = on_worker_pool(|| runnable.par_iter().map(|p| run(mem, p)).collect());
     invalid |= results.iter().any(|ok| !ok);
     if invalid && diag::strict() {
         return Err(DeviceLost);
     }
     Ok(())
+}
+
+/// Run parallel work on the pool the calling thread belongs to — a deferred operation's pool,
+/// whose workers are the application threads that joined it — or else on Arbor's worker pool
+/// (queue workers and non-deferred host commands).
+fn on_worker_pool<R: Send>(f: impl FnOnce() -> R + Send) -> R {
+    if rayon::current_thread_index().is_some() {
+        f()
+    } else {
+        crate::threads::pool().install(f)
+    }
 }
 
 fn mark_invalid(dst: &AccelerationStructure) {
@@ -553,6 +564,10 @@ fn prepare<'m>(mem: &dyn InputMemory, i: usize, info: &'m BuildInfo) -> Result<P
     let scratch_len = if update { sizes.update_scratch_size } else { sizes.build_scratch_size };
     if info.scratch % SCRATCH_ALIGNMENT != 0 && !mem.is_host() {
         fail("pInfos-03710", &format!("scratchData {:#x} is not a multiple of {SCRATCH_ALIGNMENT}", info.scratch));
+    }
+    if mem.is_host() && scratch_len > 0 && info.scratch == 0 {
+        let v = if update { "pInfos-03726" } else { "pInfos-03725" };
+        fail(v, "scratchData.hostAddress is NULL");
     }
     let scratch_range = if mem.is_host() || scratch_len == 0 {
         None

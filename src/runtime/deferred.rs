@@ -132,3 +132,74 @@ impl DeferredOperation {
         }
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::collections::HashSet;
+    use std::sync::Mutex as StdMutex;
+    use std::time::Duration;
+
+    #[test]
+    fn a_single_joiner_runs_the_work_itself() {
+        let op = DeferredOperation::new();
+        assert_eq!(op.result(), vk::Result::SUCCESS, "a new operation is complete");
+        let ran_on = Arc::new(StdMutex::new(None));
+        let r = ran_on.clone();
+        assert_eq!(
+            op.defer(4, Box::new(move || {
+                *r.lock().unwrap() = Some(std::thread::current().id());
+                vk::Result::SUCCESS
+            })),
+            vk::Result::OPERATION_DEFERRED_KHR
+        );
+        assert_eq!(op.result(), vk::Result::NOT_READY);
+        assert_eq!(op.max_concurrency(), 4);
+        assert_eq!(op.join(), vk::Result::SUCCESS);
+        assert_eq!(*ran_on.lock().unwrap(), Some(std::thread::current().id()), "the joining thread ran the work");
+        assert_eq!(op.result(), vk::Result::SUCCESS);
+        assert_eq!(op.max_concurrency(), 0);
+        assert_eq!(op.join(), vk::Result::SUCCESS, "joining a complete operation");
+    }
+
+    #[test]
+    fn parallel_parts_are_shared_by_the_joiners() {
+        let op = DeferredOperation::new();
+        let threads = Arc::new(StdMutex::new(HashSet::new()));
+        let t = threads.clone();
+        op.defer(
+            2,
+            Box::new(move || {
+                // Two halves, each long enough that an idle joiner steals one.
+                let work = |t: &StdMutex<HashSet<_>>| {
+                    for _ in 0..20 {
+                        t.lock().unwrap().insert(std::thread::current().id());
+                        std::thread::sleep(Duration::from_millis(5));
+                    }
+                };
+                rayon::join(|| work(&t), || work(&t));
+                vk::Result::SUCCESS
+            }),
+        );
+        let joiners: Vec<_> = std::thread::scope(|s| {
+            let hs: Vec<_> = (0..3).map(|_| s.spawn(|| (std::thread::current().id(), op.join()))).collect();
+            hs.into_iter().map(|h| h.join().unwrap()).collect()
+        });
+        let results: Vec<_> = joiners.iter().map(|(_, r)| *r).collect();
+        assert!(results.contains(&vk::Result::SUCCESS));
+        assert_eq!(results.iter().filter(|r| **r == vk::Result::THREAD_DONE_KHR).count(), 1, "two slots for three joiners: {results:?}");
+        let ran: HashSet<_> = threads.lock().unwrap().clone();
+        let joined: HashSet<_> = joiners.iter().map(|(id, _)| *id).collect();
+        assert!(ran.is_subset(&joined), "only joining threads ran the work");
+        assert_eq!(ran.len(), 2, "both worker slots' joiners took part");
+        assert_eq!(op.result(), vk::Result::SUCCESS);
+    }
+
+    #[test]
+    fn the_result_is_the_work_s_result() {
+        let op = DeferredOperation::new();
+        op.defer(1, Box::new(|| vk::Result::ERROR_DEVICE_LOST));
+        assert_eq!(op.join(), vk::Result::SUCCESS);
+        assert_eq!(op.result(), vk::Result::ERROR_DEVICE_LOST);
+    }
+}
