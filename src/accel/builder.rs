@@ -445,6 +445,16 @@ fn build_rec(ctx: &Ctx, refs: &mut [PrimRef], nodes: &mut [BinNode], start: u32,
                 }
             }
             if let Some((a, b, lbox, rbox, _)) = split {
+                if n >= PAR_PART_CUTOFF {
+                    // Large node: stable parallel partition through the (still unwritten) node
+                    // slots of this subtree; fixed chunking, so the order is the same for any
+                    // thread count.
+                    if let Some((i, lc, rc)) = par_partition(refs, nodes, |r| bn.bin_axis(r, a) <= b) {
+                        if i > 0 && i < n {
+                            return finish_split(ctx, refs, nodes, start, bounds, i, (lbox, lc), (rbox, rc), depth, bins);
+                        }
+                    }
+                }
                 // Partition in place (deterministic: sequential, same bin function as binning).
                 let mut i = 0usize;
                 let mut j = n;
@@ -489,6 +499,92 @@ fn build_rec(ctx: &Ctx, refs: &mut [PrimRef], nodes: &mut [BinNode], start: u32,
     let lb = bounds_of(l);
     let rb = bounds_of(r);
     finish_split(ctx, refs, nodes, start, bounds, mid, lb, rb, depth, bins)
+}
+
+/// Above this many references a node's partition runs in parallel chunks.
+const PAR_PART_CUTOFF: usize = 1 << 15;
+/// Chunks of a parallel partition: a fixed count, independent of the thread count.
+const PART_CHUNKS: usize = 64;
+
+#[derive(Clone, Copy)]
+struct PartStat {
+    left: usize,
+    lc_lo: Vec3A,
+    lc_hi: Vec3A,
+    rc_lo: Vec3A,
+    rc_hi: Vec3A,
+}
+
+/// Stable partition of `refs` by `is_left` (left ones first, both sides in input order) using
+/// the node slots of the subtree (2n-1 × 40 bytes ≥ n × 32) as the second buffer. Returns the
+/// left count and the centroid boxes of both sides; None (nothing moved) when the node slots
+/// cannot be viewed as references.
+fn par_partition(refs: &mut [PrimRef], nodes: &mut [BinNode], is_left: impl Fn(&PrimRef) -> bool + Sync) -> Option<(usize, Aabb, Aabb)> {
+    let n = refs.len();
+    let node_bytes: &mut [u8] = bytemuck::cast_slice_mut(nodes);
+    let tmp: &mut [PrimRef] = bytemuck::try_cast_slice_mut(node_bytes.get_mut(..n * std::mem::size_of::<PrimRef>())?).ok()?;
+    let chunk = n.div_ceil(PART_CHUNKS).max(1);
+    let empty = PartStat { left: 0, lc_lo: Vec3A::INFINITY, lc_hi: Vec3A::NEG_INFINITY, rc_lo: Vec3A::INFINITY, rc_hi: Vec3A::NEG_INFINITY };
+    let mut stats = [empty; PART_CHUNKS];
+    refs.par_chunks(chunk).zip(stats.par_iter_mut()).for_each(|(c, st)| {
+        let mut s = empty;
+        for r in c {
+            let ctr = Vec3A::from(r.lo) * 0.5 + Vec3A::from(r.hi) * 0.5;
+            if is_left(r) {
+                s.left += 1;
+                s.lc_lo = s.lc_lo.min(ctr);
+                s.lc_hi = s.lc_hi.max(ctr);
+            } else {
+                s.rc_lo = s.rc_lo.min(ctr);
+                s.rc_hi = s.rc_hi.max(ctr);
+            }
+        }
+        *st = s;
+    });
+    let nchunks = n.div_ceil(chunk);
+    let nl: usize = stats[..nchunks].iter().map(|s| s.left).sum();
+    let (mut lc_lo, mut lc_hi, mut rc_lo, mut rc_hi) = (Vec3A::INFINITY, Vec3A::NEG_INFINITY, Vec3A::INFINITY, Vec3A::NEG_INFINITY);
+    for s in &stats[..nchunks] {
+        lc_lo = lc_lo.min(s.lc_lo);
+        lc_hi = lc_hi.max(s.lc_hi);
+        rc_lo = rc_lo.min(s.rc_lo);
+        rc_hi = rc_hi.max(s.rc_hi);
+    }
+    // Disjoint output ranges per chunk: lefts at their prefix position, rights after nl.
+    let (mut lrest, mut rrest) = tmp.split_at_mut(nl);
+    let mut outs: [(&mut [PrimRef], &mut [PrimRef]); PART_CHUNKS] = std::array::from_fn(|_| (&mut [][..], &mut [][..]));
+    for (k, o) in outs.iter_mut().enumerate().take(nchunks) {
+        let len = c_len(n, chunk, k);
+        let l = stats[k].left;
+        let (lo_part, lr) = std::mem::take(&mut lrest).split_at_mut(l);
+        let (ro_part, rr) = std::mem::take(&mut rrest).split_at_mut(len - l);
+        lrest = lr;
+        rrest = rr;
+        *o = (lo_part, ro_part);
+    }
+    refs.par_chunks(chunk).zip(outs.par_iter_mut()).for_each(|(c, (lo, ro))| {
+        let (mut i, mut j) = (0usize, 0usize);
+        for r in c {
+            if is_left(r) {
+                if let Some(d) = lo.get_mut(i) {
+                    *d = *r;
+                }
+                i += 1;
+            } else {
+                if let Some(d) = ro.get_mut(j) {
+                    *d = *r;
+                }
+                j += 1;
+            }
+        }
+    });
+    refs.par_chunks_mut(chunk).zip(tmp.par_chunks(chunk)).for_each(|(d, s)| d.copy_from_slice(s));
+    Some((nl, to_aabb(lc_lo, lc_hi), to_aabb(rc_lo, rc_hi)))
+}
+
+#[inline]
+fn c_len(n: usize, chunk: usize, k: usize) -> usize {
+    n.saturating_sub(k * chunk).min(chunk)
 }
 
 /// Default size up to which nodes use the exact sorted sweep, and the largest allowed.
@@ -880,9 +976,11 @@ fn ingest(desc: &BuildDesc, view: &dyn DeviceView, refs: &mut [PrimRef], mut sta
         res.map_err(|e| e.1)?;
         base += count;
     }
-    // Stable in-place compaction (write index never passes read index).
-    let mut w = 0usize;
-    for r in 0..base {
+    // Stable in-place compaction (write index never passes read index), from the first
+    // dropped slot on (usually none: a parallel search skips the whole pass).
+    let first = refs[..base].par_iter().position_first(|r| r.geom == DROPPED).unwrap_or(base);
+    let mut w = first;
+    for r in first..base {
         if refs[r].geom != DROPPED {
             refs[w] = refs[r];
             w += 1;
@@ -1102,9 +1200,8 @@ pub fn build(desc: &BuildDesc, view: &dyn DeviceView, dst: &mut [u8], scratch: &
         let mut pos = 0usize;
         for (gi, g) in desc.geometries.iter().enumerate() {
             let begin = pos;
-            while pos < refs.len() && refs[pos].geom == gi as u32 {
-                pos += 1;
-            }
+            // refs are ordered by geometry: binary search for the end of this one.
+            pos = begin + refs[begin..].partition_point(|r| r.geom <= gi as u32);
             let rec = geometry_record(g, (pos - begin) as u32, allow_update);
             let off = goff + gi * layout::GEOMETRY_SIZE;
             if let Some(d) = dst.get_mut(off..off + layout::GEOMETRY_SIZE) {
