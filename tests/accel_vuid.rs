@@ -2487,3 +2487,30 @@ fn host_build_into_a_destroyed_handle_03800() {
         assert!(header_of(a, &victim).is_some());
     });
 }
+
+/// No VUID names it, but a build whose vertex input lies inside its own scratch would read what
+/// it writes (and Arbor would alias a shared and a mutable view): reported and skipped.
+#[test]
+fn vertex_input_inside_the_scratch_is_reported() {
+    scenario(|a, m| {
+        let geoms = [mesh_geom(a, m)];
+        let inf = info(BLAS, NO_FLAGS, &geoms);
+        let sizes = a.sizes(DEVICE, &inf, &[m.count]);
+        let (victim, scratch) = prebuilt_blas(a, m, sizes.acceleration_structure_size, sizes.build_scratch_size, m.count, NO_FLAGS);
+        // Put the vertices at the start of the scratch region and point the geometry there.
+        scratch.write(a, 0, &m.vertex_bytes);
+        let geoms = [tri(scratch.address(a), m.i.address(a), m.max_vertex, 0)];
+        let inf = info(BLAS, NO_FLAGS, &geoms).dst_acceleration_structure(victim.s).scratch_data(madr(scratch.address(a)));
+        expect_invalid(
+            a,
+            Expect {
+                command: CMD,
+                vuid: "ARBOR-build-input-aliases-output".into(),
+                needles: &["pInfos[0]: a geometry input overlaps the dst or scratch memory of pInfos[0]"],
+                writable: &[victim.r, scratch],
+                invalidated: &[&victim],
+            },
+            || cmd_build(a, &[inf], &[&[range(m.count)]]),
+        );
+    });
+}

@@ -275,6 +275,8 @@ struct Prepared<'m> {
     src_range: Option<(usize, u64, u64)>,
     /// Device addresses of the BLASes its instances reference (for 03706/03407).
     referenced: Vec<u64>,
+    /// Memory ranges of every geometry input it reads (device builds).
+    inputs: Vec<(usize, u64, u64)>,
 }
 
 fn overlaps(a: Option<(usize, u64, u64)>, b: Option<(usize, u64, u64)>) -> bool {
@@ -303,7 +305,9 @@ pub fn execute_builds(mem: &dyn InputMemory, infos: &[BuildInfo]) -> Result<(), 
             }
         }
     }
-    // Aliasing between the regions of different elements (and dst vs its own scratch).
+    // Aliasing between the regions of different elements (and dst vs its own scratch). Of each
+    // overlapping pair at least the element that writes into the other's region is skipped, so
+    // no two views handed to running builds overlap.
     let mut bad = vec![false; prepared.len()];
     for a in 0..prepared.len() {
         let pa = &prepared[a];
@@ -347,6 +351,20 @@ pub fn execute_builds(mem: &dyn InputMemory, infos: &[BuildInfo]) -> Result<(), 
                     bad[a] = true;
                 }
             }
+        }
+    }
+    // A build must not read what this command writes: inputs inside any element's dst or
+    // scratch (no VUID names it; it is a write-after-read hazard within one command, and Arbor
+    // will not hand out a shared view of bytes another view may write).
+    for a in 0..prepared.len() {
+        let pa = &prepared[a];
+        if let Some(pb) = prepared.iter().find(|pb| pa.inputs.iter().any(|r| overlaps(Some(*r), pb.dst_range) || overlaps(Some(*r), pb.scratch_range))) {
+            diag::vuid(
+                "ARBOR-build-input-aliases-output",
+                cmd,
+                &format!("pInfos[{}]: a geometry input overlaps the dst or scratch memory of pInfos[{}]", pa.index, pb.index),
+            );
+            bad[a] = true;
         }
     }
     let mut runnable = Vec::new();
@@ -588,8 +606,9 @@ fn prepare<'m>(mem: &dyn InputMemory, i: usize, info: &'m BuildInfo) -> Result<P
     };
     // Geometry inputs: addresses valid, aligned, inside buffers with BUILD_INPUT_READ_ONLY usage.
     let mut referenced = Vec::new();
+    let inputs = std::cell::RefCell::new(Vec::new());
     for (j, (g, r)) in info.geometries.iter().zip(&ranges).enumerate() {
-        if let Err((vuid, msg)) = check_geometry(mem, g, r, &mut referenced) {
+        if let Err((vuid, msg)) = check_geometry(mem, g, r, &mut referenced, &inputs) {
             fail(vuid, &format!("geometry {j}: {msg}"));
         }
     }
@@ -606,6 +625,7 @@ fn prepare<'m>(mem: &dyn InputMemory, i: usize, info: &'m BuildInfo) -> Result<P
         scratch_len,
         scratch_range,
         referenced,
+        inputs: inputs.into_inner(),
     })
 }
 
@@ -640,9 +660,13 @@ fn check_geometry(
     g: &GeometryInfo,
     r: &RangeInfo,
     referenced: &mut Vec<u64>,
+    inputs: &std::cell::RefCell<Vec<(usize, u64, u64)>>,
 ) -> Result<(), (&'static str, String)> {
     let count = r.primitive_count as u64;
     let input = |addr: u64, len: u64, vuid_addr: &'static str| -> Result<&[u8], (&'static str, String)> {
+        if let Some(range) = mem.memory_range(addr, len) {
+            inputs.borrow_mut().push(range);
+        }
         mem.input(addr, len, INPUT_USAGE).map_err(|e| match e {
             InputError::Usage(found) => (
                 "geometry-03673",
@@ -767,6 +791,9 @@ fn check_geometry(
                     let p = u64::from_le_bytes(bytes[k as usize * 8..k as usize * 8 + 8].try_into().unwrap());
                     if !mem.is_host() && p % 16 != 0 {
                         return Err(("pInfos-03717", format!("instance pointer {k} ({p:#x}) is not aligned to 16")));
+                    }
+                    if let Some(range) = mem.memory_range(p, 64) {
+                        inputs.borrow_mut().push(range);
                     }
                     let inst = accel::DeviceView::bytes(mem, p, 64)
                         .ok_or(("pInfos-03813", format!("instance pointer {k} ({p:#x}) does not address 64 valid bytes")))?;

@@ -44,7 +44,11 @@ pub fn use_arbor_manifest() -> PathBuf {
                 "{{\"file_format_version\":\"1.0.1\",\"ICD\":{{\"library_path\":\"{}\",\"api_version\":\"1.1.281\",\"library_arch\":\"64\"}}}}",
                 lib.display()
             );
-            std::fs::write(&path, json).unwrap();
+            // Every test process writes the same manifest: write a private file and rename it
+            // over, so a concurrent reader never sees a half-written one.
+            let tmp = dir.join(format!("icd.json.{}", std::process::id()));
+            std::fs::write(&tmp, json).unwrap();
+            std::fs::rename(&tmp, &path).unwrap();
             // SAFETY: set once, before any loader is opened in this process.
             unsafe {
                 std::env::set_var("VK_ICD_FILENAMES", &path);
