@@ -100,6 +100,19 @@ unsafe extern "system" fn messenger_callback(
     vk::FALSE
 }
 
+/// Warnings and errors of every message type go to `messenger_callback` with `sink` as user data.
+fn messenger_info(sink: *mut c_void) -> vk::DebugUtilsMessengerCreateInfoEXT<'static> {
+    vk::DebugUtilsMessengerCreateInfoEXT::default()
+        .message_severity(vk::DebugUtilsMessageSeverityFlagsEXT::WARNING | vk::DebugUtilsMessageSeverityFlagsEXT::ERROR)
+        .message_type(
+            vk::DebugUtilsMessageTypeFlagsEXT::VALIDATION
+                | vk::DebugUtilsMessageTypeFlagsEXT::GENERAL
+                | vk::DebugUtilsMessageTypeFlagsEXT::PERFORMANCE,
+        )
+        .pfn_user_callback(Some(messenger_callback))
+        .user_data(sink)
+}
+
 /// Options for a test context.
 #[derive(Clone)]
 pub struct Options {
@@ -168,17 +181,7 @@ impl Context {
         let mut exts = vec![ext_debug.as_ptr()];
         exts.extend(inst_ext_c.iter().map(|c| c.as_ptr()));
         let sink_ptr = Arc::as_ptr(&messages) as *mut c_void;
-        let mut dbg_info = vk::DebugUtilsMessengerCreateInfoEXT::default()
-            .message_severity(
-                vk::DebugUtilsMessageSeverityFlagsEXT::WARNING | vk::DebugUtilsMessageSeverityFlagsEXT::ERROR,
-            )
-            .message_type(
-                vk::DebugUtilsMessageTypeFlagsEXT::VALIDATION
-                    | vk::DebugUtilsMessageTypeFlagsEXT::GENERAL
-                    | vk::DebugUtilsMessageTypeFlagsEXT::PERFORMANCE,
-            )
-            .pfn_user_callback(Some(messenger_callback))
-            .user_data(sink_ptr);
+        let mut dbg_info = messenger_info(sink_ptr);
         let ci = vk::InstanceCreateInfo::default()
             .application_info(&app)
             .enabled_layer_names(&layers)
@@ -187,17 +190,7 @@ impl Context {
         // SAFETY: valid create info.
         let instance = unsafe { entry.create_instance(&ci, None) }.expect("vkCreateInstance");
         let du = ash::ext::debug_utils::Instance::new(&entry, &instance);
-        let dbg_info2 = vk::DebugUtilsMessengerCreateInfoEXT::default()
-            .message_severity(
-                vk::DebugUtilsMessageSeverityFlagsEXT::WARNING | vk::DebugUtilsMessageSeverityFlagsEXT::ERROR,
-            )
-            .message_type(
-                vk::DebugUtilsMessageTypeFlagsEXT::VALIDATION
-                    | vk::DebugUtilsMessageTypeFlagsEXT::GENERAL
-                    | vk::DebugUtilsMessageTypeFlagsEXT::PERFORMANCE,
-            )
-            .pfn_user_callback(Some(messenger_callback))
-            .user_data(sink_ptr);
+        let dbg_info2 = messenger_info(sink_ptr);
         // SAFETY: valid create info; the sink outlives the messenger (destroyed in Drop first).
         let messenger = unsafe { du.create_debug_utils_messenger(&dbg_info2, None) }.expect("messenger");
         // SAFETY: plain query.
