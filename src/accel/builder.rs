@@ -226,6 +226,7 @@ struct Binning {
     cmin: Vec3A,
     scale: Vec3A,
     kmax: UVec3,
+    kmax_f: Vec3A,
     /// Axes binned: a..b (all three, or the single widest one).
     axes: (usize, usize),
 }
@@ -241,7 +242,9 @@ impl Binning {
     #[inline(always)]
     fn bins(&self, r: &PrimRef) -> UVec3 {
         let c = Vec3A::from(r.lo) * 0.5 + Vec3A::from(r.hi) * 0.5;
-        ((c - self.cmin) * self.scale).as_uvec3().min(self.kmax)
+        // Clamped in float first (max(NaN, 0) = 0 on SSE, like `as u32`), then an exact
+        // conversion: the same bins as `(x as u32).min(kmax)`, without per-lane saturation.
+        ((c - self.cmin) * self.scale).max(Vec3A::ZERO).min(self.kmax_f).as_ivec3().as_uvec3()
     }
 }
 
@@ -299,13 +302,18 @@ fn to_aabb(lo: Vec3A, hi: Vec3A) -> Aabb {
 }
 
 fn bounds_of(refs: &[PrimRef]) -> (Aabb, Aabb) {
-    let mut b = Aabb::EMPTY;
-    let mut cb = Aabb::EMPTY;
+    // Vector min/max (references are finite, so no NaN handling is needed).
+    let (mut lo, mut hi) = (Vec3A::INFINITY, Vec3A::NEG_INFINITY);
+    let (mut clo, mut chi) = (Vec3A::INFINITY, Vec3A::NEG_INFINITY);
     for r in refs {
-        b.grow(&r.lo, &r.hi);
-        cb.grow_point(&centroid(r));
+        let (l, h) = (Vec3A::from(r.lo), Vec3A::from(r.hi));
+        let c = l * 0.5 + h * 0.5;
+        lo = lo.min(l);
+        hi = hi.max(h);
+        clo = clo.min(c);
+        chi = chi.max(c);
     }
-    (b, cb)
+    (to_aabb(lo, hi), to_aabb(clo, chi))
 }
 
 struct Ctx {
@@ -361,7 +369,7 @@ fn build_rec(ctx: &Ctx, refs: &mut [PrimRef], nodes: &mut [BinNode], start: u32,
                 any = true;
             }
         }
-        let bn = Binning { cmin: Vec3A::from(cb.lo), scale: Vec3A::from(scale), kmax: UVec3::splat(k as u32 - 1), axes };
+        let bn = Binning { cmin: Vec3A::from(cb.lo), scale: Vec3A::from(scale), kmax: UVec3::splat(k as u32 - 1), kmax_f: Vec3A::splat((k - 1) as f32), axes };
         if any {
             bins.reset(k);
             if n >= PAR_BIN_CUTOFF {
@@ -615,17 +623,19 @@ fn small_split(refs: &mut [PrimRef], axes: (usize, usize)) -> Option<(usize, f32
             }
         }
         let mut l_area = [0f32; MAX_SMALL];
-        let mut acc = Aabb::EMPTY;
+        let (mut lo, mut hi) = (Vec3A::INFINITY, Vec3A::NEG_INFINITY);
         for i in 0..n - 1 {
             let r = &refs[order[i] as usize];
-            acc.grow(&r.lo, &r.hi);
-            l_area[i] = acc.half_area();
+            lo = lo.min(Vec3A::from(r.lo));
+            hi = hi.max(Vec3A::from(r.hi));
+            l_area[i] = half_area_v(lo, hi);
         }
-        let mut racc = Aabb::EMPTY;
+        let (mut lo, mut hi) = (Vec3A::INFINITY, Vec3A::NEG_INFINITY);
         for i in (0..n - 1).rev() {
             let r = &refs[order[i + 1] as usize];
-            racc.grow(&r.lo, &r.hi);
-            let cost = l_area[i] * (i + 1) as f32 + racc.half_area() * (n - i - 1) as f32;
+            lo = lo.min(Vec3A::from(r.lo));
+            hi = hi.max(Vec3A::from(r.hi));
+            let cost = l_area[i] * (i + 1) as f32 + half_area_v(lo, hi) * (n - i - 1) as f32;
             if best.map_or(true, |b| cost < b.2 || (cost == b.2 && a == b.0 && i + 1 < b.1)) {
                 best = Some((a, i + 1, cost, order));
             }
