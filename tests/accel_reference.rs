@@ -82,7 +82,7 @@ fn intersect_triangle_is_watertight_on_shared_edges() {
         let n1 = (p[1] - p[0]).cross(p[2] - p[0]).normalize();
         let n2 = (p[2] - p[0]).cross(p[3] - p[0]).normalize();
         let dn = ray.direction.normalize();
-        if n1.dot(dn).abs() < 1e-2 || n2.dot(dn).abs() < 1e-2 || s < 1e-3 || s > 1.0 - 1e-3 {
+        if n1.dot(dn).abs() < 1e-2 || n2.dot(dn).abs() < 1e-2 || !(1e-3..=1.0 - 1e-3).contains(&s) {
             continue;
         }
         // Only when the edge is a silhouette-free crossing (both triangles on opposite sides as
@@ -169,7 +169,7 @@ fn inactive_triangles_and_aabbs() {
     // A NaN in the x of any vertex makes a triangle inactive; NaN elsewhere is undefined (not
     // tested); an AABB is inactive when minX is NaN.
     let nan = f32::NAN;
-    let positions = vec![[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [nan, 0.0, 0.0], [f32::INFINITY, 0.0, 0.0]];
+    let positions = [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [nan, 0.0, 0.0], [f32::INFINITY, 0.0, 0.0]];
     let tris: [[u32; 3]; 4] = [[0, 1, 2], [0, 3, 2], [3, 1, 2], [0, 1, 4]];
     let vb: Vec<u8> = positions.iter().flatten().flat_map(|c: &f32| c.to_le_bytes()).collect();
     let ib: Vec<u8> = tris.iter().flatten().flat_map(|i| i.to_le_bytes()).collect();

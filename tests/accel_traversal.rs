@@ -403,8 +403,8 @@ fn tlas_hit_reports_instance_attributes_and_object_ray() {
         assert!((h.object_ray_direction[k] as f64 - d[k]).abs() < 1e-5);
     }
     assert_eq!(h.object_to_world, transform);
-    for k in 0..12 {
-        assert!((h.world_to_object[k] as f64 - inv[k]).abs() < 1e-6, "world_to_object {:?}", h.world_to_object);
+    for (got, want) in h.world_to_object.iter().zip(&inv) {
+        assert!((*got as f64 - want).abs() < 1e-6, "world_to_object {:?}", h.world_to_object);
     }
     // Object-space direction (0,0,-1)·n where n = (0,0,1): n·d < 0 → front facing.
     assert!(h.front_face);
@@ -438,12 +438,12 @@ fn ray_query_protocol_candidates_and_commits() {
             let rh = r.hits.iter().find(|h| h.id == id).unwrap_or_else(|| panic!("ray {i}: candidate {id:?} not a reference hit"));
             assert_eq!(c.t, rh.t);
             // Confirm every other candidate, so that commits happen in arbitrary order.
-            if id.primitive % 2 == 0 {
+            if id.primitive.is_multiple_of(2) {
                 if let Some(cur) = q.committed() {
                     assert!(c.t <= cur.t, "ray {i}: candidate beyond committed t");
                 }
                 q.confirm();
-                if best.map_or(true, |(t, _)| c.t < t) {
+                if best.is_none_or(|(t, _)| c.t < t) {
                     best = Some((c.t, id));
                 }
             }

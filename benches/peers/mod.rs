@@ -423,9 +423,9 @@ pub mod embree {
     /// Build primitives of a mesh (capacity 2N for HIGH's spatial splits).
     pub fn primitives(mesh: &Mesh, capacity: usize) -> Vec<BuildPrimitive> {
         let mut v = vec![BuildPrimitive::default(); capacity.max(mesh.indices.len())];
-        for i in 0..mesh.indices.len() {
+        for (i, slot) in v.iter_mut().enumerate().take(mesh.indices.len()) {
             let b = super::triangle_bounds(mesh, i);
-            v[i] = BuildPrimitive { lower: [b[0], b[1], b[2]], geom_id: 0, upper: [b[3], b[4], b[5]], prim_id: i as u32 };
+            *slot = BuildPrimitive { lower: [b[0], b[1], b[2]], geom_id: 0, upper: [b[3], b[4], b[5]], prim_id: i as u32 };
         }
         v
     }

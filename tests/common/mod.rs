@@ -194,7 +194,7 @@ pub struct AabbData {
 
 impl AabbData {
     pub fn new(boxes: &[[f32; 6]], stride: u64, flags: u32) -> Self {
-        assert!(stride >= 24 && stride % 8 == 0);
+        assert!(stride >= 24 && stride.is_multiple_of(8));
         let mut bytes = vec![0xEEu8; boxes.len() * stride as usize];
         for (i, b) in boxes.iter().enumerate() {
             for (k, v) in b.iter().enumerate() {
@@ -786,6 +786,7 @@ pub fn check_closest(lib: Option<&Hit>, r: &RefResult, flags: u32, tol: Toleranc
 }
 
 /// Runs closest_hit, any_hit and all_hits for one ray and compares each with the reference.
+#[allow(clippy::too_many_arguments)]
 pub fn compare_ray(structure: &[u8], view: &dyn DeviceView, scene: &RefScene, ray: &Ray, flags: u32, mask: u8, tol: Tolerance, ctx: &str) -> usize {
     let r = reference(scene, ray, flags, mask);
     let all = accel::all_hits(structure, view, copy_ray(ray), RayFlags(flags), mask);
