@@ -6,7 +6,7 @@ use super::input::{self, read_aabb, read_instance, read_triangle, transform_poin
 use super::layout::{self, GeometryRecord, InstanceRecord, PrimRecord, RawHeader, WideNode, CHILD_INTERNAL, NODE_SIZE, PRIM_SIZE, RECORD_SIZE};
 use super::{AsType, BuildDesc, BuildError, BuildFlags, BuildReport, DeviceView, Geometry, GeometryData};
 use bytemuck::{Pod, Zeroable};
-use glam::{UVec3, Vec3, Vec3A};
+use glam::{UVec3, Vec3, Vec3A, Vec4};
 use rayon::prelude::*;
 
 /// One primitive reference: its (sanitised, finite) bounds and where it came from.
@@ -96,6 +96,12 @@ pub fn sanitize(lo: [f32; 3], hi: [f32; 3]) -> ([f32; 3], [f32; 3]) {
 }
 
 pub fn triangle_bounds(v: &[Vec3; 3]) -> ([f32; 3], [f32; 3]) {
+    // Fast path: all coordinates finite, so vector min/max are exact and sanitising changes
+    // nothing.
+    let (a, b, c) = (Vec3A::from(v[0]), Vec3A::from(v[1]), Vec3A::from(v[2]));
+    if a.is_finite() && b.is_finite() && c.is_finite() {
+        return (a.min(b).min(c).to_array(), a.max(b).max(c).to_array());
+    }
     let lo = v[0].min(v[1]).min(v[2]);
     let hi = v[0].max(v[1]).max(v[2]);
     // glam's min/max drop NaN like f32::min; recheck explicitly so a NaN Y/Z gives a huge box.
@@ -254,19 +260,27 @@ fn bin_one(r: &PrimRef, bn: &Binning, bins: &mut Bins) {
     let hi = Vec3A::from(r.hi);
     if bn.axes.1 - bn.axes.0 == 1 {
         let a = bn.axes.0.min(2);
-        let b = bn.bin_axis(r, a).min(MAX_BINS - 1);
+        let b = bn.bin_axis(r, a) & (MAX_BINS - 1);
         bins.lo[a][b] = bins.lo[a][b].min(lo);
         bins.hi[a][b] = bins.hi[a][b].max(hi);
         bins.count[a][b] += 1;
         return;
     }
+    // All three axes (the only other case); indices are <= kmax < MAX_BINS, so the mask
+    // changes nothing and lets the compiler drop the bounds checks.
     let idx = bn.bins(r);
-    for a in bn.axes.0..bn.axes.1 {
-        let b = (idx[a] as usize).min(MAX_BINS - 1);
-        bins.lo[a][b] = bins.lo[a][b].min(lo);
-        bins.hi[a][b] = bins.hi[a][b].max(hi);
-        bins.count[a][b] += 1;
-    }
+    let bx = idx.x as usize & (MAX_BINS - 1);
+    let by = idx.y as usize & (MAX_BINS - 1);
+    let bz = idx.z as usize & (MAX_BINS - 1);
+    bins.lo[0][bx] = bins.lo[0][bx].min(lo);
+    bins.hi[0][bx] = bins.hi[0][bx].max(hi);
+    bins.count[0][bx] += 1;
+    bins.lo[1][by] = bins.lo[1][by].min(lo);
+    bins.hi[1][by] = bins.hi[1][by].max(hi);
+    bins.count[1][by] += 1;
+    bins.lo[2][bz] = bins.lo[2][bz].min(lo);
+    bins.hi[2][bz] = bins.hi[2][bz].max(hi);
+    bins.count[2][bz] += 1;
 }
 
 fn bin_refs(refs: &[PrimRef], bn: &Binning, bins: &mut Bins) {
@@ -757,6 +771,39 @@ pub fn encode_node(node_box: &Aabb, boxes: &[Aabb], child: &[u32], kind: &[u8]) 
         let s = f32::from_bits(e << 23);
         let inv_s = 1.0 / s; // exact: s is a power of two
         let dec = |q: u32| lo + q as f32 * s;
+        let cnt = boxes.len().min(4);
+        // Four children at once: truncated guesses (clamped in float first: the same values as
+        // the scalar `(x as u32).min(255)` for x > 0, else 0), checked with the decode
+        // arithmetic lane-wise (same IEEE operations as `dec`); lanes that need a step (rare)
+        // take the scalar path below.
+        let mut blo = [lo; 4];
+        let mut bhi = [lo; 4];
+        for (c, b) in boxes.iter().enumerate().take(4) {
+            blo[c] = b.lo[a];
+            bhi[c] = b.hi[a];
+        }
+        let (blo, bhi) = (Vec4::from_array(blo), Vec4::from_array(bhi));
+        let (lov, sv, top) = (Vec4::splat(lo), Vec4::splat(s), Vec4::splat(255.0));
+        let ql = ((blo - lov) * inv_s).max(Vec4::ZERO).min(top).as_uvec4();
+        let qh0 = ((bhi - lov) * inv_s).max(Vec4::ZERO).min(top).as_uvec4();
+        let qlf = ql.as_vec4();
+        let bad_l = (lov + qlf * sv).cmpgt(blo) & qlf.cmpgt(Vec4::ZERO);
+        // The scalar search steps qh up from the truncated guess to the first value whose
+        // decode reaches b.hi: usually the guess itself or the next one.
+        let q0 = qh0.as_vec4();
+        let q1 = (q0 + Vec4::ONE).min(top);
+        let ok0 = (lov + q0 * sv).cmpge(bhi) | q0.cmpge(top);
+        let ok1 = (lov + q1 * sv).cmpge(bhi) | q1.cmpge(top);
+        let qh = Vec4::select(ok0, q0, q1).as_uvec4();
+        let bad_h = !(ok0 | ok1);
+        if !bad_l.any() && !bad_h.any() {
+            let (ql, qh) = (ql.to_array(), qh.to_array());
+            for c in 0..cnt {
+                n.qlo[a][c] = ql[c] as u8;
+                n.qhi[a][c] = qh[c] as u8;
+            }
+            continue;
+        }
         for (c, b) in boxes.iter().enumerate().take(4) {
             // Guesses by truncation, then made exact and outward with the decode arithmetic
             // (usually zero or one step).
