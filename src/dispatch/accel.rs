@@ -75,6 +75,9 @@ unsafe extern "system" fn create_acceleration_structure_khr(
         }
         // SAFETY: valid create info per the spec.
         let info = unsafe { &*p_info };
+        if !dev.features.acceleration_structure {
+            diag::vuid("VUID-vkCreateAccelerationStructureKHR-accelerationStructure-03611", CMD, "the accelerationStructure feature is not enabled");
+        }
         let Some(buffer) = handle::get::<Buffer>(info.buffer.as_raw()) else {
             diag::vuid("VUID-VkAccelerationStructureCreateInfoKHR-buffer-parameter", CMD, "buffer is not a valid VkBuffer");
             return vk::Result::ERROR_INITIALIZATION_FAILED;
@@ -94,6 +97,13 @@ unsafe extern "system" fn create_acceleration_structure_khr(
             );
         }
         let replay = info.create_flags.contains(vk::AccelerationStructureCreateFlagsKHR::DEVICE_ADDRESS_CAPTURE_REPLAY);
+        if replay && !dev.features.acceleration_structure_capture_replay {
+            diag::vuid(
+                "VUID-VkAccelerationStructureCreateInfoKHR-createFlags-03613",
+                CMD,
+                "DEVICE_ADDRESS_CAPTURE_REPLAY needs the accelerationStructureCaptureReplay feature",
+            );
+        }
         if info.device_address != 0 {
             if !replay {
                 diag::vuid(
@@ -117,7 +127,6 @@ unsafe extern "system" fn create_acceleration_structure_khr(
             create_type: info.ty,
             create_flags: info.create_flags,
         };
-        let _ = dev;
         // SAFETY: checked non-null.
         unsafe { *p_as = vk::AccelerationStructureKHR::from_raw(handle::register(Arc::new(s))) };
         vk::Result::SUCCESS
