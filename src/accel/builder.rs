@@ -1035,7 +1035,7 @@ fn ingest(desc: &BuildDesc, view: &dyn DeviceView, refs: &mut [PrimRef], mut sta
     }
     // Stable in-place compaction (write index never passes read index), from the first
     // dropped slot on (usually none: a parallel search skips the whole pass).
-    let first = refs[..base].par_iter().position_first(|r| r.geom == DROPPED).unwrap_or(base);
+    let first = refs[..base].par_iter().with_min_len(INGEST_CHUNK).position_first(|r| r.geom == DROPPED).unwrap_or(base);
     let mut w = first;
     for r in first..base {
         if refs[r].geom != DROPPED {
