@@ -72,6 +72,21 @@ impl Aabb {
     }
 }
 
+/// Bounds of a reference as vectors, each one 16-byte load (`lo` and `geom`, `hi` and `prim`
+/// are adjacent) and a mask that zeroes the fourth lane: the integer's bits would be denormal
+/// floats, slow in arithmetic on some CPUs.
+#[inline(always)]
+fn ref_lo(r: &PrimRef) -> Vec3A {
+    let a: &[[f32; 4]; 2] = bytemuck::cast_ref(r);
+    Vec3A::from_vec4(Vec4::select(XYZ_MASK, Vec4::from_array(a[0]), Vec4::ZERO))
+}
+#[inline(always)]
+fn ref_hi(r: &PrimRef) -> Vec3A {
+    let a: &[[f32; 4]; 2] = bytemuck::cast_ref(r);
+    Vec3A::from_vec4(Vec4::select(XYZ_MASK, Vec4::from_array(a[1]), Vec4::ZERO))
+}
+const XYZ_MASK: glam::BVec4A = glam::BVec4A::from_array([true, true, true, false]);
+
 #[inline]
 fn centroid(r: &PrimRef) -> [f32; 3] {
     [r.lo[0] * 0.5 + r.hi[0] * 0.5, r.lo[1] * 0.5 + r.hi[1] * 0.5, r.lo[2] * 0.5 + r.hi[2] * 0.5]
@@ -247,7 +262,7 @@ impl Binning {
     }
     #[inline(always)]
     fn bins(&self, r: &PrimRef) -> UVec3 {
-        let c = Vec3A::from(r.lo) * 0.5 + Vec3A::from(r.hi) * 0.5;
+        let c = ref_lo(r) * 0.5 + ref_hi(r) * 0.5;
         // Clamped in float first (max(NaN, 0) = 0 on SSE, like `as u32`), then an exact
         // conversion: the same bins as `(x as u32).min(kmax)`, without per-lane saturation.
         ((c - self.cmin) * self.scale).max(Vec3A::ZERO).min(self.kmax_f).as_ivec3().as_uvec3()
@@ -256,8 +271,8 @@ impl Binning {
 
 #[inline(always)]
 fn bin_one(r: &PrimRef, bn: &Binning, bins: &mut Bins) {
-    let lo = Vec3A::from(r.lo);
-    let hi = Vec3A::from(r.hi);
+    let lo = ref_lo(r);
+    let hi = ref_hi(r);
     if bn.axes.1 - bn.axes.0 == 1 {
         let a = bn.axes.0.min(2);
         let b = bn.bin_axis(r, a) & (MAX_BINS - 1);
@@ -320,7 +335,7 @@ fn bounds_of(refs: &[PrimRef]) -> (Aabb, Aabb) {
     let (mut lo, mut hi) = (Vec3A::INFINITY, Vec3A::NEG_INFINITY);
     let (mut clo, mut chi) = (Vec3A::INFINITY, Vec3A::NEG_INFINITY);
     for r in refs {
-        let (l, h) = (Vec3A::from(r.lo), Vec3A::from(r.hi));
+        let (l, h) = (ref_lo(r), ref_hi(r));
         let c = l * 0.5 + h * 0.5;
         lo = lo.min(l);
         hi = hi.max(h);
@@ -486,7 +501,7 @@ fn build_rec(ctx: &Ctx, refs: &mut [PrimRef], nodes: &mut [BinNode], start: u32,
                 let mut rc_hi = Vec3A::NEG_INFINITY;
                 while i < j {
                     let r = &refs[i];
-                    let c = Vec3A::from(r.lo) * 0.5 + Vec3A::from(r.hi) * 0.5;
+                    let c = ref_lo(r) * 0.5 + ref_hi(r) * 0.5;
                     if bn.bin_axis(r, a) <= b {
                         lc_lo = lc_lo.min(c);
                         lc_hi = lc_hi.max(c);
@@ -551,7 +566,7 @@ fn par_partition(refs: &mut [PrimRef], nodes: &mut [BinNode], is_left: impl Fn(&
     refs.par_chunks(chunk).zip(stats.par_iter_mut()).for_each(|(c, st)| {
         let mut s = empty;
         for r in c {
-            let ctr = Vec3A::from(r.lo) * 0.5 + Vec3A::from(r.hi) * 0.5;
+            let ctr = ref_lo(r) * 0.5 + ref_hi(r) * 0.5;
             if is_left(r) {
                 s.left += 1;
                 s.lc_lo = s.lc_lo.min(ctr);
@@ -640,15 +655,15 @@ fn small_split(refs: &mut [PrimRef], axes: (usize, usize)) -> Option<(usize, f32
         let (mut lo, mut hi) = (Vec3A::INFINITY, Vec3A::NEG_INFINITY);
         for i in 0..n - 1 {
             let r = &refs[order[i] as usize];
-            lo = lo.min(Vec3A::from(r.lo));
-            hi = hi.max(Vec3A::from(r.hi));
+            lo = lo.min(ref_lo(r));
+            hi = hi.max(ref_hi(r));
             l_area[i] = half_area_v(lo, hi);
         }
         let (mut lo, mut hi) = (Vec3A::INFINITY, Vec3A::NEG_INFINITY);
         for i in (0..n - 1).rev() {
             let r = &refs[order[i + 1] as usize];
-            lo = lo.min(Vec3A::from(r.lo));
-            hi = hi.max(Vec3A::from(r.hi));
+            lo = lo.min(ref_lo(r));
+            hi = hi.max(ref_hi(r));
             let cost = l_area[i] * (i + 1) as f32 + half_area_v(lo, hi) * (n - i - 1) as f32;
             if best.map_or(true, |b| cost < b.2 || (cost == b.2 && a == b.0 && i + 1 < b.1)) {
                 best = Some((a, i + 1, cost, order));
