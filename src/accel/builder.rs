@@ -260,6 +260,14 @@ impl Binning {
         let c = r.lo[a] * 0.5 + r.hi[a] * 0.5;
         (((c - self.cmin[a]) * self.scale[a]) as u32).min(self.kmax.x) as usize
     }
+    /// `bin_axis(r, a) <= b` for a split bin b < kmax, without the conversion: the scaled
+    /// position is finite or +inf (finite bounds, finite positive scale), so truncation <= b
+    /// is exactly x < b + 1 (negative x: bin 0, and x < b + 1 too).
+    #[inline(always)]
+    fn goes_left(&self, r: &PrimRef, a: usize, limit: f32) -> bool {
+        let c = r.lo[a] * 0.5 + r.hi[a] * 0.5;
+        (c - self.cmin[a]) * self.scale[a] < limit
+    }
     #[inline(always)]
     fn bins(&self, r: &PrimRef) -> UVec3 {
         let c = ref_lo(r) * 0.5 + ref_hi(r) * 0.5;
@@ -482,11 +490,12 @@ fn build_rec(ctx: &Ctx, refs: &mut [PrimRef], nodes: &mut [BinNode], start: u32,
                 }
             }
             if let Some((a, b, lbox, rbox, _)) = split {
+                let limit = (b + 1) as f32;
                 if n >= PAR_PART_CUTOFF {
                     // Large node: stable parallel partition through the (still unwritten) node
                     // slots of this subtree; fixed chunking, so the order is the same for any
                     // thread count.
-                    if let Some((i, lc, rc)) = par_partition(refs, nodes, |r| bn.bin_axis(r, a) <= b) {
+                    if let Some((i, lc, rc)) = par_partition(refs, nodes, |r| bn.goes_left(r, a, limit)) {
                         if i > 0 && i < n {
                             return finish_split(ctx, refs, nodes, start, bounds, i, (lbox, lc), (rbox, rc), depth, bins);
                         }
@@ -502,7 +511,7 @@ fn build_rec(ctx: &Ctx, refs: &mut [PrimRef], nodes: &mut [BinNode], start: u32,
                 while i < j {
                     let r = &refs[i];
                     let c = ref_lo(r) * 0.5 + ref_hi(r) * 0.5;
-                    if bn.bin_axis(r, a) <= b {
+                    if bn.goes_left(r, a, limit) {
                         lc_lo = lc_lo.min(c);
                         lc_hi = lc_hi.max(c);
                         i += 1;
