@@ -95,11 +95,3 @@ pub fn unregister<T: Send + Sync + 'static>(handle: u64) -> Option<Arc<T>> {
         _ => None,
     }
 }
-
-/// Convert between a `vk::Handle` non-dispatchable type and registry ids.
-#[macro_export]
-macro_rules! nd_handle {
-    ($vk:ty, $raw:expr) => {
-        <$vk as ash::vk::Handle>::from_raw($raw)
-    };
-}

@@ -86,13 +86,6 @@ pub fn lookup(name: &str) -> Option<&'static Resolved> {
     table().get(name)
 }
 
-/// Canonical names Arbor implements (for tests and diagnostics).
-pub fn implemented_names() -> Vec<&'static str> {
-    let mut v: Vec<_> = table().values().filter(|r| r.implemented).map(|r| r.entry.name).collect();
-    v.sort();
-    v
-}
-
 pub fn to_pfn(f: VoidFn) -> vk::PFN_vkVoidFunction {
     Some(f)
 }
