@@ -787,3 +787,52 @@ fn dag_blob_terminates() {
     assert!(validate(&blas).is_err());
     assert!(t.elapsed().as_secs() < 5);
 }
+
+/// Prints an FNV-1a digest of the structure bytes for a set of inputs (tiers, U32/U16 indices,
+/// vertex strides 12/16, ALLOW_UPDATE, inactive and degenerate triangles, 1 and 2 threads):
+/// run before and after a builder change that must not change any byte, and diff the output.
+#[test]
+#[ignore]
+fn structure_digests() {
+    let fnv = |b: &[u8]| b.iter().fold(0xcbf2_9ce4_8422_2325u64, |h, &x| (h ^ x as u64).wrapping_mul(0x0000_0100_0000_01b3));
+    for path in ["data/bunny.ply", "data/dragon_vrip_res4.ply.gz"] {
+        let mesh = crate::scene::load(concat!(env!("CARGO_MANIFEST_DIR"), "/").to_string() + path).expect("mesh");
+        let nv = mesh.vertex_count() as u32;
+        let ntri = mesh.triangle_count() as u32;
+        let vb12 = mesh.vertex_bytes();
+        // Stride 16 with a poisoned fourth float; a NaN X on vertex 5 (inactive triangles).
+        let mut vb16 = Vec::new();
+        for (i, c) in vb12.chunks_exact(12).enumerate() {
+            let mut c = c.to_vec();
+            if i == 5 {
+                c[..4].copy_from_slice(&f32::NAN.to_le_bytes());
+            }
+            vb16.extend_from_slice(&c);
+            vb16.extend_from_slice(&f32::NAN.to_le_bytes());
+        }
+        let mut ib32 = mesh.index_bytes();
+        // Triangle 3 degenerate by repeated index.
+        let i0 = ib32[36..40].to_vec();
+        ib32[40..44].copy_from_slice(&i0);
+        let ib16: Vec<u8> = ib32.chunks_exact(4).flat_map(|c| (u32::from_le_bytes([c[0], c[1], c[2], c[3]]) as u16).to_le_bytes()).collect();
+        let cases: Vec<(&str, Geometry)> = vec![
+            ("u32 s12", tri_geom(&vb12, nv, &ib32, ntri, GeometryFlags::OPAQUE)),
+            ("u32 s16", Geometry { flags: GeometryFlags(0), primitive_count: ntri, data: GeometryData::Triangles { format: VertexFormat::R32G32B32Sfloat, vertices: &vb16, stride: 16, max_vertex: nv - 1, index_type: IndexType::U32, indices: &ib32, transform: None } }),
+            ("a32 s16", Geometry { flags: GeometryFlags(0), primitive_count: ntri, data: GeometryData::Triangles { format: VertexFormat::R32G32B32A32Sfloat, vertices: &vb16, stride: 16, max_vertex: nv - 1, index_type: IndexType::U32, indices: &ib32, transform: None } }),
+            ("u16 s12", Geometry { flags: GeometryFlags(0), primitive_count: ntri, data: GeometryData::Triangles { format: VertexFormat::R32G32B32Sfloat, vertices: &vb12, stride: 12, max_vertex: nv - 1, index_type: IndexType::U16, indices: &ib16, transform: None } }),
+            ("none", Geometry { flags: GeometryFlags(0), primitive_count: nv / 3, data: GeometryData::Triangles { format: VertexFormat::R32G32B32Sfloat, vertices: &vb12, stride: 12, max_vertex: nv - 1, index_type: IndexType::None, indices: &[], transform: None } }),
+        ];
+        for (name, g) in &cases {
+            if name.starts_with("u16") && nv > 65536 {
+                continue;
+            }
+            for flags in [BuildFlags::PREFER_FAST_BUILD, 0, BuildFlags::PREFER_FAST_TRACE, BuildFlags::PREFER_FAST_BUILD | BuildFlags::ALLOW_UPDATE, BuildFlags::ALLOW_UPDATE] {
+                for threads in [1, 2] {
+                    let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
+                    let blas = pool.install(|| build_ok(AsType::BottomLevel, flags, &[*g], &NoDevice));
+                    println!("digest {path} {name} flags {flags:#x} threads {threads}: {:016x} len {}", fnv(&blas), blas.len());
+                }
+            }
+        }
+    }
+}
