@@ -360,8 +360,16 @@ struct Ctx {
 /// Builds the subtree over `refs` into `nodes[0..2n-1]`; returns its unnormalised SAH sum
 /// (Σ inner A + Σ leaf A·|l|, half areas) and its depth.
 #[allow(clippy::too_many_arguments)]
-fn build_rec(ctx: &Ctx, refs: &mut [PrimRef], nodes: &mut [BinNode], start: u32, bounds: Aabb, cb: Aabb, depth: u32, bins: &mut Bins) -> (f64, u32) {
+/// `in_nodes`: the node's references are not in `refs` yet but at the start of its own node
+/// slots (where the parent's parallel partition put them); they reach `refs` through this
+/// node's own parallel partition, or by `restore` before anything else reads or writes.
+#[allow(clippy::too_many_arguments)]
+fn build_rec(ctx: &Ctx, refs: &mut [PrimRef], nodes: &mut [BinNode], start: u32, bounds: Aabb, cb: Aabb, depth: u32, bins: &mut Bins, mut in_nodes: bool) -> (f64, u32) {
     let n = refs.len();
+    if in_nodes && (n < PAR_PART_CUTOFF || depth >= MAX_SAH_DEPTH) {
+        restore(refs, nodes);
+        in_nodes = false;
+    }
     let area = bounds.half_area();
     let make_leaf = |nodes: &mut [BinNode]| {
         if let Some(slot) = nodes.get_mut(0) {
@@ -385,7 +393,7 @@ fn build_rec(ctx: &Ctx, refs: &mut [PrimRef], nodes: &mut [BinNode], start: u32,
             let (l, r) = refs.split_at(mid);
             let lb = bounds_of(l);
             let rb = bounds_of(r);
-            return finish_split(ctx, refs, nodes, start, bounds, mid, lb, rb, depth, bins);
+            return finish_split(ctx, refs, nodes, start, bounds, mid, lb, rb, depth, bins, false);
         }
         return make_leaf(nodes);
     }
@@ -409,8 +417,9 @@ fn build_rec(ctx: &Ctx, refs: &mut [PrimRef], nodes: &mut [BinNode], start: u32,
         let bn = Binning { cmin: Vec3A::from(cb.lo), scale: Vec3A::from(scale), kmax: UVec3::splat(k as u32 - 1), kmax_f: Vec3A::splat((k - 1) as f32), axes };
         if any {
             bins.reset(k);
+            let src: &[PrimRef] = if in_nodes { node_refs(nodes, n).unwrap_or(&[]) } else { refs };
             if n >= PAR_BIN_CUTOFF {
-                let merged = refs
+                let merged = src
                     .par_chunks(BIN_CHUNK)
                     .map(|c| {
                         let mut b = Bins::new();
@@ -423,7 +432,7 @@ fn build_rec(ctx: &Ctx, refs: &mut [PrimRef], nodes: &mut [BinNode], start: u32,
                     });
                 bins.merge(&merged, k);
             } else {
-                bin_refs(refs, &bn, bins);
+                bin_refs(src, &bn, bins);
             }
             // Sweep: prefix areas/counts left to right, then the right side accumulated on the
             // fly; boxes of the winning split are recomputed afterwards (keeps per-node stack
@@ -486,18 +495,30 @@ fn build_rec(ctx: &Ctx, refs: &mut [PrimRef], nodes: &mut [BinNode], start: u32,
             if let Some(s) = split {
                 let leaf_cost = area * n as f32;
                 if n as u32 <= p.max_leaf && leaf_cost <= area * p.traversal_cost + s.4 {
+                    if in_nodes {
+                        restore(refs, nodes);
+                    }
                     return make_leaf(nodes);
                 }
             }
             if let Some((a, b, lbox, rbox, _)) = split {
                 let limit = (b + 1) as f32;
-                if n >= PAR_PART_CUTOFF {
+                if in_nodes {
+                    // Scatter from this node's slots straight into `refs` (no copy back);
+                    // with everything on one side that is a plain copy, as a restore would be.
+                    in_nodes = false;
+                    if let Some((i, lc, rc)) = par_partition_from_nodes(refs, nodes, |r| bn.goes_left(r, a, limit)) {
+                        if i > 0 && i < n {
+                            return finish_split(ctx, refs, nodes, start, bounds, i, (lbox, lc), (rbox, rc), depth, bins, false);
+                        }
+                    }
+                } else if n >= PAR_PART_CUTOFF {
                     // Large node: stable parallel partition through the (still unwritten) node
                     // slots of this subtree; fixed chunking, so the order is the same for any
                     // thread count.
-                    if let Some((i, lc, rc)) = par_partition(refs, nodes, |r| bn.goes_left(r, a, limit)) {
+                    if let Some((i, lc, rc)) = par_partition_to_nodes(refs, nodes, |r| bn.goes_left(r, a, limit)) {
                         if i > 0 && i < n {
-                            return finish_split(ctx, refs, nodes, start, bounds, i, (lbox, lc), (rbox, rc), depth, bins);
+                            return finish_split(ctx, refs, nodes, start, bounds, i, (lbox, lc), (rbox, rc), depth, bins, true);
                         }
                     }
                 }
@@ -523,10 +544,13 @@ fn build_rec(ctx: &Ctx, refs: &mut [PrimRef], nodes: &mut [BinNode], start: u32,
                     }
                 }
                 if i > 0 && i < n {
-                    return finish_split(ctx, refs, nodes, start, bounds, i, (lbox, to_aabb(lc_lo, lc_hi)), (rbox, to_aabb(rc_lo, rc_hi)), depth, bins);
+                    return finish_split(ctx, refs, nodes, start, bounds, i, (lbox, to_aabb(lc_lo, lc_hi)), (rbox, to_aabb(rc_lo, rc_hi)), depth, bins, false);
                 }
             }
         }
+    }
+    if in_nodes {
+        restore(refs, nodes);
     }
     if n as u32 <= p.max_leaf {
         return make_leaf(nodes);
@@ -544,7 +568,7 @@ fn build_rec(ctx: &Ctx, refs: &mut [PrimRef], nodes: &mut [BinNode], start: u32,
     let (l, r) = refs.split_at(mid);
     let lb = bounds_of(l);
     let rb = bounds_of(r);
-    finish_split(ctx, refs, nodes, start, bounds, mid, lb, rb, depth, bins)
+    finish_split(ctx, refs, nodes, start, bounds, mid, lb, rb, depth, bins, false)
 }
 
 /// Above this many references a node's partition runs in parallel chunks.
@@ -561,18 +585,33 @@ struct PartStat {
     rc_hi: Vec3A,
 }
 
-/// Stable partition of `refs` by `is_left` (left ones first, both sides in input order) using
-/// the node slots of the subtree (2n-1 × 40 bytes ≥ n × 32) as the second buffer. Returns the
-/// left count and the centroid boxes of both sides; None (nothing moved) when the node slots
-/// cannot be viewed as references.
-fn par_partition(refs: &mut [PrimRef], nodes: &mut [BinNode], is_left: impl Fn(&PrimRef) -> bool + Sync) -> Option<(usize, Aabb, Aabb)> {
+/// The first `n` references' worth of bytes of `nodes`, viewed as references.
+fn node_refs(nodes: &[BinNode], n: usize) -> Option<&[PrimRef]> {
+    let bytes: &[u8] = bytemuck::cast_slice(nodes);
+    bytemuck::try_cast_slice(bytes.get(..n * std::mem::size_of::<PrimRef>())?).ok()
+}
+fn node_refs_mut(nodes: &mut [BinNode], n: usize) -> Option<&mut [PrimRef]> {
+    let bytes: &mut [u8] = bytemuck::cast_slice_mut(nodes);
+    bytemuck::try_cast_slice_mut(bytes.get_mut(..n * std::mem::size_of::<PrimRef>())?).ok()
+}
+
+/// Moves a node's references from the start of its node slots into `refs` (parallel copy in
+/// the partition's fixed chunks).
+fn restore(refs: &mut [PrimRef], nodes: &[BinNode]) {
     let n = refs.len();
-    let node_bytes: &mut [u8] = bytemuck::cast_slice_mut(nodes);
-    let tmp: &mut [PrimRef] = bytemuck::try_cast_slice_mut(node_bytes.get_mut(..n * std::mem::size_of::<PrimRef>())?).ok()?;
+    if let Some(src) = node_refs(nodes, n) {
+        let chunk = n.div_ceil(PART_CHUNKS).max(1);
+        refs.par_chunks_mut(chunk).zip(src.par_chunks(chunk)).for_each(|(d, s)| d.copy_from_slice(s));
+    }
+}
+
+/// Per-chunk left counts and centroid boxes of a stable partition of `src` (64 fixed chunks).
+fn part_stats(src: &[PrimRef], is_left: &(impl Fn(&PrimRef) -> bool + Sync)) -> (usize, usize, [PartStat; PART_CHUNKS], usize, Aabb, Aabb) {
+    let n = src.len();
     let chunk = n.div_ceil(PART_CHUNKS).max(1);
     let empty = PartStat { left: 0, lc_lo: Vec3A::INFINITY, lc_hi: Vec3A::NEG_INFINITY, rc_lo: Vec3A::INFINITY, rc_hi: Vec3A::NEG_INFINITY };
     let mut stats = [empty; PART_CHUNKS];
-    refs.par_chunks(chunk).zip(stats.par_iter_mut()).for_each(|(c, st)| {
+    src.par_chunks(chunk).zip(stats.par_iter_mut()).for_each(|(c, st)| {
         let mut s = empty;
         for r in c {
             let ctr = ref_lo(r) * 0.5 + ref_hi(r) * 0.5;
@@ -596,19 +635,26 @@ fn par_partition(refs: &mut [PrimRef], nodes: &mut [BinNode], is_left: impl Fn(&
         rc_lo = rc_lo.min(s.rc_lo);
         rc_hi = rc_hi.max(s.rc_hi);
     }
-    // Disjoint output ranges per chunk: lefts at their prefix position, rights after nl.
-    let (mut lrest, mut rrest) = tmp.split_at_mut(nl);
+    (chunk, nchunks, stats, nl, to_aabb(lc_lo, lc_hi), to_aabb(rc_lo, rc_hi))
+}
+
+/// Scatter of a stable partition: the lefts of `src` in order into `lout` (nl long), the rights
+/// into `rout`, each chunk into its own disjoint range.
+fn part_scatter(src: &[PrimRef], chunk: usize, nchunks: usize, stats: &[PartStat; PART_CHUNKS], lout: &mut [PrimRef], rout: &mut [PrimRef], is_left: &(impl Fn(&PrimRef) -> bool + Sync)) {
+    let n = src.len();
+    let (mut lrest, mut rrest) = (lout, rout);
     let mut outs: [(&mut [PrimRef], &mut [PrimRef]); PART_CHUNKS] = std::array::from_fn(|_| (&mut [][..], &mut [][..]));
     for (k, o) in outs.iter_mut().enumerate().take(nchunks) {
         let len = c_len(n, chunk, k);
         let l = stats[k].left;
-        let (lo_part, lr) = std::mem::take(&mut lrest).split_at_mut(l);
-        let (ro_part, rr) = std::mem::take(&mut rrest).split_at_mut(len - l);
+        let (lcut, rcut) = (l.min(lrest.len()), (len - l).min(rrest.len()));
+        let (lo_part, lr) = std::mem::take(&mut lrest).split_at_mut(lcut);
+        let (ro_part, rr) = std::mem::take(&mut rrest).split_at_mut(rcut);
         lrest = lr;
         rrest = rr;
         *o = (lo_part, ro_part);
     }
-    refs.par_chunks(chunk).zip(outs.par_iter_mut()).for_each(|(c, (lo, ro))| {
+    src.par_chunks(chunk).zip(outs.par_iter_mut()).for_each(|(c, (lo, ro))| {
         let (mut i, mut j) = (0usize, 0usize);
         for r in c {
             if is_left(r) {
@@ -624,8 +670,40 @@ fn par_partition(refs: &mut [PrimRef], nodes: &mut [BinNode], is_left: impl Fn(&
             }
         }
     });
-    refs.par_chunks_mut(chunk).zip(tmp.par_chunks(chunk)).for_each(|(d, s)| d.copy_from_slice(s));
-    Some((nl, to_aabb(lc_lo, lc_hi), to_aabb(rc_lo, rc_hi)))
+}
+
+/// Stable partition of `refs` by `is_left` (left ones first, both sides in input order) into
+/// the subtree's (still unwritten) node slots: the lefts at the start of the left child's slots
+/// (1..2·nl), the rights at the start of the right child's (2·nl..2n-1); each child then finds
+/// its references at the start of its own slots (`in_nodes`), and `refs` is left as it was.
+/// Returns the left count and the centroid boxes of both sides; with everything on one side
+/// nothing is written. None (nothing moved) when the slots cannot be viewed as references.
+fn par_partition_to_nodes(refs: &[PrimRef], nodes: &mut [BinNode], is_left: impl Fn(&PrimRef) -> bool + Sync) -> Option<(usize, Aabb, Aabb)> {
+    let n = refs.len();
+    let (chunk, nchunks, stats, nl, lc, rc) = part_stats(refs, &is_left);
+    if nl == 0 || nl == n {
+        return Some((nl, lc, rc));
+    }
+    let rest = nodes.get_mut(1..)?;
+    if rest.len() < 2 * n - 2 {
+        return None;
+    }
+    let (lslots, rslots) = rest.split_at_mut(2 * nl - 1);
+    let lout = node_refs_mut(lslots, nl)?;
+    let rout = node_refs_mut(rslots, n - nl)?;
+    part_scatter(refs, chunk, nchunks, &stats, lout, rout, &is_left);
+    Some((nl, lc, rc))
+}
+
+/// The same stable partition for a node whose references are at the start of its node slots:
+/// scattered straight into `refs`, which then holds all of them (partitioned) in every case.
+fn par_partition_from_nodes(refs: &mut [PrimRef], nodes: &[BinNode], is_left: impl Fn(&PrimRef) -> bool + Sync) -> Option<(usize, Aabb, Aabb)> {
+    let n = refs.len();
+    let src = node_refs(nodes, n)?;
+    let (chunk, nchunks, stats, nl, lc, rc) = part_stats(src, &is_left);
+    let (lout, rout) = refs.split_at_mut(nl);
+    part_scatter(src, chunk, nchunks, &stats, lout, rout, &is_left);
+    Some((nl, lc, rc))
 }
 
 #[inline]
@@ -689,7 +767,7 @@ fn small_split(refs: &mut [PrimRef], axes: (usize, usize)) -> Option<(usize, f32
 }
 
 #[allow(clippy::too_many_arguments)]
-fn finish_split(ctx: &Ctx, refs: &mut [PrimRef], nodes: &mut [BinNode], start: u32, bounds: Aabb, mid: usize, left: (Aabb, Aabb), right: (Aabb, Aabb), depth: u32, bins: &mut Bins) -> (f64, u32) {
+fn finish_split(ctx: &Ctx, refs: &mut [PrimRef], nodes: &mut [BinNode], start: u32, bounds: Aabb, mid: usize, left: (Aabb, Aabb), right: (Aabb, Aabb), depth: u32, bins: &mut Bins, in_nodes: bool) -> (f64, u32) {
     let n = refs.len();
     if let Some(slot) = nodes.get_mut(0) {
         *slot = BinNode { lo: bounds.lo, start, hi: bounds.hi, count: n as u32, left_count: mid as u32, reserved: 0 };
@@ -702,13 +780,13 @@ fn finish_split(ctx: &Ctx, refs: &mut [PrimRef], nodes: &mut [BinNode], start: u
     let area = bounds.half_area() as f64;
     let (a, b) = if n as u32 >= ctx.params.parallel_cutoff {
         rayon::join(
-            || build_rec(ctx, lrefs, lnodes, start, left.0, left.1, depth + 1, bins),
-            || build_rec(ctx, rrefs, rnodes, rstart, right.0, right.1, depth + 1, &mut Bins::new()),
+            || build_rec(ctx, lrefs, lnodes, start, left.0, left.1, depth + 1, bins, in_nodes),
+            || build_rec(ctx, rrefs, rnodes, rstart, right.0, right.1, depth + 1, &mut Bins::new(), in_nodes),
         )
     } else {
         (
-            build_rec(ctx, lrefs, lnodes, start, left.0, left.1, depth + 1, bins),
-            build_rec(ctx, rrefs, rnodes, rstart, right.0, right.1, depth + 1, bins),
+            build_rec(ctx, lrefs, lnodes, start, left.0, left.1, depth + 1, bins, in_nodes),
+            build_rec(ctx, rrefs, rnodes, rstart, right.0, right.1, depth + 1, bins, in_nodes),
         )
     };
     // Wide-subtree size if this node becomes a BVH4 node (kept in `reserved`): computed here,
@@ -1392,7 +1470,7 @@ pub fn build(desc: &BuildDesc, view: &dyn DeviceView, dst: &mut [u8], scratch: &
         .map(bounds_of)
         .reduce(|| (Aabb::EMPTY, Aabb::EMPTY), |a, b| (a.0.union(&b.0), a.1.union(&b.1)));
     let (sah_sum, _depth) = if active > 0 {
-        build_rec(&ctx, refs, &mut nodes[..2 * active - 1], 0, root_box, root_cb, 0, &mut Bins::new())
+        build_rec(&ctx, refs, &mut nodes[..2 * active - 1], 0, root_box, root_cb, 0, &mut Bins::new(), false)
     } else {
         (0.0, 0)
     };

@@ -795,7 +795,9 @@ fn dag_blob_terminates() {
 #[ignore]
 fn structure_digests() {
     let fnv = |b: &[u8]| b.iter().fold(0xcbf2_9ce4_8422_2325u64, |h, &x| (h ^ x as u64).wrapping_mul(0x0000_0100_0000_01b3));
-    for path in ["data/bunny.ply", "data/dragon_vrip_res4.ply.gz"] {
+    // ARBOR_DIGEST_MESHES: comma-separated paths relative to the crate (default: two small ones).
+    let list = std::env::var("ARBOR_DIGEST_MESHES").unwrap_or_else(|_| "data/bunny.ply,data/dragon_vrip_res4.ply.gz".to_string());
+    for path in list.split(',') {
         let mesh = crate::scene::load(concat!(env!("CARGO_MANIFEST_DIR"), "/").to_string() + path).expect("mesh");
         let nv = mesh.vertex_count() as u32;
         let ntri = mesh.triangle_count() as u32;
