@@ -1063,7 +1063,8 @@ fn serialize_to(mem: &dyn InputMemory, src: &Option<Arc<AccelerationStructure>>,
     let Some(size) = accel::serialized_size(s) else { return false };
     let align = if mem.is_host() { 16 } else { 256 };
     if dst % align != 0 {
-        copy_violation(cmd, "dst-03740", &format!("dst address {dst:#x} is not aligned to {align}"));
+        let v = if mem.is_host() { "pInfo-03751" } else { "pInfo-03740" };
+        diag::vuid(&format!("VUID-{cmd}-{v}"), cmd, &format!("dst address {dst:#x} is not aligned to {align}"));
         return false;
     }
     if !mem.is_host() {
@@ -1097,13 +1098,15 @@ fn deserialize_from(mem: &dyn InputMemory, src: u64, dst: &Option<Arc<Accelerati
     }
     let align = if mem.is_host() { 16 } else { 256 };
     if src % align != 0 {
-        copy_violation(cmd, "src-03743", &format!("src address {src:#x} is not aligned to {align}"));
+        let v = if mem.is_host() { "pInfo-03750" } else { "pInfo-03743" };
+        diag::vuid(&format!("VUID-{cmd}-{v}"), cmd, &format!("src address {src:#x} is not aligned to {align}"));
         mark_invalid(&dst);
         return false;
     }
     // The header says how long the serialized data is.
     let Ok(head) = mem.input(src, 56, vk::BufferUsageFlags::empty()) else {
-        copy_violation(cmd, "src-03742", &format!("src {src:#x} does not address a serialized structure"));
+        let v = if mem.is_host() { "pInfo-03729" } else { "pInfo-03742" };
+        diag::vuid(&format!("VUID-{cmd}-{v}"), cmd, &format!("src {src:#x} does not address a serialized structure"));
         mark_invalid(&dst);
         return false;
     };
@@ -1111,7 +1114,8 @@ fn deserialize_from(mem: &dyn InputMemory, src: u64, dst: &Option<Arc<Accelerati
     let data = match mem.input(src, total.max(56), vk::BufferUsageFlags::empty()) {
         Ok(d) => d,
         Err(e) => {
-            copy_violation(cmd, "src-03742", &format!("serialized data [{src:#x}, +{total}) is not readable: {e}"));
+            let v = if mem.is_host() { "pInfo-03729" } else { "pInfo-03742" };
+            diag::vuid(&format!("VUID-{cmd}-{v}"), cmd, &format!("serialized data [{src:#x}, +{total}) is not readable: {e}"));
             mark_invalid(&dst);
             return false;
         }
