@@ -100,18 +100,7 @@ fn bench(c: &mut Criterion) {
     });
 
     // Host builds: inputs by host pointer.
-    let hgeoms = [vk::AccelerationStructureGeometryKHR::default()
-        .geometry_type(vk::GeometryTypeKHR::TRIANGLES)
-        .flags(vk::GeometryFlagsKHR::OPAQUE)
-        .geometry(vk::AccelerationStructureGeometryDataKHR {
-            triangles: vk::AccelerationStructureGeometryTrianglesDataKHR::default()
-                .vertex_format(vk::Format::R32G32B32_SFLOAT)
-                .vertex_data(vk::DeviceOrHostAddressConstKHR { host_address: vbytes.as_ptr().cast() })
-                .vertex_stride(12)
-                .max_vertex(mesh.vertex_count() as u32 - 1)
-                .index_type(vk::IndexType::UINT32)
-                .index_data(vk::DeviceOrHostAddressConstKHR { host_address: ibytes.as_ptr().cast() }),
-        })];
+    let hgeoms = [triangles(vbytes.as_ptr() as u64, ibytes.as_ptr() as u64, mesh.vertex_count() as u32 - 1)];
     let mut hscratch = vec![0u8; sizes.build_scratch_size as usize];
     let hinfo = vk::AccelerationStructureBuildGeometryInfoKHR::default()
         .ty(vk::AccelerationStructureTypeKHR::BOTTOM_LEVEL)

@@ -166,18 +166,7 @@ fn host_device_indirect_and_deferred_builds_are_byte_identical() {
     let vbytes = mesh.vertex_bytes();
     let ibytes = mesh.index_bytes();
     let host_build = |deferred: Option<usize>| -> Vec<u8> {
-        let geoms = [vk::AccelerationStructureGeometryKHR::default()
-            .geometry_type(vk::GeometryTypeKHR::TRIANGLES)
-            .flags(vk::GeometryFlagsKHR::OPAQUE)
-            .geometry(vk::AccelerationStructureGeometryDataKHR {
-                triangles: vk::AccelerationStructureGeometryTrianglesDataKHR::default()
-                    .vertex_format(vk::Format::R32G32B32_SFLOAT)
-                    .vertex_data(vk::DeviceOrHostAddressConstKHR { host_address: vbytes.as_ptr().cast() })
-                    .vertex_stride(12)
-                    .max_vertex(m.max_vertex)
-                    .index_type(vk::IndexType::UINT32)
-                    .index_data(vk::DeviceOrHostAddressConstKHR { host_address: ibytes.as_ptr().cast() }),
-            })];
+        let geoms = [triangles(vbytes.as_ptr() as u64, ibytes.as_ptr() as u64, m.max_vertex)];
         let info = blas_info(&geoms, flags);
         let sizes = a.sizes(vk::AccelerationStructureBuildTypeKHR::HOST, &info, &[m.count]);
         let (s, _) = a.structure(vk::AccelerationStructureTypeKHR::BOTTOM_LEVEL, sizes.acceleration_structure_size);

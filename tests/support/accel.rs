@@ -200,6 +200,8 @@ impl<'c> Accel<'c> {
 }
 
 /// Triangle geometry over a vertex buffer (R32G32B32_SFLOAT, stride 12) and a u32 index buffer.
+/// Addresses are device addresses, or host pointers (as u64) for host builds: the two share the
+/// VkDeviceOrHostAddressConstKHR union.
 pub fn triangles(vertex_address: u64, index_address: u64, max_vertex: u32) -> vk::AccelerationStructureGeometryKHR<'static> {
     vk::AccelerationStructureGeometryKHR::default()
         .geometry_type(vk::GeometryTypeKHR::TRIANGLES)
