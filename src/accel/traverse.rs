@@ -83,11 +83,19 @@ fn max_dim(d: Vec3) -> usize {
     }
 }
 
-/// Watertight ray/triangle test (Woop, Benthin, Wald 2013) with the double-precision fallback
-/// for edge hits. Returns (t, u, v, front) with u, v the weights of v1 and v2, and t within
-/// [tmin, tmax] inclusive. `front` is the unflipped Vulkan facing (see the module doc).
-pub fn intersect_triangle(ray: &Ray, v0: Vec3, v1: Vec3, v2: Vec3) -> Option<(f32, f32, f32, bool)> {
-    let d = ray.direction;
+/// Per-ray constants of the watertight test (axis permutation and shear), computed once per
+/// ray (per level) instead of once per triangle. Same arithmetic as the per-triangle setup.
+#[derive(Clone, Copy, Debug)]
+struct Shear {
+    kx: usize,
+    ky: usize,
+    kz: usize,
+    sx: f32,
+    sy: f32,
+    sz: f32,
+}
+
+fn shear(d: Vec3) -> Shear {
     let kz = max_dim(d);
     let mut kx = (kz + 1) % 3;
     let mut ky = (kx + 1) % 3;
@@ -97,9 +105,23 @@ pub fn intersect_triangle(ray: &Ray, v0: Vec3, v1: Vec3, v2: Vec3) -> Option<(f3
     let sx = d[kx] / d[kz];
     let sy = d[ky] / d[kz];
     let sz = 1.0 / d[kz];
-    let a = v0 - ray.origin;
-    let b = v1 - ray.origin;
-    let c = v2 - ray.origin;
+    Shear { kx, ky, kz, sx, sy, sz }
+}
+
+/// Watertight ray/triangle test (Woop, Benthin, Wald 2013) with the double-precision fallback
+/// for edge hits. Returns (t, u, v, front) with u, v the weights of v1 and v2, and t within
+/// [tmin, tmax] inclusive. `front` is the unflipped Vulkan facing (see the module doc).
+pub fn intersect_triangle(ray: &Ray, v0: Vec3, v1: Vec3, v2: Vec3) -> Option<(f32, f32, f32, bool)> {
+    let sh = shear(ray.direction);
+    intersect_sheared(&sh, ray.origin.to_array(), ray.tmin, ray.tmax, v0.to_array(), v1.to_array(), v2.to_array())
+}
+
+#[inline(always)]
+fn intersect_sheared(sh: &Shear, o: [f32; 3], tmin: f32, tmax: f32, v0: [f32; 3], v1: [f32; 3], v2: [f32; 3]) -> Option<(f32, f32, f32, bool)> {
+    let Shear { kx, ky, kz, sx, sy, sz } = *sh;
+    let a = [v0[0] - o[0], v0[1] - o[1], v0[2] - o[2]];
+    let b = [v1[0] - o[0], v1[1] - o[1], v1[2] - o[2]];
+    let c = [v2[0] - o[0], v2[1] - o[1], v2[2] - o[2]];
     let ax = a[kx] - sx * a[kz];
     let ay = a[ky] - sy * a[kz];
     let bx = b[kx] - sx * b[kz];
@@ -133,37 +155,46 @@ pub fn intersect_triangle(ray: &Ray, v0: Vec3, v1: Vec3, v2: Vec3) -> Option<(f3
     let bz = (sz * b[kz]) as f64;
     let cz = (sz * c[kz]) as f64;
     let t = ((ud * az + vd * bz + wd * cz) / det) as f32;
-    if !(t >= ray.tmin && t <= ray.tmax) {
+    if !(t >= tmin && t <= tmax) {
         return None;
     }
     Some((t, (vd / det) as f32, (wd / det) as f32, det > 0.0))
 }
 
-/// Slab test against a box; returns the entry distance clamped to tmin. The far distance is
-/// widened by a few ulps (Ize 2013) so rounding never loses a box the ray touches.
-#[inline]
-fn ray_box(org: Vec3, inv: Vec3, b: &[f32; 6], tmin: f32, tmax: f32) -> Option<f32> {
-    let mut tn = tmin;
-    let mut tf = tmax;
+/// Slab test of all four child boxes of a node at once ([f32; 4] lanes): entry distances
+/// clamped to tmin, and a hit mask. The far distance is widened by a few ulps (Ize 2013) so
+/// rounding never loses a box the ray touches. A NaN slab distance (0 * inf: a zero direction
+/// component with the origin exactly on a slab plane) means the origin lies in the closed slab
+/// and this axis constrains nothing. (f32::min alone would drop the NaN and return the
+/// infinite other bound: a false miss.)
+#[inline(always)]
+fn ray_box4(n: &layout::WideNode, org: [f32; 3], inv: [f32; 3], tmin: f32, tmax: f32) -> ([f32; 4], [bool; 4]) {
+    let mut tn = [tmin; 4];
+    let mut tf = [tmax; 4];
     for a in 0..3 {
-        let t0 = (b[a] - org[a]) * inv[a];
-        let t1 = (b[a + 3] - org[a]) * inv[a];
-        // NaN = 0 * inf: a zero direction component with the origin exactly on a slab plane,
-        // so the origin lies in the closed slab and this axis constrains nothing. (f32::min
-        // alone would drop the NaN and return the infinite other bound: a false miss.)
-        if t0.is_nan() || t1.is_nan() {
-            continue;
+        let s = n.scale(a);
+        let base = n.origin[a];
+        let (o, i) = (org[a], inv[a]);
+        let (ql, qh) = (n.qlo[a], n.qhi[a]);
+        for c in 0..4 {
+            let lo = base + ql[c] as f32 * s;
+            let hi = base + qh[c] as f32 * s;
+            let t0 = (lo - o) * i;
+            let t1 = (hi - o) * i;
+            let skip = t0.is_nan() | t1.is_nan();
+            let l = t0.min(t1);
+            let h = t0.max(t1);
+            let ntn = tn[c].max(l);
+            let ntf = tf[c].min(h + h.abs() * 4.8e-7);
+            tn[c] = if skip { tn[c] } else { ntn };
+            tf[c] = if skip { tf[c] } else { ntf };
         }
-        let lo = t0.min(t1);
-        let hi = t0.max(t1);
-        tn = tn.max(lo);
-        tf = tf.min(hi + hi.abs() * 4.8e-7);
     }
-    if tn <= tf {
-        Some(tn)
-    } else {
-        None
+    let mut m = [false; 4];
+    for c in 0..4 {
+        m[c] = tn[c] <= tf[c];
     }
+    (tn, m)
 }
 
 #[derive(Clone, Copy, Debug)]
@@ -179,6 +210,7 @@ struct Level<'a> {
     org: Vec3,
     dir: Vec3,
     inv: Vec3,
+    sh: Shear,
 }
 
 #[derive(Clone, Copy)]
@@ -215,7 +247,7 @@ fn ray_ok(r: &Ray) -> bool {
 }
 
 fn make_level(s: Parsed<'_>, org: Vec3, dir: Vec3) -> Level<'_> {
-    Level { s, org, dir, inv: Vec3::ONE / dir }
+    Level { s, org, dir, inv: Vec3::ONE / dir, sh: shear(dir) }
 }
 
 impl<'a> RayQuery<'a> {
@@ -244,11 +276,12 @@ impl<'a> RayQuery<'a> {
         q
     }
 
-    fn level(&self, inner: bool) -> Option<Level<'a>> {
+    #[inline(always)]
+    fn level_ref(&self, inner: bool) -> Option<&Level<'a>> {
         if inner {
-            self.inst.map(|i| i.level)
+            self.inst.as_ref().map(|i| &i.level)
         } else {
-            self.top
+            self.top.as_ref()
         }
     }
 
@@ -280,13 +313,17 @@ impl<'a> RayQuery<'a> {
                     if tnear > self.tmax {
                         continue;
                     }
-                    let Some(l) = self.level(inner) else { continue };
+                    let (tmin, tmax) = (self.ray.tmin, self.tmax);
+                    let Some(l) = self.level_ref(inner) else { continue };
                     let Some(n) = l.s.node(node) else { continue };
+                    let (tn, m) = ray_box4(&n, l.org.to_array(), l.inv.to_array(), tmin, tmax);
                     let mut hits: [(f32, Item); 4] = [(0.0, Item::ExitInstance); 4];
                     let mut nh = 0;
                     for c in 0..(n.child_count as usize).min(4) {
-                        let b = n.child_box(c);
-                        let Some(t) = ray_box(l.org, l.inv, &b, self.ray.tmin, self.tmax) else { continue };
+                        if !m[c] {
+                            continue;
+                        }
+                        let t = tn[c];
                         let it = match n.kind[c] {
                             0 => continue,
                             // Children always follow their parent in the layout; refusing anything
@@ -309,8 +346,9 @@ impl<'a> RayQuery<'a> {
                     if count > 1 {
                         self.stack.push(Item::Prims { first: first.wrapping_add(1), count: count - 1, inner });
                     }
-                    let Some(l) = self.level(inner) else { continue };
+                    let Some(l) = self.level_ref(inner) else { continue };
                     if l.s.is_tlas() {
+                        let l = *l;
                         self.enter_instance(l, first);
                     } else if let Some(hit) = self.test_prim(l, first) {
                         if let Some(h) = self.handle_hit(hit) {
@@ -349,7 +387,7 @@ impl<'a> RayQuery<'a> {
     }
 
     /// Geometric test + flag rules for stored primitive `slot` of a BLAS level.
-    fn test_prim(&self, l: Level<'a>, slot: u32) -> Option<Hit> {
+    fn test_prim(&self, l: &Level<'a>, slot: u32) -> Option<Hit> {
         let rec = l.s.record(slot)?;
         let geom = l.s.geometry(rec.geometry)?;
         let inst_flags = self.inst.map_or(0, |i| i.rec.flags);
@@ -369,16 +407,15 @@ impl<'a> RayQuery<'a> {
             return None;
         }
         let data = l.s.prim(slot)?;
-        let ray = Ray { origin: l.org, direction: l.dir, tmin: self.ray.tmin, tmax: self.tmax };
         let (t, kind, bary, front) = match geom.kind {
             layout::KIND_TRIANGLES => {
                 if f & RayFlags::SKIP_TRIANGLES != 0 {
                     return None;
                 }
-                let v0 = Vec3::new(data[0], data[1], data[2]);
-                let v1 = Vec3::new(data[3], data[4], data[5]);
-                let v2 = Vec3::new(data[6], data[7], data[8]);
-                let (t, u, v, front_raw) = intersect_triangle(&ray, v0, v1, v2)?;
+                let v0 = [data[0], data[1], data[2]];
+                let v1 = [data[3], data[4], data[5]];
+                let v2 = [data[6], data[7], data[8]];
+                let (t, u, v, front_raw) = intersect_sheared(&l.sh, l.org.to_array(), self.ray.tmin, self.tmax, v0, v1, v2)?;
                 let front = front_raw ^ (inst_flags & INSTANCE_FLIP_FACING != 0);
                 if inst_flags & INSTANCE_FACING_CULL_DISABLE == 0 {
                     if (f & RayFlags::CULL_BACK_FACING_TRIANGLES != 0 && !front) || (f & RayFlags::CULL_FRONT_FACING_TRIANGLES != 0 && front) {
