@@ -211,6 +211,8 @@ struct Level<'a> {
     dir: Vec3,
     inv: Vec3,
     sh: Shear,
+    /// Some(flags) when every geometry of this BLAS is triangles with these same flags.
+    uni_tri: Option<u32>,
 }
 
 #[derive(Clone, Copy)]
@@ -246,8 +248,27 @@ fn ray_ok(r: &Ray) -> bool {
     !(r.origin.is_nan() || r.direction.is_nan() || r.tmin.is_nan() || r.tmax.is_nan() || r.tmin > r.tmax || r.direction == Vec3::ZERO)
 }
 
+/// Checked once per level (a handful of geometries at most; else the general path).
+fn uniform_triangles(s: &Parsed<'_>) -> Option<u32> {
+    let n = s.raw.geometry_count;
+    if n == 0 || n > 8 || s.is_tlas() {
+        return None;
+    }
+    let g0 = s.geometry(0)?;
+    if g0.kind != layout::KIND_TRIANGLES {
+        return None;
+    }
+    for i in 1..n {
+        let g = s.geometry(i)?;
+        if g.kind != layout::KIND_TRIANGLES || g.flags != g0.flags {
+            return None;
+        }
+    }
+    Some(g0.flags)
+}
+
 fn make_level(s: Parsed<'_>, org: Vec3, dir: Vec3) -> Level<'_> {
-    Level { s, org, dir, inv: Vec3::ONE / dir, sh: shear(dir) }
+    Level { s, org, dir, inv: Vec3::ONE / dir, sh: shear(dir), uni_tri: uniform_triangles(&s) }
 }
 
 impl<'a> RayQuery<'a> {
@@ -386,13 +407,11 @@ impl<'a> RayQuery<'a> {
         self.stack.push(Item::Node { node: 0, inner: true, tnear: self.ray.tmin });
     }
 
-    /// Geometric test + flag rules for stored primitive `slot` of a BLAS level.
-    fn test_prim(&self, l: &Level<'a>, slot: u32) -> Option<Hit> {
-        let rec = l.s.record(slot)?;
-        let geom = l.s.geometry(rec.geometry)?;
-        let inst_flags = self.inst.map_or(0, |i| i.rec.flags);
+    /// Opacity after instance and ray flags; None when the ray culls it.
+    #[inline(always)]
+    fn opacity(&self, geom_flags: u32, inst_flags: u32) -> Option<bool> {
         let f = self.flags;
-        let mut opaque = geom.flags & GeometryFlags::OPAQUE != 0;
+        let mut opaque = geom_flags & GeometryFlags::OPAQUE != 0;
         if inst_flags & INSTANCE_FORCE_OPAQUE != 0 {
             opaque = true;
         } else if inst_flags & INSTANCE_FORCE_NO_OPAQUE != 0 {
@@ -406,8 +425,25 @@ impl<'a> RayQuery<'a> {
         if (opaque && f & RayFlags::CULL_OPAQUE != 0) || (!opaque && f & RayFlags::CULL_NO_OPAQUE != 0) {
             return None;
         }
+        Some(opaque)
+    }
+
+    /// Geometric test + flag rules for stored primitive `slot` of a BLAS level.
+    fn test_prim(&self, l: &Level<'a>, slot: u32) -> Option<Hit> {
+        let inst_flags = self.inst.map_or(0, |i| i.rec.flags);
+        let f = self.flags;
+        // Every condition below is a pure conjunct, so with uniform triangle geometries the
+        // record/geometry lookups (another cache line per primitive) move after the hit test.
+        let (rec, gkind, opaque) = match l.uni_tri {
+            Some(gflags) => (None, layout::KIND_TRIANGLES, self.opacity(gflags, inst_flags)?),
+            None => {
+                let rec = l.s.record(slot)?;
+                let geom = l.s.geometry(rec.geometry)?;
+                (Some(rec), geom.kind, self.opacity(geom.flags, inst_flags)?)
+            }
+        };
         let data = l.s.prim(slot)?;
-        let (t, kind, bary, front) = match geom.kind {
+        let (t, kind, bary, front) = match gkind {
             layout::KIND_TRIANGLES => {
                 if f & RayFlags::SKIP_TRIANGLES != 0 {
                     return None;
@@ -433,6 +469,14 @@ impl<'a> RayQuery<'a> {
                 (t, HitKind::Aabb, [0.0, 0.0], false)
             }
             _ => return None,
+        };
+        let rec = match rec {
+            Some(r) => r,
+            None => {
+                let r = l.s.record(slot)?;
+                l.s.geometry(r.geometry)?;
+                r
+            }
         };
         let (ii, ci, sbt, o2w, w2o) = match self.inst {
             Some(i) => (i.rec.instance_index, i.rec.custom_index, i.rec.sbt_offset, i.rec.object_to_world, i.rec.world_to_object),
