@@ -1347,6 +1347,19 @@ pub fn write_leaf_data(desc: &BuildDesc, refs: &[PrimRef], prims: &mut [u8], rec
 }
 
 /// Instance records + BLAS table for stored instances (TLAS). `keys` is scratch for the sort.
+/// Sort `keys` and move the distinct values to the front; returns how many there are.
+pub fn sort_distinct(keys: &mut [u64]) -> usize {
+    keys.sort_unstable();
+    let mut distinct = 0usize;
+    for i in 0..keys.len() {
+        if i == 0 || keys[i] != keys[distinct - 1] {
+            keys[distinct] = keys[i];
+            distinct += 1;
+        }
+    }
+    distinct
+}
+
 /// Returns the number of distinct BLAS addresses.
 pub fn write_instances(desc: &BuildDesc, view: &dyn DeviceView, refs: &[PrimRef], keys: &mut [u64], instances: &mut [u8], records: &mut [u8], table: &mut [u8]) -> u32 {
     let n = refs.len();
@@ -1354,14 +1367,7 @@ pub fn write_instances(desc: &BuildDesc, view: &dyn DeviceView, refs: &[PrimRef]
     // Distinct references, sorted (deterministic, no hashing, no heap).
     let keys = &mut keys[..n];
     keys.par_iter_mut().zip(refs.par_iter()).for_each(|(k, r)| *k = read(r).map_or(0, |i| i.reference));
-    keys.sort_unstable();
-    let mut distinct = 0usize;
-    for i in 0..n {
-        if i == 0 || keys[i] != keys[distinct - 1] {
-            keys[distinct] = keys[i];
-            distinct += 1;
-        }
-    }
+    let distinct = sort_distinct(keys);
     let keys = &keys[..distinct];
     for (i, k) in keys.iter().enumerate() {
         if let Some(d) = table.get_mut(i * 8..i * 8 + 8) {

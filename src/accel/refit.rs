@@ -214,14 +214,7 @@ fn refit_instances(desc: &BuildDesc, view: &dyn DeviceView, raw: &layout::RawHea
         keys[i] = inst.reference;
     }
     let keys = &mut keys[..n];
-    keys.sort_unstable();
-    let mut distinct = 0usize;
-    for i in 0..n {
-        if i == 0 || keys[i] != keys[distinct - 1] {
-            keys[distinct] = keys[i];
-            distinct += 1;
-        }
-    }
+    let distinct = super::builder::sort_distinct(keys);
     let keys = &keys[..distinct];
     let table = raw.blas_table_offset as usize;
     for i in 0..raw.blas_table_capacity as usize {
