@@ -364,7 +364,7 @@ struct Ctx {
 /// slots (where the parent's parallel partition put them); they reach `refs` through this
 /// node's own parallel partition, or by `restore` before anything else reads or writes.
 #[allow(clippy::too_many_arguments)]
-fn build_rec(ctx: &Ctx, refs: &mut [PrimRef], nodes: &mut [BinNode], start: u32, bounds: Aabb, cb: Aabb, depth: u32, bins: &mut Bins, mut in_nodes: bool) -> (f64, u32) {
+fn build_rec(ctx: &Ctx, refs: &mut [PrimRef], nodes: &mut [BinNode], start: u32, bounds: Aabb, cb: Aabb, depth: u32, bins: &mut Bins, mut in_nodes: bool, pre: &mut [u8], parent_count: u32) -> (f64, u32) {
     let n = refs.len();
     if in_nodes && (n < PAR_PART_CUTOFF || depth >= MAX_SAH_DEPTH) {
         restore(refs, nodes);
@@ -393,7 +393,7 @@ fn build_rec(ctx: &Ctx, refs: &mut [PrimRef], nodes: &mut [BinNode], start: u32,
             let (l, r) = refs.split_at(mid);
             let lb = bounds_of(l);
             let rb = bounds_of(r);
-            return finish_split(ctx, refs, nodes, start, bounds, mid, lb, rb, depth, bins, false);
+            return finish_split(ctx, refs, nodes, start, bounds, mid, lb, rb, depth, bins, false, pre, parent_count);
         }
         return make_leaf(nodes);
     }
@@ -509,7 +509,7 @@ fn build_rec(ctx: &Ctx, refs: &mut [PrimRef], nodes: &mut [BinNode], start: u32,
                     in_nodes = false;
                     if let Some((i, lc, rc)) = par_partition_from_nodes(refs, nodes, |r| bn.goes_left(r, a, limit)) {
                         if i > 0 && i < n {
-                            return finish_split(ctx, refs, nodes, start, bounds, i, (lbox, lc), (rbox, rc), depth, bins, false);
+                            return finish_split(ctx, refs, nodes, start, bounds, i, (lbox, lc), (rbox, rc), depth, bins, false, pre, parent_count);
                         }
                     }
                 } else if n >= PAR_PART_CUTOFF {
@@ -518,33 +518,34 @@ fn build_rec(ctx: &Ctx, refs: &mut [PrimRef], nodes: &mut [BinNode], start: u32,
                     // thread count.
                     if let Some((i, lc, rc)) = par_partition_to_nodes(refs, nodes, |r| bn.goes_left(r, a, limit)) {
                         if i > 0 && i < n {
-                            return finish_split(ctx, refs, nodes, start, bounds, i, (lbox, lc), (rbox, rc), depth, bins, true);
+                            return finish_split(ctx, refs, nodes, start, bounds, i, (lbox, lc), (rbox, rc), depth, bins, true, pre, parent_count);
                         }
                     }
                 }
                 // Partition in place (deterministic: sequential, same bin function as binning).
+                // Branchless Lomuto: every reference is swapped with the first right one and
+                // the boundary advances by the comparison, so no branch depends on the data.
                 let mut i = 0usize;
-                let mut j = n;
                 let mut lc_lo = Vec3A::INFINITY;
                 let mut lc_hi = Vec3A::NEG_INFINITY;
                 let mut rc_lo = Vec3A::INFINITY;
                 let mut rc_hi = Vec3A::NEG_INFINITY;
-                while i < j {
-                    let r = &refs[i];
-                    let c = ref_lo(r) * 0.5 + ref_hi(r) * 0.5;
-                    if bn.goes_left(r, a, limit) {
-                        lc_lo = lc_lo.min(c);
-                        lc_hi = lc_hi.max(c);
-                        i += 1;
-                    } else {
-                        rc_lo = rc_lo.min(c);
-                        rc_hi = rc_hi.max(c);
-                        j -= 1;
-                        refs.swap(i, j);
-                    }
+                for j in 0..n {
+                    let r = refs[j];
+                    let c = ref_lo(&r) * 0.5 + ref_hi(&r) * 0.5;
+                    let left = bn.goes_left(&r, a, limit);
+                    let m = glam::BVec3A::splat(left);
+                    lc_lo = Vec3A::select(m, lc_lo.min(c), lc_lo);
+                    lc_hi = Vec3A::select(m, lc_hi.max(c), lc_hi);
+                    rc_lo = Vec3A::select(m, rc_lo, rc_lo.min(c));
+                    rc_hi = Vec3A::select(m, rc_hi, rc_hi.max(c));
+                    let k = i.min(j);
+                    refs[j] = refs[k];
+                    refs[k] = r;
+                    i += left as usize;
                 }
                 if i > 0 && i < n {
-                    return finish_split(ctx, refs, nodes, start, bounds, i, (lbox, to_aabb(lc_lo, lc_hi)), (rbox, to_aabb(rc_lo, rc_hi)), depth, bins, false);
+                    return finish_split(ctx, refs, nodes, start, bounds, i, (lbox, to_aabb(lc_lo, lc_hi)), (rbox, to_aabb(rc_lo, rc_hi)), depth, bins, false, pre, parent_count);
                 }
             }
         }
@@ -568,7 +569,7 @@ fn build_rec(ctx: &Ctx, refs: &mut [PrimRef], nodes: &mut [BinNode], start: u32,
     let (l, r) = refs.split_at(mid);
     let lb = bounds_of(l);
     let rb = bounds_of(r);
-    finish_split(ctx, refs, nodes, start, bounds, mid, lb, rb, depth, bins, false)
+    finish_split(ctx, refs, nodes, start, bounds, mid, lb, rb, depth, bins, false, pre, parent_count)
 }
 
 /// Above this many references a node's partition runs in parallel chunks.
@@ -767,7 +768,7 @@ fn small_split(refs: &mut [PrimRef], axes: (usize, usize)) -> Option<(usize, f32
 }
 
 #[allow(clippy::too_many_arguments)]
-fn finish_split(ctx: &Ctx, refs: &mut [PrimRef], nodes: &mut [BinNode], start: u32, bounds: Aabb, mid: usize, left: (Aabb, Aabb), right: (Aabb, Aabb), depth: u32, bins: &mut Bins, in_nodes: bool) -> (f64, u32) {
+fn finish_split(ctx: &Ctx, refs: &mut [PrimRef], nodes: &mut [BinNode], start: u32, bounds: Aabb, mid: usize, left: (Aabb, Aabb), right: (Aabb, Aabb), depth: u32, bins: &mut Bins, in_nodes: bool, pre: &mut [u8], parent_count: u32) -> (f64, u32) {
     let n = refs.len();
     if let Some(slot) = nodes.get_mut(0) {
         *slot = BinNode { lo: bounds.lo, start, hi: bounds.hi, count: n as u32, left_count: mid as u32, reserved: 0 };
@@ -778,20 +779,22 @@ fn finish_split(ctx: &Ctx, refs: &mut [PrimRef], nodes: &mut [BinNode], start: u
     let (lnodes, rnodes) = rest.split_at_mut(lslots);
     let rstart = start + mid as u32;
     let area = bounds.half_area() as f64;
+    let (lpre, rpre) = pre.split_at_mut((PRE_BYTES_PER_PRIM * mid).min(pre.len()));
+    let me = n as u32;
     let (a, b) = if n as u32 >= ctx.params.parallel_cutoff {
         rayon::join(
-            || build_rec(ctx, lrefs, lnodes, start, left.0, left.1, depth + 1, bins, in_nodes),
-            || build_rec(ctx, rrefs, rnodes, rstart, right.0, right.1, depth + 1, &mut Bins::new(), in_nodes),
+            || build_rec(ctx, lrefs, lnodes, start, left.0, left.1, depth + 1, bins, in_nodes, lpre, me),
+            || build_rec(ctx, rrefs, rnodes, rstart, right.0, right.1, depth + 1, &mut Bins::new(), in_nodes, rpre, me),
         )
     } else {
         (
-            build_rec(ctx, lrefs, lnodes, start, left.0, left.1, depth + 1, bins, in_nodes),
-            build_rec(ctx, rrefs, rnodes, rstart, right.0, right.1, depth + 1, bins, in_nodes),
+            build_rec(ctx, lrefs, lnodes, start, left.0, left.1, depth + 1, bins, in_nodes, lpre, me),
+            build_rec(ctx, rrefs, rnodes, rstart, right.0, right.1, depth + 1, bins, in_nodes, rpre, me),
         )
     };
     // Wide-subtree size if this node becomes a BVH4 node (kept in `reserved`): computed here,
     // while the subtree is cache-hot, so emission can hand disjoint output ranges to threads.
-    let (ch, cnt) = wide_children(nodes, 0);
+    let (ch, cnt, _) = wide_children(nodes, 0);
     let mut w = 1u32;
     for &c in &ch[..cnt] {
         if let Some(nd) = nodes.get(c) {
@@ -803,7 +806,56 @@ fn finish_split(ctx: &Ctx, refs: &mut [PrimRef], nodes: &mut [BinNode], start: u
     if let Some(slot) = nodes.get_mut(0) {
         slot.reserved = w;
     }
+    // A cut root's wide subtree is encoded now, while its binary nodes are in cache, into its
+    // own range of the pre-emission area; the final pass copies the block into place.
+    if is_cut(parent_count, n as u32) {
+        if let Some(block) = pre.get_mut(..w as usize * NODE_SIZE) {
+            emit_wide(nodes, 0, block, None);
+        }
+    }
     (area + a.0 + b.0, 1 + a.1.max(b.1))
+}
+
+/// Subtrees of at most this many primitives whose parent is larger ("cut roots") are encoded
+/// into wide nodes as soon as they are built (see `finish_split`), and the wide collapse never
+/// opens a cut root, so each one is the root of a wide subtree.
+const EMIT_CUT: u32 = 4096;
+/// Bytes of the pre-emission area per primitive: a cut root over k primitives owns
+/// PRE_BYTES_PER_PRIM·k bytes of it, enough for its wide nodes in every ordinary tree
+/// (3k/8 nodes; FAST_TRACE makes about k/4). Larger subtrees are emitted by the final pass.
+const PRE_BYTES_PER_PRIM: usize = 24;
+
+#[inline]
+fn is_cut(parent_count: u32, count: u32) -> bool {
+    count <= EMIT_CUT && parent_count > EMIT_CUT
+}
+
+/// The byte range of cut root `nd`'s pre-emitted block in the pre-emission area of `pre_len`
+/// bytes, if it was pre-emitted (the same test `finish_split` made).
+fn pre_block(nd: &BinNode, pre_len: usize) -> Option<std::ops::Range<usize>> {
+    let lo = PRE_BYTES_PER_PRIM.checked_mul(nd.start as usize)?;
+    let hi = PRE_BYTES_PER_PRIM.checked_mul(nd.start as usize + nd.count as usize)?.min(pre_len);
+    let len = nd.reserved as usize * NODE_SIZE;
+    (nd.left_count != 0 && lo.checked_add(len)? <= hi).then_some(lo..lo + len)
+}
+
+/// Copies a pre-emitted block (local indices) to wide index `base`; returns its leaf children.
+fn copy_block(src: &[u8], out: &mut [u8], base: u32) -> u32 {
+    let mut leaves = 0;
+    out.copy_from_slice(src);
+    for node in out.chunks_exact_mut(NODE_SIZE) {
+        for c in 0..4 {
+            let kind = node[56 + c];
+            if kind == CHILD_INTERNAL {
+                let at = 40 + 4 * c;
+                let v = u32::from_le_bytes([node[at], node[at + 1], node[at + 2], node[at + 3]]);
+                node[at..at + 4].copy_from_slice(&v.wrapping_add(base).to_le_bytes());
+            } else if kind != 0 {
+                leaves += 1;
+            }
+        }
+    }
+    leaves
 }
 
 /// Binary children of a binary node: (left slot, right slot), for an internal node.
@@ -817,21 +869,25 @@ fn bin_children(nodes: &[BinNode], i: usize) -> Option<(usize, usize)> {
 }
 
 /// The ≤4 binary subtrees that become the children of the wide node made from binary node `i`:
-/// repeatedly open the internal child with the largest area (ties: lowest slot).
-pub fn wide_children(nodes: &[BinNode], i: usize) -> ([usize; 4], usize) {
+/// repeatedly open the internal child with the largest area (ties: lowest slot), never a cut
+/// root (`is_cut`). The mask has bit k set when child k is a cut root.
+pub fn wide_children(nodes: &[BinNode], i: usize) -> ([usize; 4], usize, u8) {
     let mut ch = [0usize; 4];
     let Some((l, r)) = bin_children(nodes, i) else {
         ch[0] = i;
-        return (ch, 1);
+        return (ch, 1, 0);
     };
+    let cnt_of = |s: usize| nodes.get(s).map_or(0, |n| n.count);
+    let root_count = cnt_of(i);
     ch[0] = l;
     ch[1] = r;
+    let mut cut = [is_cut(root_count, cnt_of(l)), is_cut(root_count, cnt_of(r)), false, false];
     let mut count = 2;
     while count < 4 {
         let mut best: Option<(usize, f32)> = None;
         for (k, &c) in ch[..count].iter().enumerate() {
             if let Some(nd) = nodes.get(c) {
-                if nd.left_count != 0 {
+                if nd.left_count != 0 && !cut[k] {
                     let a = Aabb { lo: nd.lo, hi: nd.hi }.half_area();
                     if best.map_or(true, |b| a > b.1) {
                         best = Some((k, a));
@@ -841,11 +897,15 @@ pub fn wide_children(nodes: &[BinNode], i: usize) -> ([usize; 4], usize) {
         }
         let Some((k, _)) = best else { break };
         let Some((l, r)) = bin_children(nodes, ch[k]) else { break };
+        let pc = cnt_of(ch[k]);
         ch[k] = l;
+        cut[k] = is_cut(pc, cnt_of(l));
         ch[count] = r;
+        cut[count] = is_cut(pc, cnt_of(r));
         count += 1;
     }
-    (ch, count)
+    let mask = cut.iter().enumerate().fold(0u8, |m, (k, &c)| m | (c as u8) << k);
+    (ch, count, mask)
 }
 
 /// Quantise child boxes into the frame of `node_box`, rounding outward and verifying with the
@@ -940,15 +1000,15 @@ pub fn wide_size(nodes: &[BinNode]) -> u32 {
 }
 
 /// One pending subtree emission: binary subtree (slice rooted at its node), its wide index,
-/// and exactly its output range.
-type EmitTask<'a> = Option<(&'a [BinNode], u32, &'a mut [u8])>;
+/// exactly its output range, and the pre-emission area.
+type EmitTask<'a> = Option<(&'a [BinNode], u32, &'a mut [u8], Option<&'a [u8]>)>;
 const PAR_EMIT_CUTOFF: u32 = 1024;
 
 fn run_emit(tasks: &mut [EmitTask<'_>]) -> u32 {
     match tasks.len() {
         0 => 0,
         1 => match tasks[0].take() {
-            Some((n, me, out)) => emit_wide(n, me, out),
+            Some((n, me, out, pre)) => emit_wide(n, me, out, pre),
             None => 0,
         },
         len => {
@@ -967,15 +1027,17 @@ fn run_emit(tasks: &mut [EmitTask<'_>]) -> u32 {
 /// Emits the wide node made from the binary subtree rooted at `nodes[0]` as node `me` into
 /// `out[..64]` and its descendants (preorder) after it; returns the number of leaf children.
 /// Child indices follow from subtree sizes, never from timing: same bytes for any thread count.
-fn emit_wide(nodes: &[BinNode], me: u32, out: &mut [u8]) -> u32 {
-    let (ch, cnt) = wide_children(nodes, 0);
+/// With `pre`, cut-root children whose blocks were pre-emitted are copied from there (the
+/// same bytes the recursion would write).
+fn emit_wide(nodes: &[BinNode], me: u32, out: &mut [u8], pre: Option<&[u8]>) -> u32 {
+    let (ch, cnt, cut) = wide_children(nodes, 0);
     let mut boxes = [Aabb::EMPTY; 4];
     let mut child = [0u32; 4];
     let mut kind = [0u8; 4];
     let mut node_box = Aabb::EMPTY;
     let mut leaves = 0u32;
     let mut next = me + 1;
-    let mut pending: [(usize, u32, u32); 4] = [(0, 0, 0); 4];
+    let mut pending: [(usize, u32, u32, bool); 4] = [(0, 0, 0, false); 4];
     let mut np = 0;
     for k in 0..cnt {
         let Some(nd) = nodes.get(ch[k]).copied() else { continue };
@@ -984,7 +1046,7 @@ fn emit_wide(nodes: &[BinNode], me: u32, out: &mut [u8]) -> u32 {
         if nd.left_count != 0 && ch[k] != 0 {
             kind[k] = CHILD_INTERNAL;
             child[k] = next;
-            pending[np] = (ch[k], next, nd.reserved);
+            pending[np] = (ch[k], next, nd.reserved, cut >> k & 1 != 0);
             np += 1;
             next = next.saturating_add(nd.reserved);
         } else {
@@ -999,13 +1061,23 @@ fn emit_wide(nodes: &[BinNode], me: u32, out: &mut [u8]) -> u32 {
         head.copy_from_slice(bytemuck::bytes_of(&wn));
     }
     let mut tasks: [EmitTask<'_>; 4] = [None, None, None, None];
-    for (t, &(rel, idx, w)) in tasks.iter_mut().zip(pending[..np].iter()) {
+    let mut nt = 0;
+    for &(rel, idx, w, is_cut_root) in &pending[..np] {
         let len = (w as usize * NODE_SIZE).min(rest.len());
         let (mine, others) = std::mem::take(&mut rest).split_at_mut(len);
         rest = others;
-        *t = nodes.get(rel..).map(|n| (n, idx, mine));
+        if let (true, Some(pre), Some(nd)) = (is_cut_root, pre, nodes.get(rel)) {
+            if let Some(src) = pre_block(nd, pre.len()).and_then(|r| pre.get(r)) {
+                if src.len() == mine.len() {
+                    leaves += copy_block(src, mine, idx);
+                    continue;
+                }
+            }
+        }
+        tasks[nt] = nodes.get(rel..).map(|n| (n, idx, mine, pre));
+        nt += 1;
     }
-    leaves + run_emit(&mut tasks[..np])
+    leaves + run_emit(&mut tasks[..nt])
 }
 
 /// FNV-style 64-bit hash over the index bytes, word at a time (the update's index check).
@@ -1475,8 +1547,12 @@ pub fn build(desc: &BuildDesc, view: &dyn DeviceView, dst: &mut [u8], scratch: &
         .par_chunks(1 << 15)
         .map(bounds_of)
         .reduce(|| (Aabb::EMPTY, Aabb::EMPTY), |a, b| (a.0.union(&b.0), a.1.union(&b.1)));
+    // Pre-emission area (see `finish_split`): after the staging area in the (still unused)
+    // node section of dst. Whether a block fits there never changes the output bytes.
+    let pre_at = (stage_at + if staged { total * STAGE_SIZE } else { 0 }).min(dst.len());
+    let pre_len = (dst.len() - pre_at).min(PRE_BYTES_PER_PRIM * active);
     let (sah_sum, _depth) = if active > 0 {
-        build_rec(&ctx, refs, &mut nodes[..2 * active - 1], 0, root_box, root_cb, 0, &mut Bins::new(), false)
+        build_rec(&ctx, refs, &mut nodes[..2 * active - 1], 0, root_box, root_cb, 0, &mut Bins::new(), false, &mut dst[pre_at..pre_at + pre_len], u32::MAX)
     } else {
         (0.0, 0)
     };
@@ -1500,8 +1576,21 @@ pub fn build(desc: &BuildDesc, view: &dyn DeviceView, dst: &mut [u8], scratch: &
     if active > 0 {
         let end = nodes_at.saturating_add(wide_count as usize * NODE_SIZE);
         let got = dst.len() as u64;
-        let out = dst.get_mut(nodes_at..end).ok_or(BuildError::DestinationTooSmall { needed: end as u64, got })?;
-        leaf_count = emit_wide(nodes, 0, out);
+        if end > dst.len() || nodes_at > end {
+            return Err(BuildError::DestinationTooSmall { needed: end as u64, got });
+        }
+        // Pre-emitted blocks are used when the final node range ends before the area.
+        let (head, tail) = dst.split_at_mut(pre_at.max(end));
+        let out = &mut head[nodes_at..end];
+        let pre_area = (end <= pre_at).then(|| &tail[..pre_len]);
+        let root_block = match (pre_area, nodes.first()) {
+            (Some(p), Some(root)) if is_cut(u32::MAX, root.count) => pre_block(root, p.len()).and_then(|r| p.get(r)),
+            _ => None,
+        };
+        leaf_count = match root_block {
+            Some(src) if src.len() == out.len() => copy_block(src, out, 0),
+            _ => emit_wide(nodes, 0, out, pre_area),
+        };
     }
     let s = layout::sections(desc.ty, wide_count as u64, active as u64, ngeo);
     if s.end > dst.len() as u64 || s.nodes as usize != nodes_at {
