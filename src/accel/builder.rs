@@ -6,7 +6,7 @@ use super::input::{self, read_aabb, read_instance, read_triangle, transform_poin
 use super::layout::{self, GeometryRecord, InstanceRecord, PrimRecord, RawHeader, WideNode, CHILD_INTERNAL, NODE_SIZE, PRIM_SIZE, RECORD_SIZE};
 use super::{AsType, BuildDesc, BuildError, BuildFlags, BuildReport, DeviceView, Geometry, GeometryData};
 use bytemuck::{Pod, Zeroable};
-use glam::{UVec3, Vec3, Vec3A, Vec4};
+use glam::{UVec3, Vec3, Vec3A, Vec3Swizzles, Vec4};
 use rayon::prelude::*;
 
 /// One primitive reference: its (sanitised, finite) bounds and where it came from.
@@ -260,21 +260,54 @@ impl Binning {
         let c = r.lo[a] * 0.5 + r.hi[a] * 0.5;
         (((c - self.cmin[a]) * self.scale[a]) as u32).min(self.kmax.x) as usize
     }
-    /// `bin_axis(r, a) <= b` for a split bin b < kmax, without the conversion: the scaled
-    /// position is finite or +inf (finite bounds, finite positive scale), so truncation <= b
-    /// is exactly x < b + 1 (negative x: bin 0, and x < b + 1 too).
-    #[inline(always)]
-    fn goes_left(&self, r: &PrimRef, a: usize, limit: f32) -> bool {
-        let c = r.lo[a] * 0.5 + r.hi[a] * 0.5;
-        (c - self.cmin[a]) * self.scale[a] < limit
-    }
     #[inline(always)]
     fn bins(&self, r: &PrimRef) -> UVec3 {
         let c = ref_lo(r) * 0.5 + ref_hi(r) * 0.5;
         // Clamped in float first (max(NaN, 0) = 0 on SSE, like `as u32`), then an exact
         // conversion: the same bins as `(x as u32).min(kmax)`, without per-lane saturation.
-        ((c - self.cmin) * self.scale).max(Vec3A::ZERO).min(self.kmax_f).as_ivec3().as_uvec3()
+        let t = trunc_i32x4(((c - self.cmin) * self.scale).max(Vec3A::ZERO).min(self.kmax_f));
+        UVec3::new(t[0] as u32, t[1] as u32, t[2] as u32)
     }
+    /// The split test of axis `a` at bin limit `limit` with its scalars hoisted.
+    #[inline(always)]
+    fn splitter(&self, a: usize, limit: f32) -> Splitter {
+        let a = a.min(2);
+        Splitter { a, cmin: self.cmin[a], scale: self.scale[a], limit }
+    }
+}
+
+/// The split test of one axis with the axis' scalars taken out of the vectors once:
+/// `bin_axis(r, a) <= b` for a split bin b < kmax, without the conversion: the scaled
+/// position is finite or +inf (finite bounds, finite positive scale), so truncation <= b
+/// is exactly x < b + 1 (negative x: bin 0, and x < b + 1 too).
+#[derive(Clone, Copy)]
+struct Splitter {
+    a: usize,
+    cmin: f32,
+    scale: f32,
+    limit: f32,
+}
+impl Splitter {
+    /// The scaled centroid position (the same IEEE operations as `Binning::bin_axis`).
+    #[inline(always)]
+    fn pos(&self, r: &PrimRef) -> f32 {
+        let c = r.lo[self.a] * 0.5 + r.hi[self.a] * 0.5;
+        (c - self.cmin) * self.scale
+    }
+    #[inline(always)]
+    fn left(&self, r: &PrimRef) -> bool {
+        self.pos(r) < self.limit
+    }
+}
+
+/// Lane-wise truncation of values already clamped to [0, 2^23): floor (glam's vector
+/// sequence), then the integer read from the mantissa after adding 2^23, which is exact.
+/// Replaces three saturating float-to-int conversions; no unsafe intrinsics needed.
+#[inline(always)]
+fn trunc_i32x4(v: Vec3A) -> [i32; 4] {
+    const MAGIC: f32 = 8_388_608.0;
+    let y = Vec4::from((v.floor() + Vec3A::splat(MAGIC), MAGIC)).to_array();
+    y.map(|f| (f.to_bits() & 0x7f_ffff) as i32)
 }
 
 #[inline(always)]
@@ -330,8 +363,9 @@ fn bin_refs(refs: &[PrimRef], bn: &Binning, bins: &mut Bins) {
 
 #[inline]
 fn half_area_v(lo: Vec3A, hi: Vec3A) -> f32 {
+    // (xy + yz) + zx, the same sum as `Aabb::half_area`, as one multiply and a lane sum.
     let d = (hi - lo).max(Vec3A::ZERO);
-    d.x * d.y + d.y * d.z + d.z * d.x
+    (d * d.yzx()).element_sum()
 }
 
 fn to_aabb(lo: Vec3A, hi: Vec3A) -> Aabb {
@@ -399,7 +433,7 @@ fn build_rec(ctx: &Ctx, refs: &mut [PrimRef], nodes: &mut [BinNode], start: u32,
     }
     // Small nodes get fewer bins (never more bins than primitives, at least 8).
     let k = p.bins.clamp(2, MAX_BINS).min(n.max(8));
-    let mut split: Option<(usize, usize, Aabb, Aabb, f32)> = None; // (axis, bin, left box, right box, cost)
+    let split: Option<(usize, usize, Aabb, Aabb, f32)>; // (axis, bin, left box, right box, cost)
     if depth < MAX_SAH_DEPTH {
         let mut scale = [0f32; 3];
         let mut any = false;
@@ -434,63 +468,7 @@ fn build_rec(ctx: &Ctx, refs: &mut [PrimRef], nodes: &mut [BinNode], start: u32,
             } else {
                 bin_refs(src, &bn, bins);
             }
-            // Sweep: prefix areas/counts left to right, then the right side accumulated on the
-            // fly; boxes of the winning split are recomputed afterwards (keeps per-node stack
-            // traffic proportional to k).
-            let mut best: Option<(usize, usize, f32)> = None;
-            for a in 0..3 {
-                if scale[a] == 0.0 {
-                    continue;
-                }
-                let mut l_area = [0f32; MAX_BINS];
-                let mut l_count = [0u32; MAX_BINS];
-                let mut lo = Vec3A::INFINITY;
-                let mut hi = Vec3A::NEG_INFINITY;
-                let mut cnt = 0u32;
-                for b in 0..k - 1 {
-                    lo = lo.min(bins.lo[a][b]);
-                    hi = hi.max(bins.hi[a][b]);
-                    cnt += bins.count[a][b];
-                    l_area[b] = half_area_v(lo, hi);
-                    l_count[b] = cnt;
-                }
-                let mut lo = Vec3A::INFINITY;
-                let mut hi = Vec3A::NEG_INFINITY;
-                let mut rcount = 0u32;
-                // Right-to-left; ties resolved to the lowest (axis, bin) for determinism.
-                let mut axis_best: Option<(usize, f32)> = None;
-                for b in (0..k - 1).rev() {
-                    lo = lo.min(bins.lo[a][b + 1]);
-                    hi = hi.max(bins.hi[a][b + 1]);
-                    rcount += bins.count[a][b + 1];
-                    let lcount = l_count[b];
-                    if lcount == 0 || rcount == 0 {
-                        continue;
-                    }
-                    let cost = l_area[b] * lcount as f32 + half_area_v(lo, hi) * rcount as f32;
-                    if axis_best.map_or(true, |x| cost <= x.1) {
-                        axis_best = Some((b, cost));
-                    }
-                }
-                if let Some((b, cost)) = axis_best {
-                    if best.map_or(true, |x| cost < x.2) {
-                        best = Some((a, b, cost));
-                    }
-                }
-            }
-            if let Some((a, b, cost)) = best {
-                let (mut llo, mut lhi, mut rlo, mut rhi) = (Vec3A::INFINITY, Vec3A::NEG_INFINITY, Vec3A::INFINITY, Vec3A::NEG_INFINITY);
-                for x in 0..k {
-                    if x <= b {
-                        llo = llo.min(bins.lo[a][x]);
-                        lhi = lhi.max(bins.hi[a][x]);
-                    } else {
-                        rlo = rlo.min(bins.lo[a][x]);
-                        rhi = rhi.max(bins.hi[a][x]);
-                    }
-                }
-                split = Some((a, b, to_aabb(llo, lhi), to_aabb(rlo, rhi), cost));
-            }
+            split = sweep_bins(bins, k, &scale);
             // SAH termination: a leaf costs A·n, a split A + children (C_T = C_I = 1).
             if let Some(s) = split {
                 let leaf_cost = area * n as f32;
@@ -503,11 +481,12 @@ fn build_rec(ctx: &Ctx, refs: &mut [PrimRef], nodes: &mut [BinNode], start: u32,
             }
             if let Some((a, b, lbox, rbox, _)) = split {
                 let limit = (b + 1) as f32;
+                let sp = bn.splitter(a, limit);
                 if in_nodes {
                     // Scatter from this node's slots straight into `refs` (no copy back);
                     // with everything on one side that is a plain copy, as a restore would be.
                     in_nodes = false;
-                    if let Some((i, lc, rc)) = par_partition_from_nodes(refs, nodes, |r| bn.goes_left(r, a, limit)) {
+                    if let Some((i, lc, rc)) = par_partition_from_nodes(refs, nodes, |r| sp.left(r)) {
                         if i > 0 && i < n {
                             return finish_split(ctx, refs, nodes, start, bounds, i, (lbox, lc), (rbox, rc), depth, bins, false, pre, parent_count);
                         }
@@ -516,34 +495,13 @@ fn build_rec(ctx: &Ctx, refs: &mut [PrimRef], nodes: &mut [BinNode], start: u32,
                     // Large node: stable parallel partition through the (still unwritten) node
                     // slots of this subtree; fixed chunking, so the order is the same for any
                     // thread count.
-                    if let Some((i, lc, rc)) = par_partition_to_nodes(refs, nodes, |r| bn.goes_left(r, a, limit)) {
+                    if let Some((i, lc, rc)) = par_partition_to_nodes(refs, nodes, |r| sp.left(r)) {
                         if i > 0 && i < n {
                             return finish_split(ctx, refs, nodes, start, bounds, i, (lbox, lc), (rbox, rc), depth, bins, true, pre, parent_count);
                         }
                     }
                 }
-                // Partition in place (deterministic: sequential, same bin function as binning).
-                // Branchless Lomuto: every reference is swapped with the first right one and
-                // the boundary advances by the comparison, so no branch depends on the data.
-                let mut i = 0usize;
-                let mut lc_lo = Vec3A::INFINITY;
-                let mut lc_hi = Vec3A::NEG_INFINITY;
-                let mut rc_lo = Vec3A::INFINITY;
-                let mut rc_hi = Vec3A::NEG_INFINITY;
-                for j in 0..n {
-                    let r = refs[j];
-                    let c = ref_lo(&r) * 0.5 + ref_hi(&r) * 0.5;
-                    let left = bn.goes_left(&r, a, limit);
-                    let m = glam::BVec3A::splat(left);
-                    lc_lo = Vec3A::select(m, lc_lo.min(c), lc_lo);
-                    lc_hi = Vec3A::select(m, lc_hi.max(c), lc_hi);
-                    rc_lo = Vec3A::select(m, rc_lo, rc_lo.min(c));
-                    rc_hi = Vec3A::select(m, rc_hi, rc_hi.max(c));
-                    let k = i.min(j);
-                    refs[j] = refs[k];
-                    refs[k] = r;
-                    i += left as usize;
-                }
+                let (i, (lc_lo, lc_hi), (rc_lo, rc_hi)) = partition_seq(refs, &sp);
                 if i > 0 && i < n {
                     return finish_split(ctx, refs, nodes, start, bounds, i, (lbox, to_aabb(lc_lo, lc_hi)), (rbox, to_aabb(rc_lo, rc_hi)), depth, bins, false, pre, parent_count);
                 }
@@ -570,6 +528,100 @@ fn build_rec(ctx: &Ctx, refs: &mut [PrimRef], nodes: &mut [BinNode], start: u32,
     let lb = bounds_of(l);
     let rb = bounds_of(r);
     finish_split(ctx, refs, nodes, start, bounds, mid, lb, rb, depth, bins, false, pre, parent_count)
+}
+
+/// The best binned split: (axis, last left bin, left box, right box, A_L·N_L + A_R·N_R).
+#[inline(never)]
+fn sweep_bins(bins: &Bins, k: usize, scale: &[f32; 3]) -> Option<(usize, usize, Aabb, Aabb, f32)> {
+    let mut split = None;
+    // Sweep: prefix areas/counts left to right, then the right side accumulated on the
+    // fly; boxes of the winning split are recomputed afterwards (keeps per-node stack
+    // traffic proportional to k).
+    let mut best: Option<(usize, usize, f32)> = None;
+    for a in 0..3 {
+        if scale[a] == 0.0 {
+            continue;
+        }
+        let mut l_area = [0f32; MAX_BINS];
+        let mut l_count = [0u32; MAX_BINS];
+        let mut lo = Vec3A::INFINITY;
+        let mut hi = Vec3A::NEG_INFINITY;
+        let mut cnt = 0u32;
+        for b in 0..k - 1 {
+            lo = lo.min(bins.lo[a][b]);
+            hi = hi.max(bins.hi[a][b]);
+            cnt += bins.count[a][b];
+            l_area[b] = half_area_v(lo, hi);
+            l_count[b] = cnt;
+        }
+        let mut lo = Vec3A::INFINITY;
+        let mut hi = Vec3A::NEG_INFINITY;
+        let mut rcount = 0u32;
+        // Right-to-left; ties resolved to the lowest (axis, bin) for determinism.
+        let mut axis_best: Option<(usize, f32)> = None;
+        for b in (0..k - 1).rev() {
+            lo = lo.min(bins.lo[a][b + 1]);
+            hi = hi.max(bins.hi[a][b + 1]);
+            rcount += bins.count[a][b + 1];
+            let lcount = l_count[b];
+            if lcount == 0 || rcount == 0 {
+                continue;
+            }
+            let cost = l_area[b] * lcount as f32 + half_area_v(lo, hi) * rcount as f32;
+            if axis_best.map_or(true, |x| cost <= x.1) {
+                axis_best = Some((b, cost));
+            }
+        }
+        if let Some((b, cost)) = axis_best {
+            if best.map_or(true, |x| cost < x.2) {
+                best = Some((a, b, cost));
+            }
+        }
+    }
+    if let Some((a, b, cost)) = best {
+        let (mut llo, mut lhi, mut rlo, mut rhi) = (Vec3A::INFINITY, Vec3A::NEG_INFINITY, Vec3A::INFINITY, Vec3A::NEG_INFINITY);
+        for x in 0..k {
+            if x <= b {
+                llo = llo.min(bins.lo[a][x]);
+                lhi = lhi.max(bins.hi[a][x]);
+            } else {
+                rlo = rlo.min(bins.lo[a][x]);
+                rhi = rhi.max(bins.hi[a][x]);
+            }
+        }
+        split = Some((a, b, to_aabb(llo, lhi), to_aabb(rlo, rhi), cost));
+    }
+    split
+}
+
+/// In-place partition by `sp`; returns the left count and both sides' centroid bounds.
+#[inline(never)]
+fn partition_seq(refs: &mut [PrimRef], sp: &Splitter) -> (usize, (Vec3A, Vec3A), (Vec3A, Vec3A)) {
+    let n = refs.len();
+    let limit = sp.limit;
+    // Partition in place (deterministic: sequential, same bin function as binning).
+    // Branchless Lomuto: every reference is swapped with the first right one and
+    // the boundary advances by the comparison, so no branch depends on the data.
+    let mut i = 0usize;
+    let mut lc_lo = Vec3A::INFINITY;
+    let mut lc_hi = Vec3A::NEG_INFINITY;
+    let mut rc_lo = Vec3A::INFINITY;
+    let mut rc_hi = Vec3A::NEG_INFINITY;
+    for j in 0..n {
+        let r = refs[j];
+        let c = ref_lo(&r) * 0.5 + ref_hi(&r) * 0.5;
+        let m = Vec3A::splat(sp.pos(&r)).cmplt(Vec3A::splat(limit));
+        let left = m.any();
+        lc_lo = Vec3A::select(m, lc_lo.min(c), lc_lo);
+        lc_hi = Vec3A::select(m, lc_hi.max(c), lc_hi);
+        rc_lo = Vec3A::select(m, rc_lo, rc_lo.min(c));
+        rc_hi = Vec3A::select(m, rc_hi, rc_hi.max(c));
+        let k = i.min(j);
+        refs[j] = refs[k];
+        refs[k] = r;
+        i += left as usize;
+    }
+    (i, (lc_lo, lc_hi), (rc_lo, rc_hi))
 }
 
 /// Above this many references a node's partition runs in parallel chunks.
@@ -714,55 +766,74 @@ fn c_len(n: usize, chunk: usize, k: usize) -> usize {
 
 /// Default size up to which nodes use the exact sorted sweep, and the largest allowed.
 const SMALL_N: usize = 8;
-const MAX_SMALL: usize = 16;
+const MAX_SMALL: usize = 8;
 
 /// Best SAH split of <= MAX_SMALL references over the given axes: reorders `refs` along the
 /// winning axis (stable insertion sort: ties keep input order, so the result is deterministic)
 /// and returns (left count, A_L·N_L + A_R·N_R).
+#[inline(never)]
 fn small_split(refs: &mut [PrimRef], axes: (usize, usize)) -> Option<(usize, f32)> {
     let n = refs.len();
     if !(2..=MAX_SMALL).contains(&n) {
         return None;
     }
-    let mut best: Option<(usize, usize, f32, [u8; MAX_SMALL])> = None;
+    if n == 2 {
+        // Both orders give the same split and cost; keep the input order (what the sweep
+        // picks on a tie).
+        return Some((1, half_area_v(ref_lo(&refs[0]), ref_hi(&refs[0])) + half_area_v(ref_lo(&refs[1]), ref_hi(&refs[1]))));
+    }
+    // Boxes and centroids gathered once (the sweeps read them in sorted order per axis).
+    let mut lo = [Vec3A::ZERO; MAX_SMALL];
+    let mut hi = [Vec3A::ZERO; MAX_SMALL];
+    let mut ctr = [[0f32; 4]; MAX_SMALL];
+    for (i, r) in refs.iter().enumerate() {
+        lo[i] = ref_lo(r);
+        hi[i] = ref_hi(r);
+        ctr[i] = Vec4::from((lo[i] * 0.5 + hi[i] * 0.5, 0.0)).to_array();
+    }
+    let mut best: Option<(usize, usize, f32)> = None;
+    let mut best_order = [0u8; MAX_SMALL];
     for a in axes.0..axes.1.min(3) {
+        // Stable insertion sort of (key, index): references are finite, so `>` is a total
+        // order on the keys and ties keep input order (deterministic).
         let mut order = [0u8; MAX_SMALL];
         let mut key = [0f32; MAX_SMALL];
         for i in 0..n {
-            order[i] = i as u8;
-            key[i] = refs[i].lo[a] * 0.5 + refs[i].hi[a] * 0.5;
-        }
-        for i in 1..n {
+            let (k, o) = (ctr[i][a], i as u8);
             let mut j = i;
-            while j > 0 && key[order[j - 1] as usize].total_cmp(&key[order[j] as usize]).is_gt() {
-                order.swap(j - 1, j);
+            while j > 0 && key[j - 1] > k {
+                key[j] = key[j - 1];
+                order[j] = order[j - 1];
                 j -= 1;
             }
+            key[j] = k;
+            order[j] = o;
         }
         let mut l_area = [0f32; MAX_SMALL];
-        let (mut lo, mut hi) = (Vec3A::INFINITY, Vec3A::NEG_INFINITY);
+        let (mut l, mut h) = (Vec3A::INFINITY, Vec3A::NEG_INFINITY);
         for i in 0..n - 1 {
-            let r = &refs[order[i] as usize];
-            lo = lo.min(ref_lo(r));
-            hi = hi.max(ref_hi(r));
-            l_area[i] = half_area_v(lo, hi);
+            let o = order[i] as usize & (MAX_SMALL - 1);
+            l = l.min(lo[o]);
+            h = h.max(hi[o]);
+            l_area[i] = half_area_v(l, h);
         }
-        let (mut lo, mut hi) = (Vec3A::INFINITY, Vec3A::NEG_INFINITY);
+        let (mut l, mut h) = (Vec3A::INFINITY, Vec3A::NEG_INFINITY);
         for i in (0..n - 1).rev() {
-            let r = &refs[order[i + 1] as usize];
-            lo = lo.min(ref_lo(r));
-            hi = hi.max(ref_hi(r));
-            let cost = l_area[i] * (i + 1) as f32 + half_area_v(lo, hi) * (n - i - 1) as f32;
+            let o = order[i + 1] as usize & (MAX_SMALL - 1);
+            l = l.min(lo[o]);
+            h = h.max(hi[o]);
+            let cost = l_area[i] * (i + 1) as f32 + half_area_v(l, h) * (n - i - 1) as f32;
             if best.map_or(true, |b| cost < b.2 || (cost == b.2 && a == b.0 && i + 1 < b.1)) {
-                best = Some((a, i + 1, cost, order));
+                best = Some((a, i + 1, cost));
+                best_order = order;
             }
         }
     }
-    let (_, mid, cost, order) = best?;
+    let (_, mid, cost) = best?;
     let mut tmp = [PrimRef::zeroed(); MAX_SMALL];
     tmp[..n].copy_from_slice(refs);
     for i in 0..n {
-        refs[i] = tmp[order[i] as usize];
+        refs[i] = tmp[best_order[i] as usize & (MAX_SMALL - 1)];
     }
     Some((mid, cost))
 }
