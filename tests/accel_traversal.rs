@@ -62,6 +62,15 @@ fn blas_dragon_res3_matches_brute_force() {
     check_blas_mesh("dragon res3", &m, 250, &[FAST_TRACE, FAST_BUILD]);
 }
 
+/// 202,520 triangles: large enough that the top nodes bin a sample (nodes of 2^16 or more
+/// references) and take the parallel partition, whose exact child boxes `validate` checks.
+#[cfg(not(debug_assertions))]
+#[test]
+fn blas_dragon_res2_matches_brute_force() {
+    let m = scene::load(data_path("dragon_vrip_res2.ply.gz")).unwrap();
+    check_blas_mesh("dragon res2", &m, 60, &TIERS);
+}
+
 #[test]
 fn blas_random_soups_match_brute_force() {
     for (n, seed) in [(1usize, 1u64), (7, 2), (100, 3), (5000, 4), (30_000, 5)] {
