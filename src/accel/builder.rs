@@ -1093,23 +1093,25 @@ pub fn encode_node(node_box: &Aabb, boxes: &[Aabb], child: &[u32], kind: &[u8]) 
         }
         let (blo, bhi) = (Vec4::from_array(blo), Vec4::from_array(bhi));
         let (lov, sv, top) = (Vec4::splat(lo), Vec4::splat(s), Vec4::splat(255.0));
-        let ql = ((blo - lov) * inv_s).max(Vec4::ZERO).min(top).as_uvec4();
-        let qh0 = ((bhi - lov) * inv_s).max(Vec4::ZERO).min(top).as_uvec4();
-        let qlf = ql.as_vec4();
+        // floor of values clamped to [0, 255] is the truncation `as u32` would give, already
+        // as a float (no conversions until the final byte extraction).
+        let qlf = ((blo - lov) * inv_s).max(Vec4::ZERO).min(top).floor();
+        let q0 = ((bhi - lov) * inv_s).max(Vec4::ZERO).min(top).floor();
         let bad_l = (lov + qlf * sv).cmpgt(blo) & qlf.cmpgt(Vec4::ZERO);
         // The scalar search steps qh up from the truncated guess to the first value whose
         // decode reaches b.hi: usually the guess itself or the next one.
-        let q0 = qh0.as_vec4();
         let q1 = (q0 + Vec4::ONE).min(top);
         let ok0 = (lov + q0 * sv).cmpge(bhi) | q0.cmpge(top);
         let ok1 = (lov + q1 * sv).cmpge(bhi) | q1.cmpge(top);
-        let qh = Vec4::select(ok0, q0, q1).as_uvec4();
+        let qh = Vec4::select(ok0, q0, q1);
         let bad_h = !(ok0 | ok1);
         if !bad_l.any() && !bad_h.any() {
-            let (ql, qh) = (ql.to_array(), qh.to_array());
+            // Integers below 2^23 read from the mantissa after adding 2^23 (exact).
+            let magic = Vec4::splat(8_388_608.0);
+            let (ql, qh) = ((qlf + magic).to_array(), (qh + magic).to_array());
             for c in 0..cnt {
-                n.qlo[a][c] = ql[c] as u8;
-                n.qhi[a][c] = qh[c] as u8;
+                n.qlo[a][c] = ql[c].to_bits() as u8;
+                n.qhi[a][c] = qh[c].to_bits() as u8;
             }
             continue;
         }
@@ -1469,18 +1471,16 @@ fn gather_leaf_data(refs: &mut [PrimRef], stage: &[u8], prims: &mut [u8], record
         .zip(records.par_chunks_mut(CH * RECORD_SIZE))
         .zip(refs.par_chunks_mut(CH))
         .for_each(|((pd, rd), rs)| {
-            for (k, r) in rs.iter_mut().enumerate() {
+            // Fixed-size chunks and arrays: no per-byte bounds checks or variable-length copies.
+            for ((d, rec), r) in pd.chunks_exact_mut(PRIM_SIZE).zip(rd.chunks_exact_mut(RECORD_SIZE)).zip(rs.iter_mut()) {
                 let o = r.prim as usize * STAGE_SIZE;
-                let Some(st) = stage.get(o..o + STAGE_SIZE) else { continue };
-                if let Some(d) = pd.get_mut(k * PRIM_SIZE..(k + 1) * PRIM_SIZE) {
-                    d.copy_from_slice(&st[..36]);
-                }
-                let prim = u32::from_le_bytes([st[36], st[37], st[38], st[39]]);
+                let Some((st, _)) = stage.get(o..).and_then(|x| x.split_first_chunk::<STAGE_SIZE>()) else { continue };
+                let (data, tail) = st.split_at(PRIM_SIZE);
+                d.copy_from_slice(data);
+                let prim = u32::from_le_bytes([tail[0], tail[1], tail[2], tail[3]]);
                 r.prim = prim;
-                let rec = PrimRecord { geometry: r.geom, primitive: prim };
-                if let Some(d) = rd.get_mut(k * RECORD_SIZE..(k + 1) * RECORD_SIZE) {
-                    d.copy_from_slice(bytemuck::bytes_of(&rec));
-                }
+                rec[..4].copy_from_slice(&r.geom.to_le_bytes());
+                rec[4..].copy_from_slice(&prim.to_le_bytes());
             }
         });
 }
