@@ -666,18 +666,22 @@ fn partition_seq(refs: &mut [PrimRef], sp: &Splitter) -> (usize, (Vec3A, Vec3A),
     let mut lc_hi = Vec3A::NEG_INFINITY;
     let mut rc_lo = Vec3A::INFINITY;
     let mut rc_hi = Vec3A::NEG_INFINITY;
+    // Centroids are finite, so c + inf = inf and c - inf = -inf: adding 0 or inf (made from
+    // the comparison's bit, no branch) routes each centroid into one side's bounds.
+    const INF_BITS: u32 = 0x7f80_0000;
     for j in 0..n {
         let r = refs[j];
         let c = ref_lo(&r) * 0.5 + ref_hi(&r) * 0.5;
-        let m = Vec3A::splat(sp.pos(&r)).cmplt(Vec3A::splat(limit));
-        let left = m.any();
-        lc_lo = Vec3A::select(m, lc_lo.min(c), lc_lo);
-        lc_hi = Vec3A::select(m, lc_hi.max(c), lc_hi);
-        rc_lo = Vec3A::select(m, rc_lo, rc_lo.min(c));
-        rc_hi = Vec3A::select(m, rc_hi, rc_hi.max(c));
-        let k = i.min(j);
-        refs[j] = refs[k];
-        refs[k] = r;
+        let left = (sp.pos(&r) < limit) as u32;
+        let ol = Vec3A::splat(f32::from_bits((left ^ 1) * INF_BITS));
+        let or = Vec3A::splat(f32::from_bits(left * INF_BITS));
+        lc_lo = lc_lo.min(c + ol);
+        lc_hi = lc_hi.max(c - ol);
+        rc_lo = rc_lo.min(c + or);
+        rc_hi = rc_hi.max(c - or);
+        // i <= j always (i counts the lefts before j).
+        refs[j] = refs[i];
+        refs[i] = r;
         i += left as usize;
     }
     (i, (lc_lo, lc_hi), (rc_lo, rc_hi))
