@@ -176,6 +176,7 @@ pub struct BuildParams {
     pub parallel_cutoff: u32,
     /// Nodes of at least PAR_BIN_CUTOFF references bin a strided sample of about this many.
     pub sample_target: usize,
+    pub kdiv: usize,
 }
 pub const MAX_BINS: usize = 32;
 /// Depth after which splits become balanced object-median splits: bounds recursion depth
@@ -193,11 +194,11 @@ const BIN_CHUNK: usize = 1 << 14;
 impl BuildParams {
     pub fn from_flags(flags: BuildFlags) -> Self {
         if flags.contains(BuildFlags::PREFER_FAST_TRACE) {
-            BuildParams { bins: 32, single_axis: false, traversal_cost: 1.0, max_leaf: 8, small_n: SMALL_N, parallel_cutoff: 4096, sample_target: 2 * SAMPLE_TARGET }
+            BuildParams { bins: 32, single_axis: false, traversal_cost: 1.0, max_leaf: 8, small_n: SMALL_N, parallel_cutoff: 4096, sample_target: 2 * SAMPLE_TARGET, kdiv: 4 }
         } else if flags.contains(BuildFlags::PREFER_FAST_BUILD) {
-            BuildParams { bins: 8, single_axis: true, traversal_cost: 2.5, max_leaf: 8, small_n: SMALL_N, parallel_cutoff: 4096, sample_target: SAMPLE_TARGET }
+            BuildParams { bins: 8, single_axis: true, traversal_cost: 2.5, max_leaf: 8, small_n: SMALL_N, parallel_cutoff: 4096, sample_target: SAMPLE_TARGET, kdiv: 4 }
         } else {
-            BuildParams { bins: 16, single_axis: false, traversal_cost: 1.0, max_leaf: 8, small_n: SMALL_N, parallel_cutoff: 4096, sample_target: 2 * SAMPLE_TARGET }
+            BuildParams { bins: 16, single_axis: false, traversal_cost: 1.0, max_leaf: 8, small_n: SMALL_N, parallel_cutoff: 4096, sample_target: 2 * SAMPLE_TARGET, kdiv: 4 }
         }
     }
 }
@@ -444,7 +445,10 @@ struct Ctx {
 #[allow(clippy::too_many_arguments)]
 fn build_rec(ctx: &Ctx, refs: &mut [PrimRef], nodes: &mut [BinNode], start: u32, bounds: Aabb, cb: Aabb, depth: u32, bins: &mut Bins, mut in_nodes: bool, pre: &mut [u8], parent_count: u32) -> (f64, u32) {
     let n = refs.len();
-    if in_nodes && (n < PAR_PART_CUTOFF || depth >= MAX_SAH_DEPTH) {
+    let p = &ctx.params;
+    // References still in the node slots (see `partition_out`) come back to `refs` where the
+    // node will not partition them: leaves, small nodes, the depth limit.
+    if in_nodes && (depth >= MAX_SAH_DEPTH || n <= p.small_n.clamp(1, MAX_SMALL)) {
         restore(refs, nodes);
         in_nodes = false;
     }
@@ -458,7 +462,6 @@ fn build_rec(ctx: &Ctx, refs: &mut [PrimRef], nodes: &mut [BinNode], start: u32,
     if n <= 1 {
         return make_leaf(nodes);
     }
-    let p = &ctx.params;
     if n <= p.small_n.min(MAX_SMALL) && depth < MAX_SAH_DEPTH {
         // Exact SAH sweep over sorted centroids: cheaper than binning for a handful of
         // primitives, and these nodes are most of the tree.
@@ -478,7 +481,7 @@ fn build_rec(ctx: &Ctx, refs: &mut [PrimRef], nodes: &mut [BinNode], start: u32,
     // Smaller nodes get fewer bins: at most one per four references, at least 8 (the sweep
     // costs O(bins) per node; on the dragon FAST_TRACE this is 7 % fewer instructions for
     // SAH 48.79 -> 48.81).
-    let k = p.bins.clamp(2, MAX_BINS).min((n / 4).max(8));
+    let k = p.bins.clamp(2, MAX_BINS).min((n / p.kdiv).max(8));
     let split: Option<(usize, usize, Aabb, Aabb, f32)>; // (axis, bin, left box, right box, cost)
     if depth < MAX_SAH_DEPTH {
         let mut scale = [0f32; 3];
@@ -539,13 +542,24 @@ fn build_rec(ctx: &Ctx, refs: &mut [PrimRef], nodes: &mut [BinNode], start: u32,
             if let Some((a, b, lbox, rbox, _)) = split {
                 let limit = (b + 1) as f32;
                 let sp = bn.splitter(a, limit);
+                // Left count from the bins (exact: binning and the split test share their
+                // arithmetic), except for sampled nodes, which take the parallel partition.
+                let nl_bins = bins.count[a][..=b.min(MAX_BINS - 1)].iter().map(|&c| c as usize).sum::<usize>();
                 if in_nodes {
                     // Scatter from this node's slots straight into `refs` (no copy back);
                     // with everything on one side that is a plain copy, as a restore would be.
                     in_nodes = false;
-                    if let Some((i, l, r)) = par_partition_from_nodes(refs, nodes, |r| sp.left(r)) {
-                        if i > 0 && i < n {
-                            return finish_split(ctx, refs, nodes, start, bounds, i, l, r, depth, bins, false, pre, parent_count);
+                    if n >= PAR_PART_CUTOFF {
+                        match par_partition_from_nodes(refs, nodes, |r| sp.left(r)) {
+                            Some((i, l, r)) if i > 0 && i < n => return finish_split(ctx, refs, nodes, start, bounds, i, l, r, depth, bins, false, pre, parent_count),
+                            Some(_) => {}
+                            None => restore(refs, nodes),
+                        }
+                    } else {
+                        let out = node_refs(nodes, n).and_then(|src| partition_out(src, bytemuck::cast_slice_mut(refs), nl_bins, PRIMREF_BYTES * nl_bins, &sp));
+                        match out {
+                            Some((i, lc, rc)) if i > 0 && i < n => return finish_split(ctx, refs, nodes, start, bounds, i, (lbox, lc), (rbox, rc), depth, bins, false, pre, parent_count),
+                            _ => restore(refs, nodes),
                         }
                     }
                 } else if n >= PAR_PART_CUTOFF {
@@ -555,6 +569,18 @@ fn build_rec(ctx: &Ctx, refs: &mut [PrimRef], nodes: &mut [BinNode], start: u32,
                     if let Some((i, l, r)) = par_partition_to_nodes(refs, nodes, |r| sp.left(r)) {
                         if i > 0 && i < n {
                             return finish_split(ctx, refs, nodes, start, bounds, i, l, r, depth, bins, true, pre, parent_count);
+                        }
+                    }
+                } else if nl_bins > 0 && nl_bins < n {
+                    // Sequential out-of-place partition into the children's node slots (one
+                    // read and one write per reference); the children partition back into
+                    // `refs`. `refs` is untouched if it fails (Lomuto below).
+                    let rbase = (2 * nl_bins - 1) * std::mem::size_of::<BinNode>();
+                    if let Some(rest) = nodes.get_mut(1..) {
+                        if let Some((i, lc, rc)) = partition_out(refs, bytemuck::cast_slice_mut(rest), nl_bins, rbase, &sp) {
+                            if i > 0 && i < n {
+                                return finish_split(ctx, refs, nodes, start, bounds, i, (lbox, lc), (rbox, rc), depth, bins, true, pre, parent_count);
+                            }
                         }
                     }
                 }
@@ -653,6 +679,42 @@ fn sweep_bins(bins: &Bins, k: usize, scale: &[f32; 3]) -> Option<(usize, usize, 
     split
 }
 
+const PRIMREF_BYTES: usize = std::mem::size_of::<PrimRef>();
+
+/// Out-of-place stable partition by `sp`: the lefts of `src` in order from `dst[0]`, the
+/// rights in order from `dst[rbase]` (bytes). Returns the left count and both sides'
+/// centroid bounds, or None when it is not `nl` (what was written is then garbage; nothing
+/// is written outside `dst`).
+#[inline(never)]
+#[allow(clippy::type_complexity)]
+fn partition_out(src: &[PrimRef], dst: &mut [u8], nl: usize, rbase: usize, sp: &Splitter) -> Option<(usize, Aabb, Aabb)> {
+    let n = src.len();
+    if nl > n || nl * PRIMREF_BYTES > rbase || dst.len() < rbase + (n - nl) * PRIMREF_BYTES {
+        return None;
+    }
+    let limit = sp.limit;
+    let (mut lc_lo, mut lc_hi, mut rc_lo, mut rc_hi) = (Vec3A::INFINITY, Vec3A::NEG_INFINITY, Vec3A::INFINITY, Vec3A::NEG_INFINITY);
+    const INF_BITS: u32 = 0x7f80_0000;
+    let (mut li, mut ri) = (0usize, rbase);
+    for r in src {
+        let c = ref_lo(r) * 0.5 + ref_hi(r) * 0.5;
+        let left = (sp.pos(r) < limit) as usize;
+        let ol = Vec3A::splat(f32::from_bits((left as u32 ^ 1) * INF_BITS));
+        let or = Vec3A::splat(f32::from_bits(left as u32 * INF_BITS));
+        lc_lo = lc_lo.min(c + ol);
+        lc_hi = lc_hi.max(c - ol);
+        rc_lo = rc_lo.min(c + or);
+        rc_hi = rc_hi.max(c - or);
+        let at = if left != 0 { li } else { ri };
+        if let Some(d) = dst.get_mut(at..at + PRIMREF_BYTES) {
+            d.copy_from_slice(bytemuck::bytes_of(r));
+        }
+        li += PRIMREF_BYTES * left;
+        ri += PRIMREF_BYTES * (left ^ 1);
+    }
+    (li == nl * PRIMREF_BYTES).then(|| (nl, to_aabb(lc_lo, lc_hi), to_aabb(rc_lo, rc_hi)))
+}
+
 /// In-place partition by `sp`; returns the left count and both sides' centroid bounds.
 #[inline(never)]
 fn partition_seq(refs: &mut [PrimRef], sp: &Splitter) -> (usize, (Vec3A, Vec3A), (Vec3A, Vec3A)) {
@@ -720,6 +782,12 @@ fn node_refs_mut(nodes: &mut [BinNode], n: usize) -> Option<&mut [PrimRef]> {
 /// the partition's fixed chunks).
 fn restore(refs: &mut [PrimRef], nodes: &[BinNode]) {
     let n = refs.len();
+    if n < PAR_PART_CUTOFF {
+        if let Some(src) = node_refs(nodes, n) {
+            refs.copy_from_slice(src);
+        }
+        return;
+    }
     if let Some(src) = node_refs(nodes, n) {
         let chunk = n.div_ceil(PART_CHUNKS).max(1);
         refs.par_chunks_mut(chunk).zip(src.par_chunks(chunk)).for_each(|(d, s)| d.copy_from_slice(s));
