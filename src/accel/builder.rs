@@ -919,6 +919,26 @@ const MAX_SMALL: usize = 8;
 /// Best SAH split of <= MAX_SMALL references over the given axes: reorders `refs` along the
 /// winning axis (stable insertion sort: ties keep input order, so the result is deterministic)
 /// and returns (left count, A_L·N_L + A_R·N_R).
+/// f32 bits mapped so that unsigned integer order is the float order (-0 before +0).
+#[inline(always)]
+fn ordered_bits(f: f32) -> u32 {
+    let b = f.to_bits();
+    b ^ (((b as i32 >> 31) as u32) | 0x8000_0000)
+}
+
+/// Sorting networks (compare-exchange pairs) for 4 and 8 inputs (5 and 19 comparators).
+const NET4: [(usize, usize); 5] = [(0, 1), (2, 3), (0, 2), (1, 3), (1, 2)];
+const NET8: [(usize, usize); 19] = [(0, 2), (1, 3), (4, 6), (5, 7), (0, 4), (1, 5), (2, 6), (3, 7), (0, 1), (2, 3), (4, 5), (6, 7), (2, 4), (3, 5), (1, 4), (3, 6), (1, 2), (3, 4), (5, 6)];
+
+#[inline(always)]
+fn sort_network(v: &mut [u64; MAX_SMALL], net: &[(usize, usize)]) {
+    for &(i, j) in net {
+        let (x, y) = (v[i & (MAX_SMALL - 1)], v[j & (MAX_SMALL - 1)]);
+        v[i & (MAX_SMALL - 1)] = x.min(y);
+        v[j & (MAX_SMALL - 1)] = x.max(y);
+    }
+}
+
 #[inline(never)]
 fn small_split(refs: &mut [PrimRef], axes: (usize, usize)) -> Option<(usize, f32)> {
     let n = refs.len();
@@ -942,21 +962,18 @@ fn small_split(refs: &mut [PrimRef], axes: (usize, usize)) -> Option<(usize, f32
     let mut best: Option<(usize, usize, f32)> = None;
     let mut best_order = [0u8; MAX_SMALL];
     for a in axes.0..axes.1.min(3) {
-        // Stable insertion sort of (key, index): references are finite, so `>` is a total
-        // order on the keys and ties keep input order (deterministic).
-        let mut order = [0u8; MAX_SMALL];
-        let mut key = [0f32; MAX_SMALL];
+        // Sort (key, index) with a branch-free sorting network on order-preserving integer
+        // keys: the same order as a stable sort by the key (ties by index), no mispredictions.
+        let mut v = [u64::MAX; MAX_SMALL];
         for i in 0..n {
-            let (k, o) = (ctr[i][a], i as u8);
-            let mut j = i;
-            while j > 0 && key[j - 1] > k {
-                key[j] = key[j - 1];
-                order[j] = order[j - 1];
-                j -= 1;
-            }
-            key[j] = k;
-            order[j] = o;
+            v[i] = (ordered_bits(ctr[i][a]) as u64) << 32 | i as u64;
         }
+        if n <= 4 {
+            sort_network(&mut v, &NET4);
+        } else {
+            sort_network(&mut v, &NET8);
+        }
+        let order: [u8; MAX_SMALL] = std::array::from_fn(|i| v[i] as u8);
         let mut l_area = [0f32; MAX_SMALL];
         let (mut l, mut h) = (Vec3A::INFINITY, Vec3A::NEG_INFINITY);
         for i in 0..n - 1 {
@@ -1874,3 +1891,29 @@ pub fn build(desc: &BuildDesc, view: &dyn DeviceView, dst: &mut [u8], scratch: &
     Ok(BuildReport { used_size: used, node_count: wide_count, leaf_count, primitive_count: active as u32 })
 }
 
+
+#[cfg(test)]
+mod network_tests {
+    use super::*;
+
+    /// 0-1 principle: a comparator network sorts every input iff it sorts every 0/1 input.
+    #[test]
+    fn sorting_networks_sort() {
+        for (net, n) in [(&NET4[..], 4usize), (&NET8[..], 8)] {
+            for bits in 0u32..(1 << n) {
+                let mut v = [u64::MAX; MAX_SMALL];
+                for i in 0..n {
+                    v[i] = (bits >> i & 1) as u64;
+                }
+                sort_network(&mut v, net);
+                assert!(v[..n].windows(2).all(|w| w[0] <= w[1]), "n {n} input {bits:#b}: {v:?}");
+            }
+        }
+        let keys = [-1.5f32, -0.0, 0.0, 2.0, f32::MIN, f32::MAX, 1e-30, -1e-30];
+        let mut sorted = keys;
+        sorted.sort_by(|a, b| a.total_cmp(b));
+        let mut by_bits = keys;
+        by_bits.sort_by_key(|&k| ordered_bits(k));
+        assert_eq!(sorted.map(f32::to_bits), by_bits.map(f32::to_bits));
+    }
+}
