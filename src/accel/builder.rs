@@ -1028,26 +1028,34 @@ fn finish_split(ctx: &Ctx, refs: &mut [PrimRef], nodes: &mut [BinNode], start: u
             build_rec(ctx, rrefs, rnodes, rstart, right.0, right.1, depth + 1, bins, in_nodes, rpre, me),
         )
     };
-    // Wide-subtree size if this node becomes a BVH4 node (kept in `reserved`): computed here,
-    // while the subtree is cache-hot, so emission can hand disjoint output ranges to threads.
-    let (ch, cnt, _) = wide_children(nodes, 0);
-    let mut w = 1u32;
-    for &c in &ch[..cnt] {
-        if let Some(nd) = nodes.get(c) {
-            if nd.left_count != 0 {
-                w = w.saturating_add(nd.reserved);
+    // Wide-subtree size if this node becomes a BVH4 node (kept in `reserved`), needed above
+    // the cut roots only: emission hands disjoint output ranges to threads from it. A cut
+    // root's wide subtree is encoded now, while its binary nodes are in cache, sequentially
+    // into its own range of the pre-emission area (the final pass copies the block into
+    // place); its size is what that wrote, or a count when it did not fit.
+    let w = if n as u32 > EMIT_CUT {
+        let (ch, cnt, _) = wide_children(nodes, 0);
+        let mut w = 1u32;
+        for &c in &ch[..cnt] {
+            if let Some(nd) = nodes.get(c) {
+                if nd.left_count != 0 {
+                    w = w.saturating_add(nd.reserved);
+                }
             }
         }
-    }
+        w
+    } else if is_cut(parent_count, n as u32) {
+        let mut cursor = 0u32;
+        let mut leaves = 0u32;
+        match emit_seq(nodes, 0, pre, 0, &mut cursor, &mut leaves) {
+            Some(_) => cursor,
+            None => wide_count(nodes, 0),
+        }
+    } else {
+        0
+    };
     if let Some(slot) = nodes.get_mut(0) {
         slot.reserved = w;
-    }
-    // A cut root's wide subtree is encoded now, while its binary nodes are in cache, into its
-    // own range of the pre-emission area; the final pass copies the block into place.
-    if is_cut(parent_count, n as u32) {
-        if let Some(block) = pre.get_mut(..w as usize * NODE_SIZE) {
-            emit_wide(nodes, 0, block, None);
-        }
     }
     (area + a.0 + b.0, 1 + a.1.max(b.1))
 }
@@ -1262,6 +1270,52 @@ fn run_emit(tasks: &mut [EmitTask<'_>]) -> u32 {
     }
 }
 
+/// Emits the wide subtree of binary node `i` (inside a cut subtree: no cut roots below it) in
+/// preorder at local index `*cursor` onwards of `out`, child indices offset by `base`; the
+/// same bytes `emit_wide` writes, without needing subtree sizes in advance. Counts leaf
+/// children into `leaves`; None when `out` is too small (what was written is then garbage).
+fn emit_seq(nodes: &[BinNode], i: usize, out: &mut [u8], base: u32, cursor: &mut u32, leaves: &mut u32) -> Option<u32> {
+    let me = *cursor;
+    *cursor += 1;
+    let at = me as usize * NODE_SIZE;
+    if at + NODE_SIZE > out.len() {
+        return None;
+    }
+    let (ch, cnt, _) = wide_children(nodes, i);
+    let mut boxes = [Aabb::EMPTY; 4];
+    let mut child = [0u32; 4];
+    let mut kind = [0u8; 4];
+    let mut node_box = Aabb::EMPTY;
+    for k in 0..cnt {
+        let nd = nodes.get(ch[k]).copied()?;
+        boxes[k] = Aabb { lo: nd.lo, hi: nd.hi };
+        node_box = node_box.union(&boxes[k]);
+        if nd.left_count != 0 && ch[k] != i {
+            kind[k] = CHILD_INTERNAL;
+            child[k] = base + emit_seq(nodes, ch[k], out, base, cursor, leaves)?;
+        } else {
+            kind[k] = nd.count.min(254) as u8;
+            child[k] = nd.start;
+            *leaves += 1;
+        }
+    }
+    let wn = encode_node(&node_box, &boxes[..cnt], &child, &kind);
+    out.get_mut(at..at + NODE_SIZE)?.copy_from_slice(bytemuck::bytes_of(&wn));
+    Some(me)
+}
+
+/// Wide nodes of binary node `i`'s wide subtree (inside a cut subtree), by counting.
+fn wide_count(nodes: &[BinNode], i: usize) -> u32 {
+    let (ch, cnt, _) = wide_children(nodes, i);
+    let mut w = 1u32;
+    for &c in &ch[..cnt] {
+        if nodes.get(c).is_some_and(|nd| nd.left_count != 0) && c != i {
+            w = w.saturating_add(wide_count(nodes, c));
+        }
+    }
+    w
+}
+
 /// Emits the wide node made from the binary subtree rooted at `nodes[0]` as node `me` into
 /// `out[..64]` and its descendants (preorder) after it; returns the number of leaf children.
 /// Child indices follow from subtree sizes, never from timing: same bytes for any thread count.
@@ -1304,13 +1358,23 @@ fn emit_wide(nodes: &[BinNode], me: u32, out: &mut [u8], pre: Option<&[u8]>) -> 
         let len = (w as usize * NODE_SIZE).min(rest.len());
         let (mine, others) = std::mem::take(&mut rest).split_at_mut(len);
         rest = others;
-        if let (true, Some(pre), Some(nd)) = (is_cut_root, pre, nodes.get(rel)) {
-            if let Some(src) = pre_block(nd, pre.len()).and_then(|r| pre.get(r)) {
-                if src.len() == mine.len() {
-                    leaves += copy_block(src, mine, idx);
-                    continue;
+        if is_cut_root {
+            // Inner nodes of a cut subtree carry no sizes: its block is copied, or encoded
+            // here sequentially into its exact range.
+            if let (Some(pre), Some(nd)) = (pre, nodes.get(rel)) {
+                if let Some(src) = pre_block(nd, pre.len()).and_then(|r| pre.get(r)) {
+                    if src.len() == mine.len() {
+                        leaves += copy_block(src, mine, idx);
+                        continue;
+                    }
                 }
             }
+            let (mut cursor, mut l) = (0u32, 0u32);
+            if let Some(sub) = nodes.get(rel..) {
+                let _ = emit_seq(sub, 0, mine, idx, &mut cursor, &mut l);
+            }
+            leaves += l;
+            continue;
         }
         tasks[nt] = nodes.get(rel..).map(|n| (n, idx, mine, pre));
         nt += 1;
@@ -1825,6 +1889,12 @@ pub fn build(desc: &BuildDesc, view: &dyn DeviceView, dst: &mut [u8], scratch: &
         };
         leaf_count = match root_block {
             Some(src) if src.len() == out.len() => copy_block(src, out, 0),
+            _ if nodes.first().is_some_and(|r| r.left_count != 0 && r.count <= EMIT_CUT) => {
+                // The root is a cut root whose block is not usable: encode it here.
+                let (mut cursor, mut l) = (0u32, 0u32);
+                let _ = emit_seq(nodes, 0, out, 0, &mut cursor, &mut l);
+                l
+            }
             _ => emit_wide(nodes, 0, out, pre_area),
         };
     }
