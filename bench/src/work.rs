@@ -752,13 +752,15 @@ fn library_build(gpu: &Gpu, scene: &Scene, w: Workload, opts: &Options, row: &mu
     let mut dst = vec![0u8; sizes.acceleration_structure_size as usize];
     let mut scratch = vec![0u8; sizes.build_scratch_size as usize];
     let mut times = Vec::new();
+    let mut phases = Vec::new();
     let mut report = None;
     for k in 0..opts.warmup + opts.repeat {
         let t0 = Instant::now();
-        let r = accel::build(&desc, &accel::NoDevice, &mut dst, &mut scratch).map_err(|e| format!("arbor::accel::build: {e:?}"))?;
+        let (r, ph) = accel::build_timed(&desc, &accel::NoDevice, &mut dst, &mut scratch).map_err(|e| format!("arbor::accel::build: {e:?}"))?;
         let ms = t0.elapsed().as_secs_f64() * 1e3;
         if k >= opts.warmup {
             times.push(ms);
+            phases.push(ph);
         }
         report = Some(r);
     }
@@ -774,7 +776,19 @@ fn library_build(gpu: &Gpu, scene: &Scene, w: Workload, opts: &Options, row: &mu
         row.nodes = Some(m.node_count as u64);
         row.leaves = Some(m.leaf_count as u64);
     }
-    row.note = "arbor::accel::build called directly (no Vulkan)".into();
+    // Median of each phase over the timed runs (accel::BuildPhases).
+    let med = |f: fn(&accel::BuildPhases) -> f64| {
+        let mut v: Vec<f64> = phases.iter().map(f).collect();
+        v.sort_by(|a, b| a.total_cmp(b));
+        v.get(v.len() / 2).copied().unwrap_or(0.0)
+    };
+    row.note = format!(
+        "arbor::accel::build called directly (no Vulkan); median phases ms: ingest {:.2}; sah {:.2}; leaf data {:.2}; nodes {:.2}",
+        med(|p| p.ingest_ms),
+        med(|p| p.sah_ms),
+        med(|p| p.leaf_data_ms),
+        med(|p| p.nodes_ms)
+    );
     Ok(())
 }
 

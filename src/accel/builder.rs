@@ -4,7 +4,8 @@
 //! Host heap use is O(threads): all arrays proportional to the input live in `scratch`.
 use super::input::{self, read_aabb, read_instance, read_triangle, transform_point};
 use super::layout::{self, GeometryRecord, InstanceRecord, PrimRecord, RawHeader, WideNode, CHILD_INTERNAL, NODE_SIZE, PRIM_SIZE, RECORD_SIZE};
-use super::{AsType, BuildDesc, BuildError, BuildFlags, BuildReport, DeviceView, Geometry, GeometryData};
+use super::{AsType, BuildDesc, BuildError, BuildFlags, BuildPhases, BuildReport, DeviceView, Geometry, GeometryData};
+use std::time::Instant;
 use bytemuck::{Pod, Zeroable};
 use glam::{UVec3, Vec3, Vec3A, Vec3Swizzles, Vec4};
 use rayon::prelude::*;
@@ -1796,7 +1797,8 @@ pub fn zero_gaps(dst: &mut [u8], filled: &[(u64, u64)], end: u64) {
     }
 }
 
-pub fn build(desc: &BuildDesc, view: &dyn DeviceView, dst: &mut [u8], scratch: &mut [u8]) -> Result<BuildReport, BuildError> {
+pub fn build(desc: &BuildDesc, view: &dyn DeviceView, dst: &mut [u8], scratch: &mut [u8]) -> Result<(BuildReport, BuildPhases), BuildError> {
+    let t_start = Instant::now();
     check_types(desc)?;
     let total = total_primitives(desc)?;
     let is_tlas = desc.ty == AsType::TopLevel;
@@ -1823,6 +1825,7 @@ pub fn build(desc: &BuildDesc, view: &dyn DeviceView, dst: &mut [u8], scratch: &
     let stage_at = layout::sections(desc.ty, 0, total as u64, ngeo).nodes as usize;
     let staged = !is_tlas && total >= 3 && stage_at.checked_add(total * STAGE_SIZE).is_some_and(|e| e <= dst.len());
     let active = ingest(desc, view, refs, if staged { dst.get_mut(stage_at..) } else { None })?;
+    let t_ingest = Instant::now();
     let refs = &mut refs[..active];
     // Geometry table now, while refs are still in geometry order (its offset is tree-independent).
     {
@@ -1856,6 +1859,7 @@ pub fn build(desc: &BuildDesc, view: &dyn DeviceView, dst: &mut [u8], scratch: &
     } else {
         (0.0, 0)
     };
+    let t_sah = Instant::now();
     // Leaf data first: with staging, the node section overlaps the staging area.
     let pre = layout::sections(desc.ty, 0, active as u64, ngeo);
     if !is_tlas {
@@ -1869,6 +1873,7 @@ pub fn build(desc: &BuildDesc, view: &dyn DeviceView, dst: &mut [u8], scratch: &
             write_leaf_data(desc, refs, prims, records);
         }
     }
+    let t_leaf = Instant::now();
     // Nodes are the last section, so their offset is known before their count: emit directly.
     let nodes_at = pre.nodes as usize;
     let wide_count = if active > 0 { wide_size(nodes) } else { 0 };
@@ -1898,6 +1903,7 @@ pub fn build(desc: &BuildDesc, view: &dyn DeviceView, dst: &mut [u8], scratch: &
             _ => emit_wide(nodes, 0, out, pre_area),
         };
     }
+    let t_nodes = Instant::now();
     let s = layout::sections(desc.ty, wide_count as u64, active as u64, ngeo);
     if s.end > dst.len() as u64 || s.nodes as usize != nodes_at {
         return Err(BuildError::DestinationTooSmall { needed: s.end, got: dst.len() as u64 });
@@ -1958,7 +1964,15 @@ pub fn build(desc: &BuildDesc, view: &dyn DeviceView, dst: &mut [u8], scratch: &
         reserved: 0,
     };
     layout::write_header(dst, &raw);
-    Ok(BuildReport { used_size: used, node_count: wide_count, leaf_count, primitive_count: active as u32 })
+    let ms = |a: Instant, b: Instant| (b - a).as_secs_f64() * 1e3;
+    let phases = BuildPhases {
+        ingest_ms: ms(t_start, t_ingest),
+        sah_ms: ms(t_ingest, t_sah),
+        leaf_data_ms: ms(t_sah, t_leaf),
+        nodes_ms: ms(t_leaf, t_nodes),
+        total_ms: ms(t_start, Instant::now()),
+    };
+    Ok((BuildReport { used_size: used, node_count: wide_count, leaf_count, primitive_count: active as u32 }, phases))
 }
 
 

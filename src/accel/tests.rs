@@ -838,3 +838,34 @@ fn structure_digests() {
         }
     }
 }
+
+#[test]
+fn build_timed_builds_the_same_structure() {
+    // build_timed is build plus a clock: same report, same bytes; its phases are a
+    // breakdown of its total (each non-negative, together no more than the total).
+    let mesh = crate::scene::load(concat!(env!("CARGO_MANIFEST_DIR"), "/data/bunny.ply")).expect("mesh");
+    let (vb, ib) = (mesh.vertex_bytes(), mesh.index_bytes());
+    let g = tri_geom(&vb, mesh.vertex_count() as u32, &ib, mesh.triangle_count() as u32, GeometryFlags::OPAQUE);
+    for flags in [BuildFlags::PREFER_FAST_TRACE, BuildFlags::PREFER_FAST_BUILD] {
+        let sz = build_sizes(AsType::BottomLevel, BuildFlags(flags), &[shape_of(&g)], &[g.primitive_count]);
+        let desc = BuildDesc { ty: AsType::BottomLevel, flags: BuildFlags(flags), geometries: &[g] };
+        let run = |timed: bool| {
+            let mut dst = vec![0u8; sz.acceleration_structure_size as usize];
+            let mut scratch = vec![0u8; sz.build_scratch_size as usize];
+            let (report, phases) = if timed {
+                build_timed(&desc, &NoDevice, &mut dst, &mut scratch).expect("build_timed")
+            } else {
+                (build(&desc, &NoDevice, &mut dst, &mut scratch).expect("build"), BuildPhases::default())
+            };
+            (report, phases, dst[..report.used_size as usize].to_vec())
+        };
+        let (r0, _, b0) = run(false);
+        let (r1, p, b1) = run(true);
+        assert_eq!(r0, r1);
+        assert!(b0 == b1, "build_timed changed the bytes");
+        let parts = [p.ingest_ms, p.sah_ms, p.leaf_data_ms, p.nodes_ms];
+        assert!(parts.iter().all(|&x| x >= 0.0), "{p:?}");
+        assert!(parts.iter().sum::<f64>() <= p.total_ms + 1e-6, "{p:?}");
+        assert!(p.total_ms > 0.0, "{p:?}");
+    }
+}
