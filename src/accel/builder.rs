@@ -1535,11 +1535,12 @@ impl<'a> FastTris<'a> {
 }
 
 /// Deterministic first error: the one with the lowest (geometry, chunk) position wins.
-fn first_err(a: Result<(), (u64, BuildError)>, b: Result<(), (u64, BuildError)>) -> Result<(), (u64, BuildError)> {
+/// Also sums the dropped counts of successful chunks.
+fn first_err(a: Result<usize, (u64, BuildError)>, b: Result<usize, (u64, BuildError)>) -> Result<usize, (u64, BuildError)> {
     match (a, b) {
         (Err(x), Err(y)) => Err(if x.0 <= y.0 { x } else { y }),
         (Err(x), _) | (_, Err(x)) => Err(x),
-        _ => Ok(()),
+        (Ok(x), Ok(y)) => Ok(x + y),
     }
 }
 
@@ -1554,17 +1555,19 @@ pub const STAGE_SIZE: usize = 40;
 /// in order; returns the active count. With `stage`, the primitive data is also written there
 /// at the global ID (one sequential pass over the input) and `PrimRef::prim` holds the global
 /// ID until `gather_leaf_data` puts data and records in leaf order.
-fn ingest(desc: &BuildDesc, view: &dyn DeviceView, refs: &mut [PrimRef], mut stage: Option<&mut [u8]>) -> Result<usize, BuildError> {
+fn ingest(desc: &BuildDesc, view: &dyn DeviceView, refs: &mut [PrimRef], mut stage: Option<&mut [u8]>, temp: &mut [PrimRef]) -> Result<usize, BuildError> {
     let allow_update = desc.flags.contains(BuildFlags::ALLOW_UPDATE);
     let mut base = 0usize;
+    let mut dropped_total = 0usize;
     for (gi, g) in desc.geometries.iter().enumerate() {
         let count = g.primitive_count as usize;
         let slice = refs.get_mut(base..base + count).ok_or(BuildError::TooManyPrimitives)?;
         let gi32 = gi as u32;
         let gbase = base;
         let fast = FastTris::of(g);
-        let work = |ci: usize, chunk: &mut [PrimRef], st: Option<&mut [u8]>| -> Result<(), (u64, BuildError)> {
+        let work = |ci: usize, chunk: &mut [PrimRef], st: Option<&mut [u8]>| -> Result<usize, (u64, BuildError)> {
             let mut st = st;
+            let mut dropped = 0usize;
             for (k, slot) in chunk.iter_mut().enumerate() {
                 let p = (ci * INGEST_CHUNK + k) as u32;
                 let r = match fast.as_ref().and_then(|ft| ft.make_ref(gi32, p, allow_update)) {
@@ -1582,11 +1585,14 @@ fn ingest(desc: &BuildDesc, view: &dyn DeviceView, refs: &mut [PrimRef], mut sta
                         }
                         *slot = r
                     }
-                    Ok(None) => *slot = PrimRef { lo: [0.0; 3], geom: DROPPED, hi: [0.0; 3], prim: p },
+                    Ok(None) => {
+                        *slot = PrimRef { lo: [0.0; 3], geom: DROPPED, hi: [0.0; 3], prim: p };
+                        dropped += 1;
+                    }
                     Err(e) => return Err(((gi as u64) << 32 | p as u64, e)),
                 }
             }
-            Ok(())
+            Ok(dropped)
         };
         let res = match stage.as_deref_mut() {
             Some(st) => {
@@ -1596,15 +1602,41 @@ fn ingest(desc: &BuildDesc, view: &dyn DeviceView, refs: &mut [PrimRef], mut sta
                     .zip(st.par_chunks_mut(INGEST_CHUNK * STAGE_SIZE))
                     .enumerate()
                     .map(|(ci, (chunk, st))| work(ci, chunk, Some(st)))
-                    .reduce(|| Ok(()), first_err)
+                    .reduce(|| Ok(0), first_err)
             }
-            None => slice.par_chunks_mut(INGEST_CHUNK).enumerate().map(|(ci, chunk)| work(ci, chunk, None)).reduce(|| Ok(()), first_err),
+            None => slice.par_chunks_mut(INGEST_CHUNK).enumerate().map(|(ci, chunk)| work(ci, chunk, None)).reduce(|| Ok(0), first_err),
         };
-        res.map_err(|e| e.1)?;
+        dropped_total += res.map_err(|e| e.1)?;
         base += count;
     }
-    // Stable in-place compaction (write index never passes read index), from the first
-    // dropped slot on (usually none: a parallel search skips the whole pass).
+    if dropped_total == 0 {
+        return Ok(base);
+    }
+    // Stable compaction in parallel: each of a fixed number of chunks copies its kept
+    // references to their final range of `temp` (disjoint, from a prefix sum), then all come
+    // back to `refs`. Without a large enough `temp`, sequentially in place below.
+    let kept = base - dropped_total;
+    if temp.len() >= kept {
+        const CC: usize = 64;
+        let chunk = base.div_ceil(CC).max(1);
+        let mut counts = [0usize; CC];
+        refs[..base].par_chunks(chunk).zip(counts.par_iter_mut()).for_each(|(c, k)| *k = c.iter().filter(|r| r.geom != DROPPED).count());
+        let mut outs: [&mut [PrimRef]; CC] = std::array::from_fn(|_| &mut [][..]);
+        let mut rest = &mut temp[..kept];
+        for (o, &k) in outs.iter_mut().zip(&counts) {
+            let cut = k.min(rest.len());
+            let (mine, r) = std::mem::take(&mut rest).split_at_mut(cut);
+            *o = mine;
+            rest = r;
+        }
+        refs[..base].par_chunks(chunk).zip(outs.par_iter_mut()).for_each(|(c, o)| {
+            for (d, r) in o.iter_mut().zip(c.iter().filter(|r| r.geom != DROPPED)) {
+                *d = *r;
+            }
+        });
+        refs[..kept].par_chunks_mut(chunk).zip(temp[..kept].par_chunks(chunk)).for_each(|(d, s)| d.copy_from_slice(s));
+        return Ok(kept);
+    }
     let first = refs[..base].par_iter().with_min_len(INGEST_CHUNK).position_first(|r| r.geom == DROPPED).unwrap_or(base);
     let mut w = first;
     for r in first..base {
@@ -1824,7 +1856,11 @@ pub fn build(desc: &BuildDesc, view: &dyn DeviceView, dst: &mut [u8], scratch: &
     // vertices at random. Needs 40·total <= the worst-case node area (true for total >= 3).
     let stage_at = layout::sections(desc.ty, 0, total as u64, ngeo).nodes as usize;
     let staged = !is_tlas && total >= 3 && stage_at.checked_add(total * STAGE_SIZE).is_some_and(|e| e <= dst.len());
-    let active = ingest(desc, view, refs, if staged { dst.get_mut(stage_at..) } else { None })?;
+    let active = {
+        // The node slots are unused until the tree is built: compaction's temporary.
+        let temp = node_refs_mut(nodes, total).unwrap_or(&mut []);
+        ingest(desc, view, refs, if staged { dst.get_mut(stage_at..) } else { None }, temp)?
+    };
     let t_ingest = Instant::now();
     let refs = &mut refs[..active];
     // Geometry table now, while refs are still in geometry order (its offset is tree-independent).
