@@ -190,6 +190,9 @@ const MAX_SAH_DEPTH: u32 = 64;
 /// for 6 % fewer.
 const PAR_BIN_CUTOFF: usize = 1 << 16;
 const SAMPLE_TARGET: usize = 1 << 14;
+/// Samples per parallel binning task of a sampled node (about 16 tasks: the strided reads
+/// miss the cache, so one task per node would serialise the top of the tree).
+const SAMPLE_CHUNK: usize = 1 << 10;
 const BIN_CHUNK: usize = 1 << 14;
 
 impl BuildParams {
@@ -509,7 +512,7 @@ fn build_rec(ctx: &Ctx, refs: &mut [PrimRef], nodes: &mut [BinNode], start: u32,
                 // the children's exact boxes.
                 let step = (n / p.sample_target.max(1)).max(1);
                 let merged = src
-                    .par_chunks(BIN_CHUNK * step)
+                    .par_chunks(if step == 1 { BIN_CHUNK } else { SAMPLE_CHUNK * step })
                     .map(|c| {
                         let mut b = Bins::new();
                         if step == 1 {
