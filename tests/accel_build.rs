@@ -768,3 +768,20 @@ fn dropped_primitives_compact_deterministically() {
         compare_blas(&one.bytes, &geoms, &random_rays([0.0, 0.0, 0.0, 1.0, 1.0, 1.0], 300, 9), "dropped");
     }
 }
+
+/// Large nodes without an SAH split: 100k copies of one triangle (equal centroids: no bin
+/// grid, median splits all the way down through the parallel and sampled paths), then the
+/// same copies mixed with 70k random triangles. Valid and brute-force equal for every tier.
+#[cfg(not(debug_assertions))]
+#[test]
+fn large_coincident_inputs_take_the_fallback_paths() {
+    let rays = random_rays([-1.0, -1.0, -1.0, 1.0, 1.0, 1.0], 40, 8);
+    let tri = [[0.1f32, 0.2, 0.3], [0.6, 0.1, -0.2], [-0.3, 0.5, 0.4]];
+    degenerate_case("100k identical", tri.to_vec(), vec![[0, 1, 2]; 100_000], &rays);
+    let soup = scene::random_soup(70_000, 12);
+    let mut pos = tri.to_vec();
+    pos.extend(soup.positions.iter().map(|p| [p[0] * 2.0 - 1.0, p[1] * 2.0 - 1.0, p[2] * 2.0 - 1.0]));
+    let mut idx = vec![[0u32, 1, 2]; 100_000];
+    idx.extend(soup.indices.iter().map(|t| [t[0] + 3, t[1] + 3, t[2] + 3]));
+    degenerate_case("100k identical + 70k random", pos, idx, &rays);
+}
