@@ -177,7 +177,6 @@ pub struct BuildParams {
     pub parallel_cutoff: u32,
     /// Nodes of at least PAR_BIN_CUTOFF references bin a strided sample of about this many.
     pub sample_target: usize,
-    pub kdiv: usize,
 }
 pub const MAX_BINS: usize = 32;
 /// Depth after which splits become balanced object-median splits: bounds recursion depth
@@ -198,11 +197,11 @@ const BIN_CHUNK: usize = 1 << 14;
 impl BuildParams {
     pub fn from_flags(flags: BuildFlags) -> Self {
         if flags.contains(BuildFlags::PREFER_FAST_TRACE) {
-            BuildParams { bins: 32, single_axis: false, traversal_cost: 1.0, max_leaf: 8, small_n: SMALL_N, parallel_cutoff: 4096, sample_target: 2 * SAMPLE_TARGET, kdiv: 4 }
+            BuildParams { bins: 32, single_axis: false, traversal_cost: 1.0, max_leaf: 8, small_n: SMALL_N, parallel_cutoff: 4096, sample_target: 2 * SAMPLE_TARGET }
         } else if flags.contains(BuildFlags::PREFER_FAST_BUILD) {
-            BuildParams { bins: 8, single_axis: true, traversal_cost: 2.5, max_leaf: 8, small_n: SMALL_N, parallel_cutoff: 4096, sample_target: SAMPLE_TARGET, kdiv: 4 }
+            BuildParams { bins: 8, single_axis: true, traversal_cost: 2.5, max_leaf: 8, small_n: SMALL_N, parallel_cutoff: 4096, sample_target: SAMPLE_TARGET }
         } else {
-            BuildParams { bins: 16, single_axis: false, traversal_cost: 1.0, max_leaf: 8, small_n: SMALL_N, parallel_cutoff: 4096, sample_target: 2 * SAMPLE_TARGET, kdiv: 4 }
+            BuildParams { bins: 16, single_axis: false, traversal_cost: 1.0, max_leaf: 8, small_n: SMALL_N, parallel_cutoff: 4096, sample_target: 2 * SAMPLE_TARGET }
         }
     }
 }
@@ -485,7 +484,7 @@ fn build_rec(ctx: &Ctx, refs: &mut [PrimRef], nodes: &mut [BinNode], start: u32,
     // Smaller nodes get fewer bins: at most one per four references, at least 8 (the sweep
     // costs O(bins) per node; on the dragon FAST_TRACE this is 7 % fewer instructions for
     // SAH 48.79 -> 48.81).
-    let k = p.bins.clamp(2, MAX_BINS).min((n / p.kdiv).max(8));
+    let k = p.bins.clamp(2, MAX_BINS).min((n / REFS_PER_BIN).max(8));
     let split: Option<(usize, usize, Aabb, Aabb, f32)>; // (axis, bin, left box, right box, cost)
     if depth < MAX_SAH_DEPTH {
         let mut scale = [0f32; 3];
@@ -588,11 +587,11 @@ fn build_rec(ctx: &Ctx, refs: &mut [PrimRef], nodes: &mut [BinNode], start: u32,
                         }
                     }
                 }
-                let (i, (lc_lo, lc_hi), (rc_lo, rc_hi)) = partition_seq(refs, &sp);
+                let (i, lc, rc) = partition_seq(refs, &sp);
                 if i > 0 && i < n {
                     // Bins of a sampled node do not bound every reference: exact boxes then.
                     let (lbox, rbox) = if n >= PAR_BIN_CUTOFF { (bounds_of(&refs[..i]).0, bounds_of(&refs[i..]).0) } else { (lbox, rbox) };
-                    return finish_split(ctx, refs, nodes, start, bounds, i, (lbox, to_aabb(lc_lo, lc_hi)), (rbox, to_aabb(rc_lo, rc_hi)), depth, bins, false, pre, parent_count);
+                    return finish_split(ctx, refs, nodes, start, bounds, i, (lbox, lc), (rbox, rc), depth, bins, false, pre, parent_count);
                 }
             }
         }
@@ -683,6 +682,36 @@ fn sweep_bins(bins: &Bins, k: usize, scale: &[f32; 3]) -> Option<(usize, usize, 
     split
 }
 
+/// Centroid bounds of both sides of a partition, accumulated without branches: centroids are
+/// finite, so c + inf = inf and c - inf = -inf, and adding 0 or +inf (made from the side's
+/// bit) routes each centroid into one side's min/max.
+#[derive(Clone, Copy)]
+struct SideBounds {
+    lc_lo: Vec3A,
+    lc_hi: Vec3A,
+    rc_lo: Vec3A,
+    rc_hi: Vec3A,
+}
+impl SideBounds {
+    const EMPTY: SideBounds = SideBounds { lc_lo: Vec3A::INFINITY, lc_hi: Vec3A::NEG_INFINITY, rc_lo: Vec3A::INFINITY, rc_hi: Vec3A::NEG_INFINITY };
+    #[inline(always)]
+    fn add(&mut self, c: Vec3A, left: bool) {
+        const INF_BITS: u32 = 0x7f80_0000;
+        let ol = Vec3A::splat(f32::from_bits((left as u32 ^ 1) * INF_BITS));
+        let or = Vec3A::splat(f32::from_bits(left as u32 * INF_BITS));
+        self.lc_lo = self.lc_lo.min(c + ol);
+        self.lc_hi = self.lc_hi.max(c - ol);
+        self.rc_lo = self.rc_lo.min(c + or);
+        self.rc_hi = self.rc_hi.max(c - or);
+    }
+    fn left(&self) -> Aabb {
+        to_aabb(self.lc_lo, self.lc_hi)
+    }
+    fn right(&self) -> Aabb {
+        to_aabb(self.rc_lo, self.rc_hi)
+    }
+}
+
 const PRIMREF_BYTES: usize = std::mem::size_of::<PrimRef>();
 
 /// Out-of-place stable partition by `sp`: the lefts of `src` in order from `dst[0]`, the
@@ -690,25 +719,18 @@ const PRIMREF_BYTES: usize = std::mem::size_of::<PrimRef>();
 /// centroid bounds, or None when it is not `nl` (what was written is then garbage; nothing
 /// is written outside `dst`).
 #[inline(never)]
-#[allow(clippy::type_complexity)]
 fn partition_out(src: &[PrimRef], dst: &mut [u8], nl: usize, rbase: usize, sp: &Splitter) -> Option<(usize, Aabb, Aabb)> {
     let n = src.len();
     if nl > n || nl * PRIMREF_BYTES > rbase || dst.len() < rbase + (n - nl) * PRIMREF_BYTES {
         return None;
     }
     let limit = sp.limit;
-    let (mut lc_lo, mut lc_hi, mut rc_lo, mut rc_hi) = (Vec3A::INFINITY, Vec3A::NEG_INFINITY, Vec3A::INFINITY, Vec3A::NEG_INFINITY);
-    const INF_BITS: u32 = 0x7f80_0000;
+    let mut sb = SideBounds::EMPTY;
     let (mut li, mut ri) = (0usize, rbase);
     for r in src {
         let c = ref_lo(r) * 0.5 + ref_hi(r) * 0.5;
         let left = (sp.pos(r) < limit) as usize;
-        let ol = Vec3A::splat(f32::from_bits((left as u32 ^ 1) * INF_BITS));
-        let or = Vec3A::splat(f32::from_bits(left as u32 * INF_BITS));
-        lc_lo = lc_lo.min(c + ol);
-        lc_hi = lc_hi.max(c - ol);
-        rc_lo = rc_lo.min(c + or);
-        rc_hi = rc_hi.max(c - or);
+        sb.add(c, left != 0);
         let at = if left != 0 { li } else { ri };
         if let Some(d) = dst.get_mut(at..at + PRIMREF_BYTES) {
             d.copy_from_slice(bytemuck::bytes_of(r));
@@ -716,41 +738,29 @@ fn partition_out(src: &[PrimRef], dst: &mut [u8], nl: usize, rbase: usize, sp: &
         li += PRIMREF_BYTES * left;
         ri += PRIMREF_BYTES * (left ^ 1);
     }
-    (li == nl * PRIMREF_BYTES).then(|| (nl, to_aabb(lc_lo, lc_hi), to_aabb(rc_lo, rc_hi)))
+    (li == nl * PRIMREF_BYTES).then(|| (nl, sb.left(), sb.right()))
 }
 
 /// In-place partition by `sp`; returns the left count and both sides' centroid bounds.
 #[inline(never)]
-fn partition_seq(refs: &mut [PrimRef], sp: &Splitter) -> (usize, (Vec3A, Vec3A), (Vec3A, Vec3A)) {
+fn partition_seq(refs: &mut [PrimRef], sp: &Splitter) -> (usize, Aabb, Aabb) {
     let n = refs.len();
     let limit = sp.limit;
     // Partition in place (deterministic: sequential, same bin function as binning).
     // Branchless Lomuto: every reference is swapped with the first right one and
     // the boundary advances by the comparison, so no branch depends on the data.
     let mut i = 0usize;
-    let mut lc_lo = Vec3A::INFINITY;
-    let mut lc_hi = Vec3A::NEG_INFINITY;
-    let mut rc_lo = Vec3A::INFINITY;
-    let mut rc_hi = Vec3A::NEG_INFINITY;
-    // Centroids are finite, so c + inf = inf and c - inf = -inf: adding 0 or inf (made from
-    // the comparison's bit, no branch) routes each centroid into one side's bounds.
-    const INF_BITS: u32 = 0x7f80_0000;
+    let mut sb = SideBounds::EMPTY;
     for j in 0..n {
         let r = refs[j];
-        let c = ref_lo(&r) * 0.5 + ref_hi(&r) * 0.5;
-        let left = (sp.pos(&r) < limit) as u32;
-        let ol = Vec3A::splat(f32::from_bits((left ^ 1) * INF_BITS));
-        let or = Vec3A::splat(f32::from_bits(left * INF_BITS));
-        lc_lo = lc_lo.min(c + ol);
-        lc_hi = lc_hi.max(c - ol);
-        rc_lo = rc_lo.min(c + or);
-        rc_hi = rc_hi.max(c - or);
+        let left = sp.pos(&r) < limit;
+        sb.add(ref_lo(&r) * 0.5 + ref_hi(&r) * 0.5, left);
         // i <= j always (i counts the lefts before j).
         refs[j] = refs[i];
         refs[i] = r;
         i += left as usize;
     }
-    (i, (lc_lo, lc_hi), (rc_lo, rc_hi))
+    (i, sb.left(), sb.right())
 }
 
 /// Above this many references a node's partition runs in parallel chunks.
@@ -915,6 +925,9 @@ fn par_partition_from_nodes(refs: &mut [PrimRef], nodes: &[BinNode], is_left: im
 fn c_len(n: usize, chunk: usize, k: usize) -> usize {
     n.saturating_sub(k * chunk).min(chunk)
 }
+
+/// Binned nodes get at most one bin per this many references (at least 8 bins).
+const REFS_PER_BIN: usize = 4;
 
 /// Default size up to which nodes use the exact sorted sweep, and the largest allowed.
 const SMALL_N: usize = 8;
@@ -1274,6 +1287,33 @@ fn run_emit(tasks: &mut [EmitTask<'_>]) -> u32 {
     }
 }
 
+/// The wide node made from binary node `i` (its children from `wide_children`): leaf children
+/// point at their primitives, and `internal(slot, node, is_cut_root)` gives each internal
+/// child's node index, in child order (emission in preorder). Returns the node and its leaf
+/// children; None when `internal` does.
+fn wide_node(nodes: &[BinNode], i: usize, mut internal: impl FnMut(usize, &BinNode, bool) -> Option<u32>) -> Option<(WideNode, u32)> {
+    let (ch, cnt, cut) = wide_children(nodes, i);
+    let mut boxes = [Aabb::EMPTY; 4];
+    let mut child = [0u32; 4];
+    let mut kind = [0u8; 4];
+    let mut node_box = Aabb::EMPTY;
+    let mut leaves = 0u32;
+    for k in 0..cnt {
+        let nd = nodes.get(ch[k]).copied()?;
+        boxes[k] = Aabb { lo: nd.lo, hi: nd.hi };
+        node_box = node_box.union(&boxes[k]);
+        if nd.left_count != 0 && ch[k] != i {
+            kind[k] = CHILD_INTERNAL;
+            child[k] = internal(ch[k], &nd, cut >> k & 1 != 0)?;
+        } else {
+            kind[k] = nd.count.min(254) as u8;
+            child[k] = nd.start;
+            leaves += 1;
+        }
+    }
+    Some((encode_node(&node_box, &boxes[..cnt], &child, &kind), leaves))
+}
+
 /// Emits the wide subtree of binary node `i` (inside a cut subtree: no cut roots below it) in
 /// preorder at local index `*cursor` onwards of `out`, child indices offset by `base`; the
 /// same bytes `emit_wide` writes, without needing subtree sizes in advance. Counts leaf
@@ -1285,25 +1325,8 @@ fn emit_seq(nodes: &[BinNode], i: usize, out: &mut [u8], base: u32, cursor: &mut
     if at + NODE_SIZE > out.len() {
         return None;
     }
-    let (ch, cnt, _) = wide_children(nodes, i);
-    let mut boxes = [Aabb::EMPTY; 4];
-    let mut child = [0u32; 4];
-    let mut kind = [0u8; 4];
-    let mut node_box = Aabb::EMPTY;
-    for k in 0..cnt {
-        let nd = nodes.get(ch[k]).copied()?;
-        boxes[k] = Aabb { lo: nd.lo, hi: nd.hi };
-        node_box = node_box.union(&boxes[k]);
-        if nd.left_count != 0 && ch[k] != i {
-            kind[k] = CHILD_INTERNAL;
-            child[k] = base + emit_seq(nodes, ch[k], out, base, cursor, leaves)?;
-        } else {
-            kind[k] = nd.count.min(254) as u8;
-            child[k] = nd.start;
-            *leaves += 1;
-        }
-    }
-    let wn = encode_node(&node_box, &boxes[..cnt], &child, &kind);
+    let (wn, l) = wide_node(nodes, i, |slot, _, _| emit_seq(nodes, slot, out, base, cursor, leaves).map(|c| base + c))?;
+    *leaves += l;
     out.get_mut(at..at + NODE_SIZE)?.copy_from_slice(bytemuck::bytes_of(&wn));
     Some(me)
 }
@@ -1326,32 +1349,18 @@ fn wide_count(nodes: &[BinNode], i: usize) -> u32 {
 /// With `pre`, cut-root children whose blocks were pre-emitted are copied from there (the
 /// same bytes the recursion would write).
 fn emit_wide(nodes: &[BinNode], me: u32, out: &mut [u8], pre: Option<&[u8]>) -> u32 {
-    let (ch, cnt, cut) = wide_children(nodes, 0);
-    let mut boxes = [Aabb::EMPTY; 4];
-    let mut child = [0u32; 4];
-    let mut kind = [0u8; 4];
-    let mut node_box = Aabb::EMPTY;
-    let mut leaves = 0u32;
     let mut next = me + 1;
     let mut pending: [(usize, u32, u32, bool); 4] = [(0, 0, 0, false); 4];
     let mut np = 0;
-    for k in 0..cnt {
-        let Some(nd) = nodes.get(ch[k]).copied() else { continue };
-        boxes[k] = Aabb { lo: nd.lo, hi: nd.hi };
-        node_box = node_box.union(&boxes[k]);
-        if nd.left_count != 0 && ch[k] != 0 {
-            kind[k] = CHILD_INTERNAL;
-            child[k] = next;
-            pending[np] = (ch[k], next, nd.reserved, cut >> k & 1 != 0);
-            np += 1;
-            next = next.saturating_add(nd.reserved);
-        } else {
-            kind[k] = nd.count.min(254) as u8;
-            child[k] = nd.start;
-            leaves += 1;
-        }
-    }
-    let wn = encode_node(&node_box, &boxes[..cnt], &child, &kind);
+    let Some((wn, mut leaves)) = wide_node(nodes, 0, |slot, nd, is_cut_root| {
+        let idx = next;
+        pending[np] = (slot, idx, nd.reserved, is_cut_root);
+        np += 1;
+        next = next.saturating_add(nd.reserved);
+        Some(idx)
+    }) else {
+        return 0;
+    };
     let (head, mut rest) = out.split_at_mut(NODE_SIZE.min(out.len()));
     if head.len() == NODE_SIZE {
         head.copy_from_slice(bytemuck::bytes_of(&wn));
