@@ -255,6 +255,19 @@ fn device_blas(a: &Arena, mesh: &Mesh) -> Result<(vk::AccelerationStructureKHR, 
     Ok((s, a.address_of(s)))
 }
 
+/// Sizes of a device build of `inp`, its destination structure and scratch (owned by `a`), and
+/// `info` pointed at them.
+fn device_target<'i>(
+    a: &Arena,
+    inp: &Inputs,
+    info: vk::AccelerationStructureBuildGeometryInfoKHR<'i>,
+) -> Result<(vk::AccelerationStructureBuildSizesInfoKHR<'static>, vk::AccelerationStructureKHR, vk::AccelerationStructureBuildGeometryInfoKHR<'i>), String> {
+    let sizes = build_sizes(a.gpu, vk::AccelerationStructureBuildTypeKHR::DEVICE, &info, inp.count);
+    let (s, _) = a.structure(inp.ty, sizes.acceleration_structure_size, Place::Device)?;
+    let scratch = a.buffer(sizes.build_scratch_size, Place::Device)?;
+    Ok((sizes, s, info.dst_acceleration_structure(s).scratch_data(vk::DeviceOrHostAddressKHR { device_address: scratch.address })))
+}
+
 fn build_sizes(
     gpu: &Gpu,
     ty: vk::AccelerationStructureBuildTypeKHR,
@@ -487,10 +500,7 @@ fn device_build(
         .flags(flags_of(w) | vk::BuildAccelerationStructureFlagsKHR::ALLOW_COMPACTION)
         .mode(vk::BuildAccelerationStructureModeKHR::BUILD)
         .geometries(&geoms);
-    let sizes = build_sizes(gpu, vk::AccelerationStructureBuildTypeKHR::DEVICE, &info, inp.count);
-    let (s, _) = a.structure(inp.ty, sizes.acceleration_structure_size, Place::Device)?;
-    let scratch = a.buffer(sizes.build_scratch_size, Place::Device)?;
-    let info = info.dst_acceleration_structure(s).scratch_data(vk::DeviceOrHostAddressKHR { device_address: scratch.address });
+    let (sizes, s, info) = device_target(&a, inp, info)?;
     let range = [vk::AccelerationStructureBuildRangeInfoKHR::default().primitive_count(inp.count)];
     let times = gpu.timed(opts.warmup, opts.repeat, |cb| {
         // SAFETY: valid infos; buffers live until `timed` has waited.
@@ -566,10 +576,7 @@ fn compact(gpu: &Gpu, inp: &Inputs, opts: &Options, row: &mut Row) -> Result<(),
         .flags(vk::BuildAccelerationStructureFlagsKHR::PREFER_FAST_TRACE | vk::BuildAccelerationStructureFlagsKHR::ALLOW_COMPACTION)
         .mode(vk::BuildAccelerationStructureModeKHR::BUILD)
         .geometries(&geoms);
-    let sizes = build_sizes(gpu, vk::AccelerationStructureBuildTypeKHR::DEVICE, &info, inp.count);
-    let (s, _) = a.structure(inp.ty, sizes.acceleration_structure_size, Place::Device)?;
-    let scratch = a.buffer(sizes.build_scratch_size, Place::Device)?;
-    let info = info.dst_acceleration_structure(s).scratch_data(vk::DeviceOrHostAddressKHR { device_address: scratch.address });
+    let (sizes, s, info) = device_target(&a, inp, info)?;
     let range = [vk::AccelerationStructureBuildRangeInfoKHR::default().primitive_count(inp.count)];
     gpu.submit(|cb| {
         // SAFETY: valid infos; buffers live until the wait.
@@ -598,10 +605,7 @@ fn indirect(gpu: &Gpu, inp: &Inputs, opts: &Options, row: &mut Row) -> Result<()
         .flags(vk::BuildAccelerationStructureFlagsKHR::PREFER_FAST_TRACE | vk::BuildAccelerationStructureFlagsKHR::ALLOW_COMPACTION)
         .mode(vk::BuildAccelerationStructureModeKHR::BUILD)
         .geometries(&geoms);
-    let sizes = build_sizes(gpu, vk::AccelerationStructureBuildTypeKHR::DEVICE, &info, inp.count);
-    let (s, _) = a.structure(inp.ty, sizes.acceleration_structure_size, Place::Device)?;
-    let scratch = a.buffer(sizes.build_scratch_size, Place::Device)?;
-    let info = info.dst_acceleration_structure(s).scratch_data(vk::DeviceOrHostAddressKHR { device_address: scratch.address });
+    let (sizes, s, info) = device_target(&a, inp, info)?;
     let mut record = [0u8; 16];
     record[..4].copy_from_slice(&inp.count.to_le_bytes());
     let rec = a.upload(&record)?;
