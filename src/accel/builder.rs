@@ -646,21 +646,22 @@ fn sweep_bins(bins: &Bins, k: usize, scale: &[f32; 3]) -> Option<(usize, usize, 
         let mut hi = Vec3A::NEG_INFINITY;
         let mut rcount = 0u32;
         // Right-to-left; ties resolved to the lowest (axis, bin) for determinism.
-        let mut axis_best: Option<(usize, f32)> = None;
+        // Branch-free selection: an empty side's cost is NaN, which never compares <=, and
+        // the first valid cost always wins against the initial +inf (as it did when this was
+        // an Option), so ties still go to the lowest bin.
+        let (mut ab_cost, mut ab_bin) = (f32::INFINITY, usize::MAX);
         for b in (0..k - 1).rev() {
             lo = lo.min(bins.lo[a][b + 1]);
             hi = hi.max(bins.hi[a][b + 1]);
             rcount += bins.count[a][b + 1];
             let lcount = l_count[b];
-            if lcount == 0 || rcount == 0 {
-                continue;
-            }
             let cost = l_area[b] * lcount as f32 + half_area_v(lo, hi) * rcount as f32;
-            if axis_best.map_or(true, |x| cost <= x.1) {
-                axis_best = Some((b, cost));
-            }
+            let cost = if lcount == 0 || rcount == 0 { f32::NAN } else { cost };
+            let take = cost <= ab_cost;
+            ab_cost = if take { cost } else { ab_cost };
+            ab_bin = if take { b } else { ab_bin };
         }
-        if let Some((b, cost)) = axis_best {
+        if let Some((b, cost)) = (ab_bin != usize::MAX).then_some((ab_bin, ab_cost)) {
             if best.map_or(true, |x| cost < x.2) {
                 best = Some((a, b, cost));
             }
@@ -694,11 +695,13 @@ struct SideBounds {
 }
 impl SideBounds {
     const EMPTY: SideBounds = SideBounds { lc_lo: Vec3A::INFINITY, lc_hi: Vec3A::NEG_INFINITY, rc_lo: Vec3A::INFINITY, rc_hi: Vec3A::NEG_INFINITY };
+    /// `left`: all lanes set for a left centroid, all clear for a right one (a vector
+    /// comparison result, so no branch or scalar-to-vector move is needed to build the
+    /// offsets).
     #[inline(always)]
-    fn add(&mut self, c: Vec3A, left: bool) {
-        const INF_BITS: u32 = 0x7f80_0000;
-        let ol = Vec3A::splat(f32::from_bits((left as u32 ^ 1) * INF_BITS));
-        let or = Vec3A::splat(f32::from_bits(left as u32 * INF_BITS));
+    fn add(&mut self, c: Vec3A, left: glam::BVec3A) {
+        let ol = Vec3A::select(left, Vec3A::ZERO, Vec3A::INFINITY);
+        let or = Vec3A::select(left, Vec3A::INFINITY, Vec3A::ZERO);
         self.lc_lo = self.lc_lo.min(c + ol);
         self.lc_hi = self.lc_hi.max(c - ol);
         self.rc_lo = self.rc_lo.min(c + or);
@@ -727,10 +730,12 @@ fn partition_out(src: &[PrimRef], dst: &mut [u8], nl: usize, rbase: usize, sp: &
     let limit = sp.limit;
     let mut sb = SideBounds::EMPTY;
     let (mut li, mut ri) = (0usize, rbase);
+    let vlimit = Vec3A::splat(limit);
     for r in src {
         let c = ref_lo(r) * 0.5 + ref_hi(r) * 0.5;
-        let left = (sp.pos(r) < limit) as usize;
-        sb.add(c, left != 0);
+        let m = Vec3A::splat(sp.pos(r)).cmplt(vlimit);
+        let left = (m.bitmask() & 1) as usize;
+        sb.add(c, m);
         let at = if left != 0 { li } else { ri };
         if let Some(d) = dst.get_mut(at..at + PRIMREF_BYTES) {
             d.copy_from_slice(bytemuck::bytes_of(r));
@@ -751,10 +756,12 @@ fn partition_seq(refs: &mut [PrimRef], sp: &Splitter) -> (usize, Aabb, Aabb) {
     // the boundary advances by the comparison, so no branch depends on the data.
     let mut i = 0usize;
     let mut sb = SideBounds::EMPTY;
+    let vlimit = Vec3A::splat(limit);
     for j in 0..n {
         let r = refs[j];
-        let left = sp.pos(&r) < limit;
-        sb.add(ref_lo(&r) * 0.5 + ref_hi(&r) * 0.5, left);
+        let m = Vec3A::splat(sp.pos(&r)).cmplt(vlimit);
+        let left = m.bitmask() & 1 != 0;
+        sb.add(ref_lo(&r) * 0.5 + ref_hi(&r) * 0.5, m);
         // i <= j always (i counts the lefts before j).
         refs[j] = refs[i];
         refs[i] = r;
@@ -956,6 +963,36 @@ fn sort_network(v: &mut [u64; MAX_SMALL], net: &[(usize, usize)]) {
     }
 }
 
+/// The SAH sweep of `small_split` over one sorted order: the best (left count, cost) among
+/// the n-1 split positions, lowest position on ties. `S` (3 or 7) fixes the step count; the
+/// positions at and past n-1 get a NaN cost, which never wins.
+#[inline(always)]
+fn small_sweep<const S: usize>(order: &[u8; MAX_SMALL], lo: &[Vec3A; MAX_SMALL], hi: &[Vec3A; MAX_SMALL], n: usize) -> Option<(usize, f32)> {
+    let mut l_area = [0f32; S];
+    let (mut l, mut h) = (Vec3A::INFINITY, Vec3A::NEG_INFINITY);
+    for i in 0..S {
+        let o = order[i] as usize & (MAX_SMALL - 1);
+        l = l.min(lo[o]);
+        h = h.max(hi[o]);
+        l_area[i] = half_area_v(l, h);
+    }
+    let (mut l, mut h) = (Vec3A::INFINITY, Vec3A::NEG_INFINITY);
+    let (mut best_cost, mut best_i) = (f32::INFINITY, usize::MAX);
+    let nf = n as f32;
+    for i in (0..S).rev() {
+        let o = order[(i + 1) & (MAX_SMALL - 1)] as usize & (MAX_SMALL - 1);
+        l = l.min(lo[o]);
+        h = h.max(hi[o]);
+        let left = (i + 1) as f32;
+        let cost = l_area[i] * left + half_area_v(l, h) * (nf - left);
+        let cost = if i + 1 < n { cost } else { f32::NAN };
+        let take = cost <= best_cost;
+        best_cost = if take { cost } else { best_cost };
+        best_i = if take { i } else { best_i };
+    }
+    (best_i != usize::MAX).then_some((best_i + 1, best_cost))
+}
+
 #[inline(never)]
 fn small_split(refs: &mut [PrimRef], axes: (usize, usize)) -> Option<(usize, f32)> {
     let n = refs.len();
@@ -968,8 +1005,10 @@ fn small_split(refs: &mut [PrimRef], axes: (usize, usize)) -> Option<(usize, f32
         return Some((1, half_area_v(ref_lo(&refs[0]), ref_hi(&refs[0])) + half_area_v(ref_lo(&refs[1]), ref_hi(&refs[1]))));
     }
     // Boxes and centroids gathered once (the sweeps read them in sorted order per axis).
-    let mut lo = [Vec3A::ZERO; MAX_SMALL];
-    let mut hi = [Vec3A::ZERO; MAX_SMALL];
+    // Unused slots hold empty boxes (+inf..-inf), which leave the sweeps' bounds unchanged,
+    // so both sweeps run a fixed number of steps (3 or 7) without data-dependent branches.
+    let mut lo = [Vec3A::INFINITY; MAX_SMALL];
+    let mut hi = [Vec3A::NEG_INFINITY; MAX_SMALL];
     let mut ctr = [[0f32; 4]; MAX_SMALL];
     for (i, r) in refs.iter().enumerate() {
         lo[i] = ref_lo(r);
@@ -981,32 +1020,26 @@ fn small_split(refs: &mut [PrimRef], axes: (usize, usize)) -> Option<(usize, f32
     for a in axes.0..axes.1.min(3) {
         // Sort (key, index) with a branch-free sorting network on order-preserving integer
         // keys: the same order as a stable sort by the key (ties by index), no mispredictions.
+        // Unused slots keep u64::MAX keys, sort last and name slot 7 (an empty box when n < 8).
         let mut v = [u64::MAX; MAX_SMALL];
         for i in 0..n {
             v[i] = (ordered_bits(ctr[i][a]) as u64) << 32 | i as u64;
         }
-        if n <= 4 {
+        let order: [u8; MAX_SMALL];
+        let axis_best = if n <= 4 {
             sort_network(&mut v, &NET4);
+            order = std::array::from_fn(|i| v[i] as u8);
+            small_sweep::<3>(&order, &lo, &hi, n)
         } else {
             sort_network(&mut v, &NET8);
-        }
-        let order: [u8; MAX_SMALL] = std::array::from_fn(|i| v[i] as u8);
-        let mut l_area = [0f32; MAX_SMALL];
-        let (mut l, mut h) = (Vec3A::INFINITY, Vec3A::NEG_INFINITY);
-        for i in 0..n - 1 {
-            let o = order[i] as usize & (MAX_SMALL - 1);
-            l = l.min(lo[o]);
-            h = h.max(hi[o]);
-            l_area[i] = half_area_v(l, h);
-        }
-        let (mut l, mut h) = (Vec3A::INFINITY, Vec3A::NEG_INFINITY);
-        for i in (0..n - 1).rev() {
-            let o = order[i + 1] as usize & (MAX_SMALL - 1);
-            l = l.min(lo[o]);
-            h = h.max(hi[o]);
-            let cost = l_area[i] * (i + 1) as f32 + half_area_v(l, h) * (n - i - 1) as f32;
-            if best.map_or(true, |b| cost < b.2 || (cost == b.2 && a == b.0 && i + 1 < b.1)) {
-                best = Some((a, i + 1, cost));
+            order = std::array::from_fn(|i| v[i] as u8);
+            small_sweep::<7>(&order, &lo, &hi, n)
+        };
+        // Ties across axes keep the earlier axis; within an axis the sweep keeps the lowest
+        // position.
+        if let Some((mid, cost)) = axis_best {
+            if best.map_or(true, |b| cost < b.2) {
+                best = Some((a, mid, cost));
                 best_order = order;
             }
         }
