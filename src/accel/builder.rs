@@ -321,6 +321,14 @@ fn trunc_i32x4(v: Vec3A) -> [i32; 4] {
     y.map(|f| (f.to_bits() & 0x7f_ffff) as i32)
 }
 
+/// `trunc_i32x4` for four lanes.
+#[inline(always)]
+fn trunc_i32x4_4(v: Vec4) -> [i32; 4] {
+    const MAGIC: f32 = 8_388_608.0;
+    let y = (v.floor() + Vec4::splat(MAGIC)).to_array();
+    y.map(|f| (f.to_bits() & 0x7f_ffff) as i32)
+}
+
 #[inline(always)]
 fn bin_one(r: &PrimRef, bn: &Binning, bins: &mut Bins) {
     let lo = ref_lo(r);
@@ -352,7 +360,54 @@ fn bin_one(r: &PrimRef, bn: &Binning, bins: &mut Bins) {
 
 /// Single-axis binning (fast-build tier) with the axis' scalars hoisted: the same bins as
 /// `Binning::bin_axis`, into two interleaved sets merged at the end.
+/// Bin sets of `bin_refs_axis8`.
+const AXIS_SETS: usize = 4;
+
+/// `bin_refs_axis` for at most 8 bins (the fast-build tier): four bin sets, one per lane of
+/// the vector conversion. Neighbouring references usually fall into the same bin, and each
+/// set's min/max updates form a chain through memory (store, then load for the next update),
+/// so more sets means shorter chains; at 8 bins the extra sets are cheap to clear and merge.
+fn bin_refs_axis8(refs: &[PrimRef], bn: &Binning, bins: &mut Bins) {
+    const K: usize = 8;
+    let a = bn.axes.0.min(2);
+    let (cmin, scale, kmax) = (bn.cmin[a], bn.scale[a], bn.kmax.x.min(K as u32 - 1));
+    let mut lo = [[Vec3A::INFINITY; K]; AXIS_SETS];
+    let mut hi = [[Vec3A::NEG_INFINITY; K]; AXIS_SETS];
+    let mut cnt = [[0u32; K]; AXIS_SETS];
+    let (cmin4, scale4, kmax4) = (Vec4::splat(cmin), Vec4::splat(scale), Vec4::splat(kmax as f32));
+    let ctr = |r: &PrimRef| r.lo[a] * 0.5 + r.hi[a] * 0.5;
+    let mut quads = refs.chunks_exact(4);
+    for q in &mut quads {
+        let pos = (Vec4::new(ctr(&q[0]), ctr(&q[1]), ctr(&q[2]), ctr(&q[3])) - cmin4) * scale4;
+        let t = trunc_i32x4_4(pos.max(Vec4::ZERO).min(kmax4));
+        for j in 0..4 {
+            let b = t[j] as usize & (K - 1);
+            lo[j][b] = lo[j][b].min(ref_lo(&q[j]));
+            hi[j][b] = hi[j][b].max(ref_hi(&q[j]));
+            cnt[j][b] += 1;
+        }
+    }
+    for r in quads.remainder() {
+        let b = ((((ctr(r) - cmin) * scale) as u32).min(kmax) as usize) & (K - 1);
+        lo[0][b] = lo[0][b].min(ref_lo(r));
+        hi[0][b] = hi[0][b].max(ref_hi(r));
+        cnt[0][b] += 1;
+    }
+    for b in 0..K {
+        let (mut l, mut h, mut c) = (bins.lo[a][b], bins.hi[a][b], bins.count[a][b]);
+        for j in 0..AXIS_SETS {
+            l = l.min(lo[j][b]);
+            h = h.max(hi[j][b]);
+            c += cnt[j][b];
+        }
+        (bins.lo[a][b], bins.hi[a][b], bins.count[a][b]) = (l, h, c);
+    }
+}
+
 fn bin_refs_axis(refs: &[PrimRef], bn: &Binning, bins: &mut Bins) {
+    if bn.kmax.x < 8 {
+        return bin_refs_axis8(refs, bn, bins);
+    }
     let a = bn.axes.0.min(2);
     let (cmin, scale, kmax) = (bn.cmin[a], bn.scale[a], bn.kmax.x);
     let bin = |r: &PrimRef| ((((r.lo[a] * 0.5 + r.hi[a] * 0.5) - cmin) * scale) as u32).min(kmax) as usize & (MAX_BINS - 1);
@@ -361,17 +416,30 @@ fn bin_refs_axis(refs: &[PrimRef], bn: &Binning, bins: &mut Bins) {
     let mut lo2 = [Vec3A::INFINITY; MAX_BINS];
     let mut hi2 = [Vec3A::NEG_INFINITY; MAX_BINS];
     let mut cnt2 = [0u32; MAX_BINS];
-    let mut pairs = refs.chunks_exact(2);
-    for p in &mut pairs {
-        let (b0, b1) = (bin(&p[0]), bin(&p[1]));
-        blo[b0] = blo[b0].min(ref_lo(&p[0]));
-        bhi[b0] = bhi[b0].max(ref_hi(&p[0]));
-        bcnt[b0] += 1;
-        lo2[b1] = lo2[b1].min(ref_lo(&p[1]));
-        hi2[b1] = hi2[b1].max(ref_hi(&p[1]));
-        cnt2[b1] += 1;
+    // Four bin indices per vector conversion: the same centroid, offset and scale
+    // operations per lane as `bin` (so the same bins), clamped in float and truncated
+    // exactly (`trunc_i32x4`), instead of four saturating scalar conversions.
+    let (cmin4, scale4, kmax4) = (Vec4::splat(cmin), Vec4::splat(scale), Vec4::splat(kmax as f32));
+    let ctr = |r: &PrimRef| r.lo[a] * 0.5 + r.hi[a] * 0.5;
+    let mut quads = refs.chunks_exact(4);
+    for q in &mut quads {
+        let pos = (Vec4::new(ctr(&q[0]), ctr(&q[1]), ctr(&q[2]), ctr(&q[3])) - cmin4) * scale4;
+        let t = trunc_i32x4_4(pos.max(Vec4::ZERO).min(kmax4));
+        let b = t.map(|x| x as usize & (MAX_BINS - 1));
+        blo[b[0]] = blo[b[0]].min(ref_lo(&q[0]));
+        bhi[b[0]] = bhi[b[0]].max(ref_hi(&q[0]));
+        bcnt[b[0]] += 1;
+        lo2[b[1]] = lo2[b[1]].min(ref_lo(&q[1]));
+        hi2[b[1]] = hi2[b[1]].max(ref_hi(&q[1]));
+        cnt2[b[1]] += 1;
+        blo[b[2]] = blo[b[2]].min(ref_lo(&q[2]));
+        bhi[b[2]] = bhi[b[2]].max(ref_hi(&q[2]));
+        bcnt[b[2]] += 1;
+        lo2[b[3]] = lo2[b[3]].min(ref_lo(&q[3]));
+        hi2[b[3]] = hi2[b[3]].max(ref_hi(&q[3]));
+        cnt2[b[3]] += 1;
     }
-    for r in pairs.remainder() {
+    for r in quads.remainder() {
         let b = bin(r);
         blo[b] = blo[b].min(ref_lo(r));
         bhi[b] = bhi[b].max(ref_hi(r));
@@ -724,9 +792,13 @@ const PRIMREF_BYTES: usize = std::mem::size_of::<PrimRef>();
 #[inline(never)]
 fn partition_out(src: &[PrimRef], dst: &mut [u8], nl: usize, rbase: usize, sp: &Splitter) -> Option<(usize, Aabb, Aabb)> {
     let n = src.len();
-    if nl > n || nl * PRIMREF_BYTES > rbase || dst.len() < rbase + (n - nl) * PRIMREF_BYTES {
+    if nl > n || nl * PRIMREF_BYTES > rbase || dst.len() < rbase + (n - nl) * PRIMREF_BYTES || dst.len() < PRIMREF_BYTES {
         return None;
     }
+    // Write offsets are clamped to the last whole reference of `dst`, so the compiler drops
+    // the per-store bounds checks; a clamp only matters when the count is not `nl`, and
+    // then the result is discarded anyway.
+    let cap = dst.len() - PRIMREF_BYTES;
     let limit = sp.limit;
     let mut sb = SideBounds::EMPTY;
     let (mut li, mut ri) = (0usize, rbase);
@@ -736,9 +808,9 @@ fn partition_out(src: &[PrimRef], dst: &mut [u8], nl: usize, rbase: usize, sp: &
         let m = Vec3A::splat(sp.pos(r)).cmplt(vlimit);
         let left = (m.bitmask() & 1) as usize;
         sb.add(c, m);
-        let at = if left != 0 { li } else { ri };
-        if let Some(d) = dst.get_mut(at..at + PRIMREF_BYTES) {
-            d.copy_from_slice(bytemuck::bytes_of(r));
+        let at = if left != 0 { li } else { ri }.min(cap);
+        if let Some(d) = dst.get_mut(at..).and_then(|x| x.first_chunk_mut::<PRIMREF_BYTES>()) {
+            *d = bytemuck::cast(*r);
         }
         li += PRIMREF_BYTES * left;
         ri += PRIMREF_BYTES * (left ^ 1);
@@ -2080,5 +2152,58 @@ mod network_tests {
         let mut by_bits = keys;
         by_bits.sort_by_key(|&k| ordered_bits(k));
         assert_eq!(sorted.map(f32::to_bits), by_bits.map(f32::to_bits));
+    }
+}
+
+/// Timing of the top levels' passes on their own (ignored; run by hand, e.g. on the 16-core
+/// machine): a parallel copy of the dragon's references (the memory bound), the parallel
+/// partition's statistics pass, and the whole parallel partition, at each ARBOR_THREADS count.
+#[cfg(test)]
+mod pass_timing {
+    use super::*;
+
+    #[test]
+    #[ignore]
+    fn top_pass_scaling() {
+        let path = std::env::var("ARBOR_MESH").unwrap_or_else(|_| concat!(env!("CARGO_MANIFEST_DIR"), "/data/dragon_vrip.ply.gz").to_string());
+        let mesh = crate::scene::load(&path).expect("mesh");
+        let v = &mesh.positions;
+        let refs: Vec<PrimRef> = mesh
+            .indices
+            .iter()
+            .enumerate()
+            .map(|(i, t)| {
+                let (lo, hi) = triangle_bounds(&[Vec3::from(v[t[0] as usize]), Vec3::from(v[t[1] as usize]), Vec3::from(v[t[2] as usize])]);
+                PrimRef { lo, geom: 0, hi, prim: i as u32 }
+            })
+            .collect();
+        let n = refs.len();
+        let (_, cb) = bounds_of(&refs);
+        let mid = 0.5 * (cb.lo[0] + cb.hi[0]);
+        let is_left = move |r: &PrimRef| r.lo[0] * 0.5 + r.hi[0] * 0.5 < mid;
+        let mut copy = vec![PrimRef::zeroed(); n];
+        let mut nodes = vec![BinNode::zeroed(); 2 * n];
+        let threads: Vec<usize> = std::env::var("ARBOR_THREADS").ok().map(|s| s.split(',').filter_map(|x| x.parse().ok()).collect()).unwrap_or(vec![1, 2]);
+        for t in threads {
+            let pool = rayon::ThreadPoolBuilder::new().num_threads(t).build().unwrap();
+            let time = |f: &mut dyn FnMut()| {
+                let mut best = f64::MAX;
+                for _ in 0..20 {
+                    let s = std::time::Instant::now();
+                    f();
+                    best = best.min(s.elapsed().as_secs_f64() * 1e3);
+                }
+                best
+            };
+            let chunk = n.div_ceil(PART_CHUNKS);
+            let c = time(&mut || pool.install(|| copy.par_chunks_mut(chunk).zip(refs.par_chunks(chunk)).for_each(|(d, s)| d.copy_from_slice(s))));
+            let st = time(&mut || {
+                pool.install(|| std::hint::black_box(part_stats(&refs, &is_left)));
+            });
+            let p = time(&mut || {
+                pool.install(|| std::hint::black_box(par_partition_to_nodes(&refs, &mut nodes, is_left)));
+            });
+            println!("threads {t:2}: {n} refs ({} MB): copy {c:.2} ms, stats {st:.2} ms, stats+scatter {p:.2} ms", n * PRIMREF_BYTES >> 20);
+        }
     }
 }
