@@ -1626,28 +1626,28 @@ impl<'a> FastTris<'a> {
         Some((idx, [self.vertex(idx[0])?, self.vertex(idx[1])?, self.vertex(idx[2])?]))
     }
 
-    /// `make_ref_data` for this geometry; outer None = use the general path.
+    /// What `make_ref_data` gives for this geometry, as (lo, hi, vertices) in registers for
+    /// `ingest` to store directly (a data array built on the stack and copied out stalled
+    /// every triangle on a failed store-to-load forward); outer None = use the general path.
     #[inline(always)]
-    fn make_ref(&self, gi: u32, p: u32, allow_update: bool) -> Option<Option<(PrimRef, [f32; 9])>> {
+    fn bounds(&self, p: u32, allow_update: bool) -> Option<Option<(Vec3A, Vec3A, [Vec3A; 3])>> {
         let (idx, [a, b, c]) = self.read(p)?;
         if a.x.is_nan() || b.x.is_nan() || c.x.is_nan() {
             return Some(None);
         }
         if !allow_update {
-            // Same per-lane products and differences as the scalar cross product.
             if (b - a).cross(c - a) == Vec3A::ZERO {
                 return Some(None);
             }
         } else if idx[0] == idx[1] || idx[1] == idx[2] || idx[0] == idx[2] {
             return Some(None);
         }
-        let data = [a.x, a.y, a.z, b.x, b.y, b.z, c.x, c.y, c.z];
-        let (lo, hi) = if a.is_finite() && b.is_finite() && c.is_finite() {
-            (a.min(b).min(c).to_array(), a.max(b).max(c).to_array())
-        } else {
-            triangle_bounds(&[a.into(), b.into(), c.into()])
-        };
-        Some(Some((PrimRef { lo, geom: gi, hi, prim: p }, data)))
+        // All lanes finite (NaN and inf fail the compare): vector min/max are exact.
+        if a.abs().max(b.abs()).max(c.abs()).cmplt(Vec3A::INFINITY).all() {
+            return Some(Some((a.min(b).min(c), a.max(b).max(c), [a, b, c])));
+        }
+        let (lo, hi) = triangle_bounds(&[a.into(), b.into(), c.into()]);
+        Some(Some((Vec3A::from(lo), Vec3A::from(hi), [a, b, c])))
     }
 }
 
@@ -1687,10 +1687,34 @@ fn ingest(desc: &BuildDesc, view: &dyn DeviceView, refs: &mut [PrimRef], mut sta
             let mut dropped = 0usize;
             for (k, slot) in chunk.iter_mut().enumerate() {
                 let p = (ci * INGEST_CHUNK + k) as u32;
-                let r = match fast.as_ref().and_then(|ft| ft.make_ref(gi32, p, allow_update)) {
-                    Some(x) => Ok(x),
-                    None => make_ref_data(gi32, g, p, view, allow_update),
-                };
+                if let Some(ft) = fast.as_ref() {
+                    // Plain f32 triangles: everything stored straight from registers.
+                    match ft.bounds(p, allow_update) {
+                        Some(Some((lo, hi, [a, b, c]))) => {
+                            let id = if st.is_some() { (gbase + ci * INGEST_CHUNK + k) as u32 } else { p };
+                            let f: &mut [[f32; 4]; 2] = bytemuck::cast_mut(slot);
+                            f[0] = Vec4::from((lo, f32::from_bits(gi32))).to_array();
+                            f[1] = Vec4::from((hi, f32::from_bits(id))).to_array();
+                            if let Some(d) = st.as_deref_mut().and_then(|st| st.get_mut(k * STAGE_SIZE..)).and_then(|x| x.first_chunk_mut::<STAGE_SIZE>()) {
+                                // Overlapping 16-byte stores of the three vertices (9 floats),
+                                // then the primitive index over c's fourth lane.
+                                let v = |x: Vec3A| bytemuck::cast::<[f32; 4], [u8; 16]>(Vec4::from((x, 0.0)).to_array());
+                                d[0..16].copy_from_slice(&v(a));
+                                d[12..28].copy_from_slice(&v(b));
+                                d[24..40].copy_from_slice(&v(c));
+                                d[36..40].copy_from_slice(&p.to_le_bytes());
+                            }
+                            continue;
+                        }
+                        Some(None) => {
+                            *slot = PrimRef { lo: [0.0; 3], geom: DROPPED, hi: [0.0; 3], prim: p };
+                            dropped += 1;
+                            continue;
+                        }
+                        None => {}
+                    }
+                }
+                let r = make_ref_data(gi32, g, p, view, allow_update);
                 match r {
                     Ok(Some((mut r, data))) => {
                         if let Some(st) = st.as_deref_mut() {
