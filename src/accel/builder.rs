@@ -1277,9 +1277,28 @@ pub fn wide_children(nodes: &[BinNode], i: usize) -> ([usize; 4], usize, u8) {
 /// Quantise child boxes into the frame of `node_box`, rounding outward and verifying with the
 /// exact decode arithmetic of `WideNode::child_box`, so decoded boxes always contain the input.
 pub fn encode_node(node_box: &Aabb, boxes: &[Aabb], child: &[u32], kind: &[u8]) -> WideNode {
+    let cnt = boxes.len().min(4);
+    let pad = Vec3A::from(node_box.lo);
+    let mut lo = [pad; 4];
+    let mut hi = [pad; 4];
+    for (c, b) in boxes.iter().enumerate().take(4) {
+        lo[c] = Vec3A::from(b.lo);
+        hi[c] = Vec3A::from(b.hi);
+    }
+    encode_node_v(node_box, &lo, &hi, cnt, child, kind)
+}
+
+/// `encode_node` with the child boxes as vectors (slots past `cnt` hold the node's lo
+/// corner): each axis' four values come from one transpose in registers, where gathering
+/// them through a stack array stalled on store-to-load forwarding.
+#[inline]
+fn encode_node_v(node_box: &Aabb, clo: &[Vec3A; 4], chi: &[Vec3A; 4], cnt: usize, child: &[u32], kind: &[u8]) -> WideNode {
+    let cnt = cnt.min(4);
+    let col = |v: Vec3A| Vec4::from((v, 0.0));
+    let tlo = glam::Mat4::from_cols(col(clo[0]), col(clo[1]), col(clo[2]), col(clo[3])).transpose();
+    let thi = glam::Mat4::from_cols(col(chi[0]), col(chi[1]), col(chi[2]), col(chi[3])).transpose();
     let mut n = WideNode::zeroed();
     n.origin = node_box.lo;
-    n.child_count = boxes.len() as u8;
     for a in 0..3 {
         let lo = node_box.lo[a];
         let hi = node_box.hi[a];
@@ -1299,18 +1318,11 @@ pub fn encode_node(node_box: &Aabb, boxes: &[Aabb], child: &[u32], kind: &[u8]) 
         let s = f32::from_bits(e << 23);
         let inv_s = 1.0 / s; // exact: s is a power of two
         let dec = |q: u32| lo + q as f32 * s;
-        let cnt = boxes.len().min(4);
         // Four children at once: truncated guesses (clamped in float first: the same values as
         // the scalar `(x as u32).min(255)` for x > 0, else 0), checked with the decode
         // arithmetic lane-wise (same IEEE operations as `dec`); lanes that need a step (rare)
         // take the scalar path below.
-        let mut blo = [lo; 4];
-        let mut bhi = [lo; 4];
-        for (c, b) in boxes.iter().enumerate().take(4) {
-            blo[c] = b.lo[a];
-            bhi[c] = b.hi[a];
-        }
-        let (blo, bhi) = (Vec4::from_array(blo), Vec4::from_array(bhi));
+        let (blo, bhi) = (tlo.col(a), thi.col(a));
         let (lov, sv, top) = (Vec4::splat(lo), Vec4::splat(s), Vec4::splat(255.0));
         // floor of values clamped to [0, 255] is the truncation `as u32` would give, already
         // as a float (no conversions until the final byte extraction).
@@ -1334,26 +1346,28 @@ pub fn encode_node(node_box: &Aabb, boxes: &[Aabb], child: &[u32], kind: &[u8]) 
             }
             continue;
         }
-        for (c, b) in boxes.iter().enumerate().take(4) {
+        for c in 0..cnt {
             // Guesses by truncation, then made exact and outward with the decode arithmetic
             // (usually zero or one step).
-            let x = (b.lo[a] - lo) * inv_s;
+            let (bl, bh) = (clo[c][a], chi[c][a]);
+            let x = (bl - lo) * inv_s;
             let mut ql = if x > 0.0 { (x as u32).min(255) } else { 0 };
-            while ql > 0 && dec(ql) > b.lo[a] {
+            while ql > 0 && dec(ql) > bl {
                 ql -= 1;
             }
-            let y = (b.hi[a] - lo) * inv_s;
+            let y = (bh - lo) * inv_s;
             let mut qh = if y > 0.0 { (y as u32).min(255) } else { 0 };
-            while qh < 255 && dec(qh) < b.hi[a] {
+            while qh < 255 && dec(qh) < bh {
                 qh += 1;
             }
             n.qlo[a][c] = ql as u8;
             n.qhi[a][c] = qh as u8;
         }
     }
-    for c in 0..boxes.len().min(4) {
-        n.child[c] = child[c];
-        n.kind[c] = kind[c];
+    n.child_count = cnt as u8;
+    for c in 0..cnt {
+        n.child[c] = child.get(c).copied().unwrap_or(0);
+        n.kind[c] = kind.get(c).copied().unwrap_or(0);
     }
     n
 }
@@ -1398,25 +1412,32 @@ fn run_emit(tasks: &mut [EmitTask<'_>]) -> u32 {
 /// children; None when `internal` does.
 fn wide_node(nodes: &[BinNode], i: usize, mut internal: impl FnMut(usize, &BinNode, bool) -> Option<u32>) -> Option<(WideNode, u32)> {
     let (ch, cnt, cut) = wide_children(nodes, i);
-    let mut boxes = [Aabb::EMPTY; 4];
+    let cnt = cnt.min(4);
+    // Child boxes as vectors loaded straight from the (long since written) binary nodes.
+    let mut clo = [Vec3A::ZERO; 4];
+    let mut chi = [Vec3A::ZERO; 4];
     let mut child = [0u32; 4];
     let mut kind = [0u8; 4];
-    let mut node_box = Aabb::EMPTY;
+    let (mut nlo, mut nhi) = (Vec3A::INFINITY, Vec3A::NEG_INFINITY);
     let mut leaves = 0u32;
     for k in 0..cnt {
-        let nd = nodes.get(ch[k]).copied()?;
-        boxes[k] = Aabb { lo: nd.lo, hi: nd.hi };
-        node_box = node_box.union(&boxes[k]);
+        let nd = nodes.get(ch[k])?;
+        (clo[k], chi[k]) = (Vec3A::from(nd.lo), Vec3A::from(nd.hi));
+        nlo = nlo.min(clo[k]);
+        nhi = nhi.max(chi[k]);
         if nd.left_count != 0 && ch[k] != i {
             kind[k] = CHILD_INTERNAL;
-            child[k] = internal(ch[k], &nd, cut >> k & 1 != 0)?;
+            child[k] = internal(ch[k], nd, cut >> k & 1 != 0)?;
         } else {
             kind[k] = nd.count.min(254) as u8;
             child[k] = nd.start;
             leaves += 1;
         }
     }
-    Some((encode_node(&node_box, &boxes[..cnt], &child, &kind), leaves))
+    for k in cnt..4 {
+        (clo[k], chi[k]) = (nlo, nlo);
+    }
+    Some((encode_node_v(&to_aabb(nlo, nhi), &clo, &chi, cnt, &child, &kind), leaves))
 }
 
 /// Emits the wide subtree of binary node `i` (inside a cut subtree: no cut roots below it) in
