@@ -2,7 +2,7 @@
 //! (rayon::join on the current pool, node slots derived from primitive ranges so the tree is
 //! the same for any thread count) → collapse to BVH4 → encode into dst.
 //! Host heap use is O(threads): all arrays proportional to the input live in `scratch`.
-use super::input::{self, read_aabb, read_instance, read_triangle, transform_point};
+use super::input::{self, read_aabb, read_instance, read_triangle};
 use super::layout::{self, GeometryRecord, InstanceRecord, PrimRecord, RawHeader, WideNode, CHILD_INTERNAL, NODE_SIZE, PRIM_SIZE, RECORD_SIZE};
 use super::{AsType, BuildDesc, BuildError, BuildFlags, BuildPhases, BuildReport, DeviceView, Geometry, GeometryData};
 use std::time::Instant;
@@ -131,23 +131,38 @@ pub fn triangle_bounds(v: &[Vec3; 3]) -> ([f32; 3], [f32; 3]) {
 /// Bounds of an instance: its BLAS bounds transformed (8 corners); an empty or unreadable BLAS
 /// is a point at the instance origin, as the spec suggests for instances of empty BLASes.
 pub fn instance_bounds(transform: &[f32; 12], reference: u64, view: &dyn DeviceView) -> ([f32; 3], [f32; 3]) {
-    let blas = view.acceleration_structure(reference).and_then(layout::parse);
+    instance_bounds_of(transform, blas_bounds(reference, view))
+}
+
+/// The bounds of the BLAS `reference` names, or None when it is empty or not a structure
+/// (the instance is then a point at its origin).
+pub fn blas_bounds(reference: u64, view: &dyn DeviceView) -> Option<[f32; 6]> {
+    view.acceleration_structure(reference).and_then(layout::parse).filter(|p| p.raw.primitive_count > 0).map(|p| p.raw.bounds)
+}
+
+/// `instance_bounds` from the BLAS bounds already looked up.
+pub fn instance_bounds_of(transform: &[f32; 12], blas: Option<[f32; 6]>) -> ([f32; 3], [f32; 3]) {
     let mut b = Aabb::EMPTY;
     match blas {
-        Some(p) if p.raw.primitive_count > 0 => {
-            let bb = p.raw.bounds;
+        Some(bb) => {
+            // The eight corners through the 3x4 transform, lane-wise: each lane is
+            // ((m0·x + m1·y) + m2·z) + m3, the same operations as `transform_point`.
+            let m = transform;
+            let (c0, c1, c2) = (Vec3A::new(m[0], m[4], m[8]), Vec3A::new(m[1], m[5], m[9]), Vec3A::new(m[2], m[6], m[10]));
+            let t = Vec3A::new(m[3], m[7], m[11]);
+            let (x, y, z) = ([c0 * bb[0], c0 * bb[3]], [c1 * bb[1], c1 * bb[4]], [c2 * bb[2], c2 * bb[5]]);
+            let (mut lo, mut hi) = (Vec3A::INFINITY, Vec3A::NEG_INFINITY);
+            let mut nan = false;
             for c in 0..8 {
-                let pt = Vec3::new(
-                    if c & 1 == 0 { bb[0] } else { bb[3] },
-                    if c & 2 == 0 { bb[1] } else { bb[4] },
-                    if c & 4 == 0 { bb[2] } else { bb[5] },
-                );
-                let q = transform_point(transform, pt);
-                if q.is_nan() {
-                    return sanitize([f32::NAN; 3], [f32::NAN; 3]);
-                }
-                b.grow_point(&q.to_array());
+                let q = ((x[c & 1] + y[c >> 1 & 1]) + z[c >> 2 & 1]) + t;
+                nan |= q.is_nan();
+                lo = lo.min(q);
+                hi = hi.max(q);
             }
+            if nan {
+                return sanitize([f32::NAN; 3], [f32::NAN; 3]);
+            }
+            b = to_aabb(lo, hi);
         }
         _ => {
             let o = [transform[3], transform[7], transform[11]];
@@ -1703,9 +1718,13 @@ fn ingest(desc: &BuildDesc, view: &dyn DeviceView, refs: &mut [PrimRef], mut sta
         let gi32 = gi as u32;
         let gbase = base;
         let fast = FastTris::of(g);
+        let is_inst = matches!(g.data, GeometryData::Instances { .. });
         let work = |ci: usize, chunk: &mut [PrimRef], st: Option<&mut [u8]>| -> Result<usize, (u64, BuildError)> {
             let mut st = st;
             let mut dropped = 0usize;
+            // (0 is never looked up: an instance with reference 0 is inactive.)
+            let mut memo: [(u64, Option<[f32; 6]>); 4] = [(0, None); 4];
+            let mut next = 0usize;
             for (k, slot) in chunk.iter_mut().enumerate() {
                 let p = (ci * INGEST_CHUNK + k) as u32;
                 if let Some(ft) = fast.as_ref() {
@@ -1735,7 +1754,30 @@ fn ingest(desc: &BuildDesc, view: &dyn DeviceView, refs: &mut [PrimRef], mut sta
                         None => {}
                     }
                 }
-                let r = make_ref_data(gi32, g, p, view, allow_update);
+                let r = if is_inst {
+                    // Instances: the BLAS lookup (a locked map in the driver's view) and its
+                    // header parse are memoised for the last four references (a TLAS usually
+                    // instances few BLASes). Same bounds as `make_ref_data`.
+                    match read_instance(gi32, g, p, view) {
+                        Ok(Some(inst)) => {
+                            let bb = match memo.iter().find(|m| m.0 == inst.reference) {
+                                Some(m) => m.1,
+                                None => {
+                                    let bb = blas_bounds(inst.reference, view);
+                                    memo[next] = (inst.reference, bb);
+                                    next = (next + 1) % memo.len();
+                                    bb
+                                }
+                            };
+                            let (lo, hi) = instance_bounds_of(&inst.transform, bb);
+                            Ok(Some((PrimRef { lo, geom: gi32, hi, prim: p }, [0f32; 9])))
+                        }
+                        Ok(None) => Ok(None),
+                        Err(e) => Err(e),
+                    }
+                } else {
+                    make_ref_data(gi32, g, p, view, allow_update)
+                };
                 match r {
                     Ok(Some((mut r, data))) => {
                         if let Some(st) = st.as_deref_mut() {
@@ -1933,7 +1975,8 @@ pub fn write_instances(desc: &BuildDesc, view: &dyn DeviceView, refs: &[PrimRef]
     let read = |r: &PrimRef| desc.geometries.get(r.geom as usize).and_then(|g| read_instance(r.geom, g, r.prim, view).ok().flatten());
     // Distinct references, sorted (deterministic, no hashing, no heap).
     let keys = &mut keys[..n];
-    keys.par_iter_mut().zip(refs.par_iter()).for_each(|(k, r)| *k = read(r).map_or(0, |i| i.reference));
+    let reference = |r: &PrimRef| desc.geometries.get(r.geom as usize).and_then(|g| input::read_instance_reference(g, r.prim, view));
+    keys.par_iter_mut().zip(refs.par_iter()).for_each(|(k, r)| *k = reference(r).unwrap_or(0));
     let distinct = sort_distinct(keys);
     let keys = &keys[..distinct];
     for (i, k) in keys.iter().enumerate() {

@@ -308,6 +308,21 @@ pub fn read_instance(geometry_index: u32, g: &Geometry, p: u32, view: &dyn Devic
     Ok(Some(inst))
 }
 
+/// The (translated) BLAS reference of instance `p`: what `read_instance` gives as
+/// `reference`, without decoding the rest; None where it gives no instance.
+pub fn read_instance_reference(g: &Geometry, p: u32, view: &dyn DeviceView) -> Option<u64> {
+    let GeometryData::Instances { array_of_pointers, data } = g.data else { return None };
+    let reference = if array_of_pointers {
+        let addr = rd_u64(data, usize::try_from((p as u64) * 8).ok()?)?;
+        let record = view.bytes(addr, INSTANCE_SIZE as u64).filter(|b| b.len() >= INSTANCE_SIZE)?;
+        rd_u64(record, 56)?
+    } else {
+        let off = usize::try_from((p as u64) * INSTANCE_SIZE as u64).ok()?;
+        rd_u64(data.get(off..off.checked_add(INSTANCE_SIZE)?)?, 56)?
+    };
+    (reference != 0).then(|| view.translate_reference(reference))
+}
+
 /// Triangle j of a geometry after format decode + transform, exactly as the builder reads it.
 /// None: inactive, out of range, not a triangle geometry or unreadable.
 pub fn fetch_triangle(geometry: &Geometry, primitive: u32) -> Option<[Vec3; 3]> {

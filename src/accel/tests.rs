@@ -869,3 +869,50 @@ fn build_timed_builds_the_same_structure() {
         assert!(p.total_ms > 0.0, "{p:?}");
     }
 }
+
+/// The ingest's BLAS-bounds memo holds four references: seven BLASes (single triangles of
+/// different sizes) instanced in a pseudo-random order make it evict and miss all the time.
+/// Every instance must still get its own BLAS's bounds: a ray at the middle of each
+/// instance's triangle hits that instance (a wrong box would hide it), and the TLAS bounds are
+/// the union of the transformed triangles.
+#[test]
+fn tlas_over_more_blases_than_the_bounds_memo() {
+    let mut view = MapView::new();
+    let mut tris = Vec::new();
+    for k in 0..7u64 {
+        let s = 0.2 + 0.1 * k as f32;
+        let v = [Vec3::new(0.0, 0.0, 0.0), Vec3::new(0.0, s, 0.0), Vec3::new(s, 0.0, 0.0)];
+        let vb = f32_bytes(&v);
+        let g = tri_geom(&vb, 3, &[], 1, GeometryFlags::OPAQUE);
+        view.insert(0x10000 * (k + 1), build_ok(AsType::BottomLevel, 0, &[g], &NoDevice));
+        tris.push(v);
+    }
+    let mut rng = Rng::new(99);
+    let mut inst = Vec::new();
+    let mut placed = Vec::new();
+    for i in 0..200u32 {
+        let k = (rng.next_u32() % 7) as usize;
+        let (x, y) = ((i % 20) as f32 * 2.0, (i / 20) as f32 * 2.0);
+        inst.extend(instance_bytes(translate(x, y, 1.0 + (i % 3) as f32), i, 0xff, 0, 0, 0x10000 * (k as u64 + 1)));
+        placed.push((x, y, k));
+    }
+    let g = Geometry { flags: GeometryFlags(0), primitive_count: 200, data: GeometryData::Instances { array_of_pointers: false, data: &inst } };
+    for flags in [BuildFlags::PREFER_FAST_TRACE, BuildFlags::PREFER_FAST_BUILD] {
+        let tlas = build_ok(AsType::TopLevel, flags, &[g], &view);
+        let (mut lo, mut hi) = ([f32::INFINITY; 3], [f32::NEG_INFINITY; 3]);
+        for (i, &(x, y, k)) in placed.iter().enumerate() {
+            let s = tris[k][1].y;
+            let z = 1.0 + (i % 3) as f32;
+            let ray = Ray { origin: Vec3::new(x + s * 0.3, y + s * 0.3, -1.0), direction: Vec3::Z, tmin: 0.0, tmax: 100.0 };
+            let hit = closest_hit(&tlas, &view, ray, RayFlags(0), 0xff).unwrap_or_else(|| panic!("instance {i} (BLAS {k}) not hit"));
+            assert_eq!((hit.instance_index, hit.t), (i as u32, z + 1.0), "instance {i}");
+            // The triangle spans (x, y, z) to (x + s, y + s, z).
+            for (a, (l, h)) in [(x, x + s), (y, y + s), (z, z)].into_iter().enumerate() {
+                lo[a] = lo[a].min(l);
+                hi[a] = hi[a].max(h);
+            }
+        }
+        let h = header(&tlas).unwrap();
+        assert_eq!(h.bounds, [lo[0], lo[1], lo[2], hi[0], hi[1], hi[2]]);
+    }
+}

@@ -769,15 +769,21 @@ fn check_geometry(
             let start = data + r.primitive_offset as u64;
             let bytes = input(start, count * if *array_of_pointers { 8 } else { 64 }, "pInfos-03813")?;
             // Every reference must be 0 or the address of a built bottom-level structure (12281).
+            // The last four references found valid: a TLAS usually instances few BLASes, and
+            // the lookup takes a lock and a hash; a repeat needs no second check or entry.
+            let mut known_ok = [0u64; 4];
+            let mut next_ok = 0usize;
             let mut check_instance = |k: u64, inst: &[u8]| -> Result<(), (&'static str, String)> {
                 let reference = u64::from_le_bytes(inst[56..64].try_into().unwrap());
-                if reference == 0 {
+                if reference == 0 || known_ok.contains(&reference) {
                     return Ok(());
                 }
                 let blas = accel::DeviceView::acceleration_structure(mem, reference).and_then(accel::header);
                 match blas {
                     Some(h) if h.ty == AsType::BottomLevel => {
                         referenced.push(mem.translate_reference(reference));
+                        known_ok[next_ok] = reference;
+                        next_ok = (next_ok + 1) % known_ok.len();
                         Ok(())
                     }
                     _ => Err((
