@@ -375,54 +375,7 @@ fn bin_one(r: &PrimRef, bn: &Binning, bins: &mut Bins) {
 
 /// Single-axis binning (fast-build tier) with the axis' scalars hoisted: the same bins as
 /// `Binning::bin_axis`, into two interleaved sets merged at the end.
-/// Bin sets of `bin_refs_axis8`.
-const AXIS_SETS: usize = 4;
-
-/// `bin_refs_axis` for at most 8 bins (the fast-build tier): four bin sets, one per lane of
-/// the vector conversion. Neighbouring references usually fall into the same bin, and each
-/// set's min/max updates form a chain through memory (store, then load for the next update),
-/// so more sets means shorter chains; at 8 bins the extra sets are cheap to clear and merge.
-fn bin_refs_axis8(refs: &[PrimRef], bn: &Binning, bins: &mut Bins) {
-    const K: usize = 8;
-    let a = bn.axes.0.min(2);
-    let (cmin, scale, kmax) = (bn.cmin[a], bn.scale[a], bn.kmax.x.min(K as u32 - 1));
-    let mut lo = [[Vec3A::INFINITY; K]; AXIS_SETS];
-    let mut hi = [[Vec3A::NEG_INFINITY; K]; AXIS_SETS];
-    let mut cnt = [[0u32; K]; AXIS_SETS];
-    let (cmin4, scale4, kmax4) = (Vec4::splat(cmin), Vec4::splat(scale), Vec4::splat(kmax as f32));
-    let ctr = |r: &PrimRef| r.lo[a] * 0.5 + r.hi[a] * 0.5;
-    let mut quads = refs.chunks_exact(4);
-    for q in &mut quads {
-        let pos = (Vec4::new(ctr(&q[0]), ctr(&q[1]), ctr(&q[2]), ctr(&q[3])) - cmin4) * scale4;
-        let t = trunc_i32x4_4(pos.max(Vec4::ZERO).min(kmax4));
-        for j in 0..4 {
-            let b = t[j] as usize & (K - 1);
-            lo[j][b] = lo[j][b].min(ref_lo(&q[j]));
-            hi[j][b] = hi[j][b].max(ref_hi(&q[j]));
-            cnt[j][b] += 1;
-        }
-    }
-    for r in quads.remainder() {
-        let b = ((((ctr(r) - cmin) * scale) as u32).min(kmax) as usize) & (K - 1);
-        lo[0][b] = lo[0][b].min(ref_lo(r));
-        hi[0][b] = hi[0][b].max(ref_hi(r));
-        cnt[0][b] += 1;
-    }
-    for b in 0..K {
-        let (mut l, mut h, mut c) = (bins.lo[a][b], bins.hi[a][b], bins.count[a][b]);
-        for j in 0..AXIS_SETS {
-            l = l.min(lo[j][b]);
-            h = h.max(hi[j][b]);
-            c += cnt[j][b];
-        }
-        (bins.lo[a][b], bins.hi[a][b], bins.count[a][b]) = (l, h, c);
-    }
-}
-
 fn bin_refs_axis(refs: &[PrimRef], bn: &Binning, bins: &mut Bins) {
-    if bn.kmax.x < 8 {
-        return bin_refs_axis8(refs, bn, bins);
-    }
     let a = bn.axes.0.min(2);
     let (cmin, scale, kmax) = (bn.cmin[a], bn.scale[a], bn.kmax.x);
     let bin = |r: &PrimRef| ((((r.lo[a] * 0.5 + r.hi[a] * 0.5) - cmin) * scale) as u32).min(kmax) as usize & (MAX_BINS - 1);
