@@ -968,7 +968,7 @@ mod tests {
         assert_eq!(cb.lifecycle(), Lifecycle::Invalid, "ONE_TIME_SUBMIT: invalid after execution");
         assert!(cb.prepare_submit("test").is_none());
         cb.begin(vk::CommandBufferUsageFlags::SIMULTANEOUS_USE, false);
-        cb.end();
+        let _ = cb.end();
         let a = cb.prepare_submit("test").unwrap();
         let b = cb.prepare_submit("test").expect("SIMULTANEOUS_USE may be pending twice");
         a.complete();
@@ -991,7 +991,7 @@ mod tests {
         cb.cmd_copy_buffer(&COPY_BUFFER_VUIDS, t.clone(), ro, vec![CopyRegion { src_offset: 0, dst_offset: 0, size: 4 }]); // no TRANSFER_DST
         cb.cmd_copy_buffer(&COPY_BUFFER_VUIDS, t.clone(), t.clone(), vec![CopyRegion { src_offset: 0, dst_offset: 8, size: 16 }]); // overlap
         cb.cmd_fill_buffer(t.clone(), 60, vk::WHOLE_SIZE, 1); // fine: 4 bytes
-        cb.end();
+        let _ = cb.end();
         assert!(diag::reported_count() >= before + 6);
         let s = cb.prepare_submit("test").unwrap();
         assert_eq!(count(&s.recording), 1);
@@ -1010,11 +1010,11 @@ mod tests {
         let secondary = p.allocate(vk::CommandBufferLevel::SECONDARY);
         secondary.begin(vk::CommandBufferUsageFlags::ONE_TIME_SUBMIT, true);
         secondary.cmd_fill_buffer(fill_target(), 0, 4, 1);
-        secondary.end();
+        let _ = secondary.end();
         assert!(secondary.prepare_submit("test").is_none(), "secondaries cannot be submitted");
         primary.begin(vk::CommandBufferUsageFlags::SIMULTANEOUS_USE, false);
         primary.cmd_execute_commands(vec![secondary.clone()]);
-        primary.end();
+        let _ = primary.end();
         let s = primary.prepare_submit("test").unwrap();
         assert!(secondary.is_pending(), "pending with its primary");
         assert!(primary.prepare_submit("test").is_none(), "the secondary is pending and not SIMULTANEOUS_USE");
@@ -1024,11 +1024,11 @@ mod tests {
         assert!(primary.prepare_submit("test").is_none(), "its ONE_TIME_SUBMIT secondary ran: the primary is invalid");
         // Re-recording the secondary also invalidates the primary that captured the old one.
         secondary.begin(vk::CommandBufferUsageFlags::empty(), true);
-        secondary.end();
+        let _ = secondary.end();
         assert!(primary.prepare_submit("test").is_none());
         primary.begin(vk::CommandBufferUsageFlags::empty(), false);
         primary.cmd_execute_commands(vec![secondary.clone()]);
-        primary.end();
+        let _ = primary.end();
         primary.prepare_submit("test").unwrap().complete();
     }
 
@@ -1038,7 +1038,7 @@ mod tests {
         let a = p.allocate(vk::CommandBufferLevel::PRIMARY);
         p.adopt(0x10, a.clone());
         a.begin(vk::CommandBufferUsageFlags::empty(), false);
-        a.end();
+        let _ = a.end();
         p.reset(true);
         assert_eq!(a.lifecycle(), Lifecycle::Initial);
         assert!(p.release(0x10, "test"));

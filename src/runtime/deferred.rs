@@ -167,7 +167,7 @@ mod tests {
         let op = DeferredOperation::new();
         let threads = Arc::new(StdMutex::new(HashSet::new()));
         let t = threads.clone();
-        op.defer(
+        let _ = op.defer(
             2,
             Box::new(move || {
                 // Two halves, each long enough that an idle joiner steals one.
@@ -198,7 +198,7 @@ mod tests {
     #[test]
     fn the_result_is_the_work_s_result() {
         let op = DeferredOperation::new();
-        op.defer(1, Box::new(|| vk::Result::ERROR_DEVICE_LOST));
+        let _ = op.defer(1, Box::new(|| vk::Result::ERROR_DEVICE_LOST));
         assert_eq!(op.join(), vk::Result::SUCCESS);
         assert_eq!(op.result(), vk::Result::ERROR_DEVICE_LOST);
     }

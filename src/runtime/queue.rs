@@ -301,7 +301,7 @@ mod tests {
         // A custom command whose access is refused: reported, skipped, the rest runs.
         cb.record_custom(Box::new(Double { address: 0x10, ran: ran.clone() }));
         cb.cmd_fill_buffer(b.clone(), 8, 4, 7);
-        cb.end();
+        let _ = cb.end();
         let fence = Arc::new(sync::Fence::new(false));
         let batch = BatchDesc { waits: vec![], command_buffers: vec![cb.clone()], signals: vec![] };
         assert_eq!(q.submit("test", vec![batch], Some(fence.clone())), vk::Result::SUCCESS);
