@@ -1631,8 +1631,10 @@ impl<'a> FastTris<'a> {
         } else if idx[0] == idx[1] || idx[1] == idx[2] || idx[0] == idx[2] {
             return Some(None);
         }
-        // All lanes finite (NaN and inf fail the compare): vector min/max are exact.
-        if a.abs().max(b.abs()).max(c.abs()).cmplt(Vec3A::INFINITY).all() {
+        // All lanes finite (v - v is 0 for finite v, NaN for NaN and inf, and NaN survives the
+        // sums): vector min/max are exact. A max of the |v| would not do: maxps drops a NaN
+        // operand, which would hide a NaN y or z from the slow path's huge box.
+        if ((a - a) + (b - b) + (c - c)).cmpeq(Vec3A::ZERO).all() {
             return Some(Some((a.min(b).min(c), a.max(b).max(c), [a, b, c])));
         }
         let (lo, hi) = triangle_bounds(&[a.into(), b.into(), c.into()]);

@@ -916,3 +916,25 @@ fn tlas_over_more_blases_than_the_bounds_memo() {
         assert_eq!(h.bounds, [lo[0], lo[1], lo[2], hi[0], hi[1], hi[2]]);
     }
 }
+
+/// A triangle whose X coordinates are numbers but whose Y or Z is NaN is not inactive (only a
+/// NaN X is); its box is the huge sanitised one, on every input path (plain f32 indexed input
+/// takes the fast ingest), so the structure's bounds cover everything.
+#[test]
+fn nan_y_or_z_gets_the_huge_box() {
+    for bad in [Vec3::new(1.0, f32::NAN, 0.0), Vec3::new(1.0, 0.0, f32::NAN)] {
+        let v = [Vec3::new(0.0, 0.0, 0.0), Vec3::new(0.0, 1.0, 0.0), Vec3::new(1.0, 0.0, 0.0), Vec3::new(2.0, 0.0, 0.0), Vec3::new(2.0, 1.0, 0.0), bad];
+        let vb = f32_bytes(&v);
+        // The bad vertex (5) first, second and third in the second triangle.
+        for tri in [[5u32, 3, 4], [3, 5, 4], [3, 4, 5]] {
+            let ib: Vec<u8> = [0u32, 1, 2].iter().chain(tri.iter()).flat_map(|i| i.to_le_bytes()).collect();
+            let g = tri_geom(&vb, 6, &ib, 2, GeometryFlags::OPAQUE);
+            for flags in [0, BuildFlags::PREFER_FAST_BUILD, BuildFlags::ALLOW_UPDATE] {
+                let blas = build_ok(AsType::BottomLevel, flags, &[g], &NoDevice);
+                let h = header(&blas).unwrap();
+                assert_eq!(h.primitive_count, 2, "flags {flags}");
+                assert_eq!(h.bounds, [-f32::MAX, -f32::MAX, -f32::MAX, f32::MAX, f32::MAX, f32::MAX], "flags {flags}, bad vertex {bad:?} in {tri:?}");
+            }
+        }
+    }
+}
