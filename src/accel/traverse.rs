@@ -11,7 +11,7 @@
 use super::input::{transform_dir, transform_point};
 use super::layout::{self, InstanceRecord, Parsed, CHILD_INTERNAL};
 use super::{DeviceView, GeometryFlags};
-use glam::{DVec3, Vec3};
+use glam::{DVec3, Vec3, Vec4};
 
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Ray {
@@ -169,32 +169,31 @@ fn intersect_sheared(sh: &Shear, o: [f32; 3], tmin: f32, tmax: f32, v0: [f32; 3]
 /// infinite other bound: a false miss.)
 #[inline(always)]
 fn ray_box4(n: &layout::WideNode, org: [f32; 3], inv: [f32; 3], tmin: f32, tmax: f32) -> ([f32; 4], [bool; 4]) {
-    let mut tn = [tmin; 4];
-    let mut tf = [tmax; 4];
+    // The four children in the lanes of one vector, with the per-lane arithmetic of the
+    // scalar form; `f32::min`/`max` ignore a NaN operand, so the selects below do too
+    // (maxps/minps would return it).
+    let q = |b: [u8; 4]| Vec4::new(b[0] as f32, b[1] as f32, b[2] as f32, b[3] as f32);
+    let mut tn = Vec4::splat(tmin);
+    let mut tf = Vec4::splat(tmax);
     for a in 0..3 {
-        let s = n.scale(a);
-        let base = n.origin[a];
-        let (o, i) = (org[a], inv[a]);
-        let (ql, qh) = (n.qlo[a], n.qhi[a]);
-        for c in 0..4 {
-            let lo = base + ql[c] as f32 * s;
-            let hi = base + qh[c] as f32 * s;
-            let t0 = (lo - o) * i;
-            let t1 = (hi - o) * i;
-            let skip = t0.is_nan() | t1.is_nan();
-            let l = t0.min(t1);
-            let h = t0.max(t1);
-            let ntn = tn[c].max(l);
-            let ntf = tf[c].min(h + h.abs() * 4.8e-7);
-            tn[c] = if skip { tn[c] } else { ntn };
-            tf[c] = if skip { tf[c] } else { ntf };
-        }
+        let s = Vec4::splat(n.scale(a));
+        let base = Vec4::splat(n.origin[a]);
+        let (o, i) = (Vec4::splat(org[a]), Vec4::splat(inv[a]));
+        let lo = base + q(n.qlo[a]) * s;
+        let hi = base + q(n.qhi[a]) * s;
+        let t0 = (lo - o) * i;
+        let t1 = (hi - o) * i;
+        let skip = t0.is_nan_mask() | t1.is_nan_mask();
+        let l = t0.min(t1);
+        let h = t0.max(t1);
+        let ntn = tn.max(l);
+        let far = h + h.abs() * 4.8e-7;
+        let ntf = Vec4::select(far.is_nan_mask(), tf, tf.min(far));
+        tn = Vec4::select(skip, tn, ntn);
+        tf = Vec4::select(skip, tf, ntf);
     }
-    let mut m = [false; 4];
-    for c in 0..4 {
-        m[c] = tn[c] <= tf[c];
-    }
-    (tn, m)
+    let m = tn.cmple(tf).bitmask();
+    (tn.to_array(), [m & 1 != 0, m & 2 != 0, m & 4 != 0, m & 8 != 0])
 }
 
 #[derive(Clone, Copy, Debug)]
