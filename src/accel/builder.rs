@@ -346,6 +346,15 @@ fn trunc_i32x4_4(v: Vec4) -> [i32; 4] {
     y.to_array().map(|f| (f.to_bits() & 0x7f_ffff) as i32)
 }
 
+/// floor(v) lane-wise for v in [0, 2^22): v + 2^23 - 2^23 rounds v to an integer exactly, and
+/// one comes off where that rounded up (four vector operations).
+#[inline(always)]
+fn floor_pos(v: Vec4) -> Vec4 {
+    const MAGIC: f32 = 8_388_608.0;
+    let r = (v + Vec4::splat(MAGIC)) - Vec4::splat(MAGIC);
+    r - Vec4::select(r.cmpgt(v), Vec4::ONE, Vec4::ZERO)
+}
+
 #[inline(always)]
 fn bin_one(r: &PrimRef, bn: &Binning, bins: &mut Bins) {
     let lo = ref_lo(r);
@@ -1296,8 +1305,8 @@ fn encode_node_v(node_box: &Aabb, clo: &[Vec3A; 4], chi: &[Vec3A; 4], cnt: usize
         let (lov, sv, top) = (Vec4::splat(lo), Vec4::splat(s), Vec4::splat(255.0));
         // floor of values clamped to [0, 255] is the truncation `as u32` would give, already
         // as a float (no conversions until the final byte extraction).
-        let qlf = ((blo - lov) * inv_s).max(Vec4::ZERO).min(top).floor();
-        let q0 = ((bhi - lov) * inv_s).max(Vec4::ZERO).min(top).floor();
+        let qlf = floor_pos(((blo - lov) * inv_s).max(Vec4::ZERO).min(top));
+        let q0 = floor_pos(((bhi - lov) * inv_s).max(Vec4::ZERO).min(top));
         let bad_l = (lov + qlf * sv).cmpgt(blo) & qlf.cmpgt(Vec4::ZERO);
         // The scalar search steps qh up from the truncated guess to the first value whose
         // decode reaches b.hi: usually the guess itself or the next one.
@@ -2178,8 +2187,9 @@ pub fn build(desc: &BuildDesc, view: &dyn DeviceView, dst: &mut [u8], scratch: &
 mod network_tests {
     use super::*;
 
-    /// The mantissa truncation equals `as i32` on [0, 2^22): every integer boundary of the
-    /// bin range and its float neighbours, halves (round-to-even ties), and a sweep.
+    /// The mantissa truncation equals `as i32` and `floor_pos` equals `floor` on [0, 2^22):
+    /// every integer boundary of the bin and quantisation ranges and its float neighbours,
+    /// halves (round-to-even ties), and a sweep.
     #[test]
     fn vector_truncation_is_exact() {
         let mut xs = vec![0.0f32, 1e-30, 0.49999997, 0.5, 0.50000006, 1.5, 2.5, 31.999998, 4_194_303.5];
@@ -2193,8 +2203,10 @@ mod network_tests {
             v[..q.len()].copy_from_slice(q);
             let got = trunc_i32x4_4(Vec4::from_array(v));
             let got3 = trunc_i32x4(Vec3A::new(v[0], v[1], v[2]));
+            let fl = floor_pos(Vec4::from_array(v)).to_array();
             for k in 0..4 {
                 assert_eq!(got[k], v[k] as i32, "{}", v[k]);
+                assert_eq!(fl[k].to_bits(), v[k].floor().to_bits(), "{}", v[k]);
             }
             assert_eq!(&got3[..3], &got[..3]);
         }
