@@ -355,16 +355,22 @@ fn floor_pos(v: Vec4) -> Vec4 {
     r - Vec4::select(r.cmpgt(v), Vec4::ONE, Vec4::ZERO)
 }
 
+/// One reference into bin `b` (masked into range) of one axis' bin arrays.
+#[inline(always)]
+fn add_to_bin(lo: &mut [Vec3A; MAX_BINS], hi: &mut [Vec3A; MAX_BINS], cnt: &mut [u32; MAX_BINS], b: usize, r: &PrimRef) {
+    let b = b & (MAX_BINS - 1);
+    lo[b] = lo[b].min(ref_lo(r));
+    hi[b] = hi[b].max(ref_hi(r));
+    cnt[b] += 1;
+}
+
 #[inline(always)]
 fn bin_one(r: &PrimRef, bn: &Binning, bins: &mut Bins) {
     let lo = ref_lo(r);
     let hi = ref_hi(r);
     if bn.axes.1 - bn.axes.0 == 1 {
         let a = bn.axes.0.min(2);
-        let b = bn.bin_axis(r, a) & (MAX_BINS - 1);
-        bins.lo[a][b] = bins.lo[a][b].min(lo);
-        bins.hi[a][b] = bins.hi[a][b].max(hi);
-        bins.count[a][b] += 1;
+        add_to_bin(&mut bins.lo[a], &mut bins.hi[a], &mut bins.count[a], bn.bin_axis(r, a), r);
         return;
     }
     // All three axes (the only other case); indices are <= kmax < MAX_BINS, so the mask
@@ -405,24 +411,14 @@ fn bin_refs_axis(refs: &[PrimRef], bn: &Binning, bins: &mut Bins) {
         let pos = (Vec4::new(ctr(&q[0]), ctr(&q[1]), ctr(&q[2]), ctr(&q[3])) - cmin4) * scale4;
         let t = trunc_i32x4_4(pos.max(Vec4::ZERO).min(kmax4));
         let b = t.map(|x| x as usize & (MAX_BINS - 1));
-        blo[b[0]] = blo[b[0]].min(ref_lo(&q[0]));
-        bhi[b[0]] = bhi[b[0]].max(ref_hi(&q[0]));
-        bcnt[b[0]] += 1;
-        lo2[b[1]] = lo2[b[1]].min(ref_lo(&q[1]));
-        hi2[b[1]] = hi2[b[1]].max(ref_hi(&q[1]));
-        cnt2[b[1]] += 1;
-        blo[b[2]] = blo[b[2]].min(ref_lo(&q[2]));
-        bhi[b[2]] = bhi[b[2]].max(ref_hi(&q[2]));
-        bcnt[b[2]] += 1;
-        lo2[b[3]] = lo2[b[3]].min(ref_lo(&q[3]));
-        hi2[b[3]] = hi2[b[3]].max(ref_hi(&q[3]));
-        cnt2[b[3]] += 1;
+        // Even references into the node's bins, odd ones into the second set.
+        add_to_bin(blo, bhi, bcnt, b[0], &q[0]);
+        add_to_bin(&mut lo2, &mut hi2, &mut cnt2, b[1], &q[1]);
+        add_to_bin(blo, bhi, bcnt, b[2], &q[2]);
+        add_to_bin(&mut lo2, &mut hi2, &mut cnt2, b[3], &q[3]);
     }
     for r in quads.remainder() {
-        let b = bin(r);
-        blo[b] = blo[b].min(ref_lo(r));
-        bhi[b] = bhi[b].max(ref_hi(r));
-        bcnt[b] += 1;
+        add_to_bin(blo, bhi, bcnt, bin(r), r);
     }
     for b in 0..k {
         blo[b] = blo[b].min(lo2[b]);

@@ -161,7 +161,7 @@ fn intersect_sheared(sh: &Shear, o: [f32; 3], tmin: f32, tmax: f32, v0: [f32; 3]
     Some((t, (vd / det) as f32, (wd / det) as f32, det > 0.0))
 }
 
-/// Slab test of all four child boxes of a node at once ([f32; 4] lanes): entry distances
+/// Slab test of all four child boxes of a node at once (one `Vec4` lane each): entry distances
 /// clamped to tmin, and a hit mask. The far distance is widened by a few ulps (Ize 2013) so
 /// rounding never loses a box the ray touches. A NaN slab distance (0 * inf: a zero direction
 /// component with the origin exactly on a slab plane) means the origin lies in the closed slab
