@@ -1251,23 +1251,11 @@ pub fn wide_children(nodes: &[BinNode], i: usize) -> ([usize; 4], usize, u8) {
 
 /// Quantise child boxes into the frame of `node_box`, rounding outward and verifying with the
 /// exact decode arithmetic of `WideNode::child_box`, so decoded boxes always contain the input.
-pub fn encode_node(node_box: &Aabb, boxes: &[Aabb], child: &[u32], kind: &[u8]) -> WideNode {
-    let cnt = boxes.len().min(4);
-    let pad = Vec3A::from(node_box.lo);
-    let mut lo = [pad; 4];
-    let mut hi = [pad; 4];
-    for (c, b) in boxes.iter().enumerate().take(4) {
-        lo[c] = Vec3A::from(b.lo);
-        hi[c] = Vec3A::from(b.hi);
-    }
-    encode_node_v(node_box, &lo, &hi, cnt, child, kind)
-}
-
-/// `encode_node` with the child boxes as vectors (slots past `cnt` hold the node's lo
-/// corner): each axis' four values come from one transpose in registers, where gathering
-/// them through a stack array stalled on store-to-load forwarding.
+/// The child boxes come as vectors (slots past `cnt` hold the node's lo corner): each axis'
+/// four values come from one transpose in registers, where gathering them through a stack
+/// array stalled on store-to-load forwarding.
 #[inline]
-fn encode_node_v(node_box: &Aabb, clo: &[Vec3A; 4], chi: &[Vec3A; 4], cnt: usize, child: &[u32], kind: &[u8]) -> WideNode {
+pub fn encode_node_v(node_box: &Aabb, clo: &[Vec3A; 4], chi: &[Vec3A; 4], cnt: usize, child: &[u32], kind: &[u8]) -> WideNode {
     let cnt = cnt.min(4);
     let col = |v: Vec3A| Vec4::from((v, 0.0));
     let tlo = glam::Mat4::from_cols(col(clo[0]), col(clo[1]), col(clo[2]), col(clo[3])).transpose();
@@ -1563,7 +1551,7 @@ pub fn make_ref_data(gi: u32, g: &Geometry, p: u32, view: &dyn DeviceView, allow
 /// three floats are the same), U32 or U16 indices and no transform: the common input, read with
 /// direct little-endian loads instead of the generic per-format decode. Gives exactly what
 /// `make_ref_data` gives; anything out of range falls back to it (which reports the error).
-struct FastTris<'a> {
+pub(super) struct FastTris<'a> {
     vertices: &'a [u8],
     indices: &'a [u8],
     stride: usize,
@@ -1573,7 +1561,7 @@ struct FastTris<'a> {
 }
 
 impl<'a> FastTris<'a> {
-    fn of(g: &Geometry<'a>) -> Option<Self> {
+    pub(super) fn of(g: &Geometry<'a>) -> Option<Self> {
         use super::{IndexType, VertexFormat};
         let GeometryData::Triangles { format, vertices, stride, max_vertex, index_type, indices, transform: None } = g.data else { return None };
         if !matches!(format, VertexFormat::R32G32B32Sfloat | VertexFormat::R32G32B32A32Sfloat) {
@@ -1602,7 +1590,7 @@ impl<'a> FastTris<'a> {
 
     /// Vertex indices and positions of triangle `p`; None when an index or vertex is out of range.
     #[inline(always)]
-    fn read(&self, p: u32) -> Option<([u32; 3], [Vec3A; 3])> {
+    pub(super) fn read(&self, p: u32) -> Option<([u32; 3], [Vec3A; 3])> {
         let idx = if self.u16_indices {
             let o = (p as usize).checked_mul(6)?;
             let (b, _) = self.indices.get(o..)?.split_first_chunk::<6>()?;

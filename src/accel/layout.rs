@@ -214,8 +214,9 @@ pub fn build_scratch_size(n: u64) -> u64 {
 }
 
 pub fn update_scratch_size(n: u64) -> u64 {
-    // Exact node boxes (24 B per wide node) and, for a TLAS, 16-B sort keys per instance.
-    SCRATCH_SLACK.saturating_add(max_nodes(n).saturating_mul(24)).saturating_add(SCRATCH_SLACK).saturating_add(n.saturating_mul(16))
+    // A TLAS sorts one 8-byte key per instance (16 B reserved); node boxes are refitted
+    // subtree by subtree in registers, so a BLAS needs none of it.
+    SCRATCH_SLACK.saturating_add(n.saturating_mul(16))
 }
 
 pub fn build_sizes(ty: AsType, _flags: BuildFlags, shapes: &[GeometryShape], max_primitive_counts: &[u32]) -> BuildSizes {

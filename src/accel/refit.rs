@@ -1,12 +1,12 @@
 //! Update (refit): same topology, new vertex/AABB positions or instance definitions. Checks the
-//! update rules visible here, rewrites primitive data, then recomputes node boxes bottom-up
-//! (preorder layout: every child has a larger index than its parent).
-use super::builder::{self, carve, encode_node, geometry_record, make_ref, triangle_bounds, Aabb};
+//! update rules visible here, rewrites primitive data, then recomputes node boxes bottom-up,
+//! subtree by subtree in parallel (preorder layout: each subtree is a contiguous node range).
+use super::builder::{self, carve, encode_node_v, geometry_record, make_ref, triangle_bounds, Aabb};
 use super::input::read_instance;
 use super::layout::{self, InstanceRecord, Parsed, CHILD_INTERNAL, NODE_SIZE, PRIM_SIZE};
 use super::{AsType, BuildDesc, BuildError, BuildFlags, BuildReport, DeviceView, GeometryData};
 use bytemuck::Zeroable;
-use glam::Vec3;
+use glam::{Vec3, Vec3A};
 use rayon::prelude::*;
 
 fn mismatch(s: &'static str) -> BuildError {
@@ -100,21 +100,34 @@ pub fn update(desc: &BuildDesc, view: &dyn DeviceView, src: Option<&[u8]>, dst: 
     let dst = &mut dst[..used];
 
     // 1. New primitive data; every stored primitive must still be storable.
-    let (boxes, rest) = carve::<[f32; 6]>(scratch, raw.node_count as usize).ok_or(BuildError::ScratchTooSmall { needed: need, got: 0 })?;
     if is_tlas {
-        let (keys, _) = carve::<u64>(rest, n).ok_or(BuildError::ScratchTooSmall { needed: need, got: 0 })?;
+        let (keys, _) = carve::<u64>(scratch, n).ok_or(BuildError::ScratchTooSmall { needed: need, got: 0 })?;
         refit_instances(desc, view, &raw, dst, keys)?;
     } else {
         let (head, tail) = dst.split_at_mut(raw.records_offset as usize);
         let prims = &mut head[raw.prims_offset as usize..raw.prims_offset as usize + n * PRIM_SIZE];
         let records = &tail[..n * layout::RECORD_SIZE];
+        // Plain f32 triangles without a transform are read directly (`FastTris`); anything
+        // else, and every error, through `read_triangle`.
+        let fast: Vec<Option<builder::FastTris>> = desc.geometries.iter().map(builder::FastTris::of).collect();
         prims
             .par_chunks_mut(1024 * PRIM_SIZE)
             .zip(records.par_chunks(1024 * layout::RECORD_SIZE))
             .map(|(pd, rd)| {
-                for (k, rb) in rd.chunks_exact(layout::RECORD_SIZE).enumerate() {
+                for (rb, d) in rd.chunks_exact(layout::RECORD_SIZE).zip(pd.chunks_exact_mut(PRIM_SIZE)) {
                     let rec: layout::PrimRecord = bytemuck::pod_read_unaligned(rb);
                     let g = desc.geometries.get(rec.geometry as usize).ok_or(BuildError::InvalidSource("record"))?;
+                    if let Some((_, [a, b, c])) = fast.get(rec.geometry as usize).and_then(|f| f.as_ref()).and_then(|f| f.read(rec.primitive)) {
+                        if a.x.is_nan() || b.x.is_nan() || c.x.is_nan() {
+                            return Err(mismatch("an active primitive became inactive"));
+                        }
+                        let v = |x: Vec3A| bytemuck::cast::<[f32; 4], [u8; 16]>(glam::Vec4::from((x, 0.0)).to_array());
+                        // Overlapping 16-byte stores from registers, the last one of 12 bytes.
+                        d[0..16].copy_from_slice(&v(a));
+                        d[12..28].copy_from_slice(&v(b));
+                        d[24..36].copy_from_slice(&v(c)[..12]);
+                        continue;
+                    }
                     let mut data = [0f32; 9];
                     match g.data {
                         GeometryData::Triangles { .. } => {
@@ -127,9 +140,7 @@ pub fn update(desc: &BuildDesc, view: &dyn DeviceView, src: Option<&[u8]>, dst: 
                         }
                         GeometryData::Instances { .. } => return Err(BuildError::WrongGeometryType { geometry: rec.geometry }),
                     }
-                    if let Some(d) = pd.get_mut(k * PRIM_SIZE..(k + 1) * PRIM_SIZE) {
-                        d.copy_from_slice(bytemuck::bytes_of(&data));
-                    }
+                    d.copy_from_slice(bytemuck::bytes_of(&data));
                 }
                 Ok(())
             })
@@ -137,41 +148,20 @@ pub fn update(desc: &BuildDesc, view: &dyn DeviceView, src: Option<&[u8]>, dst: 
     }
 
     let raw = layout::parse(dst).map(|p| p.raw).ok_or(BuildError::InvalidSource("structure"))?;
-    // 2. Node boxes bottom-up; exact child boxes of internal nodes come from `boxes`.
+    // 2. Node boxes bottom-up, subtree by subtree: nodes are stored in preorder, so each
+    // subtree is a contiguous range of nodes (checked on the way) and the children's ranges can
+    // be refitted in parallel. The node section is the last one, so everything the leaves
+    // read lies before it.
     let nc = raw.node_count as usize;
     let mut root = Aabb::EMPTY;
-    for i in (0..nc).rev() {
-        let (wn, nb) = {
-            let p = Parsed { raw, bytes: &*dst };
-            let node = p.node(i as u32).ok_or(BuildError::InvalidSource("node"))?;
-            let cnt = (node.child_count as usize).min(4);
-            let mut cb = [Aabb::EMPTY; 4];
-            let mut nb = Aabb::EMPTY;
-            for c in 0..cnt {
-                cb[c] = match node.kind[c] {
-                    CHILD_INTERNAL => {
-                        let ch = node.child[c] as usize;
-                        if ch <= i || ch >= nc {
-                            return Err(BuildError::InvalidSource("node order"));
-                        }
-                        let b = boxes[ch];
-                        Aabb { lo: [b[0], b[1], b[2]], hi: [b[3], b[4], b[5]] }
-                    }
-                    0 => Aabb::EMPTY,
-                    k => leaf_bounds(&p, node.child[c], k as u32, view)?,
-                };
-                nb = nb.union(&cb[c]);
-            }
-            (encode_node(&nb, &cb[..cnt], &node.child[..cnt], &node.kind[..cnt]), nb)
-        };
-        boxes[i] = [nb.lo[0], nb.lo[1], nb.lo[2], nb.hi[0], nb.hi[1], nb.hi[2]];
-        let off = raw.nodes_offset as usize + i * NODE_SIZE;
-        if let Some(d) = dst.get_mut(off..off + NODE_SIZE) {
-            d.copy_from_slice(bytemuck::bytes_of(&wn));
-        }
-        if i == 0 {
-            root = nb;
-        }
+    if nc > 0 {
+        let nodes_at = raw.nodes_offset as usize;
+        let (head, tail) = dst.split_at_mut(nodes_at.min(used));
+        let p = Parsed { raw, bytes: &*head };
+        // BLAS geometries all have one type (checked when built): the leaves' kind, once.
+        let kind = if is_tlas { None } else { Some(p.geometry(0).ok_or(BuildError::InvalidSource("geometry table"))?.kind) };
+        let nodes = tail.get_mut(..nc * NODE_SIZE).ok_or(BuildError::InvalidSource("node"))?;
+        root = refit_subtree(&p, kind, view, nodes, 0)?;
     }
     let mut h = raw;
     if n > 0 {
@@ -179,6 +169,124 @@ pub fn update(desc: &BuildDesc, view: &dyn DeviceView, src: Option<&[u8]>, dst: 
     }
     layout::write_header(dst, &h);
     Ok(BuildReport { used_size: raw.used_size, node_count: raw.node_count, leaf_count: raw.leaf_count, primitive_count: raw.primitive_count })
+}
+
+/// Subtrees of at least this many nodes refit their children in parallel.
+const PAR_REFIT_NODES: usize = 256;
+
+/// Refits the subtree whose nodes are `nodes` (node `base` first, its whole preorder range) and
+/// returns its box. The internal children must be `base + 1` and then each the next node after
+/// the previous child's range (what preorder storage gives); anything else is an invalid source.
+fn refit_subtree(p: &Parsed, kind: Option<u32>, view: &dyn DeviceView, nodes: &mut [u8], base: usize) -> Result<Aabb, BuildError> {
+    let order = BuildError::InvalidSource("node order");
+    let total = nodes.len() / NODE_SIZE;
+    let (me, rest) = nodes.split_at_mut(NODE_SIZE.min(nodes.len()));
+    if me.len() < NODE_SIZE {
+        return Err(BuildError::InvalidSource("node"));
+    }
+    let node: layout::WideNode = bytemuck::pod_read_unaligned(me);
+    let cnt = (node.child_count as usize).min(4);
+    // The children's node ranges, in child order.
+    let mut starts = [usize::MAX; 4];
+    let mut next = base + 1;
+    for c in 0..cnt {
+        if node.kind[c] == CHILD_INTERNAL {
+            let ch = node.child[c] as usize;
+            if ch != next && starts[..c].iter().all(|&s| s == usize::MAX) {
+                return Err(order);
+            }
+            if ch < next || ch >= base + total {
+                return Err(order);
+            }
+            starts[c] = ch;
+            next = ch + 1;
+        }
+    }
+    let mut parts: [Option<(&mut [u8], usize)>; 4] = [None, None, None, None];
+    let mut rest = rest;
+    let mut at = base + 1;
+    for c in 0..cnt {
+        if starts[c] == usize::MAX {
+            continue;
+        }
+        // This child's range ends where the next internal child starts, or with the parent's.
+        let end = starts[c + 1..cnt].iter().copied().find(|&s| s != usize::MAX).unwrap_or(base + total);
+        let (mine, r) = std::mem::take(&mut rest).split_at_mut((end - at) * NODE_SIZE);
+        rest = r;
+        parts[c] = Some((mine, starts[c]));
+        at = end;
+    }
+    let mut results: [Option<Result<Aabb, BuildError>>; 4] = [None, None, None, None];
+    let big = total >= PAR_REFIT_NODES;
+    if big {
+        parts.par_iter_mut().zip(results.par_iter_mut()).for_each(|(part, res)| {
+            if let Some((n, b)) = part.take() {
+                *res = Some(refit_subtree(p, kind, view, n, b));
+            }
+        });
+    } else {
+        for (part, res) in parts.iter_mut().zip(results.iter_mut()) {
+            if let Some((n, b)) = part.take() {
+                *res = Some(refit_subtree(p, kind, view, n, b));
+            }
+        }
+    }
+    let mut clo = [Vec3A::ZERO; 4];
+    let mut chi = [Vec3A::ZERO; 4];
+    let (mut nlo, mut nhi) = (Vec3A::INFINITY, Vec3A::NEG_INFINITY);
+    for c in 0..cnt {
+        let b = match node.kind[c] {
+            CHILD_INTERNAL => results[c].take().unwrap_or(Err(BuildError::InvalidSource("node")))?,
+            0 => Aabb::EMPTY,
+            k => leaf_bounds_of(p, kind, node.child[c], k as u32, view)?,
+        };
+        (clo[c], chi[c]) = (Vec3A::from(b.lo), Vec3A::from(b.hi));
+        nlo = nlo.min(clo[c]);
+        nhi = nhi.max(chi[c]);
+    }
+    let nb = Aabb { lo: nlo.to_array(), hi: nhi.to_array() };
+    for c in cnt..4 {
+        (clo[c], chi[c]) = (Vec3A::from(nb.lo), Vec3A::from(nb.lo));
+    }
+    let wn = encode_node_v(&nb, &clo, &chi, cnt, &node.child[..cnt], &node.kind[..cnt]);
+    me.copy_from_slice(bytemuck::bytes_of(&wn));
+    Ok(nb)
+}
+
+/// `leaf_bounds` with the BLAS leaf kind known (`kind`), so no per-primitive record lookup.
+fn leaf_bounds_of(p: &Parsed, kind: Option<u32>, first: u32, count: u32, view: &dyn DeviceView) -> Result<Aabb, BuildError> {
+    let Some(kind) = kind else { return leaf_bounds(p, first, count, view) };
+    if kind == layout::KIND_TRIANGLES {
+        // One range check for the leaf, vertices straight into registers; non-finite ones take
+        // `triangle_bounds` (the same box `prim_bounds` gives: min/max are exact when finite).
+        let o = (p.raw.prims_offset as usize).checked_add(first as usize * PRIM_SIZE).ok_or(BuildError::InvalidSource("leaf range"))?;
+        if first.checked_add(count).is_none_or(|e| e > p.raw.primitive_count) {
+            return Err(BuildError::InvalidSource("leaf range"));
+        }
+        let bytes = p.bytes.get(o..o + count as usize * PRIM_SIZE).ok_or(BuildError::InvalidSource("leaf range"))?;
+        let (mut lo, mut hi) = (Vec3A::INFINITY, Vec3A::NEG_INFINITY);
+        for t in bytes.chunks_exact(PRIM_SIZE) {
+            let Some((t, _)) = t.split_first_chunk::<36>() else { continue };
+            let f = |i: usize| f32::from_le_bytes([t[4 * i], t[4 * i + 1], t[4 * i + 2], t[4 * i + 3]]);
+            let (a, b, c) = (Vec3A::new(f(0), f(1), f(2)), Vec3A::new(f(3), f(4), f(5)), Vec3A::new(f(6), f(7), f(8)));
+            if ((a - a) + (b - b) + (c - c)).cmpeq(Vec3A::ZERO).all() {
+                lo = lo.min(a.min(b).min(c));
+                hi = hi.max(a.max(b).max(c));
+            } else {
+                let (l, h) = triangle_bounds(&[a.into(), b.into(), c.into()]);
+                lo = lo.min(Vec3A::from(l));
+                hi = hi.max(Vec3A::from(h));
+            }
+        }
+        return Ok(Aabb { lo: lo.to_array(), hi: hi.to_array() });
+    }
+    let mut b = Aabb::EMPTY;
+    for s in first..first.saturating_add(count) {
+        let d = p.prim(s).ok_or(BuildError::InvalidSource("leaf range"))?;
+        let (lo, hi) = prim_bounds(&d, kind);
+        b.grow(&lo, &hi);
+    }
+    Ok(b)
 }
 
 fn leaf_bounds(p: &Parsed, first: u32, count: u32, view: &dyn DeviceView) -> Result<Aabb, BuildError> {

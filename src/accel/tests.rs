@@ -983,3 +983,48 @@ fn nan_y_or_z_gets_the_huge_box() {
         }
     }
 }
+
+
+/// The refit runs subtree by subtree in parallel: the same bytes on 1 and 4 threads, each
+/// structure's node order checked (a child index that breaks preorder is an invalid source,
+/// not a panic or a write elsewhere).
+#[test]
+fn refit_is_the_same_on_any_thread_count_and_checks_node_order() {
+    let mut rng = Rng::new(77);
+    let v = random_soup(&mut rng, 6000, 10.0, 0.4);
+    let n = v.len() / 3;
+    let idx: Vec<u32> = (0..v.len() as u32).collect();
+    let (vb, ib) = (f32_bytes(&v), u32_bytes(&idx));
+    let flags = BuildFlags::ALLOW_UPDATE | BuildFlags::PREFER_FAST_TRACE;
+    let blas = build_ok(AsType::BottomLevel, flags, &[tri_geom(&vb, v.len() as u32, &ib, n as u32, 0)], &NoDevice);
+    assert!(header(&blas).unwrap().node_count as usize > 4 * 256, "too few nodes for the parallel refit");
+    let v2: Vec<Vec3> = v.iter().enumerate().map(|(i, p)| *p + Vec3::new(0.01 * (i % 5) as f32, -0.02, 0.0)).collect();
+    let vb2 = f32_bytes(&v2);
+    let g2 = tri_geom(&vb2, v.len() as u32, &ib, n as u32, 0);
+    let sz = build_sizes(AsType::BottomLevel, BuildFlags(flags), &[shape_of(&g2)], &[n as u32]);
+    let desc = BuildDesc { ty: AsType::BottomLevel, flags: BuildFlags(flags), geometries: &[g2] };
+    let mut outs = Vec::new();
+    for threads in [1, 4] {
+        let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
+        let mut dst = blas.clone();
+        let mut scratch = vec![0u8; sz.update_scratch_size as usize];
+        pool.install(|| update(&desc, &NoDevice, None, &mut dst, &mut scratch)).unwrap();
+        validate(&dst).unwrap();
+        outs.push(dst);
+    }
+    assert!(outs[0] == outs[1], "refit bytes differ between 1 and 4 threads");
+    assert!(outs[0] != blas, "the refit changed nothing");
+    for _ in 0..300 {
+        let ray = random_ray(&mut rng, 13.0);
+        assert_eq!(closest_hit(&outs[0], &NoDevice, ray, RayFlags(0), 0xff).map(|h| h.t), brute_closest(&v2, &ray, 0).map(|b| b.0));
+    }
+    // Break preorder: the root's first internal child points one node further.
+    let at = super::layout::parse(&blas).unwrap().raw.nodes_offset as usize;
+    let root: super::layout::WideNode = bytemuck::pod_read_unaligned(&blas[at..at + super::layout::NODE_SIZE]);
+    let c = (0..4).find(|&c| root.kind[c] == super::layout::CHILD_INTERNAL).expect("an internal child");
+    let mut bad = blas.clone();
+    let o = at + 40 + 4 * c;
+    bad[o..o + 4].copy_from_slice(&(root.child[c] + 1).to_le_bytes());
+    let mut scratch = vec![0u8; sz.update_scratch_size as usize];
+    assert_eq!(update(&desc, &NoDevice, None, &mut bad, &mut scratch), Err(BuildError::InvalidSource("node order")));
+}
