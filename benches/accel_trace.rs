@@ -22,25 +22,6 @@ use std::time::Duration;
 
 const BATCH: usize = 65_536;
 
-fn primary_rays(b: [f32; 6], width: usize, height: usize) -> Vec<Ray> {
-    let centre = Vec3::new((b[0] + b[3]) / 2.0, (b[1] + b[4]) / 2.0, (b[2] + b[5]) / 2.0);
-    let ext = Vec3::new(b[3] - b[0], b[4] - b[1], b[5] - b[2]);
-    let eye = centre + Vec3::new(0.0, 0.1 * ext.y, 2.0 * ext.x.max(ext.y));
-    let forward = (centre - eye).normalize();
-    let right = forward.cross(Vec3::Y).normalize();
-    let up = right.cross(forward);
-    let half = (0.6 * ext.x.max(ext.y)) / (centre - eye).length();
-    let mut out = Vec::with_capacity(width * height);
-    for y in 0..height {
-        for x in 0..width {
-            let u = (2.0 * (x as f32 + 0.5) / width as f32 - 1.0) * half;
-            let v = (1.0 - 2.0 * (y as f32 + 0.5) / height as f32) * half;
-            out.push(Ray { origin: eye, direction: (forward + right * u + up * v).normalize(), tmin: 0.0, tmax: f32::INFINITY });
-        }
-    }
-    out
-}
-
 fn random_rays(b: [f32; 6], n: usize, seed: u64) -> Vec<Ray> {
     let mut rng = Rng::new(seed);
     let lo = Vec3::new(b[0], b[1], b[2]);
@@ -91,7 +72,7 @@ fn bench_trace(c: &mut Criterion) {
     drop(scratch);
     let bvh = &dst[..];
     let b = mesh.bounds();
-    let primary = primary_rays(b, 256, 256);
+    let primary = scene::primary_rays(b, 256, 256);
     let random = random_rays(b, BATCH, 7);
     let hit_rate = |rays: &[Ray]| rays.iter().filter(|r| accel::closest_hit(bvh, &accel::NoDevice, copy(r), RayFlags(0), 0xFF).is_some()).count() as f64 / rays.len() as f64;
     println!("\ndragon {} triangles; primary rays hit {:.1}%, random rays hit {:.1}%", mesh.indices.len(), 100.0 * hit_rate(&primary), 100.0 * hit_rate(&random));

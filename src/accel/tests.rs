@@ -752,28 +752,17 @@ fn trace_timing() {
     let mut dst = vec![0u8; sz.acceleration_structure_size as usize];
     let mut scratch = vec![0u8; sz.build_scratch_size as usize];
     build(&BuildDesc { ty: AsType::BottomLevel, flags, geometries: &[g] }, &NoDevice, &mut dst, &mut scratch).unwrap();
-    let b = mesh.bounds();
     let side = (std::env::var("ARBOR_RAYS").ok().and_then(|s| s.parse::<f64>().ok()).unwrap_or(65536.0)).sqrt() as usize;
-    let centre = Vec3::new((b[0] + b[3]) / 2.0, (b[1] + b[4]) / 2.0, (b[2] + b[5]) / 2.0);
-    let ext = Vec3::new(b[3] - b[0], b[4] - b[1], b[5] - b[2]);
-    let eye = centre + Vec3::new(0.0, 0.1 * ext.y, 2.0 * ext.x.max(ext.y));
-    let forward = (centre - eye).normalize();
-    let right = forward.cross(Vec3::Y).normalize();
-    let up = right.cross(forward);
-    let half = (0.6 * ext.x.max(ext.y)) / (centre - eye).length();
+    let rays = crate::scene::primary_rays(mesh.bounds(), side, side);
     let reps: usize = std::env::var("ARBOR_REPS").ok().and_then(|s| s.parse().ok()).unwrap_or(5);
     let mut best = f64::MAX;
     let mut sum = 0f64;
     for _ in 0..reps {
         let t = std::time::Instant::now();
         sum = 0.0;
-        for y in 0..side {
-            for x in 0..side {
-                let u = (2.0 * (x as f32 + 0.5) / side as f32 - 1.0) * half;
-                let v = (1.0 - 2.0 * (y as f32 + 0.5) / side as f32) * half;
-                let ray = Ray { origin: eye, direction: (forward + right * u + up * v).normalize(), tmin: 0.0, tmax: f32::INFINITY };
-                sum += closest_hit(&dst, &NoDevice, ray, RayFlags(0), 0xFF).map_or(0.0, |h| h.t as f64);
-            }
+        for r in &rays {
+            let ray = Ray { origin: r.origin, direction: r.direction, tmin: r.tmin, tmax: r.tmax };
+            sum += closest_hit(&dst, &NoDevice, ray, RayFlags(0), 0xFF).map_or(0.0, |h| h.t as f64);
         }
         best = best.min(t.elapsed().as_secs_f64() * 1e3);
     }

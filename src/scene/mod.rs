@@ -16,7 +16,7 @@ use std::path::Path;
 
 pub use obj::parse_obj;
 pub use ply::parse_ply;
-pub use procedural::{instance_records, random_soup, terrain, InstanceRecord, Rng};
+pub use procedural::{instance_records, primary_rays, random_soup, terrain, InstanceRecord, Rng};
 
 /// An indexed triangle mesh.
 #[derive(Clone, Debug, Default, PartialEq)]

@@ -200,3 +200,26 @@ pub fn instance_records(n: usize, blas_references: &[u64], seed: u64) -> Vec<Ins
         })
         .collect()
 }
+
+/// Primary rays of a `width` × `height` image of a scene with these bounds ([lo; 3], [hi; 3]):
+/// a pinhole camera in front of the box (+z, slightly above), looking at its centre, rows top to
+/// bottom. The rays of `benches/accel_trace.rs` and `accel::tests::trace_timing`.
+pub fn primary_rays(b: [f32; 6], width: usize, height: usize) -> Vec<crate::accel::Ray> {
+    use glam::Vec3;
+    let centre = Vec3::new((b[0] + b[3]) / 2.0, (b[1] + b[4]) / 2.0, (b[2] + b[5]) / 2.0);
+    let ext = Vec3::new(b[3] - b[0], b[4] - b[1], b[5] - b[2]);
+    let eye = centre + Vec3::new(0.0, 0.1 * ext.y, 2.0 * ext.x.max(ext.y));
+    let forward = (centre - eye).normalize();
+    let right = forward.cross(Vec3::Y).normalize();
+    let up = right.cross(forward);
+    let half = (0.6 * ext.x.max(ext.y)) / (centre - eye).length();
+    let mut out = Vec::with_capacity(width * height);
+    for y in 0..height {
+        for x in 0..width {
+            let u = (2.0 * (x as f32 + 0.5) / width as f32 - 1.0) * half;
+            let v = (1.0 - 2.0 * (y as f32 + 0.5) / height as f32) * half;
+            out.push(crate::accel::Ray { origin: eye, direction: (forward + right * u + up * v).normalize(), tmin: 0.0, tmax: f32::INFINITY });
+        }
+    }
+    out
+}
