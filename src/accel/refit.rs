@@ -158,8 +158,12 @@ pub fn update(desc: &BuildDesc, view: &dyn DeviceView, src: Option<&[u8]>, dst: 
         let nodes_at = raw.nodes_offset as usize;
         let (head, tail) = dst.split_at_mut(nodes_at.min(used));
         let p = Parsed { raw, bytes: &*head };
-        // BLAS geometries all have one type (checked when built): the leaves' kind, once.
-        let kind = if is_tlas { None } else { Some(p.geometry(0).ok_or(BuildError::InvalidSource("geometry table"))?.kind) };
+        // The leaves' primitive kind, once, when every geometry of the BLAS has the same one
+        // (Vulkan requires it; the library also accepts mixed ones, which take the per-primitive
+        // lookup like a TLAS).
+        let mut kinds = (0..raw.geometry_count).map(|g| p.geometry(g).map(|g| g.kind));
+        let first = kinds.next().flatten();
+        let kind = if is_tlas || first.is_none() || !kinds.all(|k| k == first) { None } else { first };
         let nodes = tail.get_mut(..nc * NODE_SIZE).ok_or(BuildError::InvalidSource("node"))?;
         root = refit_subtree(&p, kind, view, nodes, 0)?;
     }
@@ -253,7 +257,8 @@ fn refit_subtree(p: &Parsed, kind: Option<u32>, view: &dyn DeviceView, nodes: &m
     Ok(nb)
 }
 
-/// `leaf_bounds` with the BLAS leaf kind known (`kind`), so no per-primitive record lookup.
+/// `leaf_bounds` with the BLAS leaf kind known (`kind`), so no per-primitive record lookup;
+/// None: `leaf_bounds`.
 fn leaf_bounds_of(p: &Parsed, kind: Option<u32>, first: u32, count: u32, view: &dyn DeviceView) -> Result<Aabb, BuildError> {
     let Some(kind) = kind else { return leaf_bounds(p, first, count, view) };
     if kind == layout::KIND_TRIANGLES {

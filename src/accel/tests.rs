@@ -1017,3 +1017,44 @@ fn refit_is_the_same_on_any_thread_count_and_checks_node_order() {
     let mut scratch = vec![0u8; sz.update_scratch_size as usize];
     assert_eq!(update(&desc, &NoDevice, None, &mut bad, &mut scratch), Err(BuildError::InvalidSource("node order")));
 }
+
+/// A BLAS mixing triangles and AABBs (Vulkan forbids it; the library builds it) refits each
+/// primitive by its own geometry's kind: moved and moved back, it has the bytes of the original
+/// build (node boxes are exact unions, so any looser leaf box would show), and in between the
+/// moved boxes are hit where they now are.
+#[test]
+fn refit_of_mixed_triangles_and_aabbs() {
+    let mut rng = Rng::new(78);
+    let v = random_soup(&mut rng, 3000, 10.0, 0.4);
+    let idx: Vec<u32> = (0..v.len() as u32).collect();
+    let (vb, ib) = (f32_bytes(&v), u32_bytes(&idx));
+    let boxes_at = |shift: f32| -> Vec<u8> {
+        (0..500)
+            .flat_map(|i| {
+                let c = Vec3::new((i % 10) as f32 + shift, (i / 10 % 10) as f32, (i / 100) as f32 + 20.0);
+                [c.x, c.y, c.z, c.x + 0.3, c.y + 0.3, c.z + 0.3].map(f32::to_le_bytes)
+            })
+            .flatten()
+            .collect()
+    };
+    let (b0, b1) = (boxes_at(0.0), boxes_at(5.0));
+    let aabbs = |data| Geometry { flags: GeometryFlags(0), primitive_count: 500, data: GeometryData::Aabbs { data, stride: 24 } };
+    let flags = BuildFlags::ALLOW_UPDATE | BuildFlags::PREFER_FAST_TRACE;
+    let g0 = [tri_geom(&vb, 3000, &ib, 1000, 0), aabbs(&b0)];
+    let built = build_ok(AsType::BottomLevel, flags, &g0, &NoDevice);
+    let v2: Vec<Vec3> = v.iter().map(|p| *p + Vec3::new(0.0, 3.0, 0.0)).collect();
+    let vb2 = f32_bytes(&v2);
+    let g1 = [tri_geom(&vb2, 3000, &ib, 1000, 0), aabbs(&b1)];
+    let sz = build_sizes(AsType::BottomLevel, BuildFlags(flags), &[shape_of(&g1[0]), shape_of(&g1[1])], &[1000, 500]);
+    let mut scratch = vec![0u8; sz.update_scratch_size as usize];
+    let mut blas = built.clone();
+    update(&BuildDesc { ty: AsType::BottomLevel, flags: BuildFlags(flags), geometries: &g1 }, &NoDevice, None, &mut blas, &mut scratch).unwrap();
+    validate(&blas).unwrap();
+    // A ray along +z through the moved box column (x in [5, 5.3], y in [0, 0.3]) hits AABB
+    // primitives (geometry 1); at x = 0.1, where they were, it finds none of them.
+    let hits = |s: &[u8], x: f32| all_hits(s, &NoDevice, Ray { origin: Vec3::new(x, 0.1, 0.0), direction: Vec3::Z, tmin: 0.0, tmax: 100.0 }, RayFlags(0), 0xff).iter().filter(|h| h.geometry_index == 1).count();
+    assert!(hits(&blas, 5.1) > 0, "the moved boxes are not found");
+    assert_eq!(hits(&blas, 0.1), 0, "the old boxes are still found");
+    update(&BuildDesc { ty: AsType::BottomLevel, flags: BuildFlags(flags), geometries: &g0 }, &NoDevice, None, &mut blas, &mut scratch).unwrap();
+    assert!(blas == built, "moved back, the refit differs from the build");
+}
