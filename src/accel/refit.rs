@@ -165,7 +165,7 @@ pub fn update(desc: &BuildDesc, view: &dyn DeviceView, src: Option<&[u8]>, dst: 
         let first = kinds.next().flatten();
         let kind = if is_tlas || first.is_none() || !kinds.all(|k| k == first) { None } else { first };
         let nodes = tail.get_mut(..nc * NODE_SIZE).ok_or(BuildError::InvalidSource("node"))?;
-        root = refit_subtree(&p, kind, view, nodes, 0)?;
+        root = refit_subtree(&p, kind, view, nodes, 0, &mut BlasMemo::new())?;
     }
     let mut h = raw;
     if n > 0 {
@@ -181,7 +181,7 @@ const PAR_REFIT_NODES: usize = 256;
 /// Refits the subtree whose nodes are `nodes` (node `base` first, its whole preorder range) and
 /// returns its box. The internal children must be `base + 1` and then each the next node after
 /// the previous child's range (what preorder storage gives); anything else is an invalid source.
-fn refit_subtree(p: &Parsed, kind: Option<u32>, view: &dyn DeviceView, nodes: &mut [u8], base: usize) -> Result<Aabb, BuildError> {
+fn refit_subtree(p: &Parsed, kind: Option<u32>, view: &dyn DeviceView, nodes: &mut [u8], base: usize, memo: &mut BlasMemo) -> Result<Aabb, BuildError> {
     let order = BuildError::InvalidSource("node order");
     let total = nodes.len() / NODE_SIZE;
     let (me, rest) = nodes.split_at_mut(NODE_SIZE.min(nodes.len()));
@@ -225,13 +225,13 @@ fn refit_subtree(p: &Parsed, kind: Option<u32>, view: &dyn DeviceView, nodes: &m
     if big {
         parts.par_iter_mut().zip(results.par_iter_mut()).for_each(|(part, res)| {
             if let Some((n, b)) = part.take() {
-                *res = Some(refit_subtree(p, kind, view, n, b));
+                *res = Some(refit_subtree(p, kind, view, n, b, &mut BlasMemo::new()));
             }
         });
     } else {
         for (part, res) in parts.iter_mut().zip(results.iter_mut()) {
             if let Some((n, b)) = part.take() {
-                *res = Some(refit_subtree(p, kind, view, n, b));
+                *res = Some(refit_subtree(p, kind, view, n, b, memo));
             }
         }
     }
@@ -242,7 +242,7 @@ fn refit_subtree(p: &Parsed, kind: Option<u32>, view: &dyn DeviceView, nodes: &m
         let b = match node.kind[c] {
             CHILD_INTERNAL => results[c].take().unwrap_or(Err(BuildError::InvalidSource("node")))?,
             0 => Aabb::EMPTY,
-            k => leaf_bounds_of(p, kind, node.child[c], k as u32, view)?,
+            k => leaf_bounds_of(p, kind, node.child[c], k as u32, view, memo)?,
         };
         (clo[c], chi[c]) = (Vec3A::from(b.lo), Vec3A::from(b.hi));
         nlo = nlo.min(clo[c]);
@@ -259,8 +259,8 @@ fn refit_subtree(p: &Parsed, kind: Option<u32>, view: &dyn DeviceView, nodes: &m
 
 /// `leaf_bounds` with the BLAS leaf kind known (`kind`), so no per-primitive record lookup;
 /// None: `leaf_bounds`.
-fn leaf_bounds_of(p: &Parsed, kind: Option<u32>, first: u32, count: u32, view: &dyn DeviceView) -> Result<Aabb, BuildError> {
-    let Some(kind) = kind else { return leaf_bounds(p, first, count, view) };
+fn leaf_bounds_of(p: &Parsed, kind: Option<u32>, first: u32, count: u32, view: &dyn DeviceView, memo: &mut BlasMemo) -> Result<Aabb, BuildError> {
+    let Some(kind) = kind else { return leaf_bounds(p, first, count, view, memo) };
     if kind == layout::KIND_TRIANGLES {
         // One range check for the leaf, vertices straight into registers; non-finite ones take
         // `triangle_bounds` (the same box `prim_bounds` gives: min/max are exact when finite).
@@ -294,13 +294,45 @@ fn leaf_bounds_of(p: &Parsed, kind: Option<u32>, first: u32, count: u32, view: &
     Ok(b)
 }
 
-fn leaf_bounds(p: &Parsed, first: u32, count: u32, view: &dyn DeviceView) -> Result<Aabb, BuildError> {
+/// The lower-indexed of two errors (deterministic whatever the split of a parallel pass).
+fn lowest_err(a: Result<(), (usize, BuildError)>, b: Result<(), (usize, BuildError)>) -> Result<(), (usize, BuildError)> {
+    match (a, b) {
+        (Err(x), Err(y)) => Err(if x.0 <= y.0 { x } else { y }),
+        (Err(x), _) | (_, Err(x)) => Err(x),
+        _ => Ok(()),
+    }
+}
+
+/// The last four BLAS bounds a TLAS refit looked up, by BLAS table index (a TLAS usually
+/// instances few BLASes; each lookup is a locked map search and a header parse).
+struct BlasMemo {
+    e: [(Option<u32>, Option<[f32; 6]>); 4],
+    next: usize,
+}
+
+impl BlasMemo {
+    fn new() -> Self {
+        BlasMemo { e: [(None, None); 4], next: 0 }
+    }
+    /// `builder::blas_bounds` of table entry `index` (at `addr`), memoised.
+    fn bounds(&mut self, index: u32, addr: u64, view: &dyn DeviceView) -> Option<[f32; 6]> {
+        if let Some(m) = self.e.iter().find(|m| m.0 == Some(index)) {
+            return m.1;
+        }
+        let b = builder::blas_bounds(addr, view);
+        self.e[self.next % 4] = (Some(index), b);
+        self.next = (self.next + 1) % 4;
+        b
+    }
+}
+
+fn leaf_bounds(p: &Parsed, first: u32, count: u32, view: &dyn DeviceView, memo: &mut BlasMemo) -> Result<Aabb, BuildError> {
     let mut b = Aabb::EMPTY;
     for s in first..first.saturating_add(count) {
         let (lo, hi) = if p.is_tlas() {
             let rec = p.instance(s).ok_or(BuildError::InvalidSource("leaf range"))?;
             let addr = p.blas_address(rec.blas_index).unwrap_or(0);
-            builder::instance_bounds(&rec.object_to_world, addr, view)
+            builder::instance_bounds_of(&rec.object_to_world, memo.bounds(rec.blas_index, addr, view))
         } else {
             let d = p.prim(s).ok_or(BuildError::InvalidSource("leaf range"))?;
             let g = p.record(s).and_then(|r| p.geometry(r.geometry)).ok_or(BuildError::InvalidSource("record"))?;
@@ -319,12 +351,23 @@ fn refit_instances(desc: &BuildDesc, view: &dyn DeviceView, raw: &layout::RawHea
         let o = rec_off + i * layout::RECORD_SIZE;
         dst.get(o..o + layout::RECORD_SIZE).map(bytemuck::pod_read_unaligned)
     };
-    // Keys: the new references of stored instances, sorted and made distinct.
-    for i in 0..n {
+    // Keys: the new references of stored instances, sorted and made distinct. Both passes over
+    // the instances run in parallel; an error is the lowest instance's, as a sequential pass
+    // would report it.
+    let read = |dst: &[u8], i: usize| -> Result<super::input::InstanceDesc, BuildError> {
         let r = read_rec(dst, i).ok_or(BuildError::InvalidSource("record"))?;
         let g = desc.geometries.get(r.geometry as usize).ok_or(BuildError::InvalidSource("record"))?;
-        let inst = read_instance(r.geometry, g, r.primitive, view)?.ok_or(mismatch("an active instance became inactive"))?;
-        keys[i] = inst.reference;
+        read_instance(r.geometry, g, r.primitive, view)?.ok_or(mismatch("an active instance became inactive"))
+    };
+    {
+        let d: &[u8] = dst;
+        keys.get_mut(..n)
+            .ok_or(BuildError::InvalidSource("record"))?
+            .par_iter_mut()
+            .enumerate()
+            .map(|(i, k)| read(d, i).map(|inst| *k = inst.reference).map_err(|e| (i, e)))
+            .reduce(|| Ok(()), lowest_err)
+            .map_err(|e| e.1)?;
     }
     let keys = &mut keys[..n];
     let distinct = super::builder::sort_distinct(keys);
@@ -336,24 +379,33 @@ fn refit_instances(desc: &BuildDesc, view: &dyn DeviceView, raw: &layout::RawHea
             d.copy_from_slice(&v.to_le_bytes());
         }
     }
-    for i in 0..n {
-        let r = read_rec(dst, i).ok_or(BuildError::InvalidSource("record"))?;
-        let g = desc.geometries.get(r.geometry as usize).ok_or(BuildError::InvalidSource("record"))?;
-        let inst = read_instance(r.geometry, g, r.primitive, view)?.ok_or(mismatch("an active instance became inactive"))?;
-        let mut rec = InstanceRecord::zeroed();
-        rec.object_to_world = inst.transform;
-        rec.world_to_object = super::input::invert_transform(&inst.transform);
-        rec.custom_index = inst.custom_index;
-        rec.mask = inst.mask;
-        rec.sbt_offset = inst.sbt_offset;
-        rec.flags = inst.flags;
-        rec.instance_index = r.primitive;
-        rec.blas_index = keys.binary_search(&inst.reference).map_or(u32::MAX, |x| x as u32);
-        let o = raw.instances_offset as usize + i * layout::INSTANCE_RECORD_SIZE;
-        if let Some(d) = dst.get_mut(o..o + layout::INSTANCE_RECORD_SIZE) {
-            d.copy_from_slice(bytemuck::bytes_of(&rec));
-        }
-    }
+    let (head, tail) = dst.split_at_mut(raw.instances_offset as usize);
+    let head: &[u8] = head;
+    const CH: usize = 256;
+    tail.get_mut(..n * layout::INSTANCE_RECORD_SIZE)
+        .ok_or(BuildError::InvalidSource("instances"))?
+        .par_chunks_mut(CH * layout::INSTANCE_RECORD_SIZE)
+        .enumerate()
+        .map(|(ci, out)| {
+            for (k, o) in out.chunks_exact_mut(layout::INSTANCE_RECORD_SIZE).enumerate() {
+                let i = ci * CH + k;
+                let inst = read(head, i).map_err(|e| (i, e))?;
+                let r = read_rec(head, i).ok_or((i, BuildError::InvalidSource("record")))?;
+                let mut rec = InstanceRecord::zeroed();
+                rec.object_to_world = inst.transform;
+                rec.world_to_object = super::input::invert_transform(&inst.transform);
+                rec.custom_index = inst.custom_index;
+                rec.mask = inst.mask;
+                rec.sbt_offset = inst.sbt_offset;
+                rec.flags = inst.flags;
+                rec.instance_index = r.primitive;
+                rec.blas_index = keys.binary_search(&inst.reference).map_or(u32::MAX, |x| x as u32);
+                o.copy_from_slice(bytemuck::bytes_of(&rec));
+            }
+            Ok(())
+        })
+        .reduce(|| Ok(()), lowest_err)
+        .map_err(|e| e.1)?;
     let mut h = *raw;
     h.blas_reference_count = distinct as u32;
     layout::write_header(dst, &h);

@@ -1058,3 +1058,53 @@ fn refit_of_mixed_triangles_and_aabbs() {
     update(&BuildDesc { ty: AsType::BottomLevel, flags: BuildFlags(flags), geometries: &g0 }, &NoDevice, None, &mut blas, &mut scratch).unwrap();
     assert!(blas == built, "moved back, the refit differs from the build");
 }
+
+/// TLAS refit (instance records and BLAS table in parallel, BLAS bounds memoised): the same bytes
+/// on 1 and 4 threads, a valid structure, and moved (transforms and some BLAS references
+/// changed) then moved back, the bytes of the original build.
+#[test]
+fn tlas_refit_is_deterministic_and_returns_to_the_build() {
+    let mut view = MapView::new();
+    let mut addrs = Vec::new();
+    for k in 0..3u64 {
+        let mut rng = Rng::new(5 + k);
+        let v = random_soup(&mut rng, 300, 2.0 + k as f32, 0.3);
+        let idx: Vec<u32> = (0..v.len() as u32).collect();
+        let (vb, ib) = (f32_bytes(&v), u32_bytes(&idx));
+        let blas = build_ok(AsType::BottomLevel, 0, &[tri_geom(&vb, v.len() as u32, &ib, 100, 0)], &NoDevice);
+        view.insert(0x1000_0000 * (k + 1), blas);
+        addrs.push(0x1000_0000 * (k + 1));
+    }
+    let m = 3000usize;
+    let recs = crate::scene::instance_records(m, &addrs, 4);
+    let mut recs2 = recs.clone();
+    for (i, r) in recs2.iter_mut().enumerate() {
+        r.transform[3] += (i % 7) as f32;
+        if i % 5 == 0 {
+            r.reference = addrs[(i / 5) % 3];
+        }
+    }
+    let (packed, packed2) = (crate::scene::InstanceRecord::pack(&recs), crate::scene::InstanceRecord::pack(&recs2));
+    let geom = |data| [Geometry { flags: GeometryFlags(0), primitive_count: m as u32, data: GeometryData::Instances { array_of_pointers: false, data } }];
+    let (g0, g1) = (geom(&packed), geom(&packed2));
+    for tier in [BuildFlags::PREFER_FAST_TRACE, BuildFlags::PREFER_FAST_BUILD] {
+        let flags = BuildFlags(tier | BuildFlags::ALLOW_UPDATE);
+        let built = build_ok(AsType::TopLevel, flags.0, &g0, &view);
+        let sz = build_sizes(AsType::TopLevel, flags, &[GeometryShape::Instances], &[m as u32]);
+        let mut outs = Vec::new();
+        for threads in [1, 4] {
+            let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
+            let mut dst = built.clone();
+            let mut scratch = vec![0u8; sz.update_scratch_size as usize];
+            pool.install(|| update(&BuildDesc { ty: AsType::TopLevel, flags, geometries: &g1 }, &view, None, &mut dst, &mut scratch)).unwrap();
+            validate(&dst).unwrap();
+            outs.push(dst);
+        }
+        assert!(outs[0] == outs[1], "TLAS refit bytes differ between 1 and 4 threads");
+        assert!(outs[0] != built, "the refit changed nothing");
+        let mut scratch = vec![0u8; sz.update_scratch_size as usize];
+        let mut back = outs[0].clone();
+        update(&BuildDesc { ty: AsType::TopLevel, flags, geometries: &g0 }, &view, None, &mut back, &mut scratch).unwrap();
+        assert!(back == built, "moved back, the TLAS refit differs from the build");
+    }
+}
