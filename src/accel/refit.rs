@@ -121,11 +121,8 @@ pub fn update(desc: &BuildDesc, view: &dyn DeviceView, src: Option<&[u8]>, dst: 
                         if a.x.is_nan() || b.x.is_nan() || c.x.is_nan() {
                             return Err(mismatch("an active primitive became inactive"));
                         }
-                        let v = |x: Vec3A| bytemuck::cast::<[f32; 4], [u8; 16]>(glam::Vec4::from((x, 0.0)).to_array());
-                        // Overlapping 16-byte stores from registers, the last one of 12 bytes.
-                        d[0..16].copy_from_slice(&v(a));
-                        d[12..28].copy_from_slice(&v(b));
-                        d[24..36].copy_from_slice(&v(c)[..12]);
+                        let data = [a.x, a.y, a.z, b.x, b.y, b.z, c.x, c.y, c.z];
+                        d.copy_from_slice(bytemuck::bytes_of(&data));
                         continue;
                     }
                     let mut data = [0f32; 9];
