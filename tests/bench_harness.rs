@@ -79,7 +79,12 @@ struct Run {
 }
 
 fn run(driver: &str, extra: &[&str]) -> Run {
-    let dir = out_dir(driver);
+    run_in(driver, driver, extra)
+}
+
+/// `run` with its files in out_dir(`tag`) (tests running at the same time use their own).
+fn run_in(tag: &str, driver: &str, extra: &[&str]) -> Run {
+    let dir = out_dir(tag);
     let json = dir.join(format!("{driver}.json"));
     let csv = dir.join(format!("{driver}.csv"));
     let svg = dir.join(format!("{driver}.svg"));
@@ -207,4 +212,26 @@ fn harness_against_lavapipe_when_installed() {
         assert_eq!(get(f, "status"), "not supported", "lavapipe has no {w} builds: {f:?}");
     }
     assert!(r.stdout.contains("not supported"));
+}
+
+/// `--efficiency` on the library rows: the note carries the parallel efficiency against as many
+/// concurrent 1-thread builds as the pool has threads, with their timings.
+#[test]
+fn harness_efficiency_against_concurrent_single_thread_builds() {
+    let r = run_in("efficiency", "arbor", &["--workloads", "lib-fast-build", "--threads", "2", "--efficiency", "--no-metrics"]);
+    assert_eq!(r.results.len(), 1, "{}", r.stdout);
+    let res = &r.results[0];
+    assert_eq!(get(res, "status"), "ok", "{res:?}");
+    let note = get(res, "note");
+    let pct: f64 = note
+        .split("efficiency ")
+        .nth(1)
+        .and_then(|s| s.split(' ').next())
+        .and_then(|v| v.parse().ok())
+        .unwrap_or_else(|| panic!("no efficiency in the note: {note}"));
+    assert!(pct > 0.0 && pct < 1000.0, "efficiency {pct} %: {note}");
+    assert!(note.contains("against 2 concurrent 1-thread builds"), "{note}");
+    let base: f64 = note.split("median of their medians ").nth(1).and_then(|s| s.split(' ').next()).and_then(|v| v.parse().ok()).expect("baseline median");
+    assert!(base > 0.0, "{note}");
+    let _ = std::fs::remove_dir_all(out_dir("efficiency"));
 }

@@ -42,6 +42,10 @@ Workloads (default: all; unsupported ones are reported as \"not supported\"):
   --repeat N           timed runs per workload (default 5), after --warmup N (default 1)
   --joiners N          threads joining deferred host builds (default: all cores)
   --no-metrics         skip Arbor's serialize + SAH/node metrics
+  --efficiency         lib-* rows: also time N concurrent 1-thread builds (N = the pool size),
+                       each with its own buffers, and note the parallel efficiency against
+                       their median (the cores' speed under the same load; needs N times the
+                       memory of one build)
 Output:
   --json FILE          results as JSON        --csv FILE   results as CSV
   --svg FILE           chart: build time and compacted size by driver and scene
@@ -66,6 +70,7 @@ struct Args {
     warmup: usize,
     joiners: usize,
     metrics: bool,
+    efficiency: bool,
     json: Option<PathBuf>,
     csv: Option<PathBuf>,
     svg: Option<PathBuf>,
@@ -92,6 +97,7 @@ fn parse_args(argv: &[String]) -> Result<Args, String> {
         warmup: 1,
         joiners: cores,
         metrics: true,
+        efficiency: false,
         json: None,
         csv: None,
         svg: None,
@@ -138,6 +144,7 @@ fn parse_args(argv: &[String]) -> Result<Args, String> {
             "--warmup" => a.warmup = num("--warmup", value("--warmup")?)?,
             "--joiners" => a.joiners = num("--joiners", value("--joiners")?)?.max(1),
             "--no-metrics" => a.metrics = false,
+            "--efficiency" => a.efficiency = true,
             "--json" => a.json = Some(PathBuf::from(value("--json")?)),
             "--csv" => a.csv = Some(PathBuf::from(value("--csv")?)),
             "--svg" => a.svg = Some(PathBuf::from(value("--svg")?)),
@@ -374,7 +381,7 @@ fn run(args: &Args, argv: &[String]) -> Result<bool, String> {
         drivers: Vec::new(),
         scenes: scenes.iter().map(|s| (s.name.clone(), s.primitives(), s.describe())).collect(),
     };
-    let opts = work::Options { repeat: args.repeat, warmup: args.warmup, joiners: args.joiners, metrics: args.metrics };
+    let opts = work::Options { repeat: args.repeat, warmup: args.warmup, joiners: args.joiners, metrics: args.metrics, efficiency: args.efficiency };
     let total = devices.len() * scenes.len() * args.workloads.len();
     let mut step = 0usize;
     let tty = std::io::stderr().is_terminal();

@@ -157,6 +157,8 @@ pub struct Options {
     pub warmup: usize,
     pub joiners: usize,
     pub metrics: bool,
+    /// lib-* rows: also the loaded single-thread baseline and the parallel efficiency.
+    pub efficiency: bool,
 }
 
 /// Inputs of one scene on one device, uploaded once for all its workloads.
@@ -793,6 +795,43 @@ fn library_build(gpu: &Gpu, scene: &Scene, w: Workload, opts: &Options, row: &mu
         med(|p| p.leaf_data_ms),
         med(|p| p.nodes_ms)
     );
+    if opts.efficiency {
+        // N builds at once, one per thread, each on its own 1-thread pool with its own buffers:
+        // what one core gives while all N are busy (load, power, shared caches), measured now.
+        let n = rayon::current_num_threads().max(1);
+        let (dst_len, scratch_len) = (sizes.acceleration_structure_size as usize, sizes.build_scratch_size as usize);
+        let desc = &desc;
+        let medians: Vec<Result<f64, String>> = std::thread::scope(|s| {
+            let handles: Vec<_> = (0..n)
+                .map(|_| {
+                    s.spawn(move || -> Result<f64, String> {
+                        let pool = rayon::ThreadPoolBuilder::new().num_threads(1).build().map_err(|e| e.to_string())?;
+                        let (mut dst, mut scratch) = (vec![0u8; dst_len], vec![0u8; scratch_len]);
+                        let mut t = Vec::new();
+                        for k in 0..opts.warmup + opts.repeat {
+                            let t0 = Instant::now();
+                            pool.install(|| accel::build(desc, &accel::NoDevice, &mut dst, &mut scratch)).map_err(|e| format!("arbor::accel::build: {e:?}"))?;
+                            if k >= opts.warmup {
+                                t.push(t0.elapsed().as_secs_f64() * 1e3);
+                            }
+                        }
+                        Stats::of(&t).map(|s| s.median).ok_or_else(|| "no timed runs".to_string())
+                    })
+                })
+                .collect();
+            handles.into_iter().map(|h| h.join().unwrap_or_else(|_| Err("a baseline build panicked".into()))).collect()
+        });
+        let medians = medians.into_iter().collect::<Result<Vec<f64>, String>>()?;
+        if let (Some(base), Some(t)) = (Stats::of(&medians), row.time) {
+            row.note.push_str(&format!(
+                "; efficiency {:.0} % against {n} concurrent 1-thread builds (median of their medians {:.2} ms, min {:.2}, max {:.2})",
+                100.0 * base.median / (n as f64 * t.median),
+                base.median,
+                base.min,
+                base.max
+            ));
+        }
+    }
     Ok(())
 }
 
