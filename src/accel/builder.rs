@@ -1626,15 +1626,22 @@ impl<'a> FastTris<'a> {
         } else if idx[0] == idx[1] || idx[1] == idx[2] || idx[0] == idx[2] {
             return Some(None);
         }
-        // All lanes finite (v - v is 0 for finite v, NaN for NaN and inf, and NaN survives the
-        // sums): vector min/max are exact. A max of the |v| would not do: maxps drops a NaN
-        // operand, which would hide a NaN y or z from the slow path's huge box.
-        if ((a - a) + (b - b) + (c - c)).cmpeq(Vec3A::ZERO).all() {
-            return Some(Some((a.min(b).min(c), a.max(b).max(c), [a, b, c])));
-        }
-        let (lo, hi) = triangle_bounds(&[a.into(), b.into(), c.into()]);
-        Some(Some((Vec3A::from(lo), Vec3A::from(hi), [a, b, c])))
+        let (lo, hi) = triangle_box(a, b, c);
+        Some(Some((lo, hi, [a, b, c])))
     }
+}
+
+/// `triangle_bounds` of vertices in registers: when every lane is finite (v - v is 0 for finite
+/// v, NaN for NaN and inf, and NaN survives the sums) vector min/max are exact; otherwise the
+/// sanitising path. A max of the |v| would not do: maxps drops a NaN operand, which would hide
+/// a NaN y or z from the huge box.
+#[inline(always)]
+pub(super) fn triangle_box(a: Vec3A, b: Vec3A, c: Vec3A) -> (Vec3A, Vec3A) {
+    if ((a - a) + (b - b) + (c - c)).cmpeq(Vec3A::ZERO).all() {
+        return (a.min(b).min(c), a.max(b).max(c));
+    }
+    let (lo, hi) = triangle_bounds(&[a.into(), b.into(), c.into()]);
+    (Vec3A::from(lo), Vec3A::from(hi))
 }
 
 /// Deterministic first error: the one with the lowest (geometry, chunk) position wins.

@@ -117,25 +117,24 @@ pub fn update(desc: &BuildDesc, view: &dyn DeviceView, src: Option<&[u8]>, dst: 
                 for (rb, d) in rd.chunks_exact(layout::RECORD_SIZE).zip(pd.chunks_exact_mut(PRIM_SIZE)) {
                     let rec: layout::PrimRecord = bytemuck::pod_read_unaligned(rb);
                     let g = desc.geometries.get(rec.geometry as usize).ok_or(BuildError::InvalidSource("record"))?;
+                    let mut data = [0f32; 9];
                     if let Some((_, [a, b, c])) = fast.get(rec.geometry as usize).and_then(|f| f.as_ref()).and_then(|f| f.read(rec.primitive)) {
                         if a.x.is_nan() || b.x.is_nan() || c.x.is_nan() {
                             return Err(mismatch("an active primitive became inactive"));
                         }
-                        let data = [a.x, a.y, a.z, b.x, b.y, b.z, c.x, c.y, c.z];
-                        d.copy_from_slice(bytemuck::bytes_of(&data));
-                        continue;
-                    }
-                    let mut data = [0f32; 9];
-                    match g.data {
-                        GeometryData::Triangles { .. } => {
-                            let v = super::input::read_triangle(rec.geometry, g, rec.primitive)?.ok_or(mismatch("an active primitive became inactive"))?;
-                            data = [v[0].x, v[0].y, v[0].z, v[1].x, v[1].y, v[1].z, v[2].x, v[2].y, v[2].z];
+                        data = [a.x, a.y, a.z, b.x, b.y, b.z, c.x, c.y, c.z];
+                    } else {
+                        match g.data {
+                            GeometryData::Triangles { .. } => {
+                                let v = super::input::read_triangle(rec.geometry, g, rec.primitive)?.ok_or(mismatch("an active primitive became inactive"))?;
+                                data = [v[0].x, v[0].y, v[0].z, v[1].x, v[1].y, v[1].z, v[2].x, v[2].y, v[2].z];
+                            }
+                            GeometryData::Aabbs { .. } => {
+                                let b = super::input::read_aabb(rec.geometry, g, rec.primitive)?.ok_or(mismatch("an active primitive became inactive"))?;
+                                data[..6].copy_from_slice(&b);
+                            }
+                            GeometryData::Instances { .. } => return Err(BuildError::WrongGeometryType { geometry: rec.geometry }),
                         }
-                        GeometryData::Aabbs { .. } => {
-                            let b = super::input::read_aabb(rec.geometry, g, rec.primitive)?.ok_or(mismatch("an active primitive became inactive"))?;
-                            data[..6].copy_from_slice(&b);
-                        }
-                        GeometryData::Instances { .. } => return Err(BuildError::WrongGeometryType { geometry: rec.geometry }),
                     }
                     d.copy_from_slice(bytemuck::bytes_of(&data));
                 }
@@ -193,10 +192,9 @@ fn refit_subtree(p: &Parsed, kind: Option<u32>, view: &dyn DeviceView, nodes: &m
     for c in 0..cnt {
         if node.kind[c] == CHILD_INTERNAL {
             let ch = node.child[c] as usize;
-            if ch != next && starts[..c].iter().all(|&s| s == usize::MAX) {
-                return Err(order);
-            }
-            if ch < next || ch >= base + total {
+            // The first internal child right after this node, each next one after the last.
+            let first = starts[..c].iter().all(|&s| s == usize::MAX);
+            if (first && ch != next) || ch < next || ch >= base + total {
                 return Err(order);
             }
             starts[c] = ch;
@@ -259,8 +257,8 @@ fn refit_subtree(p: &Parsed, kind: Option<u32>, view: &dyn DeviceView, nodes: &m
 fn leaf_bounds_of(p: &Parsed, kind: Option<u32>, first: u32, count: u32, view: &dyn DeviceView, memo: &mut BlasMemo) -> Result<Aabb, BuildError> {
     let Some(kind) = kind else { return leaf_bounds(p, first, count, view, memo) };
     if kind == layout::KIND_TRIANGLES {
-        // One range check for the leaf, vertices straight into registers; non-finite ones take
-        // `triangle_bounds` (the same box `prim_bounds` gives: min/max are exact when finite).
+        // One range check for the leaf, vertices straight into registers (`triangle_box`: the
+        // same box `prim_bounds` gives).
         let o = (p.raw.prims_offset as usize).checked_add(first as usize * PRIM_SIZE).ok_or(BuildError::InvalidSource("leaf range"))?;
         if first.checked_add(count).is_none_or(|e| e > p.raw.primitive_count) {
             return Err(BuildError::InvalidSource("leaf range"));
@@ -270,15 +268,9 @@ fn leaf_bounds_of(p: &Parsed, kind: Option<u32>, first: u32, count: u32, view: &
         for t in bytes.chunks_exact(PRIM_SIZE) {
             let Some((t, _)) = t.split_first_chunk::<36>() else { continue };
             let f = |i: usize| f32::from_le_bytes([t[4 * i], t[4 * i + 1], t[4 * i + 2], t[4 * i + 3]]);
-            let (a, b, c) = (Vec3A::new(f(0), f(1), f(2)), Vec3A::new(f(3), f(4), f(5)), Vec3A::new(f(6), f(7), f(8)));
-            if ((a - a) + (b - b) + (c - c)).cmpeq(Vec3A::ZERO).all() {
-                lo = lo.min(a.min(b).min(c));
-                hi = hi.max(a.max(b).max(c));
-            } else {
-                let (l, h) = triangle_bounds(&[a.into(), b.into(), c.into()]);
-                lo = lo.min(Vec3A::from(l));
-                hi = hi.max(Vec3A::from(h));
-            }
+            let (l, h) = builder::triangle_box(Vec3A::new(f(0), f(1), f(2)), Vec3A::new(f(3), f(4), f(5)), Vec3A::new(f(6), f(7), f(8)));
+            lo = lo.min(l);
+            hi = hi.max(h);
         }
         return Ok(Aabb { lo: lo.to_array(), hi: hi.to_array() });
     }
