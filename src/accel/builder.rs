@@ -480,6 +480,25 @@ fn bounds_of(refs: &[PrimRef]) -> (Aabb, Aabb) {
 
 struct Ctx {
     params: BuildParams,
+    /// References of the whole build and the pool's thread count (see `one_pass`).
+    total: usize,
+    threads: usize,
+}
+impl Ctx {
+    /// Whether a node of `n` references partitions in one sequential pass rather than in
+    /// parallel (statistics pass, then scatter): when there are likely at least as many nodes
+    /// of its size as threads to keep them busy. Both ways are stable partitions with the same
+    /// layout and the same side boxes, so the choice never changes the bytes.
+    #[inline]
+    fn one_pass(&self, n: usize) -> bool {
+        n.saturating_mul(self.threads) <= self.total
+    }
+    /// Parallel partition (or its one-pass form) rather than `partition_out`: large nodes, and
+    /// sampled ones always (their left count is not known before the partition).
+    #[inline]
+    fn big_partition(&self, n: usize) -> bool {
+        n >= PAR_BIN_CUTOFF || (n >= PAR_PART_CUTOFF && !self.one_pass(n))
+    }
 }
 
 /// Builds the subtree over `refs` into `nodes[0..2n-1]`; returns its unnormalised SAH sum
@@ -595,8 +614,8 @@ fn build_rec(ctx: &Ctx, refs: &mut [PrimRef], nodes: &mut [BinNode], start: u32,
                     // Scatter from this node's slots straight into `refs` (no copy back);
                     // with everything on one side that is a plain copy, as a restore would be.
                     in_nodes = false;
-                    if n >= PAR_PART_CUTOFF {
-                        match par_partition_from_nodes(refs, nodes, |r| sp.left(r)) {
+                    if ctx.big_partition(n) {
+                        match par_partition_from_nodes(refs, nodes, ctx.one_pass(n), |r| sp.left(r)) {
                             Some((i, l, r)) if i > 0 && i < n => return finish_split(ctx, refs, nodes, start, bounds, i, l, r, depth, bins, false, pre, parent_count),
                             Some(_) => {}
                             None => restore(refs, nodes),
@@ -608,11 +627,11 @@ fn build_rec(ctx: &Ctx, refs: &mut [PrimRef], nodes: &mut [BinNode], start: u32,
                             _ => restore(refs, nodes),
                         }
                     }
-                } else if n >= PAR_PART_CUTOFF {
-                    // Large node: stable parallel partition through the (still unwritten) node
-                    // slots of this subtree; fixed chunking, so the order is the same for any
-                    // thread count.
-                    if let Some((i, l, r)) = par_partition_to_nodes(refs, nodes, |r| sp.left(r)) {
+                } else if ctx.big_partition(n) {
+                    // Large node: stable partition through the (still unwritten) node slots of
+                    // this subtree, in parallel with fixed chunking or in one pass, the same
+                    // order either way, so the same for any thread count.
+                    if let Some((i, l, r)) = par_partition_to_nodes(refs, nodes, ctx.one_pass(n), |r| sp.left(r)) {
                         if i > 0 && i < n {
                             return finish_split(ctx, refs, nodes, start, bounds, i, l, r, depth, bins, true, pre, parent_count);
                         }
@@ -946,9 +965,18 @@ fn part_scatter(src: &[PrimRef], chunk: usize, nchunks: usize, stats: &[PartStat
 /// (1..2·nl), the rights at the start of the right child's (2·nl..2n-1); each child then finds
 /// its references at the start of its own slots (`in_nodes`), and `refs` is left as it was.
 /// Returns the left count and the centroid boxes of both sides; with everything on one side
-/// nothing is written. None (nothing moved) when the slots cannot be viewed as references.
-fn par_partition_to_nodes(refs: &[PrimRef], nodes: &mut [BinNode], is_left: impl Fn(&PrimRef) -> bool + Sync) -> Option<(usize, (Aabb, Aabb), (Aabb, Aabb))> {
+/// the caller must ignore the slots. None (nothing usable moved) when the slots cannot be
+/// viewed as references. `one_pass`: sequentially, in one pass (`partition_one_pass`).
+fn par_partition_to_nodes(refs: &[PrimRef], nodes: &mut [BinNode], one_pass: bool, is_left: impl Fn(&PrimRef) -> bool + Sync) -> Option<(usize, (Aabb, Aabb), (Aabb, Aabb))> {
     let n = refs.len();
+    if one_pass {
+        let rest = nodes.get_mut(1..)?;
+        if rest.len() < 2 * n - 2 {
+            return None;
+        }
+        let slot = std::mem::size_of::<BinNode>();
+        return partition_one_pass(refs, bytemuck::cast_slice_mut(&mut rest[..2 * n - 2]), |nl| (2 * nl).saturating_sub(1) * slot, &is_left);
+    }
     let (chunk, nchunks, stats, nl, l, r) = part_stats(refs, &is_left);
     if nl == 0 || nl == n {
         return Some((nl, l, r));
@@ -966,13 +994,84 @@ fn par_partition_to_nodes(refs: &[PrimRef], nodes: &mut [BinNode], is_left: impl
 
 /// The same stable partition for a node whose references are at the start of its node slots:
 /// scattered straight into `refs`, which then holds all of them (partitioned) in every case.
-fn par_partition_from_nodes(refs: &mut [PrimRef], nodes: &[BinNode], is_left: impl Fn(&PrimRef) -> bool + Sync) -> Option<(usize, (Aabb, Aabb), (Aabb, Aabb))> {
+fn par_partition_from_nodes(refs: &mut [PrimRef], nodes: &[BinNode], one_pass: bool, is_left: impl Fn(&PrimRef) -> bool + Sync) -> Option<(usize, (Aabb, Aabb), (Aabb, Aabb))> {
     let n = refs.len();
     let src = node_refs(nodes, n)?;
+    if one_pass {
+        return partition_one_pass(src, bytemuck::cast_slice_mut(refs), |nl| nl * PRIMREF_BYTES, &is_left);
+    }
     let (chunk, nchunks, stats, nl, l, r) = part_stats(src, &is_left);
     let (lout, rout) = refs.split_at_mut(nl);
     part_scatter(src, chunk, nchunks, &stats, lout, rout, &is_left);
     Some((nl, l, r))
+}
+
+/// The stable partition of `par_partition_to_nodes` / `_from_nodes` in one sequential pass
+/// (for nodes that have the thread to themselves, `Ctx::one_pass`), where the left count is
+/// not known in advance (sampled nodes): lefts ascending from the
+/// start of `dst`, rights descending from its last whole reference, then the rights reversed
+/// into place from byte `rbase(left count)`. The same order, count and boxes as `part_stats`
+/// followed by `part_scatter` (same arithmetic, same branches), so the same bytes for any
+/// thread count. Everything on one side still writes `dst`. None when `dst` is too small
+/// (what was written is then garbage; `src` is never written).
+fn partition_one_pass(src: &[PrimRef], dst: &mut [u8], rbase: impl Fn(usize) -> usize, is_left: &impl Fn(&PrimRef) -> bool) -> Option<(usize, (Aabb, Aabb), (Aabb, Aabb))> {
+    let n = src.len();
+    let top = dst.len() / PRIMREF_BYTES * PRIMREF_BYTES;
+    if top < n * PRIMREF_BYTES {
+        return None;
+    }
+    let (inf, ninf) = (Vec3A::INFINITY, Vec3A::NEG_INFINITY);
+    let (mut l_lo, mut l_hi, mut r_lo, mut r_hi) = (inf, ninf, inf, ninf);
+    let (mut lc_lo, mut lc_hi, mut rc_lo, mut rc_hi) = (inf, ninf, inf, ninf);
+    let (mut li, mut ri) = (0usize, top);
+    for r in src {
+        let (lo, hi) = (ref_lo(r), ref_hi(r));
+        let ctr = lo * 0.5 + hi * 0.5;
+        // Branches, as in `part_stats`: high in the tree the sides come in long runs.
+        if is_left(r) {
+            if let Some(d) = dst.get_mut(li..).and_then(|x| x.first_chunk_mut::<PRIMREF_BYTES>()) {
+                *d = bytemuck::cast(*r);
+            }
+            li += PRIMREF_BYTES;
+            l_lo = l_lo.min(lo);
+            l_hi = l_hi.max(hi);
+            lc_lo = lc_lo.min(ctr);
+            lc_hi = lc_hi.max(ctr);
+        } else {
+            ri -= PRIMREF_BYTES;
+            if let Some(d) = dst.get_mut(ri..).and_then(|x| x.first_chunk_mut::<PRIMREF_BYTES>()) {
+                *d = bytemuck::cast(*r);
+            }
+            r_lo = r_lo.min(lo);
+            r_hi = r_hi.max(hi);
+            rc_lo = rc_lo.min(ctr);
+            rc_hi = rc_hi.max(ctr);
+        }
+    }
+    let nl = li / PRIMREF_BYTES;
+    let nr = n - nl;
+    let out = (nl, (to_aabb(l_lo, l_hi), to_aabb(lc_lo, lc_hi)), (to_aabb(r_lo, r_hi), to_aabb(rc_lo, rc_hi)));
+    if nr == 0 {
+        return Some(out);
+    }
+    let rb = rbase(nl);
+    let rend = rb.checked_add(nr * PRIMREF_BYTES).filter(|&e| e <= dst.len())?;
+    if rend <= ri {
+        // Disjoint (the usual case in node slots): one reversed copy.
+        for j in 0..nr {
+            let from = top - (j + 1) * PRIMREF_BYTES;
+            dst.copy_within(from..from + PRIMREF_BYTES, rb + j * PRIMREF_BYTES);
+        }
+    } else {
+        // Overlapping (always in place when partitioning back into `refs`): reverse where they
+        // are, then move.
+        let seg: &mut [PrimRef] = bytemuck::try_cast_slice_mut(dst.get_mut(ri..top)?).ok()?;
+        seg.reverse();
+        if rb != ri {
+            dst.copy_within(ri..top, rb);
+        }
+    }
+    Some(out)
 }
 
 #[inline]
@@ -2043,7 +2142,7 @@ pub fn build(desc: &BuildDesc, view: &dyn DeviceView, dst: &mut [u8], scratch: &
 
     // Per-geometry active counts from the compacted refs (ordered by geometry).
     let params = BuildParams::from_flags(desc.flags);
-    let ctx = Ctx { params };
+    let ctx = Ctx { params, total: active, threads: rayon::current_num_threads().max(1) };
     let (root_box, root_cb) = refs
         .par_chunks(1 << 15)
         .map(bounds_of)
@@ -2226,6 +2325,55 @@ mod network_tests {
         by_bits.sort_by_key(|&k| ordered_bits(k));
         assert_eq!(sorted.map(f32::to_bits), by_bits.map(f32::to_bits));
     }
+
+    /// The one-pass partition (one-thread pools, small nodes) and the parallel one (statistics,
+    /// then scatter) give the same count, boxes and bytes, both into node slots and back into
+    /// `refs`, including everything on one side; the bytes of a build may not depend on which
+    /// one ran.
+    #[test]
+    fn one_pass_partition_matches_the_parallel_one() {
+        let mut seed = 0x9e37_79b9_7f4a_7c15u64;
+        let mut next = move || {
+            seed ^= seed << 13;
+            seed ^= seed >> 7;
+            seed ^= seed << 17;
+            (seed >> 40) as f32 / (1u64 << 24) as f32
+        };
+        let pool = rayon::ThreadPoolBuilder::new().num_threads(3).build().unwrap();
+        for n in [2usize, 3, 5, 64, 1000, 4097] {
+            let refs: Vec<PrimRef> = (0..n)
+                .map(|i| {
+                    let lo = [next() * 10.0, next() * 10.0, next() * 10.0];
+                    PrimRef { lo, geom: i as u32 % 3, hi: [lo[0] + next(), lo[1] + next(), lo[2] + next()], prim: i as u32 }
+                })
+                .collect();
+            for limit in [-1.0f32, 2.5, 5.0, 9.0, 11.0] {
+                let is_left = |r: &PrimRef| r.lo[0] * 0.5 + r.hi[0] * 0.5 < limit;
+                let empty = BinNode::zeroed();
+                // Into node slots.
+                let (mut a, mut b) = (vec![empty; 2 * n - 1], vec![empty; 2 * n - 1]);
+                let x = pool.install(|| par_partition_to_nodes(&refs, &mut a, false, is_left));
+                let y = pool.install(|| par_partition_to_nodes(&refs, &mut b, true, is_left));
+                assert_eq!(x, y, "n {n} limit {limit}");
+                let nl = x.unwrap().0;
+                if nl > 0 && nl < n {
+                    assert_eq!(node_refs(&a[1..], nl), node_refs(&b[1..], nl), "n {n} limit {limit}: lefts");
+                    assert_eq!(node_refs(&a[2 * nl..], n - nl), node_refs(&b[2 * nl..], n - nl), "n {n} limit {limit}: rights");
+                    // Stable: the lefts are the left references in input order.
+                    let want: Vec<PrimRef> = refs.iter().filter(|r| is_left(r)).copied().collect();
+                    assert_eq!(node_refs(&b[1..], nl), Some(&want[..]));
+                }
+                // From node slots back into refs.
+                let mut slots = vec![empty; 2 * n - 1];
+                node_refs_mut(&mut slots, n).unwrap().copy_from_slice(&refs);
+                let (mut ra, mut rb) = (vec![refs[0]; n], vec![refs[0]; n]);
+                let x = pool.install(|| par_partition_from_nodes(&mut ra, &slots, false, is_left));
+                let y = pool.install(|| par_partition_from_nodes(&mut rb, &slots, true, is_left));
+                assert_eq!(x, y, "n {n} limit {limit}: from nodes");
+                assert_eq!(ra, rb, "n {n} limit {limit}: from nodes");
+            }
+        }
+    }
 }
 
 /// Timing of the top levels' passes on their own (ignored; run by hand, e.g. on the 16-core
@@ -2274,7 +2422,7 @@ mod pass_timing {
                 pool.install(|| std::hint::black_box(part_stats(&refs, &is_left)));
             });
             let p = time(&mut || {
-                pool.install(|| std::hint::black_box(par_partition_to_nodes(&refs, &mut nodes, is_left)));
+                pool.install(|| std::hint::black_box(par_partition_to_nodes(&refs, &mut nodes, false, is_left)));
             });
             println!("threads {t:2}: {n} refs ({} MB): copy {c:.2} ms, stats {st:.2} ms, stats+scatter {p:.2} ms", n * PRIMREF_BYTES >> 20);
         }
