@@ -1108,3 +1108,50 @@ fn tlas_refit_is_deterministic_and_returns_to_the_build() {
         assert!(back == built, "moved back, the TLAS refit differs from the build");
     }
 }
+
+/// Where a small build's time goes around the builder: the same bunny build timed inside an
+/// N-thread pool's `install` from a foreign thread (what a queue thread did before
+/// `threads::run_parallel`), and on a thread that is itself a one-thread pool's worker
+/// (`use_current_thread`, as queue threads now are: no hand-off). Makes the test thread a
+/// worker for good (rayon cannot undo it). Ignored; run by hand: `ARBOR_MESH=... ARBOR_REPS=... cargo test --release --lib small_build_handoff -- --ignored --nocapture`.
+#[test]
+#[ignore]
+fn small_build_handoff() {
+    let path = std::env::var("ARBOR_MESH").unwrap_or_else(|_| concat!(env!("CARGO_MANIFEST_DIR"), "/data/bunny.ply").to_string());
+    let mesh = crate::scene::load(&path).expect("mesh");
+    let (vb, ib) = (mesh.vertex_bytes(), mesh.index_bytes());
+    let ntri = mesh.triangle_count() as u32;
+    let g = tri_geom(&vb, mesh.vertex_count() as u32, &ib, ntri, GeometryFlags::OPAQUE);
+    let flags = BuildFlags(BuildFlags::PREFER_FAST_BUILD);
+    let sz = build_sizes(AsType::BottomLevel, flags, &[shape_of(&g)], &[ntri]);
+    let mut dst = vec![0u8; sz.acceleration_structure_size as usize];
+    let mut scratch = vec![0u8; sz.build_scratch_size as usize];
+    let desc = BuildDesc { ty: AsType::BottomLevel, flags, geometries: &[g] };
+    let reps: usize = std::env::var("ARBOR_REPS").ok().and_then(|s| s.parse().ok()).unwrap_or(200);
+    let stats = |v: &mut Vec<f64>| {
+        v.sort_by(|a, b| a.total_cmp(b));
+        (v[0], v[v.len() / 2])
+    };
+    for threads in [1usize, 16] {
+        let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
+        let mut t = Vec::new();
+        for _ in 0..reps {
+            let s = std::time::Instant::now();
+            pool.install(|| build(&desc, &NoDevice, &mut dst, &mut scratch)).unwrap();
+            t.push(s.elapsed().as_secs_f64() * 1e3);
+        }
+        let (min, med) = stats(&mut t);
+        println!("install into a {threads}-thread pool: min {min:.3} ms median {med:.3} ms");
+    }
+    let here = rayon::ThreadPoolBuilder::new().num_threads(1).use_current_thread().build().unwrap();
+    let mut t = Vec::new();
+    here.install(|| {
+        for _ in 0..reps {
+            let s = std::time::Instant::now();
+            build(&desc, &NoDevice, &mut dst, &mut scratch).unwrap();
+            t.push(s.elapsed().as_secs_f64() * 1e3);
+        }
+    });
+    let (min, med) = stats(&mut t);
+    println!("on this thread (use_current_thread): min {min:.3} ms median {med:.3} ms");
+}

@@ -376,23 +376,18 @@ pub fn execute_builds(mem: &dyn InputMemory, infos: &[BuildInfo]) -> Result<(), 
             runnable.push(p);
         }
     }
-    let results: Vec<bool> = on_worker_pool(|| runnable.par_iter().map(|p| run(mem, p)).collect());
+    // Small builds (a few thousand primitives in all: the builder has no parallelism inside
+    // them either) run on the queue thread itself, without a hand-off to the pool and back.
+    // Updates always go to the pool: a refit splits even small trees across threads.
+    let prims: u64 = runnable.iter().flat_map(|p| p.ranges.iter()).map(|r| r.primitive_count as u64).sum();
+    let builds_only = runnable.iter().all(|p| p.info.mode != vk::BuildAccelerationStructureModeKHR::UPDATE);
+    let small = builds_only && prims <= crate::threads::INLINE_PRIMITIVES;
+    let results: Vec<bool> = crate::threads::run_parallel(small, || runnable.par_iter().map(|p| run(mem, p)).collect());
     invalid |= results.iter().any(|ok| !ok);
     if invalid && diag::strict() {
         return Err(DeviceLost);
     }
     Ok(())
-}
-
-/// Run parallel work on the pool the calling thread belongs to — a deferred operation's pool,
-/// whose workers are the application threads that joined it — or else on Arbor's worker pool
-/// (queue workers and non-deferred host commands).
-fn on_worker_pool<R: Send>(f: impl FnOnce() -> R + Send) -> R {
-    if rayon::current_thread_index().is_some() {
-        f()
-    } else {
-        crate::threads::pool().install(f)
-    }
 }
 
 fn mark_invalid(dst: &AccelerationStructure) {

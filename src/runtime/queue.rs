@@ -191,6 +191,8 @@ impl Drop for Queue {
 }
 
 fn worker_loop(rx: mpsc::Receiver<Submission>, shared: Arc<Shared>, device: Weak<Device>) {
+    // Small builds run on this thread (`threads::run_parallel`); the pool lives as long as it.
+    let _inline = crate::threads::become_inline_worker();
     while let Ok(submission) = rx.recv() {
         let device = device.upgrade();
         match device {
