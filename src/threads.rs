@@ -23,21 +23,58 @@ pub fn pool() -> &'static rayon::ThreadPool {
 }
 
 thread_local! {
-    /// This thread's own one-thread pool, if it is an Arbor queue worker (see `become_inline_worker`).
+    /// Whether this thread is an Arbor queue worker running as its own pool's worker
+    /// (`run_as_inline_worker`).
     static INLINE: std::cell::Cell<bool> = const { std::cell::Cell::new(false) };
 }
 
-/// Makes the calling thread (an Arbor queue worker, which lives as long as its queue) the one
-/// worker of a private one-thread pool, so that small work can run right here: rayon calls
-/// made on this thread then stay on it, with no hand-off to the worker pool and back (on a
-/// virtual machine each such wake-up can cost a quarter of a millisecond). rayon cannot undo
-/// this for a thread, so only threads Arbor owns do it. Returns the pool, which the caller
-/// keeps for the thread's lifetime; None (nothing changed) if the thread is already some
-/// pool's worker or the pool cannot be made.
-pub fn become_inline_worker() -> Option<rayon::ThreadPool> {
-    let pool = rayon::ThreadPoolBuilder::new().num_threads(1).use_current_thread().build().ok()?;
-    INLINE.with(|c| c.set(true));
-    Some(pool)
+/// Runs `f` on the calling thread (an Arbor queue worker) as the one worker of a private
+/// one-thread rayon pool, so that small work can run right here: rayon calls made inside `f`
+/// stay on this thread, with no hand-off to the worker pool and back (on a virtual machine
+/// each such wake-up can cost a quarter of a millisecond). The pool's only worker slot is taken
+/// by this thread (as deferred operations hand theirs to joiners, see `runtime::deferred`);
+/// `f` is its one job, and the pool ends when `f` returns, so nothing outlives the thread.
+/// Without a pool, `f` just runs.
+pub fn run_as_inline_worker(f: impl FnOnce() + Send + 'static) {
+    use std::sync::{Arc, Mutex};
+    let slot: Arc<Mutex<Option<rayon::ThreadBuilder>>> = Arc::new(Mutex::new(None));
+    let sink = slot.clone();
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(1)
+        .spawn_handler(move |b| {
+            *sink.lock().unwrap_or_else(|e| e.into_inner()) = Some(b);
+            Ok(())
+        })
+        .build();
+    let builder = slot.lock().unwrap_or_else(|e| e.into_inner()).take();
+    let (Ok(pool), Some(builder)) = (pool, builder) else {
+        f();
+        return;
+    };
+    // The job drops the pool when `f` is done, which ends `builder.run()` below. A panic in
+    // `f` is carried out of the job (rayon would abort on it) and resumed on this thread, which
+    // then ends as it would have without the pool.
+    type Panic = Box<dyn std::any::Any + Send>;
+    let handle = Arc::new(Mutex::new(Some(pool)));
+    let panicked: Arc<Mutex<Option<Panic>>> = Arc::new(Mutex::new(None));
+    let (own, report) = (handle.clone(), panicked.clone());
+    let spawn_on = handle.lock().unwrap_or_else(|e| e.into_inner());
+    if let Some(p) = spawn_on.as_ref() {
+        p.spawn(move || {
+            INLINE.with(|c| c.set(true));
+            if let Err(e) = std::panic::catch_unwind(std::panic::AssertUnwindSafe(f)) {
+                *report.lock().unwrap_or_else(|e| e.into_inner()) = Some(e);
+            }
+            INLINE.with(|c| c.set(false));
+            drop(own.lock().unwrap_or_else(|e| e.into_inner()).take());
+        });
+    }
+    drop(spawn_on);
+    builder.run();
+    let payload = panicked.lock().unwrap_or_else(|e| e.into_inner()).take();
+    if let Some(e) = payload {
+        std::panic::resume_unwind(e);
+    }
 }
 
 /// Builds of at most this many primitives in all run on the queue thread: below it the builder
@@ -60,5 +97,43 @@ pub fn run_parallel<R: Send>(small: bool, f: impl FnOnce() -> R + Send) -> R {
         f()
     } else {
         pool().install(f)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rayon::prelude::*;
+    use std::thread::{self, ThreadId};
+
+    #[test]
+    fn inline_worker_keeps_small_work_on_its_thread_and_leaves_no_pool_behind() {
+        let outer = thread::current().id();
+        let (tx, rx) = std::sync::mpsc::channel::<(ThreadId, usize, Vec<ThreadId>, ThreadId, ThreadId)>();
+        run_as_inline_worker(move || {
+            let here = thread::current().id();
+            // Parallel iterators inside run on this thread: a one-thread pool.
+            let ids: Vec<ThreadId> = (0..64).into_par_iter().map(|_| thread::current().id()).collect();
+            let small = run_parallel(true, || thread::current().id());
+            let large = run_parallel(false, || thread::current().id());
+            tx.send((here, rayon::current_num_threads(), ids, small, large)).unwrap();
+        });
+        let (here, n, ids, small, large) = rx.recv().unwrap();
+        assert_eq!(here, outer, "f runs on the calling thread");
+        assert_eq!(n, 1);
+        assert!(ids.iter().all(|&t| t == outer), "parallel work stayed on the thread");
+        assert_eq!(small, outer, "small work runs inline");
+        assert_ne!(large, outer, "large work goes to the worker pool");
+        // Afterwards the thread is nobody's worker again, and not marked inline.
+        assert!(rayon::current_thread_index().is_none());
+        assert!(!INLINE.with(|c| c.get()));
+    }
+
+    #[test]
+    fn inline_worker_carries_a_panic_out() {
+        let r = std::panic::catch_unwind(|| run_as_inline_worker(|| panic!("inside")));
+        let e = r.expect_err("the panic reaches the caller");
+        assert_eq!(e.downcast_ref::<&str>().copied(), Some("inside"));
+        assert!(rayon::current_thread_index().is_none());
     }
 }

@@ -1111,9 +1111,9 @@ fn tlas_refit_is_deterministic_and_returns_to_the_build() {
 
 /// Where a small build's time goes around the builder: the same bunny build timed inside an
 /// N-thread pool's `install` from a foreign thread (what a queue thread did before
-/// `threads::run_parallel`), and on a thread that is itself a one-thread pool's worker
-/// (`use_current_thread`, as queue threads now are: no hand-off). Makes the test thread a
-/// worker for good (rayon cannot undo it). Ignored; run by hand: `ARBOR_MESH=... ARBOR_REPS=... cargo test --release --lib small_build_handoff -- --ignored --nocapture`.
+/// `threads::run_parallel`), and on a thread that is itself a one-thread pool's worker (as
+/// queue threads now are, `threads::run_as_inline_worker`: no hand-off; here through
+/// `use_current_thread`, which makes the test thread a worker for good). Ignored; run by hand: `ARBOR_MESH=... ARBOR_REPS=... cargo test --release --lib small_build_handoff -- --ignored --nocapture`.
 #[test]
 #[ignore]
 fn small_build_handoff() {

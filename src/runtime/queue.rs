@@ -154,7 +154,8 @@ impl Queue {
         let device = self.device.clone();
         let thread = std::thread::Builder::new()
             .name(format!("arbor-queue-{}-{}", self.family, self.index))
-            .spawn(move || worker_loop(rx, shared, device))
+            // Small builds run on this thread itself (`threads::run_parallel`).
+            .spawn(move || crate::threads::run_as_inline_worker(move || worker_loop(rx, shared, device)))
             .ok()?;
         Some(Worker { tx, thread })
     }
@@ -191,8 +192,6 @@ impl Drop for Queue {
 }
 
 fn worker_loop(rx: mpsc::Receiver<Submission>, shared: Arc<Shared>, device: Weak<Device>) {
-    // Small builds run on this thread (`threads::run_parallel`); the pool lives as long as it.
-    let _inline = crate::threads::become_inline_worker();
     while let Ok(submission) = rx.recv() {
         let device = device.upgrade();
         match device {
