@@ -151,6 +151,17 @@ pub fn instance_bounds_of(transform: &[f32; 12], blas: Option<[f32; 6]>) -> ([f3
             let (c0, c1, c2) = (Vec3A::new(m[0], m[4], m[8]), Vec3A::new(m[1], m[5], m[9]), Vec3A::new(m[2], m[6], m[10]));
             let t = Vec3A::new(m[3], m[7], m[11]);
             let (x, y, z) = ([c0 * bb[0], c0 * bb[3]], [c1 * bb[1], c1 * bb[4]], [c2 * bb[2], c2 * bb[5]]);
+            if x[0].is_finite() && x[1].is_finite() && y[0].is_finite() && y[1].is_finite() && z[0].is_finite() && z[1].is_finite() && t.is_finite() {
+                // Finite terms: each rounding step is monotonic, so the least (greatest) corner
+                // is the sum of the least (greatest) terms, to the bit: the same box as the
+                // eight corners below, from two sums instead of eight.
+                let lo = ((x[0].min(x[1]) + y[0].min(y[1])) + z[0].min(z[1])) + t;
+                let hi = ((x[0].max(x[1]) + y[0].max(y[1])) + z[0].max(z[1])) + t;
+                if !(lo.is_nan() || hi.is_nan()) {
+                    let b = to_aabb(lo, hi);
+                    return sanitize(b.lo, b.hi);
+                }
+            }
             let (mut lo, mut hi) = (Vec3A::INFINITY, Vec3A::NEG_INFINITY);
             let mut nan = false;
             for c in 0..8 {
@@ -2324,6 +2335,56 @@ mod network_tests {
         let mut by_bits = keys;
         by_bits.sort_by_key(|&k| ordered_bits(k));
         assert_eq!(sorted.map(f32::to_bits), by_bits.map(f32::to_bits));
+    }
+
+    /// The two-sum instance box equals the eight-corner one bit for bit on finite terms
+    /// (monotonic rounding), including signed zeros, overflow to infinity and mirrored axes.
+    #[test]
+    fn instance_box_from_two_sums_matches_eight_corners() {
+        let corners = |m: &[f32; 12], bb: [f32; 6]| {
+            let (c0, c1, c2) = (Vec3A::new(m[0], m[4], m[8]), Vec3A::new(m[1], m[5], m[9]), Vec3A::new(m[2], m[6], m[10]));
+            let t = Vec3A::new(m[3], m[7], m[11]);
+            let (x, y, z) = ([c0 * bb[0], c0 * bb[3]], [c1 * bb[1], c1 * bb[4]], [c2 * bb[2], c2 * bb[5]]);
+            let (mut lo, mut hi) = (Vec3A::INFINITY, Vec3A::NEG_INFINITY);
+            let mut nan = false;
+            for c in 0..8 {
+                let q = ((x[c & 1] + y[c >> 1 & 1]) + z[c >> 2 & 1]) + t;
+                nan |= q.is_nan();
+                lo = lo.min(q);
+                hi = hi.max(q);
+            }
+            if nan {
+                return sanitize([f32::NAN; 3], [f32::NAN; 3]);
+            }
+            let b = to_aabb(lo, hi);
+            sanitize(b.lo, b.hi)
+        };
+        let mut seed = 0x2545_f491_4f6c_dd1du64;
+        let mut next = move || {
+            seed ^= seed << 13;
+            seed ^= seed >> 7;
+            seed ^= seed << 17;
+            seed
+        };
+        let specials = [0.0f32, -0.0, 1.0, -1.0, 3.0e38, -3.0e38, 1e-38, -1e-45, 0.5, 2.0];
+        let mut pick = move || {
+            let r = next();
+            if r % 3 == 0 {
+                specials[(r >> 8) as usize % specials.len()]
+            } else {
+                ((r >> 11) as f64 / (1u64 << 53) as f64 * 200.0 - 100.0) as f32
+            }
+        };
+        let bits = |b: ([f32; 3], [f32; 3])| (b.0.map(f32::to_bits), b.1.map(f32::to_bits));
+        for _ in 0..200_000 {
+            let m: [f32; 12] = std::array::from_fn(|_| pick());
+            let (a, b, c) = (pick(), pick(), pick());
+            let (d, e, f) = (pick(), pick(), pick());
+            let bb = [a.min(d), b.min(e), c.min(f), a.max(d), b.max(e), c.max(f)];
+            let want = corners(&m, bb);
+            let got = instance_bounds_of(&m, Some(bb));
+            assert_eq!(bits(got), bits(want), "transform {m:?} box {bb:?}");
+        }
     }
 
     /// The one-pass partition (one-thread pools, small nodes) and the parallel one (statistics,
