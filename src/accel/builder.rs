@@ -151,7 +151,9 @@ pub fn instance_bounds_of(transform: &[f32; 12], blas: Option<[f32; 6]>) -> ([f3
             let (c0, c1, c2) = (Vec3A::new(m[0], m[4], m[8]), Vec3A::new(m[1], m[5], m[9]), Vec3A::new(m[2], m[6], m[10]));
             let t = Vec3A::new(m[3], m[7], m[11]);
             let (x, y, z) = ([c0 * bb[0], c0 * bb[3]], [c1 * bb[1], c1 * bb[4]], [c2 * bb[2], c2 * bb[5]]);
-            if x[0].is_finite() && x[1].is_finite() && y[0].is_finite() && y[1].is_finite() && z[0].is_finite() && z[1].is_finite() && t.is_finite() {
+            // Zero times a term is 0 when it is finite and NaN otherwise: one test for all seven.
+            let zero = ((((((x[0] * 0.0 + x[1] * 0.0) + y[0] * 0.0) + y[1] * 0.0) + z[0] * 0.0) + z[1] * 0.0) + t * 0.0).cmpeq(Vec3A::ZERO);
+            if zero.all() {
                 // Finite terms: each rounding step is monotonic, so the least (greatest) corner
                 // is the sum of the least (greatest) terms, to the bit: the same box as the
                 // eight corners below, from two sums instead of eight.
