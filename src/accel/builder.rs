@@ -142,21 +142,15 @@ pub fn blas_bounds(reference: u64, view: &dyn DeviceView) -> Option<[f32; 6]> {
 
 /// `instance_bounds` from the BLAS bounds already looked up.
 pub fn instance_bounds_of(transform: &[f32; 12], blas: Option<[f32; 6]>) -> ([f32; 3], [f32; 3]) {
-    let mut b = Aabb::EMPTY;
     match blas {
         Some(bb) => {
-            // The eight corners through the 3x4 transform, lane-wise: each lane is
-            // ((m0·x + m1·y) + m2·z) + m3, the same operations as `transform_point`.
-            let m = transform;
-            let (c0, c1, c2) = (Vec3A::new(m[0], m[4], m[8]), Vec3A::new(m[1], m[5], m[9]), Vec3A::new(m[2], m[6], m[10]));
-            let t = Vec3A::new(m[3], m[7], m[11]);
-            let (x, y, z) = ([c0 * bb[0], c0 * bb[3]], [c1 * bb[1], c1 * bb[4]], [c2 * bb[2], c2 * bb[5]]);
+            let (x, y, z, t) = instance_terms(transform, &bb);
             // Zero times a term is 0 when it is finite and NaN otherwise: one test for all seven.
             let zero = ((((((x[0] * 0.0 + x[1] * 0.0) + y[0] * 0.0) + y[1] * 0.0) + z[0] * 0.0) + z[1] * 0.0) + t * 0.0).cmpeq(Vec3A::ZERO);
             if zero.all() {
                 // Finite terms: each rounding step is monotonic, so the least (greatest) corner
-                // is the sum of the least (greatest) terms, to the bit: the same box as the
-                // eight corners below, from two sums instead of eight.
+                // is the sum of the least (greatest) terms, to the bit: the same box as
+                // `instance_box_corners`, from two sums instead of eight.
                 let lo = ((x[0].min(x[1]) + y[0].min(y[1])) + z[0].min(z[1])) + t;
                 let hi = ((x[0].max(x[1]) + y[0].max(y[1])) + z[0].max(z[1])) + t;
                 if !(lo.is_nan() || hi.is_nan()) {
@@ -164,27 +158,45 @@ pub fn instance_bounds_of(transform: &[f32; 12], blas: Option<[f32; 6]>) -> ([f3
                     return sanitize(b.lo, b.hi);
                 }
             }
-            let (mut lo, mut hi) = (Vec3A::INFINITY, Vec3A::NEG_INFINITY);
-            let mut nan = false;
-            for c in 0..8 {
-                let q = ((x[c & 1] + y[c >> 1 & 1]) + z[c >> 2 & 1]) + t;
-                nan |= q.is_nan();
-                lo = lo.min(q);
-                hi = hi.max(q);
-            }
-            if nan {
-                return sanitize([f32::NAN; 3], [f32::NAN; 3]);
-            }
-            b = to_aabb(lo, hi);
+            instance_box_corners(transform, &bb)
         }
         _ => {
             let o = [transform[3], transform[7], transform[11]];
             if o.iter().any(|x| x.is_nan()) {
                 return sanitize([f32::NAN; 3], [f32::NAN; 3]);
             }
+            let mut b = Aabb::EMPTY;
             b.grow_point(&o);
+            sanitize(b.lo, b.hi)
         }
     }
+}
+
+/// The six products of a 3x4 transform's columns with a box's bounds, and its translation:
+/// corner k of the transformed box is ((x[k&1] + y[k>>1&1]) + z[k>>2&1]) + t, the same
+/// operations as `transform_point`.
+#[inline(always)]
+fn instance_terms(m: &[f32; 12], bb: &[f32; 6]) -> ([Vec3A; 2], [Vec3A; 2], [Vec3A; 2], Vec3A) {
+    let (c0, c1, c2) = (Vec3A::new(m[0], m[4], m[8]), Vec3A::new(m[1], m[5], m[9]), Vec3A::new(m[2], m[6], m[10]));
+    let t = Vec3A::new(m[3], m[7], m[11]);
+    ([c0 * bb[0], c0 * bb[3]], [c1 * bb[1], c1 * bb[4]], [c2 * bb[2], c2 * bb[5]], t)
+}
+
+/// The box of the eight transformed corners, lane-wise (any NaN corner: the NaN box).
+fn instance_box_corners(m: &[f32; 12], bb: &[f32; 6]) -> ([f32; 3], [f32; 3]) {
+    let (x, y, z, t) = instance_terms(m, bb);
+    let (mut lo, mut hi) = (Vec3A::INFINITY, Vec3A::NEG_INFINITY);
+    let mut nan = false;
+    for c in 0..8 {
+        let q = ((x[c & 1] + y[c >> 1 & 1]) + z[c >> 2 & 1]) + t;
+        nan |= q.is_nan();
+        lo = lo.min(q);
+        hi = hi.max(q);
+    }
+    if nan {
+        return sanitize([f32::NAN; 3], [f32::NAN; 3]);
+    }
+    let b = to_aabb(lo, hi);
     sanitize(b.lo, b.hi)
 }
 
@@ -2339,35 +2351,21 @@ mod network_tests {
         assert_eq!(sorted.map(f32::to_bits), by_bits.map(f32::to_bits));
     }
 
-    /// The two-sum instance box equals the eight-corner one bit for bit on finite terms
-    /// (monotonic rounding), including signed zeros, overflow to infinity and mirrored axes.
-    #[test]
-    fn instance_box_from_two_sums_matches_eight_corners() {
-        let corners = |m: &[f32; 12], bb: [f32; 6]| {
-            let (c0, c1, c2) = (Vec3A::new(m[0], m[4], m[8]), Vec3A::new(m[1], m[5], m[9]), Vec3A::new(m[2], m[6], m[10]));
-            let t = Vec3A::new(m[3], m[7], m[11]);
-            let (x, y, z) = ([c0 * bb[0], c0 * bb[3]], [c1 * bb[1], c1 * bb[4]], [c2 * bb[2], c2 * bb[5]]);
-            let (mut lo, mut hi) = (Vec3A::INFINITY, Vec3A::NEG_INFINITY);
-            let mut nan = false;
-            for c in 0..8 {
-                let q = ((x[c & 1] + y[c >> 1 & 1]) + z[c >> 2 & 1]) + t;
-                nan |= q.is_nan();
-                lo = lo.min(q);
-                hi = hi.max(q);
-            }
-            if nan {
-                return sanitize([f32::NAN; 3], [f32::NAN; 3]);
-            }
-            let b = to_aabb(lo, hi);
-            sanitize(b.lo, b.hi)
-        };
-        let mut seed = 0x2545_f491_4f6c_dd1du64;
-        let mut next = move || {
+    /// A deterministic xorshift64 stream.
+    fn xorshift(mut seed: u64) -> impl FnMut() -> u64 {
+        move || {
             seed ^= seed << 13;
             seed ^= seed >> 7;
             seed ^= seed << 17;
             seed
-        };
+        }
+    }
+
+    /// The two-sum instance box equals the eight-corner one bit for bit on finite terms
+    /// (monotonic rounding), including signed zeros, overflow to infinity and mirrored axes.
+    #[test]
+    fn instance_box_from_two_sums_matches_eight_corners() {
+        let mut next = xorshift(0x2545_f491_4f6c_dd1d);
         let specials = [0.0f32, -0.0, 1.0, -1.0, 3.0e38, -3.0e38, 1e-38, -1e-45, 0.5, 2.0];
         let mut pick = move || {
             let r = next();
@@ -2383,7 +2381,7 @@ mod network_tests {
             let (a, b, c) = (pick(), pick(), pick());
             let (d, e, f) = (pick(), pick(), pick());
             let bb = [a.min(d), b.min(e), c.min(f), a.max(d), b.max(e), c.max(f)];
-            let want = corners(&m, bb);
+            let want = instance_box_corners(&m, &bb);
             let got = instance_bounds_of(&m, Some(bb));
             assert_eq!(bits(got), bits(want), "transform {m:?} box {bb:?}");
         }
@@ -2395,13 +2393,8 @@ mod network_tests {
     /// one ran.
     #[test]
     fn one_pass_partition_matches_the_parallel_one() {
-        let mut seed = 0x9e37_79b9_7f4a_7c15u64;
-        let mut next = move || {
-            seed ^= seed << 13;
-            seed ^= seed >> 7;
-            seed ^= seed << 17;
-            (seed >> 40) as f32 / (1u64 << 24) as f32
-        };
+        let mut bits = xorshift(0x9e37_79b9_7f4a_7c15);
+        let mut next = move || (bits() >> 40) as f32 / (1u64 << 24) as f32;
         let pool = rayon::ThreadPoolBuilder::new().num_threads(3).build().unwrap();
         for n in [2usize, 3, 5, 64, 1000, 4097] {
             let refs: Vec<PrimRef> = (0..n)
