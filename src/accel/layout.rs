@@ -213,10 +213,12 @@ pub fn build_scratch_size(n: u64) -> u64 {
         .saturating_add(n.saturating_mul(2).saturating_mul(BINNODE_SIZE))
 }
 
-pub fn update_scratch_size(n: u64) -> u64 {
-    // A TLAS sorts one 8-byte key per instance (16 B reserved); node boxes are refitted
-    // subtree by subtree in registers, so a BLAS needs none of it.
-    SCRATCH_SLACK.saturating_add(n.saturating_mul(16))
+pub fn update_scratch_size(ty: AsType, n: u64) -> u64 {
+    // A TLAS sorts one 8-byte key per instance and keeps each instance's new box (24 bytes) for
+    // the node pass; node boxes are refitted subtree by subtree in registers, so a BLAS needs
+    // none of it (16 B per primitive reserved).
+    let per = if ty == AsType::TopLevel { 32 } else { 16 };
+    SCRATCH_SLACK.saturating_add(n.saturating_mul(per))
 }
 
 pub fn build_sizes(ty: AsType, _flags: BuildFlags, shapes: &[GeometryShape], max_primitive_counts: &[u32]) -> BuildSizes {
@@ -226,7 +228,7 @@ pub fn build_sizes(ty: AsType, _flags: BuildFlags, shapes: &[GeometryShape], max
         .map(|(i, _)| max_primitive_counts.get(i).copied().unwrap_or(0) as u64)
         .fold(0u64, |a, b| a.saturating_add(b));
     let s = sections(ty, max_nodes(n), n, shapes.len() as u64);
-    BuildSizes { acceleration_structure_size: s.end, build_scratch_size: build_scratch_size(n), update_scratch_size: update_scratch_size(n) }
+    BuildSizes { acceleration_structure_size: s.end, build_scratch_size: build_scratch_size(n), update_scratch_size: update_scratch_size(ty, n) }
 }
 
 /// A validated header with the section slices it promises.

@@ -90,7 +90,7 @@ pub fn update(desc: &BuildDesc, view: &dyn DeviceView, src: Option<&[u8]>, dst: 
         p.raw
     };
     let total = builder::total_primitives(desc)?;
-    let need = layout::update_scratch_size(total);
+    let need = layout::update_scratch_size(if desc.ty == AsType::TopLevel { AsType::TopLevel } else { AsType::BottomLevel }, total);
     if (scratch.len() as u64) < need {
         return Err(BuildError::ScratchTooSmall { needed: need, got: scratch.len() as u64 });
     }
@@ -99,10 +99,14 @@ pub fn update(desc: &BuildDesc, view: &dyn DeviceView, src: Option<&[u8]>, dst: 
     let used = raw.used_size as usize;
     let dst = &mut dst[..used];
 
-    // 1. New primitive data; every stored primitive must still be storable.
+    // 1. New primitive data; every stored primitive must still be storable. A TLAS also keeps
+    // each instance's new box for the node pass.
+    let mut inst_boxes: &[[f32; 6]] = &[];
     if is_tlas {
-        let (keys, _) = carve::<u64>(scratch, n).ok_or(BuildError::ScratchTooSmall { needed: need, got: 0 })?;
-        refit_instances(desc, view, &raw, dst, keys)?;
+        let (keys, rest) = carve::<u64>(scratch, n).ok_or(BuildError::ScratchTooSmall { needed: need, got: 0 })?;
+        let (boxes, _) = carve::<[f32; 6]>(rest, n).ok_or(BuildError::ScratchTooSmall { needed: need, got: 0 })?;
+        refit_instances(desc, view, &raw, dst, keys, boxes)?;
+        inst_boxes = boxes;
     } else {
         let (head, tail) = dst.split_at_mut(raw.records_offset as usize);
         let prims = &mut head[raw.prims_offset as usize..raw.prims_offset as usize + n * PRIM_SIZE];
@@ -161,7 +165,8 @@ pub fn update(desc: &BuildDesc, view: &dyn DeviceView, src: Option<&[u8]>, dst: 
         let first = kinds.next().flatten();
         let kind = if is_tlas || first.is_none() || !kinds.all(|k| k == first) { None } else { first };
         let nodes = tail.get_mut(..nc * NODE_SIZE).ok_or(BuildError::InvalidSource("node"))?;
-        root = refit_subtree(&p, kind, view, nodes, 0, &mut BlasMemo::new())?;
+        let leaves = Leaves { kind, inst_boxes: is_tlas.then_some(inst_boxes) };
+        root = refit_subtree(&p, &leaves, view, nodes, 0, &mut BlasMemo::new())?;
     }
     let mut h = raw;
     if n > 0 {
@@ -177,7 +182,14 @@ const PAR_REFIT_NODES: usize = 256;
 /// Refits the subtree whose nodes are `nodes` (node `base` first, its whole preorder range) and
 /// returns its box. The internal children must be `base + 1` and then each the next node after
 /// the previous child's range (what preorder storage gives); anything else is an invalid source.
-fn refit_subtree(p: &Parsed, kind: Option<u32>, view: &dyn DeviceView, nodes: &mut [u8], base: usize, memo: &mut BlasMemo) -> Result<Aabb, BuildError> {
+/// What the leaves of a refit read: the BLAS leaf kind when it is the same for all geometries,
+/// and for a TLAS the instances' new boxes (computed with the instance records).
+struct Leaves<'a> {
+    kind: Option<u32>,
+    inst_boxes: Option<&'a [[f32; 6]]>,
+}
+
+fn refit_subtree(p: &Parsed, leaves: &Leaves, view: &dyn DeviceView, nodes: &mut [u8], base: usize, memo: &mut BlasMemo) -> Result<Aabb, BuildError> {
     let order = BuildError::InvalidSource("node order");
     let total = nodes.len() / NODE_SIZE;
     let (me, rest) = nodes.split_at_mut(NODE_SIZE.min(nodes.len()));
@@ -220,13 +232,13 @@ fn refit_subtree(p: &Parsed, kind: Option<u32>, view: &dyn DeviceView, nodes: &m
     if big {
         parts.par_iter_mut().zip(results.par_iter_mut()).for_each(|(part, res)| {
             if let Some((n, b)) = part.take() {
-                *res = Some(refit_subtree(p, kind, view, n, b, &mut BlasMemo::new()));
+                *res = Some(refit_subtree(p, leaves, view, n, b, &mut BlasMemo::new()));
             }
         });
     } else {
         for (part, res) in parts.iter_mut().zip(results.iter_mut()) {
             if let Some((n, b)) = part.take() {
-                *res = Some(refit_subtree(p, kind, view, n, b, memo));
+                *res = Some(refit_subtree(p, leaves, view, n, b, memo));
             }
         }
     }
@@ -237,7 +249,7 @@ fn refit_subtree(p: &Parsed, kind: Option<u32>, view: &dyn DeviceView, nodes: &m
         let b = match node.kind[c] {
             CHILD_INTERNAL => results[c].take().unwrap_or(Err(BuildError::InvalidSource("node")))?,
             0 => Aabb::EMPTY,
-            k => leaf_bounds_of(p, kind, node.child[c], k as u32, view, memo)?,
+            k => leaf_bounds_of(p, leaves, node.child[c], k as u32, view, memo)?,
         };
         (clo[c], chi[c]) = (Vec3A::from(b.lo), Vec3A::from(b.hi));
         nlo = nlo.min(clo[c]);
@@ -254,8 +266,19 @@ fn refit_subtree(p: &Parsed, kind: Option<u32>, view: &dyn DeviceView, nodes: &m
 
 /// `leaf_bounds` with the BLAS leaf kind known (`kind`), so no per-primitive record lookup;
 /// None: `leaf_bounds`.
-fn leaf_bounds_of(p: &Parsed, kind: Option<u32>, first: u32, count: u32, view: &dyn DeviceView, memo: &mut BlasMemo) -> Result<Aabb, BuildError> {
-    let Some(kind) = kind else { return leaf_bounds(p, first, count, view, memo) };
+fn leaf_bounds_of(p: &Parsed, leaves: &Leaves, first: u32, count: u32, view: &dyn DeviceView, memo: &mut BlasMemo) -> Result<Aabb, BuildError> {
+    if let Some(boxes) = leaves.inst_boxes {
+        // TLAS: the boxes the instance pass computed, in slot order (the same
+        // `instance_bounds_of` of the same transform and BLAS box `leaf_bounds` would compute).
+        let end = first.checked_add(count).ok_or(BuildError::InvalidSource("leaf range"))?;
+        let bs = boxes.get(first as usize..end as usize).ok_or(BuildError::InvalidSource("leaf range"))?;
+        let mut b = Aabb::EMPTY;
+        for x in bs {
+            b.grow(&[x[0], x[1], x[2]], &[x[3], x[4], x[5]]);
+        }
+        return Ok(b);
+    }
+    let Some(kind) = leaves.kind else { return leaf_bounds(p, first, count, view, memo) };
     if kind == layout::KIND_TRIANGLES {
         // One range check for the leaf, vertices straight into registers (`triangle_box`: the
         // same box `prim_bounds` gives).
@@ -333,7 +356,7 @@ fn leaf_bounds(p: &Parsed, first: u32, count: u32, view: &dyn DeviceView, memo: 
 }
 
 /// TLAS: rewrite instance records and the BLAS table from the new instance definitions.
-fn refit_instances(desc: &BuildDesc, view: &dyn DeviceView, raw: &layout::RawHeader, dst: &mut [u8], keys: &mut [u64]) -> Result<(), BuildError> {
+fn refit_instances(desc: &BuildDesc, view: &dyn DeviceView, raw: &layout::RawHeader, dst: &mut [u8], keys: &mut [u64], boxes: &mut [[f32; 6]]) -> Result<(), BuildError> {
     let n = raw.primitive_count as usize;
     let rec_off = raw.records_offset as usize;
     let read_rec = |dst: &[u8], i: usize| -> Option<layout::PrimRecord> {
@@ -374,11 +397,26 @@ fn refit_instances(desc: &BuildDesc, view: &dyn DeviceView, raw: &layout::RawHea
     tail.get_mut(..n * layout::INSTANCE_RECORD_SIZE)
         .ok_or(BuildError::InvalidSource("instances"))?
         .par_chunks_mut(CH * layout::INSTANCE_RECORD_SIZE)
+        .zip(boxes.get_mut(..n).ok_or(BuildError::InvalidSource("instances"))?.par_chunks_mut(CH))
         .enumerate()
-        .map(|(ci, out)| {
-            for (k, o) in out.chunks_exact_mut(layout::INSTANCE_RECORD_SIZE).enumerate() {
+        .map(|(ci, (out, bx))| {
+            // BLAS bounds of the last four references (a TLAS usually instances few BLASes).
+            let mut memo: [(u64, Option<[f32; 6]>); 4] = [(0, None); 4];
+            let mut next = 0usize;
+            for (k, (o, bo)) in out.chunks_exact_mut(layout::INSTANCE_RECORD_SIZE).zip(bx.iter_mut()).enumerate() {
                 let i = ci * CH + k;
                 let inst = read(head, i).map_err(|e| (i, e))?;
+                let bb = match memo.iter().find(|m| m.0 == inst.reference && m.0 != 0) {
+                    Some(m) => m.1,
+                    None => {
+                        let bb = builder::blas_bounds(inst.reference, view);
+                        memo[next] = (inst.reference, bb);
+                        next = (next + 1) % memo.len();
+                        bb
+                    }
+                };
+                let (lo, hi) = builder::instance_bounds_of(&inst.transform, bb);
+                *bo = [lo[0], lo[1], lo[2], hi[0], hi[1], hi[2]];
                 let r = read_rec(head, i).ok_or((i, BuildError::InvalidSource("record")))?;
                 let mut rec = InstanceRecord::zeroed();
                 rec.object_to_world = inst.transform;
