@@ -131,7 +131,7 @@ pub fn triangle_bounds(v: &[Vec3; 3]) -> ([f32; 3], [f32; 3]) {
 /// Bounds of an instance: its BLAS bounds transformed (8 corners); an empty or unreadable BLAS
 /// is a point at the instance origin, as the spec suggests for instances of empty BLASes.
 pub fn instance_bounds(transform: &[f32; 12], reference: u64, view: &dyn DeviceView) -> ([f32; 3], [f32; 3]) {
-    instance_bounds_of(transform, blas_bounds(reference, view))
+    instance_bounds_of(transform, blas_bounds(reference, view).as_ref())
 }
 
 /// The bounds of the BLAS `reference` names, or None when it is empty or not a structure
@@ -141,10 +141,12 @@ pub fn blas_bounds(reference: u64, view: &dyn DeviceView) -> Option<[f32; 6]> {
 }
 
 /// `instance_bounds` from the BLAS bounds already looked up.
-pub fn instance_bounds_of(transform: &[f32; 12], blas: Option<[f32; 6]>) -> ([f32; 3], [f32; 3]) {
+/// `blas` by reference: the caller's copy of an `Option<[f32; 6]>` read back whole right after
+/// it was written stalled on store-to-load forwarding (a sixth of a TLAS update).
+pub fn instance_bounds_of(transform: &[f32; 12], blas: Option<&[f32; 6]>) -> ([f32; 3], [f32; 3]) {
     match blas {
         Some(bb) => {
-            let (x, y, z, t) = instance_terms(transform, &bb);
+            let (x, y, z, t) = instance_terms(transform, bb);
             // Zero times a term is 0 when it is finite and NaN otherwise: one test for all seven.
             let zero = ((((((x[0] * 0.0 + x[1] * 0.0) + y[0] * 0.0) + y[1] * 0.0) + z[0] * 0.0) + z[1] * 0.0) + t * 0.0).cmpeq(Vec3A::ZERO);
             if zero.all() {
@@ -158,7 +160,7 @@ pub fn instance_bounds_of(transform: &[f32; 12], blas: Option<[f32; 6]>) -> ([f3
                     return sanitize(b.lo, b.hi);
                 }
             }
-            instance_box_corners(transform, &bb)
+            instance_box_corners(transform, bb)
         }
         _ => {
             let o = [transform[3], transform[7], transform[11]];
@@ -183,6 +185,7 @@ fn instance_terms(m: &[f32; 12], bb: &[f32; 6]) -> ([Vec3A; 2], [Vec3A; 2], [Vec
 }
 
 /// The box of the eight transformed corners, lane-wise (any NaN corner: the NaN box).
+#[inline(never)]
 fn instance_box_corners(m: &[f32; 12], bb: &[f32; 6]) -> ([f32; 3], [f32; 3]) {
     let (x, y, z, t) = instance_terms(m, bb);
     let (mut lo, mut hi) = (Vec3A::INFINITY, Vec3A::NEG_INFINITY);
@@ -198,6 +201,32 @@ fn instance_box_corners(m: &[f32; 12], bb: &[f32; 6]) -> ([f32; 3], [f32; 3]) {
     }
     let b = to_aabb(lo, hi);
     sanitize(b.lo, b.hi)
+}
+
+/// `blas_bounds` of the last four BLAS references looked up (a TLAS usually instances few
+/// BLASes, and each lookup is a locked map search and a header parse).
+pub struct BlasBoundsMemo {
+    e: [(u64, Option<[f32; 6]>); 4],
+    next: usize,
+}
+impl BlasBoundsMemo {
+    pub fn new() -> Self {
+        BlasBoundsMemo { e: [(0, None); 4], next: 0 }
+    }
+    /// The bounds of the BLAS at `reference` (0, never an active instance's, is not memoised),
+    /// by reference into the memo: a copy read back at once stalls on store forwarding.
+    pub fn get(&mut self, reference: u64, view: &dyn DeviceView) -> Option<&[f32; 6]> {
+        let k = match self.e.iter().position(|m| m.0 == reference && reference != 0) {
+            Some(k) => k,
+            None => {
+                let k = self.next % self.e.len();
+                self.e[k] = (reference, blas_bounds(reference, view));
+                self.next = (k + 1) % self.e.len();
+                k
+            }
+        };
+        self.e[k].1.as_ref()
+    }
 }
 
 /// Builder settings chosen from the build flags.
@@ -1803,9 +1832,7 @@ fn ingest(desc: &BuildDesc, view: &dyn DeviceView, refs: &mut [PrimRef], mut sta
         let work = |ci: usize, chunk: &mut [PrimRef], st: Option<&mut [u8]>| -> Result<usize, (u64, BuildError)> {
             let mut st = st;
             let mut dropped = 0usize;
-            // (0 is never looked up: an instance with reference 0 is inactive.)
-            let mut memo: [(u64, Option<[f32; 6]>); 4] = [(0, None); 4];
-            let mut next = 0usize;
+            let mut memo = BlasBoundsMemo::new();
             for (k, slot) in chunk.iter_mut().enumerate() {
                 let p = (ci * INGEST_CHUNK + k) as u32;
                 if let Some(ft) = fast.as_ref() {
@@ -1841,16 +1868,7 @@ fn ingest(desc: &BuildDesc, view: &dyn DeviceView, refs: &mut [PrimRef], mut sta
                     // instances few BLASes). Same bounds as `make_ref_data`.
                     match read_instance(gi32, g, p, view) {
                         Ok(Some(inst)) => {
-                            let bb = match memo.iter().find(|m| m.0 == inst.reference) {
-                                Some(m) => m.1,
-                                None => {
-                                    let bb = blas_bounds(inst.reference, view);
-                                    memo[next] = (inst.reference, bb);
-                                    next = (next + 1) % memo.len();
-                                    bb
-                                }
-                            };
-                            let (lo, hi) = instance_bounds_of(&inst.transform, bb);
+                            let (lo, hi) = instance_bounds_of(&inst.transform, memo.get(inst.reference, view));
                             Ok(Some((PrimRef { lo, geom: gi32, hi, prim: p }, [0f32; 9])))
                         }
                         Ok(None) => Ok(None),
@@ -2382,7 +2400,7 @@ mod network_tests {
             let (d, e, f) = (pick(), pick(), pick());
             let bb = [a.min(d), b.min(e), c.min(f), a.max(d), b.max(e), c.max(f)];
             let want = instance_box_corners(&m, &bb);
-            let got = instance_bounds_of(&m, Some(bb));
+            let got = instance_bounds_of(&m, Some(&bb));
             assert_eq!(bits(got), bits(want), "transform {m:?} box {bb:?}");
         }
     }

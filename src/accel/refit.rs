@@ -344,7 +344,7 @@ fn leaf_bounds(p: &Parsed, first: u32, count: u32, view: &dyn DeviceView, memo: 
         let (lo, hi) = if p.is_tlas() {
             let rec = p.instance(s).ok_or(BuildError::InvalidSource("leaf range"))?;
             let addr = p.blas_address(rec.blas_index).unwrap_or(0);
-            builder::instance_bounds_of(&rec.object_to_world, memo.bounds(rec.blas_index, addr, view))
+            builder::instance_bounds_of(&rec.object_to_world, memo.bounds(rec.blas_index, addr, view).as_ref())
         } else {
             let d = p.prim(s).ok_or(BuildError::InvalidSource("leaf range"))?;
             let g = p.record(s).and_then(|r| p.geometry(r.geometry)).ok_or(BuildError::InvalidSource("record"))?;
@@ -400,22 +400,11 @@ fn refit_instances(desc: &BuildDesc, view: &dyn DeviceView, raw: &layout::RawHea
         .zip(boxes.get_mut(..n).ok_or(BuildError::InvalidSource("instances"))?.par_chunks_mut(CH))
         .enumerate()
         .map(|(ci, (out, bx))| {
-            // BLAS bounds of the last four references (a TLAS usually instances few BLASes).
-            let mut memo: [(u64, Option<[f32; 6]>); 4] = [(0, None); 4];
-            let mut next = 0usize;
+            let mut memo = builder::BlasBoundsMemo::new();
             for (k, (o, bo)) in out.chunks_exact_mut(layout::INSTANCE_RECORD_SIZE).zip(bx.iter_mut()).enumerate() {
                 let i = ci * CH + k;
                 let inst = read(head, i).map_err(|e| (i, e))?;
-                let bb = match memo.iter().find(|m| m.0 == inst.reference && m.0 != 0) {
-                    Some(m) => m.1,
-                    None => {
-                        let bb = builder::blas_bounds(inst.reference, view);
-                        memo[next] = (inst.reference, bb);
-                        next = (next + 1) % memo.len();
-                        bb
-                    }
-                };
-                let (lo, hi) = builder::instance_bounds_of(&inst.transform, bb);
+                let (lo, hi) = builder::instance_bounds_of(&inst.transform, memo.get(inst.reference, view));
                 *bo = [lo[0], lo[1], lo[2], hi[0], hi[1], hi[2]];
                 let r = read_rec(head, i).ok_or((i, BuildError::InvalidSource("record")))?;
                 let mut rec = InstanceRecord::zeroed();
