@@ -372,12 +372,20 @@ fn refit_instances(desc: &BuildDesc, view: &dyn DeviceView, raw: &layout::RawHea
         read_instance(r.geometry, g, r.primitive, view)?.ok_or(mismatch("an active instance became inactive"))
     };
     {
+        // Only the reference field here; the instance pass below decodes (and checks) every
+        // instance fully and reports the lowest failing one, and a failed update leaves the
+        // destination marked invalid, so a key of 0 for an unreadable instance never lasts.
         let d: &[u8] = dst;
         keys.get_mut(..n)
             .ok_or(BuildError::InvalidSource("record"))?
             .par_iter_mut()
             .enumerate()
-            .map(|(i, k)| read(d, i).map(|inst| *k = inst.reference).map_err(|e| (i, e)))
+            .map(|(i, k)| {
+                let r = read_rec(d, i).ok_or((i, BuildError::InvalidSource("record")))?;
+                let g = desc.geometries.get(r.geometry as usize).ok_or((i, BuildError::InvalidSource("record")))?;
+                *k = super::input::read_instance_reference(g, r.primitive, view).unwrap_or(0);
+                Ok(())
+            })
             .reduce(|| Ok(()), lowest_err)
             .map_err(|e| e.1)?;
     }

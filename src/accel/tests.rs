@@ -569,6 +569,12 @@ fn tlas_instances_flags_masks_and_copies() {
     let desc = BuildDesc { ty: AsType::TopLevel, flags: BuildFlags(BuildFlags::ALLOW_UPDATE), geometries: &[g3] };
     let mut upd2 = vec![0u8; tlas.len()];
     assert!(matches!(update(&desc, &view, Some(&tlas), &mut upd2, &mut scratch), Err(BuildError::UpdateMismatch(_))));
+    // So is swapping which one is inactive (the active count stays the same: the instance pass
+    // finds the stored instance that went inactive).
+    inst3[56..64].copy_from_slice(&0u64.to_le_bytes());
+    let g3 = Geometry { flags: GeometryFlags(0), primitive_count: 4, data: GeometryData::Instances { array_of_pointers: false, data: &inst3 } };
+    let desc = BuildDesc { ty: AsType::TopLevel, flags: BuildFlags(BuildFlags::ALLOW_UPDATE), geometries: &[g3] };
+    assert_eq!(update(&desc, &view, Some(&tlas), &mut upd2, &mut scratch), Err(BuildError::UpdateMismatch("an active instance became inactive")));
     // Array of pointers.
     let mut pv = MapView::new();
     pv.insert(0x1000, blas_a.clone());
