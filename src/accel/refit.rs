@@ -90,12 +90,12 @@ pub fn update(desc: &BuildDesc, view: &dyn DeviceView, src: Option<&[u8]>, dst: 
         p.raw
     };
     let total = builder::total_primitives(desc)?;
-    let need = layout::update_scratch_size(if desc.ty == AsType::TopLevel { AsType::TopLevel } else { AsType::BottomLevel }, total);
+    let is_tlas = raw.ty == AsType::TopLevel as u32;
+    let need = layout::update_scratch_size(if is_tlas { AsType::TopLevel } else { AsType::BottomLevel }, total);
     if (scratch.len() as u64) < need {
         return Err(BuildError::ScratchTooSmall { needed: need, got: scratch.len() as u64 });
     }
     let n = raw.primitive_count as usize;
-    let is_tlas = raw.ty == AsType::TopLevel as u32;
     let used = raw.used_size as usize;
     let dst = &mut dst[..used];
 
