@@ -55,21 +55,19 @@ pub fn run_as_inline_worker(f: impl FnOnce() + Send + 'static) {
     // `f` is carried out of the job (rayon would abort on it) and resumed on this thread, which
     // then ends as it would have without the pool.
     type Panic = Box<dyn std::any::Any + Send>;
-    let handle = Arc::new(Mutex::new(Some(pool)));
+    // The job cannot start before `builder.run()`: this thread is the pool's only worker.
+    let handle: Arc<Mutex<Option<rayon::ThreadPool>>> = Arc::new(Mutex::new(None));
     let panicked: Arc<Mutex<Option<Panic>>> = Arc::new(Mutex::new(None));
     let (own, report) = (handle.clone(), panicked.clone());
-    let spawn_on = handle.lock().unwrap_or_else(|e| e.into_inner());
-    if let Some(p) = spawn_on.as_ref() {
-        p.spawn(move || {
-            INLINE.with(|c| c.set(true));
-            if let Err(e) = std::panic::catch_unwind(std::panic::AssertUnwindSafe(f)) {
-                *report.lock().unwrap_or_else(|e| e.into_inner()) = Some(e);
-            }
-            INLINE.with(|c| c.set(false));
-            drop(own.lock().unwrap_or_else(|e| e.into_inner()).take());
-        });
-    }
-    drop(spawn_on);
+    pool.spawn(move || {
+        INLINE.with(|c| c.set(true));
+        if let Err(e) = std::panic::catch_unwind(std::panic::AssertUnwindSafe(f)) {
+            *report.lock().unwrap_or_else(|e| e.into_inner()) = Some(e);
+        }
+        INLINE.with(|c| c.set(false));
+        drop(own.lock().unwrap_or_else(|e| e.into_inner()).take());
+    });
+    *handle.lock().unwrap_or_else(|e| e.into_inner()) = Some(pool);
     builder.run();
     let payload = panicked.lock().unwrap_or_else(|e| e.into_inner()).take();
     if let Some(e) = payload {

@@ -165,8 +165,8 @@ pub fn update(desc: &BuildDesc, view: &dyn DeviceView, src: Option<&[u8]>, dst: 
         let first = kinds.next().flatten();
         let kind = if is_tlas || first.is_none() || !kinds.all(|k| k == first) { None } else { first };
         let nodes = tail.get_mut(..nc * NODE_SIZE).ok_or(BuildError::InvalidSource("node"))?;
-        let leaves = Leaves { kind, inst_boxes: is_tlas.then_some(inst_boxes) };
-        root = refit_subtree(&p, &leaves, view, nodes, 0, &mut BlasMemo::new())?;
+        let leaves = Leaves { kind, inst_boxes };
+        root = refit_subtree(&p, &leaves, nodes, 0)?;
     }
     let mut h = raw;
     if n > 0 {
@@ -179,17 +179,17 @@ pub fn update(desc: &BuildDesc, view: &dyn DeviceView, src: Option<&[u8]>, dst: 
 /// Subtrees of at least this many nodes refit their children in parallel.
 const PAR_REFIT_NODES: usize = 256;
 
+/// What the leaves of a refit read: the BLAS leaf kind when it is the same for all geometries,
+/// and for a TLAS the instances' new boxes, in slot order (computed with the instance records).
+struct Leaves<'a> {
+    kind: Option<u32>,
+    inst_boxes: &'a [[f32; 6]],
+}
+
 /// Refits the subtree whose nodes are `nodes` (node `base` first, its whole preorder range) and
 /// returns its box. The internal children must be `base + 1` and then each the next node after
 /// the previous child's range (what preorder storage gives); anything else is an invalid source.
-/// What the leaves of a refit read: the BLAS leaf kind when it is the same for all geometries,
-/// and for a TLAS the instances' new boxes (computed with the instance records).
-struct Leaves<'a> {
-    kind: Option<u32>,
-    inst_boxes: Option<&'a [[f32; 6]]>,
-}
-
-fn refit_subtree(p: &Parsed, leaves: &Leaves, view: &dyn DeviceView, nodes: &mut [u8], base: usize, memo: &mut BlasMemo) -> Result<Aabb, BuildError> {
+fn refit_subtree(p: &Parsed, leaves: &Leaves, nodes: &mut [u8], base: usize) -> Result<Aabb, BuildError> {
     let order = BuildError::InvalidSource("node order");
     let total = nodes.len() / NODE_SIZE;
     let (me, rest) = nodes.split_at_mut(NODE_SIZE.min(nodes.len()));
@@ -232,13 +232,13 @@ fn refit_subtree(p: &Parsed, leaves: &Leaves, view: &dyn DeviceView, nodes: &mut
     if big {
         parts.par_iter_mut().zip(results.par_iter_mut()).for_each(|(part, res)| {
             if let Some((n, b)) = part.take() {
-                *res = Some(refit_subtree(p, leaves, view, n, b, &mut BlasMemo::new()));
+                *res = Some(refit_subtree(p, leaves, n, b));
             }
         });
     } else {
         for (part, res) in parts.iter_mut().zip(results.iter_mut()) {
             if let Some((n, b)) = part.take() {
-                *res = Some(refit_subtree(p, leaves, view, n, b, memo));
+                *res = Some(refit_subtree(p, leaves, n, b));
             }
         }
     }
@@ -249,7 +249,7 @@ fn refit_subtree(p: &Parsed, leaves: &Leaves, view: &dyn DeviceView, nodes: &mut
         let b = match node.kind[c] {
             CHILD_INTERNAL => results[c].take().unwrap_or(Err(BuildError::InvalidSource("node")))?,
             0 => Aabb::EMPTY,
-            k => leaf_bounds_of(p, leaves, node.child[c], k as u32, view, memo)?,
+            k => leaf_bounds_of(p, leaves, node.child[c], k as u32)?,
         };
         (clo[c], chi[c]) = (Vec3A::from(b.lo), Vec3A::from(b.hi));
         nlo = nlo.min(clo[c]);
@@ -266,19 +266,18 @@ fn refit_subtree(p: &Parsed, leaves: &Leaves, view: &dyn DeviceView, nodes: &mut
 
 /// `leaf_bounds` with the BLAS leaf kind known (`kind`), so no per-primitive record lookup;
 /// None: `leaf_bounds`.
-fn leaf_bounds_of(p: &Parsed, leaves: &Leaves, first: u32, count: u32, view: &dyn DeviceView, memo: &mut BlasMemo) -> Result<Aabb, BuildError> {
-    if let Some(boxes) = leaves.inst_boxes {
-        // TLAS: the boxes the instance pass computed, in slot order (the same
-        // `instance_bounds_of` of the same transform and BLAS box `leaf_bounds` would compute).
+fn leaf_bounds_of(p: &Parsed, leaves: &Leaves, first: u32, count: u32) -> Result<Aabb, BuildError> {
+    if p.is_tlas() {
+        // TLAS: the boxes the instance pass computed, in slot order.
         let end = first.checked_add(count).ok_or(BuildError::InvalidSource("leaf range"))?;
-        let bs = boxes.get(first as usize..end as usize).ok_or(BuildError::InvalidSource("leaf range"))?;
+        let bs = leaves.inst_boxes.get(first as usize..end as usize).ok_or(BuildError::InvalidSource("leaf range"))?;
         let mut b = Aabb::EMPTY;
         for x in bs {
             b.grow(&[x[0], x[1], x[2]], &[x[3], x[4], x[5]]);
         }
         return Ok(b);
     }
-    let Some(kind) = leaves.kind else { return leaf_bounds(p, first, count, view, memo) };
+    let Some(kind) = leaves.kind else { return leaf_bounds(p, first, count) };
     if kind == layout::KIND_TRIANGLES {
         // One range check for the leaf, vertices straight into registers (`triangle_box`: the
         // same box `prim_bounds` gives).
@@ -315,41 +314,13 @@ fn lowest_err(a: Result<(), (usize, BuildError)>, b: Result<(), (usize, BuildErr
     }
 }
 
-/// The last four BLAS bounds a TLAS refit looked up, by BLAS table index (a TLAS usually
-/// instances few BLASes; each lookup is a locked map search and a header parse).
-struct BlasMemo {
-    e: [(Option<u32>, Option<[f32; 6]>); 4],
-    next: usize,
-}
-
-impl BlasMemo {
-    fn new() -> Self {
-        BlasMemo { e: [(None, None); 4], next: 0 }
-    }
-    /// `builder::blas_bounds` of table entry `index` (at `addr`), memoised.
-    fn bounds(&mut self, index: u32, addr: u64, view: &dyn DeviceView) -> Option<[f32; 6]> {
-        if let Some(m) = self.e.iter().find(|m| m.0 == Some(index)) {
-            return m.1;
-        }
-        let b = builder::blas_bounds(addr, view);
-        self.e[self.next % 4] = (Some(index), b);
-        self.next = (self.next + 1) % 4;
-        b
-    }
-}
-
-fn leaf_bounds(p: &Parsed, first: u32, count: u32, view: &dyn DeviceView, memo: &mut BlasMemo) -> Result<Aabb, BuildError> {
+/// BLAS leaf boxes with the kind looked up per primitive (geometries of mixed kinds).
+fn leaf_bounds(p: &Parsed, first: u32, count: u32) -> Result<Aabb, BuildError> {
     let mut b = Aabb::EMPTY;
     for s in first..first.saturating_add(count) {
-        let (lo, hi) = if p.is_tlas() {
-            let rec = p.instance(s).ok_or(BuildError::InvalidSource("leaf range"))?;
-            let addr = p.blas_address(rec.blas_index).unwrap_or(0);
-            builder::instance_bounds_of(&rec.object_to_world, memo.bounds(rec.blas_index, addr, view).as_ref())
-        } else {
-            let d = p.prim(s).ok_or(BuildError::InvalidSource("leaf range"))?;
-            let g = p.record(s).and_then(|r| p.geometry(r.geometry)).ok_or(BuildError::InvalidSource("record"))?;
-            prim_bounds(&d, g.kind)
-        };
+        let d = p.prim(s).ok_or(BuildError::InvalidSource("leaf range"))?;
+        let g = p.record(s).and_then(|r| p.geometry(r.geometry)).ok_or(BuildError::InvalidSource("record"))?;
+        let (lo, hi) = prim_bounds(&d, g.kind);
         b.grow(&lo, &hi);
     }
     Ok(b)

@@ -689,19 +689,29 @@ fn aabb_blas_matches_brute_force() {
     }
 }
 
+/// The mesh the ignored timing entries use: ARBOR_MESH, else `default` under the crate.
+fn timing_mesh(default: &str) -> crate::scene::Mesh {
+    let path = std::env::var("ARBOR_MESH").unwrap_or_else(|_| format!("{}/{default}", env!("CARGO_MANIFEST_DIR")));
+    crate::scene::load(&path).expect("mesh")
+}
+
+/// Destination and scratch for building `g` (`n` primitives) with `flags`, from the size query.
+fn blas_buffers(g: &Geometry, n: u32, flags: BuildFlags) -> (Vec<u8>, Vec<u8>) {
+    let sz = build_sizes(AsType::BottomLevel, flags, &[shape_of(g)], &[n]);
+    (vec![0u8; sz.acceleration_structure_size as usize], vec![0u8; sz.build_scratch_size as usize])
+}
+
 /// Dragon timing (not a test of correctness; run explicitly):
 /// `cargo test --release --lib accel::tests::dragon_timing -- --ignored --nocapture`
 #[test]
 #[ignore]
 fn dragon_timing() {
-    let path = std::env::var("ARBOR_MESH").unwrap_or_else(|_| concat!(env!("CARGO_MANIFEST_DIR"), "/data/dragon_vrip.ply.gz").to_string());
-    let mesh = crate::scene::load(&path).expect("mesh");
+    let mesh = timing_mesh("data/dragon_vrip.ply.gz");
     let vb = mesh.vertex_bytes();
     let ib = mesh.index_bytes();
     let ntri = mesh.triangle_count() as u32;
     let nv = mesh.vertex_count() as u32;
     let g = tri_geom(&vb, nv, &ib, ntri, GeometryFlags::OPAQUE);
-    let shapes = [shape_of(&g)];
     let reps: usize = std::env::var("ARBOR_REPS").ok().and_then(|s| s.parse().ok()).unwrap_or(5);
     let only = std::env::var("ARBOR_TIER").ok();
     let thread_list: Vec<usize> = std::env::var("ARBOR_THREADS").ok().map(|s| s.split(',').filter_map(|x| x.parse().ok()).collect()).unwrap_or(vec![1, 2]);
@@ -709,9 +719,7 @@ fn dragon_timing() {
         if only.as_deref().is_some_and(|o| o != name) {
             continue;
         }
-        let sz = build_sizes(AsType::BottomLevel, BuildFlags(flags), &shapes, &[ntri]);
-        let mut dst = vec![0u8; sz.acceleration_structure_size as usize];
-        let mut scratch = vec![0u8; sz.build_scratch_size as usize];
+        let (mut dst, mut scratch) = blas_buffers(&g, ntri, BuildFlags(flags));
         for &threads in &thread_list {
             let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
             let desc = BuildDesc { ty: AsType::BottomLevel, flags: BuildFlags(flags), geometries: &[g] };
@@ -748,15 +756,12 @@ fn dragon_timing() {
 #[test]
 #[ignore]
 fn trace_timing() {
-    let path = std::env::var("ARBOR_MESH").unwrap_or_else(|_| concat!(env!("CARGO_MANIFEST_DIR"), "/data/dragon_vrip.ply.gz").to_string());
-    let mesh = crate::scene::load(&path).expect("mesh");
+    let mesh = timing_mesh("data/dragon_vrip.ply.gz");
     let (vb, ib) = (mesh.vertex_bytes(), mesh.index_bytes());
     let ntri = mesh.triangle_count() as u32;
     let g = tri_geom(&vb, mesh.vertex_count() as u32, &ib, ntri, GeometryFlags::OPAQUE);
     let flags = BuildFlags(BuildFlags::PREFER_FAST_TRACE);
-    let sz = build_sizes(AsType::BottomLevel, flags, &[shape_of(&g)], &[ntri]);
-    let mut dst = vec![0u8; sz.acceleration_structure_size as usize];
-    let mut scratch = vec![0u8; sz.build_scratch_size as usize];
+    let (mut dst, mut scratch) = blas_buffers(&g, ntri, flags);
     build(&BuildDesc { ty: AsType::BottomLevel, flags, geometries: &[g] }, &NoDevice, &mut dst, &mut scratch).unwrap();
     let side = (std::env::var("ARBOR_RAYS").ok().and_then(|s| s.parse::<f64>().ok()).unwrap_or(65536.0)).sqrt() as usize;
     let rays = crate::scene::primary_rays(mesh.bounds(), side, side);
@@ -1123,15 +1128,12 @@ fn tlas_refit_is_deterministic_and_returns_to_the_build() {
 #[test]
 #[ignore]
 fn small_build_handoff() {
-    let path = std::env::var("ARBOR_MESH").unwrap_or_else(|_| concat!(env!("CARGO_MANIFEST_DIR"), "/data/bunny.ply").to_string());
-    let mesh = crate::scene::load(&path).expect("mesh");
+    let mesh = timing_mesh("data/bunny.ply");
     let (vb, ib) = (mesh.vertex_bytes(), mesh.index_bytes());
     let ntri = mesh.triangle_count() as u32;
     let g = tri_geom(&vb, mesh.vertex_count() as u32, &ib, ntri, GeometryFlags::OPAQUE);
     let flags = BuildFlags(BuildFlags::PREFER_FAST_BUILD);
-    let sz = build_sizes(AsType::BottomLevel, flags, &[shape_of(&g)], &[ntri]);
-    let mut dst = vec![0u8; sz.acceleration_structure_size as usize];
-    let mut scratch = vec![0u8; sz.build_scratch_size as usize];
+    let (mut dst, mut scratch) = blas_buffers(&g, ntri, flags);
     let desc = BuildDesc { ty: AsType::BottomLevel, flags, geometries: &[g] };
     let reps: usize = std::env::var("ARBOR_REPS").ok().and_then(|s| s.parse().ok()).unwrap_or(200);
     let stats = |v: &mut Vec<f64>| {
