@@ -320,6 +320,63 @@ fn compaction_clone_serialization_round_trip_and_queries() {
     ctx.finish();
 }
 
+/// Host builds name BLASes by handle and remember a few handle lookups per thread: a TLAS over
+/// more BLASes than that memo holds, named in an order that keeps evicting it, builds to the
+/// same bytes on the host as on the device (where instances hold addresses), twice with
+/// different assignments.
+#[test]
+fn host_tlas_over_many_blases_matches_the_device_build() {
+    let ctx = as_context();
+    let a = Accel::new(&ctx);
+    let mesh = bunny();
+    let m = upload_mesh(&a, &mesh);
+    let blases: Vec<_> = (0..7).map(|_| device_blas(&a, &m, vk::BuildAccelerationStructureFlagsKHR::PREFER_FAST_BUILD)).collect();
+    let n = 300u32;
+    let transform = |i: u32| [1.0, 0.0, 0.0, (i % 20) as f32 * 0.3, 0.0, 1.0, 0.0, (i / 20) as f32 * 0.3, 0.0, 0.0, 1.0, 0.0];
+    for pattern in [(3u32, 1u32), (5, 4)] {
+        let pick = |i: u32| ((i * pattern.0 + pattern.1) % 7) as usize;
+        let records = |reference: &dyn Fn(usize) -> u64| -> Vec<u8> { (0..n).flat_map(|i| instance_record(transform(i), i, 0xFF, 0, 0, reference(pick(i)))).collect() };
+        let dev_records = records(&|k| a.address_of(blases[k]));
+        let host_records = records(&|k| vk::Handle::as_raw(blases[k]));
+        let inst = a.upload(&dev_records);
+        let geoms = [instances(a.buf(inst).address)];
+        let info = vk::AccelerationStructureBuildGeometryInfoKHR::default()
+            .ty(vk::AccelerationStructureTypeKHR::TOP_LEVEL)
+            .mode(vk::BuildAccelerationStructureModeKHR::BUILD)
+            .geometries(&geoms);
+        let sizes = a.sizes(vk::AccelerationStructureBuildTypeKHR::DEVICE, &info, &[n]);
+        let (t, _) = a.structure(vk::AccelerationStructureTypeKHR::TOP_LEVEL, sizes.acceleration_structure_size);
+        let scratch = a.buffer(sizes.build_scratch_size);
+        let dinfo = info.dst_acceleration_structure(t).scratch_data(vk::DeviceOrHostAddressKHR { device_address: a.buf(scratch).address });
+        let range = [vk::AccelerationStructureBuildRangeInfoKHR::default().primitive_count(n)];
+        a.submit(|cb| {
+            // SAFETY: valid infos.
+            unsafe { a.ext.cmd_build_acceleration_structures(cb, &[dinfo], &[&range]) };
+        });
+        let device = a.serialize(t);
+        assert_eq!(a.query(t, vk::QueryType::ACCELERATION_STRUCTURE_SERIALIZATION_BOTTOM_LEVEL_POINTERS_KHR), 7);
+        let hgeoms = [vk::AccelerationStructureGeometryKHR::default()
+            .geometry_type(vk::GeometryTypeKHR::INSTANCES)
+            .geometry(vk::AccelerationStructureGeometryDataKHR {
+                instances: vk::AccelerationStructureGeometryInstancesDataKHR::default()
+                    .data(vk::DeviceOrHostAddressConstKHR { host_address: host_records.as_ptr().cast() }),
+            })];
+        let (th, _) = a.structure(vk::AccelerationStructureTypeKHR::TOP_LEVEL, sizes.acceleration_structure_size);
+        let mut hscratch = vec![0u8; sizes.build_scratch_size as usize];
+        let hinfo = vk::AccelerationStructureBuildGeometryInfoKHR::default()
+            .ty(vk::AccelerationStructureTypeKHR::TOP_LEVEL)
+            .mode(vk::BuildAccelerationStructureModeKHR::BUILD)
+            .geometries(&hgeoms)
+            .dst_acceleration_structure(th)
+            .scratch_data(vk::DeviceOrHostAddressKHR { host_address: hscratch.as_mut_ptr().cast() });
+        // SAFETY: valid infos, host memory alive for the call.
+        unsafe { a.ext.build_acceleration_structures(vk::DeferredOperationKHR::null(), &[hinfo], &[&range]) }.unwrap();
+        assert_eq!(a.serialize(th), device, "host TLAS build over 7 BLASes differs from the device build (pattern {pattern:?})");
+    }
+    a.destroy();
+    ctx.finish();
+}
+
 /// A two-level structure: TLAS over instances of two BLASes, device and host builds identical,
 /// traversal (BLASes found by device address) equal to brute force over the transformed triangles.
 #[test]

@@ -410,6 +410,26 @@ unsafe extern "system" fn cmd_build_acceleration_structures_indirect_khr(
 struct HostInputs<'a> {
     device_view: DeviceMemoryView<'a>,
     command: &'static str,
+    /// Distinguishes this command's entries in the per-thread handle memo.
+    id: u64,
+}
+
+/// Handle → device address of the structures named by the instances of the host command
+/// running on this thread: its last few lookups, round robin. A TLAS names a handful of
+/// BLASes thousands of times, and each registry lookup takes the registry's read lock and
+/// an `Arc` of the structure, whose shared counters the worker threads would pass back and
+/// forth between cores. Entries count only for the command (`HostInputs::id`) that made
+/// them: the structures a host command names must stay alive until it completes (the
+/// application's obligation, as for its host addresses), so within one command a handle
+/// keeps its address; ids are never reused.
+#[derive(Clone, Copy)]
+struct HandleMemo {
+    entries: [(u64, u64, u64); 4],
+    next: usize,
+}
+
+thread_local! {
+    static HANDLE_MEMO: std::cell::Cell<HandleMemo> = const { std::cell::Cell::new(HandleMemo { entries: [(0, 0, 0); 4], next: 0 }) };
 }
 
 impl<'a> HostInputs<'a> {
@@ -418,7 +438,27 @@ impl<'a> HostInputs<'a> {
     /// its parameters (VUID-vkBuildAccelerationStructuresKHR-pInfos-03725 and the geometry
     /// host-address rules): the application's obligation.
     unsafe fn new(space: &'a AddressSpace, command: &'static str) -> Self {
-        HostInputs { device_view: DeviceMemoryView::new(space), command }
+        static NEXT_ID: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(1);
+        let id = NEXT_ID.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+        HostInputs { device_view: DeviceMemoryView::new(space), command, id }
+    }
+
+    /// The device address of the structure whose handle value is `handle`: Some(None) for a
+    /// structure without one, None when `handle` names no structure.
+    fn structure_address(&self, handle: u64) -> Option<Option<u64>> {
+        HANDLE_MEMO.with(|m| {
+            let mut memo = m.get();
+            if let Some(&(_, _, address)) = memo.entries.iter().find(|e| e.0 == self.id && e.1 == handle) {
+                return Some(Some(address));
+            }
+            let address = structure_from(vk::AccelerationStructureKHR::from_raw(handle))?.address();
+            if let Some(a) = address {
+                memo.entries[memo.next % 4] = (self.id, handle, a);
+                memo.next = (memo.next + 1) % 4;
+                m.set(memo);
+            }
+            Some(address)
+        })
     }
 }
 
@@ -431,13 +471,13 @@ impl accel::DeviceView for HostInputs<'_> {
         Some(unsafe { std::slice::from_raw_parts(address as *const u8, len as usize) })
     }
     fn acceleration_structure(&self, reference: u64) -> Option<&[u8]> {
-        match structure_from(vk::AccelerationStructureKHR::from_raw(reference)) {
-            Some(s) => self.device_view.acceleration_structure(s.address()?),
+        match self.structure_address(reference) {
+            Some(address) => self.device_view.acceleration_structure(address?),
             None => self.device_view.acceleration_structure(reference),
         }
     }
     fn translate_reference(&self, reference: u64) -> u64 {
-        structure_from(vk::AccelerationStructureKHR::from_raw(reference)).and_then(|s| s.address()).unwrap_or(reference)
+        self.structure_address(reference).flatten().unwrap_or(reference)
     }
 }
 
