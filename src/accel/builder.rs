@@ -1744,6 +1744,13 @@ impl<'a> FastTris<'a> {
     /// Vertex indices and positions of triangle `p`; None when an index or vertex is out of range.
     #[inline(always)]
     pub(super) fn read(&self, p: u32) -> Option<([u32; 3], [Vec3A; 3])> {
+        let idx = self.indices(p)?;
+        Some((idx, self.positions(idx)?))
+    }
+
+    /// The vertex indices of triangle `p` (what `read` gives first); None when out of range.
+    #[inline(always)]
+    pub(super) fn indices(&self, p: u32) -> Option<[u32; 3]> {
         let idx = if self.u16_indices {
             let o = (p as usize).checked_mul(6)?;
             let (b, _) = self.indices.get(o..)?.split_first_chunk::<6>()?;
@@ -1760,7 +1767,13 @@ impl<'a> FastTris<'a> {
         if idx[0] > self.max_vertex || idx[1] > self.max_vertex || idx[2] > self.max_vertex {
             return None;
         }
-        Some((idx, [self.vertex(idx[0])?, self.vertex(idx[1])?, self.vertex(idx[2])?]))
+        Some(idx)
+    }
+
+    /// The positions of vertices `idx` (what `read` gives second); None when out of range.
+    #[inline(always)]
+    pub(super) fn positions(&self, idx: [u32; 3]) -> Option<[Vec3A; 3]> {
+        Some([self.vertex(idx[0])?, self.vertex(idx[1])?, self.vertex(idx[2])?])
     }
 
     /// What `make_ref_data` gives for this geometry, as (lo, hi, vertices) in registers for

@@ -118,29 +118,41 @@ pub fn update(desc: &BuildDesc, view: &dyn DeviceView, src: Option<&[u8]>, dst: 
             .par_chunks_mut(1024 * PRIM_SIZE)
             .zip(records.par_chunks(1024 * layout::RECORD_SIZE))
             .map(|(pd, rd)| {
-                for (rb, d) in rd.chunks_exact(layout::RECORD_SIZE).zip(pd.chunks_exact_mut(PRIM_SIZE)) {
-                    let rec: layout::PrimRecord = bytemuck::pod_read_unaligned(rb);
-                    let g = desc.geometries.get(rec.geometry as usize).ok_or(BuildError::InvalidSource("record"))?;
-                    let mut data = [0f32; 9];
-                    if let Some((_, [a, b, c])) = fast.get(rec.geometry as usize).and_then(|f| f.as_ref()).and_then(|f| f.read(rec.primitive)) {
-                        if a.x.is_nan() || b.x.is_nan() || c.x.is_nan() {
-                            return Err(mismatch("an active primitive became inactive"));
-                        }
-                        data = [a.x, a.y, a.z, b.x, b.y, b.z, c.x, c.y, c.z];
-                    } else {
-                        match g.data {
-                            GeometryData::Triangles { .. } => {
-                                let v = super::input::read_triangle(rec.geometry, g, rec.primitive)?.ok_or(mismatch("an active primitive became inactive"))?;
-                                data = [v[0].x, v[0].y, v[0].z, v[1].x, v[1].y, v[1].z, v[2].x, v[2].y, v[2].z];
-                            }
-                            GeometryData::Aabbs { .. } => {
-                                let b = super::input::read_aabb(rec.geometry, g, rec.primitive)?.ok_or(mismatch("an active primitive became inactive"))?;
-                                data[..6].copy_from_slice(&b);
-                            }
-                            GeometryData::Instances { .. } => return Err(BuildError::WrongGeometryType { geometry: rec.geometry }),
-                        }
+                // In leaf order the reads jump around the input, and each triangle's index load
+                // and then its vertex loads miss. A batch loads every record's indices first,
+                // then the vertices, so a batch's misses overlap instead of each vertex load
+                // waiting for its own index.
+                for (rbatch, dbatch) in rd.chunks(REFIT_BATCH * layout::RECORD_SIZE).zip(pd.chunks_mut(REFIT_BATCH * PRIM_SIZE)) {
+                    let mut idx: [Option<[u32; 3]>; REFIT_BATCH] = [None; REFIT_BATCH];
+                    for (rb, ix) in rbatch.chunks_exact(layout::RECORD_SIZE).zip(idx.iter_mut()) {
+                        let rec: layout::PrimRecord = bytemuck::pod_read_unaligned(rb);
+                        *ix = fast.get(rec.geometry as usize).and_then(|f| f.as_ref()).and_then(|f| f.indices(rec.primitive));
                     }
-                    d.copy_from_slice(bytemuck::bytes_of(&data));
+                    for ((rb, ix), d) in rbatch.chunks_exact(layout::RECORD_SIZE).zip(idx).zip(dbatch.chunks_exact_mut(PRIM_SIZE)) {
+                        let rec: layout::PrimRecord = bytemuck::pod_read_unaligned(rb);
+                        let g = desc.geometries.get(rec.geometry as usize).ok_or(BuildError::InvalidSource("record"))?;
+                        let mut data = [0f32; 9];
+                        let fast_tri = ix.and_then(|ix| fast.get(rec.geometry as usize).and_then(|f| f.as_ref()).and_then(|f| f.positions(ix)));
+                        if let Some([a, b, c]) = fast_tri {
+                            if a.x.is_nan() || b.x.is_nan() || c.x.is_nan() {
+                                return Err(mismatch("an active primitive became inactive"));
+                            }
+                            data = [a.x, a.y, a.z, b.x, b.y, b.z, c.x, c.y, c.z];
+                        } else {
+                            match g.data {
+                                GeometryData::Triangles { .. } => {
+                                    let v = super::input::read_triangle(rec.geometry, g, rec.primitive)?.ok_or(mismatch("an active primitive became inactive"))?;
+                                    data = [v[0].x, v[0].y, v[0].z, v[1].x, v[1].y, v[1].z, v[2].x, v[2].y, v[2].z];
+                                }
+                                GeometryData::Aabbs { .. } => {
+                                    let b = super::input::read_aabb(rec.geometry, g, rec.primitive)?.ok_or(mismatch("an active primitive became inactive"))?;
+                                    data[..6].copy_from_slice(&b);
+                                }
+                                GeometryData::Instances { .. } => return Err(BuildError::WrongGeometryType { geometry: rec.geometry }),
+                            }
+                        }
+                        d.copy_from_slice(bytemuck::bytes_of(&data));
+                    }
                 }
                 Ok(())
             })
@@ -175,6 +187,9 @@ pub fn update(desc: &BuildDesc, view: &dyn DeviceView, src: Option<&[u8]>, dst: 
     layout::write_header(dst, &h);
     Ok(BuildReport { used_size: raw.used_size, node_count: raw.node_count, leaf_count: raw.leaf_count, primitive_count: raw.primitive_count })
 }
+
+/// Primitives whose input reads the refit's primitive pass issues together (see there).
+const REFIT_BATCH: usize = 32;
 
 /// Subtrees of at least this many nodes refit their children in parallel.
 const PAR_REFIT_NODES: usize = 256;
