@@ -503,11 +503,13 @@ impl InputMemory for HostInputs<'_> {
     }
 }
 
-/// Run `work` now or under a deferred operation.
+/// Run `work` now or under a deferred operation. `small` work run now stays on the calling
+/// thread (`threads::run_here`).
 fn run_host(
     dev: &Arc<Device>,
     deferred: vk::DeferredOperationKHR,
     command: &str,
+    small: bool,
     work: Box<dyn FnOnce() -> vk::Result + Send>,
 ) -> vk::Result {
     if !dev.features.acceleration_structure_host_commands {
@@ -518,7 +520,7 @@ fn run_host(
         );
     }
     if deferred == vk::DeferredOperationKHR::null() {
-        return work();
+        return if small { crate::threads::run_here(work) } else { work() };
     }
     let Some(op) = handle::get::<DeferredOperation>(deferred.as_raw()) else {
         diag::vuid(&format!("VUID-{command}-deferredOperation-parameter"), command, "not a valid deferred operation");
@@ -553,11 +555,16 @@ unsafe extern "system" fn build_acceleration_structures_khr(
             // SAFETY: valid info.
             out.push(unsafe { lower_info(info, Ranges::Direct(ranges)) });
         }
+        // A few thousand primitives of builds in all: what the queue thread also builds on
+        // its own (see runtime::accel::execute_builds).
+        let prims: u64 = out.iter().flat_map(|i| match &i.ranges { Ranges::Direct(r) => r.as_slice(), _ => &[] }).map(|r| r.primitive_count as u64).sum();
+        let small = out.iter().all(|i| i.mode != vk::BuildAccelerationStructureModeKHR::UPDATE) && prims <= crate::threads::INLINE_PRIMITIVES;
         let d = dev.clone();
         run_host(
             &dev,
             deferred,
             CMD,
+            small,
             Box::new(move || {
                 // SAFETY: host addresses of a host build are valid until it completes (spec).
                 let inputs = unsafe { HostInputs::new(&d.memory, CMD) };
@@ -647,6 +654,7 @@ fn host_copy(device: vk::Device, deferred: vk::DeferredOperationKHR, name: &'sta
         &dev,
         deferred,
         name,
+        false,
         Box::new(move || {
             // SAFETY: host addresses of a host copy are valid until it completes (spec).
             let inputs = unsafe { HostInputs::new(&d.memory, name) };
