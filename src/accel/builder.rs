@@ -242,7 +242,10 @@ pub struct BuildParams {
     pub max_leaf: u32,
     /// Nodes up to this size use the exact sorted SAH sweep instead of binning (<= MAX_SMALL).
     pub small_n: usize,
-    /// Below this many primitives a subtree is built on the calling thread.
+    /// Below this many primitives a subtree is built on the calling thread. Output-neutral (it
+    /// only chooses `rayon::join` or two calls). 1024: a 10,000-instance TLAS on the 16-core
+    /// machine builds in 2.4–2.8 ms instead of 3.5–4.5 (fast-trace; 4096 gave it four tasks);
+    /// the dragon does not change.
     pub parallel_cutoff: u32,
     /// Nodes of at least PAR_BIN_CUTOFF references bin a strided sample of about this many.
     pub sample_target: usize,
@@ -266,11 +269,11 @@ const BIN_CHUNK: usize = 1 << 14;
 impl BuildParams {
     pub fn from_flags(flags: BuildFlags) -> Self {
         if flags.contains(BuildFlags::PREFER_FAST_TRACE) {
-            BuildParams { bins: 32, single_axis: false, traversal_cost: 1.0, max_leaf: 8, small_n: SMALL_N, parallel_cutoff: 4096, sample_target: 2 * SAMPLE_TARGET }
+            BuildParams { bins: 32, single_axis: false, traversal_cost: 1.0, max_leaf: 8, small_n: SMALL_N, parallel_cutoff: 1024, sample_target: 2 * SAMPLE_TARGET }
         } else if flags.contains(BuildFlags::PREFER_FAST_BUILD) {
-            BuildParams { bins: 8, single_axis: true, traversal_cost: 2.5, max_leaf: 8, small_n: SMALL_N, parallel_cutoff: 4096, sample_target: SAMPLE_TARGET }
+            BuildParams { bins: 8, single_axis: true, traversal_cost: 2.5, max_leaf: 8, small_n: SMALL_N, parallel_cutoff: 1024, sample_target: SAMPLE_TARGET }
         } else {
-            BuildParams { bins: 16, single_axis: false, traversal_cost: 1.0, max_leaf: 8, small_n: SMALL_N, parallel_cutoff: 4096, sample_target: 2 * SAMPLE_TARGET }
+            BuildParams { bins: 16, single_axis: false, traversal_cost: 1.0, max_leaf: 8, small_n: SMALL_N, parallel_cutoff: 1024, sample_target: 2 * SAMPLE_TARGET }
         }
     }
 }
