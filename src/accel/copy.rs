@@ -16,6 +16,21 @@ pub enum CopyError {
 
 const SER_HEADER: u64 = 56;
 
+/// Copies of at least twice this many bytes are split into chunks of it across the current
+/// rayon pool: one core of the 16-core machine copies a dragon-sized structure (50 MB) at
+/// about 10 GB/s, sixteen at about 100.
+pub const PAR_COPY_CHUNK: usize = 1 << 20;
+
+/// `dst.copy_from_slice(src)`, in parallel chunks when large.
+fn copy_bytes(dst: &mut [u8], src: &[u8]) {
+    if src.len() < 2 * PAR_COPY_CHUNK || dst.len() != src.len() {
+        dst.copy_from_slice(src);
+        return;
+    }
+    use rayon::prelude::*;
+    dst.par_chunks_mut(PAR_COPY_CHUNK).zip(src.par_chunks(PAR_COPY_CHUNK)).for_each(|(d, s)| d.copy_from_slice(s));
+}
+
 pub fn compacted_size(src: &[u8]) -> Option<u64> {
     parse(src).map(|p| p.raw.used_size)
 }
@@ -25,7 +40,7 @@ fn copy_used(src: &[u8], dst: &mut [u8]) -> Result<usize, CopyError> {
     let used = p.raw.used_size as usize;
     let got = dst.len() as u64;
     let d = dst.get_mut(..used).ok_or(CopyError::DestinationTooSmall { needed: used as u64, got })?;
-    d.copy_from_slice(&src[..used]);
+    copy_bytes(d, &src[..used]);
     Ok(used)
 }
 
@@ -69,7 +84,7 @@ pub fn serialize(src: &[u8], driver_uuid: [u8; 16], dst: &mut [u8]) -> Result<u6
         dst[56 + 8 * i..64 + 8 * i].copy_from_slice(&a.to_le_bytes());
     }
     let off = (SER_HEADER + 8 * n) as usize;
-    dst[off..off + used as usize].copy_from_slice(&src[..used as usize]);
+    copy_bytes(&mut dst[off..off + used as usize], &src[..used as usize]);
     Ok(total)
 }
 
@@ -97,7 +112,7 @@ pub fn deserialize(data: &[u8], driver_uuid: [u8; 16], dst: &mut [u8]) -> Result
     }
     let got = dst.len() as u64;
     let d = dst.get_mut(..size as usize).ok_or(CopyError::DestinationTooSmall { needed: size, got })?;
-    d.copy_from_slice(payload);
+    copy_bytes(d, payload);
     // The application rewrote the header's addresses: they replace the payload's table.
     let table = p.raw.blas_table_offset as usize;
     for i in 0..n as usize {

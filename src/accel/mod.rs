@@ -22,7 +22,7 @@ use std::collections::HashMap;
 
 pub use copy::{
     blas_references, clone_into, compact_into, compacted_size, compatible, deserialize, serialize,
-    serialized_size, CopyError, ACCEL_FORMAT_UUID,
+    serialized_size, CopyError, ACCEL_FORMAT_UUID, PAR_COPY_CHUNK,
 };
 pub use input::{fetch_aabb, fetch_triangle};
 pub use layout::{header, mark_invalid, Header};

@@ -587,6 +587,42 @@ fn tlas_instances_flags_masks_and_copies() {
     assert_eq!((hit.t, hit.instance_index), (5.0, 1));
 }
 
+/// Clone, compaction, serialization and deserialization of a structure large enough to be
+/// copied in parallel chunks (`PAR_COPY_CHUNK`), on a 4-thread pool: the same bytes as plain
+/// copies of the source's used bytes, and a deserialized copy traces like the source.
+#[test]
+fn large_copies_in_parallel_chunks_are_exact() {
+    let mut rng = Rng::new(77);
+    let n = 60_000;
+    let v = random_soup(&mut rng, n, 10.0, 0.2);
+    let idx: Vec<u32> = (0..3 * n as u32).collect();
+    let (vb, ib) = (f32_bytes(&v), u32_bytes(&idx));
+    let g = tri_geom(&vb, v.len() as u32, &ib, n as u32, 0);
+    let blas = build_ok(AsType::BottomLevel, BuildFlags::ALLOW_COMPACTION, &[g], &NoDevice);
+    let used = compacted_size(&blas).unwrap() as usize;
+    assert!(used >= 3 * super::PAR_COPY_CHUNK, "the structure ({used} bytes) must span several chunks");
+    let pool = rayon::ThreadPoolBuilder::new().num_threads(4).build().unwrap();
+    pool.install(|| {
+        let mut c = vec![0xAAu8; used];
+        compact_into(&blas, &mut c).unwrap();
+        assert!(c[..] == blas[..used], "compacted bytes");
+        let mut k = vec![0x55u8; blas.len() + 7];
+        clone_into(&blas, &mut k).unwrap();
+        assert!(k[..used] == blas[..used] && k[used..].iter().all(|&b| b == 0x55), "clone: the used bytes and nothing past them");
+        let uuid = [3u8; 16];
+        let mut ser = vec![0u8; serialized_size(&blas).unwrap() as usize];
+        serialize(&blas, uuid, &mut ser).unwrap();
+        assert!(ser[ser.len() - used..] == blas[..used], "serialized payload");
+        let mut de = vec![0u8; used];
+        deserialize(&ser, uuid, &mut de).unwrap();
+        assert!(de[..] == blas[..used], "deserialized bytes");
+        for _ in 0..50 {
+            let ray = random_ray(&mut rng, 13.0);
+            assert_eq!(closest_hit(&de, &NoDevice, ray, RayFlags(0), 0xff).map(|h| h.t), brute_closest(&v, &ray, 0).map(|b| b.0));
+        }
+    });
+}
+
 #[test]
 fn refit_matches_rebuild_and_checks_rules() {
     let mut rng = Rng::new(21);

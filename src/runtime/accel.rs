@@ -990,11 +990,18 @@ fn built(command: &str, s: &Option<Arc<AccelerationStructure>>, what: &str) -> O
 /// marked invalid); Err(DeviceLost) in strict mode.
 pub fn execute_copy(mem: &dyn InputMemory, op: &Copy) -> Result<(), DeviceLost> {
     let cmd = mem.command();
-    let ok = match op {
+    // A large copy is split across the worker pool (`accel::PAR_COPY_CHUNK`); a small one stays
+    // on a queue thread, as small builds do.
+    let size = match op {
+        Copy::Structure { src, .. } | Copy::ToMemory { src, .. } => src.as_ref().map_or(0, |s| s.size),
+        Copy::FromMemory { dst, .. } => dst.as_ref().map_or(0, |d| d.size),
+    };
+    let small = size < 2 * accel::PAR_COPY_CHUNK as u64;
+    let ok = crate::threads::run_parallel(small, || match op {
         Copy::Structure { src, dst, mode } => copy_structure(cmd, src, dst, *mode),
         Copy::ToMemory { src, dst, mode } => serialize_to(mem, src, *dst, *mode),
         Copy::FromMemory { src, dst, mode } => deserialize_from(mem, *src, dst, *mode),
-    };
+    });
     if !ok && diag::strict() {
         return Err(DeviceLost);
     }
