@@ -1501,15 +1501,21 @@ pub fn wide_size(nodes: &[BinNode]) -> u32 {
 }
 
 /// One pending subtree emission: binary subtree (slice rooted at its node), its wide index,
-/// exactly its output range, and the pre-emission area.
-type EmitTask<'a> = Option<(&'a [BinNode], u32, &'a mut [u8], Option<&'a [u8]>)>;
+/// exactly its output range, the pre-emission area, and whether it is a cut root to encode
+/// sequentially (`emit_seq`: its inner nodes carry no sizes) rather than by `emit_wide`.
+type EmitTask<'a> = Option<(&'a [BinNode], u32, &'a mut [u8], Option<&'a [u8]>, bool)>;
 const PAR_EMIT_CUTOFF: u32 = 1024;
 
 fn run_emit(tasks: &mut [EmitTask<'_>]) -> u32 {
     match tasks.len() {
         0 => 0,
         1 => match tasks[0].take() {
-            Some((n, me, out, pre)) => emit_wide(n, me, out, pre),
+            Some((n, me, out, _, true)) => {
+                let (mut cursor, mut l) = (0u32, 0u32);
+                let _ = emit_seq(n, 0, out, me, &mut cursor, &mut l);
+                l
+            }
+            Some((n, me, out, pre, false)) => emit_wide(n, me, out, pre),
             None => 0,
         },
         len => {
@@ -1627,14 +1633,14 @@ fn emit_wide(nodes: &[BinNode], me: u32, out: &mut [u8], pre: Option<&[u8]>) -> 
                     }
                 }
             }
-            let (mut cursor, mut l) = (0u32, 0u32);
-            if let Some(sub) = nodes.get(rel..) {
-                let _ = emit_seq(sub, 0, mine, idx, &mut cursor, &mut l);
-            }
-            leaves += l;
+            // Without a usable block (builds that stage nothing, such as every TLAS, have no
+            // pre-emission area) it is a task like the others, so that sibling cut roots are
+            // encoded in parallel.
+            tasks[nt] = nodes.get(rel..).map(|n| (n, idx, mine, pre, true));
+            nt += 1;
             continue;
         }
-        tasks[nt] = nodes.get(rel..).map(|n| (n, idx, mine, pre));
+        tasks[nt] = nodes.get(rel..).map(|n| (n, idx, mine, pre, false));
         nt += 1;
     }
     leaves + run_emit(&mut tasks[..nt])
@@ -1824,6 +1830,8 @@ fn first_err(a: Result<usize, (u64, BuildError)>, b: Result<usize, (u64, BuildEr
 }
 
 pub const INGEST_CHUNK: usize = 4096;
+/// Ingest chunk of instance geometries (see `ingest`).
+const INGEST_CHUNK_INSTANCES: usize = 256;
 
 /// Fills `refs[..total]` (slot = global primitive ID), then compacts active ones to the front
 /// in order. Returns (active count, per-geometry active counts written into `active`).
@@ -1845,17 +1853,21 @@ fn ingest(desc: &BuildDesc, view: &dyn DeviceView, refs: &mut [PrimRef], mut sta
         let gbase = base;
         let fast = FastTris::of(g);
         let is_inst = matches!(g.data, GeometryData::Instances { .. });
+        // An instance costs far more than a triangle (record decode, BLAS bounds, eight
+        // transformed corners), so instances go in smaller chunks: a 10,000-instance TLAS is
+        // then more than three tasks.
+        let chunk_len = if is_inst { INGEST_CHUNK_INSTANCES } else { INGEST_CHUNK };
         let work = |ci: usize, chunk: &mut [PrimRef], st: Option<&mut [u8]>| -> Result<usize, (u64, BuildError)> {
             let mut st = st;
             let mut dropped = 0usize;
             let mut memo = BlasBoundsMemo::new();
             for (k, slot) in chunk.iter_mut().enumerate() {
-                let p = (ci * INGEST_CHUNK + k) as u32;
+                let p = (ci * chunk_len + k) as u32;
                 if let Some(ft) = fast.as_ref() {
                     // Plain f32 triangles: everything stored straight from registers.
                     match ft.bounds(p, allow_update) {
                         Some(Some((lo, hi, [a, b, c]))) => {
-                            let id = if st.is_some() { (gbase + ci * INGEST_CHUNK + k) as u32 } else { p };
+                            let id = if st.is_some() { (gbase + ci * chunk_len + k) as u32 } else { p };
                             let f: &mut [[f32; 4]; 2] = bytemuck::cast_mut(slot);
                             f[0] = Vec4::from((lo, f32::from_bits(gi32))).to_array();
                             f[1] = Vec4::from((hi, f32::from_bits(id))).to_array();
@@ -1900,7 +1912,7 @@ fn ingest(desc: &BuildDesc, view: &dyn DeviceView, refs: &mut [PrimRef], mut sta
                                 d[..36].copy_from_slice(bytemuck::bytes_of(&data));
                                 d[36..].copy_from_slice(&p.to_le_bytes());
                             }
-                            r.prim = (gbase + ci * INGEST_CHUNK + k) as u32;
+                            r.prim = (gbase + ci * chunk_len + k) as u32;
                         }
                         *slot = r
                     }
@@ -1917,13 +1929,13 @@ fn ingest(desc: &BuildDesc, view: &dyn DeviceView, refs: &mut [PrimRef], mut sta
             Some(st) => {
                 let st = st.get_mut(base * STAGE_SIZE..(base + count) * STAGE_SIZE).ok_or(BuildError::TooManyPrimitives)?;
                 slice
-                    .par_chunks_mut(INGEST_CHUNK)
-                    .zip(st.par_chunks_mut(INGEST_CHUNK * STAGE_SIZE))
+                    .par_chunks_mut(chunk_len)
+                    .zip(st.par_chunks_mut(chunk_len * STAGE_SIZE))
                     .enumerate()
                     .map(|(ci, (chunk, st))| work(ci, chunk, Some(st)))
                     .reduce(|| Ok(0), first_err)
             }
-            None => slice.par_chunks_mut(INGEST_CHUNK).enumerate().map(|(ci, chunk)| work(ci, chunk, None)).reduce(|| Ok(0), first_err),
+            None => slice.par_chunks_mut(chunk_len).enumerate().map(|(ci, chunk)| work(ci, chunk, None)).reduce(|| Ok(0), first_err),
         };
         dropped_total += res.map_err(|e| e.1)?;
         base += count;
