@@ -1242,3 +1242,43 @@ fn small_build_handoff() {
     let (min, med) = stats(&mut t);
     println!("on this thread (use_current_thread): min {min:.3} ms median {med:.3} ms");
 }
+
+/// Time of `encode_node_v` alone: 200,000 random nodes of four children, each encoded and
+/// copied into an output array as the builder and the refit do. Ignored; run by hand with
+/// `--ignored --nocapture` (ARBOR_REPS rounds).
+#[test]
+#[ignore]
+fn encode_timing() {
+    use glam::Vec3A;
+    let mut rng = Rng::new(7);
+    let n = 200_000;
+    let mut inputs = Vec::with_capacity(n);
+    for _ in 0..n {
+        let c = rng.v3(100.0);
+        let mut clo = [Vec3A::ZERO; 4];
+        let mut chi = [Vec3A::ZERO; 4];
+        let (mut lo, mut hi) = (Vec3A::INFINITY, Vec3A::NEG_INFINITY);
+        for k in 0..4 {
+            let p = Vec3A::from(c + rng.v3(1.0));
+            let q = p + Vec3A::from(rng.v3(0.5).abs());
+            clo[k] = p;
+            chi[k] = q;
+            lo = lo.min(p);
+            hi = hi.max(q);
+        }
+        let cnt = 2 + (rng.next_u32() % 3) as usize;
+        inputs.push((builder::Aabb { lo: lo.to_array(), hi: hi.to_array() }, clo, chi, cnt));
+    }
+    let mut out = vec![0u8; n * layout::NODE_SIZE];
+    let reps: usize = std::env::var("ARBOR_REPS").ok().and_then(|s| s.parse().ok()).unwrap_or(5);
+    for _ in 0..reps {
+        let t = std::time::Instant::now();
+        for ((b, clo, chi, cnt), o) in inputs.iter().zip(out.chunks_exact_mut(layout::NODE_SIZE)) {
+            let wn = builder::encode_node_v(b, clo, chi, *cnt, &[1, 2, 3, 4], &[1, 1, 1, 1]);
+            o.copy_from_slice(bytemuck::bytes_of(&wn));
+        }
+        let ns = t.elapsed().as_secs_f64() * 1e9 / n as f64;
+        let h = out.iter().fold(0u64, |h, &x| (h ^ x as u64).wrapping_mul(0x100_0000_01b3));
+        println!("encode_node_v: {ns:.1} ns per node (output hash {h:016x})");
+    }
+}
