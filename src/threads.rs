@@ -75,12 +75,12 @@ pub fn run_as_inline_worker(f: impl FnOnce() + Send + 'static) {
     }
 }
 
-/// Runs small work `f` on the calling application thread (a non-deferred host command) as the
-/// one worker of a private pool (`run_as_inline_worker`), so that its rayon calls stay here
-/// instead of waking Arbor's worker pool: on the 16-core machine that hand-off cost a
-/// 3,674-triangle host build 0.6 ms of its 1.7. On a thread that already works for a rayon
-/// pool (an Arbor thread, or an application's own rayon worker) `f` just runs: its rayon
-/// calls go to that pool, as `run_parallel` would send them.
+/// Runs small work `f` (`runs_inline`) on the calling application thread (a non-deferred host
+/// command) as the one worker of a private pool (`run_as_inline_worker`), so that its rayon
+/// calls stay here instead of waking Arbor's worker pool, as queue threads do with small
+/// builds. On a thread that already works for a rayon pool (an Arbor thread, or an
+/// application's own rayon worker) `f` just runs: its rayon calls go to that pool, as
+/// `run_parallel` would send them.
 pub fn run_here<R: Send + 'static>(f: impl FnOnce() -> R + Send + 'static) -> R {
     if INLINE.with(|c| c.get()) || rayon::current_thread_index().is_some() {
         return f();
@@ -93,10 +93,22 @@ pub fn run_here<R: Send + 'static>(f: impl FnOnce() -> R + Send + 'static) -> R 
     rx.try_recv().expect("run_as_inline_worker ran the job")
 }
 
-/// Builds of at most this many primitives in all run on the queue thread: below it the builder
-/// splits little across threads (most of its parallel cutoffs are 4096 references), and the
-/// hand-off to the pool and back costs more than it buys (docs/BENCHMARKS.md, session 5).
-pub const INLINE_PRIMITIVES: u64 = 4096;
+/// The largest work, in primitives × worker-pool threads, that a command's builds may have and
+/// still run on the calling queue or application thread (`runs_inline`). Below it the hand-off to the pool and back (about a quarter of a
+/// millisecond on these virtual machines) costs more than the pool's threads save. With 2
+/// threads that allows builds of up to 4,096 primitives: the 3,674-triangle bunny was 7–10 %
+/// faster inline on the 2-vCPU box (session 5). With 16 threads it allows up to 512: the bunny
+/// builds 1.5–2.5× faster on the pool of the 16-core machine (session 6).
+pub const INLINE_WORK: u64 = 8192;
+
+/// Whether builds of `primitives` in all run on the calling thread (see `INLINE_WORK`).
+pub fn runs_inline(primitives: u64) -> bool {
+    inline_for(primitives, pool().current_num_threads())
+}
+
+fn inline_for(primitives: u64, threads: usize) -> bool {
+    primitives.saturating_mul(threads.max(1) as u64) <= INLINE_WORK
+}
 
 /// Runs `f` where parallel work belongs: on the pool the calling thread already works for (a
 /// deferred operation's pool, whose workers are the application threads that joined it); on a
@@ -167,6 +179,14 @@ mod tests {
         let r = std::panic::catch_unwind(|| run_here(|| -> u32 { panic!("inside") }));
         assert_eq!(r.expect_err("the panic reaches the caller").downcast_ref::<&str>().copied(), Some("inside"));
         assert!(rayon::current_thread_index().is_none());
+    }
+
+    #[test]
+    fn small_work_stays_inline_by_primitives_times_threads() {
+        assert!(inline_for(4096, 2) && !inline_for(4097, 2));
+        assert!(inline_for(512, 16) && !inline_for(3674, 16));
+        assert!(inline_for(8192, 1) && !inline_for(8193, 1));
+        assert!(inline_for(0, 0) && !inline_for(u64::MAX, 3));
     }
 
     #[test]

@@ -555,10 +555,10 @@ unsafe extern "system" fn build_acceleration_structures_khr(
             // SAFETY: valid info.
             out.push(unsafe { lower_info(info, Ranges::Direct(ranges)) });
         }
-        // A few thousand primitives of builds in all: what the queue thread also builds on
-        // its own (see runtime::accel::execute_builds).
+        // Small builds stay on this thread, as they stay on a queue thread
+        // (`threads::runs_inline`, runtime::accel::execute_builds).
         let prims: u64 = out.iter().flat_map(|i| match &i.ranges { Ranges::Direct(r) => r.as_slice(), _ => &[] }).map(|r| r.primitive_count as u64).sum();
-        let small = out.iter().all(|i| i.mode != vk::BuildAccelerationStructureModeKHR::UPDATE) && prims <= crate::threads::INLINE_PRIMITIVES;
+        let small = out.iter().all(|i| i.mode != vk::BuildAccelerationStructureModeKHR::UPDATE) && crate::threads::runs_inline(prims);
         let d = dev.clone();
         run_host(
             &dev,

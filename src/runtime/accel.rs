@@ -376,12 +376,12 @@ pub fn execute_builds(mem: &dyn InputMemory, infos: &[BuildInfo]) -> Result<(), 
             runnable.push(p);
         }
     }
-    // Small builds (a few thousand primitives in all: the builder has no parallelism inside
-    // them either) run on the queue thread itself, without a hand-off to the pool and back.
-    // Updates always go to the pool: a refit splits even small trees across threads.
+    // Small builds (`threads::runs_inline`: too little work to share among the pool's threads)
+    // run on the queue thread itself, without a hand-off to the pool and back. Updates always
+    // go to the pool: a refit splits even small trees across threads.
     let prims: u64 = runnable.iter().flat_map(|p| p.ranges.iter()).map(|r| r.primitive_count as u64).sum();
     let builds_only = runnable.iter().all(|p| p.info.mode != vk::BuildAccelerationStructureModeKHR::UPDATE);
-    let small = builds_only && prims <= crate::threads::INLINE_PRIMITIVES;
+    let small = builds_only && crate::threads::runs_inline(prims);
     let results: Vec<bool> = crate::threads::run_parallel(small, || runnable.par_iter().map(|p| run(mem, p)).collect());
     invalid |= results.iter().any(|ok| !ok);
     if invalid && diag::strict() {
