@@ -94,11 +94,12 @@ pub fn run_here<R: Send + 'static>(f: impl FnOnce() -> R + Send + 'static) -> R 
 }
 
 /// The largest work, in primitives × worker-pool threads, that a command's builds may have and
-/// still run on the calling queue or application thread (`runs_inline`). Below it the hand-off to the pool and back (about a quarter of a
-/// millisecond on these virtual machines) costs more than the pool's threads save. With 2
-/// threads that allows builds of up to 4,096 primitives: the 3,674-triangle bunny was 7–10 %
-/// faster inline on the 2-vCPU box (session 5). With 16 threads it allows up to 512: the bunny
-/// builds 1.5–2.5× faster on the pool of the 16-core machine (session 6).
+/// still run on the calling queue or application thread (`runs_inline`). Below it the hand-off
+/// to the pool and back (about a quarter of a millisecond on these virtual machines) costs
+/// more than the pool's threads save. With 2 threads that allows builds of up to 4,096
+/// primitives: the 3,674-triangle bunny was 7–10 % faster inline on the 2-vCPU box (session
+/// 5). With 16 threads it allows up to 512: the bunny builds 1.5–2.5× faster on the pool of
+/// the 16-core machine (session 6).
 pub const INLINE_WORK: u64 = 8192;
 
 /// Whether builds of `primitives` in all run on the calling thread (see `INLINE_WORK`).

@@ -244,7 +244,7 @@ pub struct BuildParams {
     pub small_n: usize,
     /// Below this many primitives a subtree is built on the calling thread. Output-neutral (it
     /// only chooses `rayon::join` or two calls). 1024: a 10,000-instance TLAS on the 16-core
-    /// machine builds in 2.4–2.8 ms instead of 3.5–4.5 (fast-trace; 4096 gave it four tasks);
+    /// machine builds in 2.4–2.8 ms instead of 3.5–4.8 (fast-trace; 4096 gave it four tasks);
     /// the dragon does not change.
     pub parallel_cutoff: u32,
     /// Nodes of at least PAR_BIN_CUTOFF references bin a strided sample of about this many.
