@@ -320,6 +320,45 @@ fn compaction_clone_serialization_round_trip_and_queries() {
     ctx.finish();
 }
 
+/// Builds a TLAS over `n` instances twice: on the device from `dev_records` (BLAS device
+/// addresses) and with vkBuildAccelerationStructuresKHR from `host_records` (BLAS handles).
+/// Returns the device-built structure and both serializations.
+fn tlas_device_and_host(a: &Accel, dev_records: &[u8], host_records: &[u8], n: u32) -> (vk::AccelerationStructureKHR, Vec<u8>, Vec<u8>) {
+    let inst = a.upload(dev_records);
+    let geoms = [instances(a.buf(inst).address)];
+    let info = vk::AccelerationStructureBuildGeometryInfoKHR::default()
+        .ty(vk::AccelerationStructureTypeKHR::TOP_LEVEL)
+        .mode(vk::BuildAccelerationStructureModeKHR::BUILD)
+        .geometries(&geoms);
+    let sizes = a.sizes(vk::AccelerationStructureBuildTypeKHR::DEVICE, &info, &[n]);
+    let (t, _) = a.structure(vk::AccelerationStructureTypeKHR::TOP_LEVEL, sizes.acceleration_structure_size);
+    let scratch = a.buffer(sizes.build_scratch_size);
+    let dinfo = info.dst_acceleration_structure(t).scratch_data(vk::DeviceOrHostAddressKHR { device_address: a.buf(scratch).address });
+    let range = [vk::AccelerationStructureBuildRangeInfoKHR::default().primitive_count(n)];
+    a.submit(|cb| {
+        // SAFETY: valid infos.
+        unsafe { a.ext.cmd_build_acceleration_structures(cb, &[dinfo], &[&range]) };
+    });
+    let device = a.serialize(t);
+    let hgeoms = [vk::AccelerationStructureGeometryKHR::default()
+        .geometry_type(vk::GeometryTypeKHR::INSTANCES)
+        .geometry(vk::AccelerationStructureGeometryDataKHR {
+            instances: vk::AccelerationStructureGeometryInstancesDataKHR::default()
+                .data(vk::DeviceOrHostAddressConstKHR { host_address: host_records.as_ptr().cast() }),
+        })];
+    let (th, _) = a.structure(vk::AccelerationStructureTypeKHR::TOP_LEVEL, sizes.acceleration_structure_size);
+    let mut hscratch = vec![0u8; sizes.build_scratch_size as usize];
+    let hinfo = vk::AccelerationStructureBuildGeometryInfoKHR::default()
+        .ty(vk::AccelerationStructureTypeKHR::TOP_LEVEL)
+        .mode(vk::BuildAccelerationStructureModeKHR::BUILD)
+        .geometries(&hgeoms)
+        .dst_acceleration_structure(th)
+        .scratch_data(vk::DeviceOrHostAddressKHR { host_address: hscratch.as_mut_ptr().cast() });
+    // SAFETY: valid infos, host memory alive for the call.
+    unsafe { a.ext.build_acceleration_structures(vk::DeferredOperationKHR::null(), &[hinfo], &[&range]) }.unwrap();
+    (t, device, a.serialize(th))
+}
+
 /// Host builds name BLASes by handle and remember a few handle lookups per thread: a TLAS over
 /// more BLASes than that memo holds, named in an order that keeps evicting it, builds to the
 /// same bytes on the host as on the device (where instances hold addresses), twice with
@@ -338,40 +377,9 @@ fn host_tlas_over_many_blases_matches_the_device_build() {
         let records = |reference: &dyn Fn(usize) -> u64| -> Vec<u8> { (0..n).flat_map(|i| instance_record(transform(i), i, 0xFF, 0, 0, reference(pick(i)))).collect() };
         let dev_records = records(&|k| a.address_of(blases[k]));
         let host_records = records(&|k| vk::Handle::as_raw(blases[k]));
-        let inst = a.upload(&dev_records);
-        let geoms = [instances(a.buf(inst).address)];
-        let info = vk::AccelerationStructureBuildGeometryInfoKHR::default()
-            .ty(vk::AccelerationStructureTypeKHR::TOP_LEVEL)
-            .mode(vk::BuildAccelerationStructureModeKHR::BUILD)
-            .geometries(&geoms);
-        let sizes = a.sizes(vk::AccelerationStructureBuildTypeKHR::DEVICE, &info, &[n]);
-        let (t, _) = a.structure(vk::AccelerationStructureTypeKHR::TOP_LEVEL, sizes.acceleration_structure_size);
-        let scratch = a.buffer(sizes.build_scratch_size);
-        let dinfo = info.dst_acceleration_structure(t).scratch_data(vk::DeviceOrHostAddressKHR { device_address: a.buf(scratch).address });
-        let range = [vk::AccelerationStructureBuildRangeInfoKHR::default().primitive_count(n)];
-        a.submit(|cb| {
-            // SAFETY: valid infos.
-            unsafe { a.ext.cmd_build_acceleration_structures(cb, &[dinfo], &[&range]) };
-        });
-        let device = a.serialize(t);
+        let (t, device, host) = tlas_device_and_host(&a, &dev_records, &host_records, n);
         assert_eq!(a.query(t, vk::QueryType::ACCELERATION_STRUCTURE_SERIALIZATION_BOTTOM_LEVEL_POINTERS_KHR), 7);
-        let hgeoms = [vk::AccelerationStructureGeometryKHR::default()
-            .geometry_type(vk::GeometryTypeKHR::INSTANCES)
-            .geometry(vk::AccelerationStructureGeometryDataKHR {
-                instances: vk::AccelerationStructureGeometryInstancesDataKHR::default()
-                    .data(vk::DeviceOrHostAddressConstKHR { host_address: host_records.as_ptr().cast() }),
-            })];
-        let (th, _) = a.structure(vk::AccelerationStructureTypeKHR::TOP_LEVEL, sizes.acceleration_structure_size);
-        let mut hscratch = vec![0u8; sizes.build_scratch_size as usize];
-        let hinfo = vk::AccelerationStructureBuildGeometryInfoKHR::default()
-            .ty(vk::AccelerationStructureTypeKHR::TOP_LEVEL)
-            .mode(vk::BuildAccelerationStructureModeKHR::BUILD)
-            .geometries(&hgeoms)
-            .dst_acceleration_structure(th)
-            .scratch_data(vk::DeviceOrHostAddressKHR { host_address: hscratch.as_mut_ptr().cast() });
-        // SAFETY: valid infos, host memory alive for the call.
-        unsafe { a.ext.build_acceleration_structures(vk::DeferredOperationKHR::null(), &[hinfo], &[&range]) }.unwrap();
-        assert_eq!(a.serialize(th), device, "host TLAS build over 7 BLASes differs from the device build (pattern {pattern:?})");
+        assert_eq!(host, device, "host TLAS build over 7 BLASes differs from the device build (pattern {pattern:?})");
     }
     a.destroy();
     ctx.finish();
@@ -397,44 +405,11 @@ fn tlas_over_blases_device_and_host_builds_match_brute_force() {
     let records = |refs: [u64; 2]| -> Vec<u8> {
         transforms.iter().enumerate().flat_map(|(i, t)| instance_record(*t, 100 + i as u32, 0xFF, i as u32, 0, refs[i % 2])).collect()
     };
-    let inst = a.upload(&records([a0, a1]));
-    let geoms = [instances(a.buf(inst).address)];
-    let info = vk::AccelerationStructureBuildGeometryInfoKHR::default()
-        .ty(vk::AccelerationStructureTypeKHR::TOP_LEVEL)
-        .mode(vk::BuildAccelerationStructureModeKHR::BUILD)
-        .geometries(&geoms);
     let n = transforms.len() as u32;
-    let sizes = a.sizes(vk::AccelerationStructureBuildTypeKHR::DEVICE, &info, &[n]);
-    let (t, _) = a.structure(vk::AccelerationStructureTypeKHR::TOP_LEVEL, sizes.acceleration_structure_size);
-    let scratch = a.buffer(sizes.build_scratch_size);
-    let dinfo = info.dst_acceleration_structure(t).scratch_data(vk::DeviceOrHostAddressKHR { device_address: a.buf(scratch).address });
-    let range = [vk::AccelerationStructureBuildRangeInfoKHR::default().primitive_count(n)];
-    a.submit(|cb| {
-        // SAFETY: valid infos.
-        unsafe { a.ext.cmd_build_acceleration_structures(cb, &[dinfo], &[&range]) };
-    });
-    let device = a.serialize(t);
-    assert_eq!(a.query(t, vk::QueryType::ACCELERATION_STRUCTURE_SERIALIZATION_BOTTOM_LEVEL_POINTERS_KHR), 2);
-
     // Host build: references are handles.
-    let host_records = records([vk::Handle::as_raw(b0), vk::Handle::as_raw(b1)]);
-    let hgeoms = [vk::AccelerationStructureGeometryKHR::default()
-        .geometry_type(vk::GeometryTypeKHR::INSTANCES)
-        .geometry(vk::AccelerationStructureGeometryDataKHR {
-            instances: vk::AccelerationStructureGeometryInstancesDataKHR::default()
-                .data(vk::DeviceOrHostAddressConstKHR { host_address: host_records.as_ptr().cast() }),
-        })];
-    let (th, _) = a.structure(vk::AccelerationStructureTypeKHR::TOP_LEVEL, sizes.acceleration_structure_size);
-    let mut hscratch = vec![0u8; sizes.build_scratch_size as usize];
-    let hinfo = vk::AccelerationStructureBuildGeometryInfoKHR::default()
-        .ty(vk::AccelerationStructureTypeKHR::TOP_LEVEL)
-        .mode(vk::BuildAccelerationStructureModeKHR::BUILD)
-        .geometries(&hgeoms)
-        .dst_acceleration_structure(th)
-        .scratch_data(vk::DeviceOrHostAddressKHR { host_address: hscratch.as_mut_ptr().cast() });
-    // SAFETY: valid infos, host memory alive for the call.
-    unsafe { a.ext.build_acceleration_structures(vk::DeferredOperationKHR::null(), &[hinfo], &[&range]) }.unwrap();
-    assert_eq!(a.serialize(th), device, "host TLAS build differs from the device build");
+    let (t, device, host) = tlas_device_and_host(&a, &records([a0, a1]), &records([vk::Handle::as_raw(b0), vk::Handle::as_raw(b1)]), n);
+    assert_eq!(a.query(t, vk::QueryType::ACCELERATION_STRUCTURE_SERIALIZATION_BOTTOM_LEVEL_POINTERS_KHR), 2);
+    assert_eq!(host, device, "host TLAS build differs from the device build");
 
     // Traverse: BLASes found at their device addresses.
     let mut view = accel::MapView::new();
@@ -500,7 +475,6 @@ fn tlas_over_blases_device_and_host_builds_match_brute_force() {
     }
     assert_eq!(agree, 300);
     assert!(hits > 30, "too few hits ({hits})");
-    drop(hscratch);
     a.destroy();
     ctx.finish();
 }
