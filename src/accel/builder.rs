@@ -2495,6 +2495,45 @@ mod network_tests {
 mod pass_timing {
     use super::*;
 
+    /// `small_split` alone: 200,000 groups of 2–8 nearby references, one axis (FAST_BUILD) and
+    /// three (FAST_TRACE), ns per call. Ignored; run by hand with `--ignored --nocapture`.
+    #[test]
+    #[ignore]
+    fn small_split_timing() {
+        let mut seed = 0x2545_f491_4f6c_dd1du64;
+        let mut f = move || {
+            seed ^= seed << 13;
+            seed ^= seed >> 7;
+            seed ^= seed << 17;
+            (seed >> 40) as f32 / (1u64 << 24) as f32
+        };
+        let groups: Vec<Vec<PrimRef>> = (0..200_000)
+            .map(|g| {
+                let n = 2 + g % 7;
+                let c = [f() * 100.0, f() * 100.0, f() * 100.0];
+                (0..n)
+                    .map(|k| {
+                        let lo = [c[0] + f(), c[1] + f(), c[2] + f()];
+                        PrimRef { lo, geom: 0, hi: [lo[0] + f() * 0.5, lo[1] + f() * 0.5, lo[2] + f() * 0.5], prim: k as u32 }
+                    })
+                    .collect()
+            })
+            .collect();
+        for axes in [(0, 1), (0, 3)] {
+            for _ in 0..5 {
+                let mut work = groups.clone();
+                let s = std::time::Instant::now();
+                let mut sum = 0f64;
+                for g in work.iter_mut() {
+                    if let Some((mid, cost)) = small_split(g, axes) {
+                        sum += mid as f64 + cost as f64;
+                    }
+                }
+                println!("small_split axes {axes:?}: {:.1} ns per group (checksum {sum:.3})", s.elapsed().as_secs_f64() * 1e9 / groups.len() as f64);
+            }
+        }
+    }
+
     #[test]
     #[ignore]
     fn top_pass_scaling() {
