@@ -2495,6 +2495,51 @@ mod network_tests {
 mod pass_timing {
     use super::*;
 
+    /// `bin_refs` alone over the dragon's references on the root's grid: ns per reference for
+    /// one axis with 8 bins (FAST_BUILD) and three with 32 (FAST_TRACE). Ignored; by hand.
+    #[test]
+    #[ignore]
+    fn bin_refs_timing() {
+        let path = std::env::var("ARBOR_MESH").unwrap_or_else(|_| concat!(env!("CARGO_MANIFEST_DIR"), "/data/dragon_vrip.ply.gz").to_string());
+        let mesh = crate::scene::load(&path).expect("mesh");
+        let v = &mesh.positions;
+        let refs: Vec<PrimRef> = mesh
+            .indices
+            .iter()
+            .enumerate()
+            .map(|(i, t)| {
+                let (lo, hi) = triangle_bounds(&[Vec3::from(v[t[0] as usize]), Vec3::from(v[t[1] as usize]), Vec3::from(v[t[2] as usize])]);
+                PrimRef { lo, geom: 0, hi, prim: i as u32 }
+            })
+            .collect();
+        let (_, cb) = bounds_of(&refs);
+        for (k, axes) in [(8usize, (0usize, 1usize)), (32, (0, 3))] {
+            let mut scale = [0f32; 3];
+            for a in axes.0..axes.1 {
+                scale[a] = k as f32 / (cb.hi[a] - cb.lo[a]) * (1.0 - 1.0 / 1024.0);
+            }
+            let bn = Binning { cmin: Vec3A::from(cb.lo), scale: Vec3A::from(scale), kmax: UVec3::splat(k as u32 - 1), kmax_f: Vec3A::splat((k - 1) as f32), axes };
+            for _ in 0..5 {
+                let mut bins = Bins::new();
+                let s = std::time::Instant::now();
+                bin_refs(&refs, &bn, &mut bins);
+                let total: u32 = bins.count[axes.0][..k].iter().sum();
+                println!("bin_refs {k} bins, axes {axes:?}: {:.2} ns per reference ({total} binned)", s.elapsed().as_secs_f64() * 1e9 / refs.len() as f64);
+            }
+            // Nodes below 512 references bin one reference at a time into one set.
+            for _ in 0..3 {
+                let mut bins = Bins::new();
+                let s = std::time::Instant::now();
+                for c in refs.chunks(256) {
+                    for r in c {
+                        bin_one(r, &bn, &mut bins);
+                    }
+                }
+                println!("bin_one loop {k} bins, axes {axes:?}: {:.2} ns per reference", s.elapsed().as_secs_f64() * 1e9 / refs.len() as f64);
+            }
+        }
+    }
+
     /// `small_split` alone: 200,000 groups of 2–8 nearby references, one axis (FAST_BUILD) and
     /// three (FAST_TRACE), ns per call. Ignored; run by hand with `--ignored --nocapture`.
     #[test]
