@@ -2540,6 +2540,50 @@ mod pass_timing {
         }
     }
 
+    /// `sweep_bins` alone on bins filled from random boxes: ns per call for 8 bins on one axis
+    /// and 32 on three. Ignored; run by hand.
+    #[test]
+    #[ignore]
+    fn sweep_timing() {
+        let mut seed = 0x9e37_79b9_7f4a_7c15u64;
+        let mut f = move || {
+            seed ^= seed << 13;
+            seed ^= seed >> 7;
+            seed ^= seed << 17;
+            (seed >> 40) as f32 / (1u64 << 24) as f32
+        };
+        for (k, axes) in [(8usize, (0usize, 1usize)), (32, (0, 3))] {
+            let sets: Vec<(Bins, [f32; 3])> = (0..8)
+                .map(|_| {
+                    let mut b = Bins::new();
+                    let mut scale = [0f32; 3];
+                    for a in axes.0..axes.1 {
+                        scale[a] = 1.0;
+                        for x in 0..k {
+                            let lo = Vec3A::new(x as f32 + f(), f() * 10.0, f() * 10.0);
+                            b.lo[a][x] = lo;
+                            b.hi[a][x] = lo + Vec3A::new(f(), f(), f());
+                            b.count[a][x] = 1 + (f() * 8.0) as u32;
+                        }
+                    }
+                    (b, scale)
+                })
+                .collect();
+            for _ in 0..5 {
+                let s = std::time::Instant::now();
+                let mut sum = 0f64;
+                for _ in 0..10_000 {
+                    for (b, scale) in &sets {
+                        if let Some(x) = sweep_bins(b, k, scale) {
+                            sum += x.4 as f64 + x.1 as f64;
+                        }
+                    }
+                }
+                println!("sweep_bins {k} bins, axes {axes:?}: {:.1} ns per call (checksum {sum:.1})", s.elapsed().as_secs_f64() * 1e9 / (10_000.0 * sets.len() as f64));
+            }
+        }
+    }
+
     /// `small_split` alone: 200,000 groups of 2–8 nearby references, one axis (FAST_BUILD) and
     /// three (FAST_TRACE), ns per call. Ignored; run by hand with `--ignored --nocapture`.
     #[test]
