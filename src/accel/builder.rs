@@ -2495,23 +2495,37 @@ mod network_tests {
 mod pass_timing {
     use super::*;
 
-    /// `bin_refs` alone over the dragon's references on the root's grid: ns per reference for
-    /// one axis with 8 bins (FAST_BUILD) and three with 32 (FAST_TRACE). Ignored; by hand.
-    #[test]
-    #[ignore]
-    fn bin_refs_timing() {
+    /// The references of `ARBOR_MESH` (default: the full dragon), one per triangle.
+    fn mesh_refs() -> Vec<PrimRef> {
         let path = std::env::var("ARBOR_MESH").unwrap_or_else(|_| concat!(env!("CARGO_MANIFEST_DIR"), "/data/dragon_vrip.ply.gz").to_string());
         let mesh = crate::scene::load(&path).expect("mesh");
         let v = &mesh.positions;
-        let refs: Vec<PrimRef> = mesh
-            .indices
+        mesh.indices
             .iter()
             .enumerate()
             .map(|(i, t)| {
                 let (lo, hi) = triangle_bounds(&[Vec3::from(v[t[0] as usize]), Vec3::from(v[t[1] as usize]), Vec3::from(v[t[2] as usize])]);
                 PrimRef { lo, geom: 0, hi, prim: i as u32 }
             })
-            .collect();
+            .collect()
+    }
+
+    /// Xorshift floats in [0, 1) from `seed`.
+    fn unit_floats(mut seed: u64) -> impl FnMut() -> f32 {
+        move || {
+            seed ^= seed << 13;
+            seed ^= seed >> 7;
+            seed ^= seed << 17;
+            (seed >> 40) as f32 / (1u64 << 24) as f32
+        }
+    }
+
+    /// `bin_refs` alone over the dragon's references on the root's grid: ns per reference for
+    /// one axis with 8 bins (FAST_BUILD) and three with 32 (FAST_TRACE). Ignored; by hand.
+    #[test]
+    #[ignore]
+    fn bin_refs_timing() {
+        let refs = mesh_refs();
         let (_, cb) = bounds_of(&refs);
         for (k, axes) in [(8usize, (0usize, 1usize)), (32, (0, 3))] {
             let mut scale = [0f32; 3];
@@ -2545,13 +2559,7 @@ mod pass_timing {
     #[test]
     #[ignore]
     fn sweep_timing() {
-        let mut seed = 0x9e37_79b9_7f4a_7c15u64;
-        let mut f = move || {
-            seed ^= seed << 13;
-            seed ^= seed >> 7;
-            seed ^= seed << 17;
-            (seed >> 40) as f32 / (1u64 << 24) as f32
-        };
+        let mut f = unit_floats(0x9e37_79b9_7f4a_7c15);
         for (k, axes) in [(8usize, (0usize, 1usize)), (32, (0, 3))] {
             let sets: Vec<(Bins, [f32; 3])> = (0..8)
                 .map(|_| {
@@ -2589,13 +2597,7 @@ mod pass_timing {
     #[test]
     #[ignore]
     fn small_split_timing() {
-        let mut seed = 0x2545_f491_4f6c_dd1du64;
-        let mut f = move || {
-            seed ^= seed << 13;
-            seed ^= seed >> 7;
-            seed ^= seed << 17;
-            (seed >> 40) as f32 / (1u64 << 24) as f32
-        };
+        let mut f = unit_floats(0x2545_f491_4f6c_dd1d);
         let groups: Vec<Vec<PrimRef>> = (0..200_000)
             .map(|g| {
                 let n = 2 + g % 7;
@@ -2626,18 +2628,7 @@ mod pass_timing {
     #[test]
     #[ignore]
     fn top_pass_scaling() {
-        let path = std::env::var("ARBOR_MESH").unwrap_or_else(|_| concat!(env!("CARGO_MANIFEST_DIR"), "/data/dragon_vrip.ply.gz").to_string());
-        let mesh = crate::scene::load(&path).expect("mesh");
-        let v = &mesh.positions;
-        let refs: Vec<PrimRef> = mesh
-            .indices
-            .iter()
-            .enumerate()
-            .map(|(i, t)| {
-                let (lo, hi) = triangle_bounds(&[Vec3::from(v[t[0] as usize]), Vec3::from(v[t[1] as usize]), Vec3::from(v[t[2] as usize])]);
-                PrimRef { lo, geom: 0, hi, prim: i as u32 }
-            })
-            .collect();
+        let refs = mesh_refs();
         let n = refs.len();
         let (_, cb) = bounds_of(&refs);
         let mid = 0.5 * (cb.lo[0] + cb.hi[0]);
