@@ -256,11 +256,14 @@ pub const MAX_BINS: usize = 32;
 const MAX_SAH_DEPTH: u32 = 64;
 /// Above this many primitives binning itself runs in parallel chunks, on a sample of about
 /// `BuildParams::sample_target` references (this cutoff must stay >= PAR_PART_CUTOFF: exact
-/// child boxes come from the parallel partition). Dragon, 1 thread: sampling 2^14 keeps the
-/// fast-build SAH (54.03) for 3 % fewer instructions; 2^15 costs FAST_TRACE 48.77 -> 48.79
-/// for 6 % fewer.
-const PAR_BIN_CUTOFF: usize = 1 << 16;
-const SAMPLE_TARGET: usize = 1 << 14;
+/// child boxes come from the parallel partition). Dragon, 1 thread: sampling 2^14 kept the
+/// fast-build SAH (54.03) for 3 % fewer instructions; 2^15 cost FAST_TRACE 48.77 -> 48.79
+/// for 6 % fewer. Since node boxes span the bins (`build_rec`), sampling from 2^14 references
+/// instead of 2^16, 2^12 (fast-build) and 2^13 (fast-trace) of them instead of 2^14 and
+/// 2^15, is 2 % faster on the dragon at the same SAH (53.74 -> 53.75, 48.85 -> 48.84); 2^13
+/// from 2^13 cost FAST_TRACE 48.97.
+const PAR_BIN_CUTOFF: usize = 1 << 14;
+const SAMPLE_TARGET: usize = 1 << 12;
 /// Samples per parallel binning task of a sampled node (about 16 tasks: the strided reads
 /// miss the cache, so one task per node would serialise the top of the tree).
 const SAMPLE_CHUNK: usize = 1 << 10;
@@ -617,6 +620,11 @@ fn build_rec(ctx: &Ctx, refs: &mut [PrimRef], nodes: &mut [BinNode], start: u32,
     if n <= 1 {
         return make_leaf(nodes);
     }
+    if n as u32 <= p.max_leaf && n as f32 <= p.traversal_cost {
+        // A split costs at least 0 more than C_T·A: no sweep can beat this leaf (the same
+        // decision as the test below, made without sorting).
+        return make_leaf(nodes);
+    }
     if n <= p.small_n.min(MAX_SMALL) && depth < MAX_SAH_DEPTH {
         // Exact SAH sweep over sorted centroids: cheaper than binning for a handful of
         // primitives, and these nodes are most of the tree.
@@ -880,7 +888,7 @@ fn partition_seq(refs: &mut [PrimRef], sp: &Splitter) -> usize {
 }
 
 /// Above this many references a node's partition runs in parallel chunks.
-const PAR_PART_CUTOFF: usize = 1 << 15;
+const PAR_PART_CUTOFF: usize = 1 << 14;
 const _: () = assert!(PAR_BIN_CUTOFF >= PAR_PART_CUTOFF);
 /// Chunks of a parallel partition: a fixed count, independent of the thread count.
 const PART_CHUNKS: usize = 64;
