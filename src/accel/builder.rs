@@ -538,6 +538,7 @@ fn to_aabb(lo: Vec3A, hi: Vec3A) -> Aabb {
     Aabb { lo: lo.to_array(), hi: hi.to_array() }
 }
 
+#[cfg(test)]
 fn bounds_of(refs: &[PrimRef]) -> (Aabb, Aabb) {
     // Vector min/max (references are finite, so no NaN handling is needed).
     let (mut lo, mut hi) = (Vec3A::INFINITY, Vec3A::NEG_INFINITY);
@@ -1806,11 +1807,37 @@ pub(super) fn triangle_box(a: Vec3A, b: Vec3A, c: Vec3A) -> (Vec3A, Vec3A) {
 
 /// Deterministic first error: the one with the lowest (geometry, chunk) position wins.
 /// Also sums the dropped counts of successful chunks.
-fn first_err(a: Result<usize, (u64, BuildError)>, b: Result<usize, (u64, BuildError)>) -> Result<usize, (u64, BuildError)> {
+fn first_err(a: Result<ChunkSum, (u64, BuildError)>, b: Result<ChunkSum, (u64, BuildError)>) -> Result<ChunkSum, (u64, BuildError)> {
     match (a, b) {
         (Err(x), Err(y)) => Err(if x.0 <= y.0 { x } else { y }),
         (Err(x), _) | (_, Err(x)) => Err(x),
-        (Ok(x), Ok(y)) => Ok(x + y),
+        (Ok(x), Ok(y)) => Ok(x.join(&y)),
+    }
+}
+
+/// What ingest reports per chunk: references dropped, and the box and centroid box of those
+/// kept, so that the root's boxes need no second pass over the references (the same
+/// arithmetic as `bounds_of`; min/max do not depend on order).
+#[derive(Clone, Copy)]
+struct ChunkSum {
+    dropped: usize,
+    lo: Vec3A,
+    hi: Vec3A,
+    clo: Vec3A,
+    chi: Vec3A,
+}
+impl ChunkSum {
+    const EMPTY: ChunkSum = ChunkSum { dropped: 0, lo: Vec3A::INFINITY, hi: Vec3A::NEG_INFINITY, clo: Vec3A::INFINITY, chi: Vec3A::NEG_INFINITY };
+    #[inline(always)]
+    fn add(&mut self, lo: Vec3A, hi: Vec3A) {
+        let c = lo * 0.5 + hi * 0.5;
+        self.lo = self.lo.min(lo);
+        self.hi = self.hi.max(hi);
+        self.clo = self.clo.min(c);
+        self.chi = self.chi.max(c);
+    }
+    fn join(&self, o: &ChunkSum) -> ChunkSum {
+        ChunkSum { dropped: self.dropped + o.dropped, lo: self.lo.min(o.lo), hi: self.hi.max(o.hi), clo: self.clo.min(o.clo), chi: self.chi.max(o.chi) }
     }
 }
 
@@ -1826,11 +1853,12 @@ pub const STAGE_SIZE: usize = 40;
 /// Fills `refs[..total]` (slot = global primitive ID), then compacts active ones to the front
 /// in order; returns the active count. With `stage`, the primitive data is also written there
 /// at the global ID (one sequential pass over the input) and `PrimRef::prim` holds the global
-/// ID until `gather_leaf_data` puts data and records in leaf order.
-fn ingest(desc: &BuildDesc, view: &dyn DeviceView, refs: &mut [PrimRef], mut stage: Option<&mut [u8]>, temp: &mut [PrimRef]) -> Result<usize, BuildError> {
+/// ID until `gather_leaf_data` puts data and records in leaf order. Also returns the box and
+/// centroid box of the active references.
+fn ingest(desc: &BuildDesc, view: &dyn DeviceView, refs: &mut [PrimRef], mut stage: Option<&mut [u8]>, temp: &mut [PrimRef]) -> Result<(usize, Aabb, Aabb), BuildError> {
     let allow_update = desc.flags.contains(BuildFlags::ALLOW_UPDATE);
     let mut base = 0usize;
-    let mut dropped_total = 0usize;
+    let mut sum = ChunkSum::EMPTY;
     for (gi, g) in desc.geometries.iter().enumerate() {
         let count = g.primitive_count as usize;
         let slice = refs.get_mut(base..base + count).ok_or(BuildError::TooManyPrimitives)?;
@@ -1842,9 +1870,9 @@ fn ingest(desc: &BuildDesc, view: &dyn DeviceView, refs: &mut [PrimRef], mut sta
         // transformed corners), so instances go in smaller chunks: a 10,000-instance TLAS is
         // then more than three tasks.
         let chunk_len = if is_inst { INGEST_CHUNK_INSTANCES } else { INGEST_CHUNK };
-        let work = |ci: usize, chunk: &mut [PrimRef], st: Option<&mut [u8]>| -> Result<usize, (u64, BuildError)> {
+        let work = |ci: usize, chunk: &mut [PrimRef], st: Option<&mut [u8]>| -> Result<ChunkSum, (u64, BuildError)> {
             let mut st = st;
-            let mut dropped = 0usize;
+            let mut cs = ChunkSum::EMPTY;
             let mut memo = BlasBoundsMemo::new();
             for (k, slot) in chunk.iter_mut().enumerate() {
                 let p = (ci * chunk_len + k) as u32;
@@ -1852,6 +1880,7 @@ fn ingest(desc: &BuildDesc, view: &dyn DeviceView, refs: &mut [PrimRef], mut sta
                     // Plain f32 triangles: everything stored straight from registers.
                     match ft.bounds(p, allow_update) {
                         Some(Some((lo, hi, [a, b, c]))) => {
+                            cs.add(lo, hi);
                             let id = if st.is_some() { (gbase + ci * chunk_len + k) as u32 } else { p };
                             let f: &mut [[f32; 4]; 2] = bytemuck::cast_mut(slot);
                             f[0] = Vec4::from((lo, f32::from_bits(gi32))).to_array();
@@ -1869,7 +1898,7 @@ fn ingest(desc: &BuildDesc, view: &dyn DeviceView, refs: &mut [PrimRef], mut sta
                         }
                         Some(None) => {
                             *slot = PrimRef { lo: [0.0; 3], geom: DROPPED, hi: [0.0; 3], prim: p };
-                            dropped += 1;
+                            cs.dropped += 1;
                             continue;
                         }
                         None => {}
@@ -1892,6 +1921,7 @@ fn ingest(desc: &BuildDesc, view: &dyn DeviceView, refs: &mut [PrimRef], mut sta
                 };
                 match r {
                     Ok(Some((mut r, data))) => {
+                        cs.add(Vec3A::from(r.lo), Vec3A::from(r.hi));
                         if let Some(st) = st.as_deref_mut() {
                             if let Some(d) = st.get_mut(k * STAGE_SIZE..(k + 1) * STAGE_SIZE) {
                                 d[..36].copy_from_slice(bytemuck::bytes_of(&data));
@@ -1903,12 +1933,12 @@ fn ingest(desc: &BuildDesc, view: &dyn DeviceView, refs: &mut [PrimRef], mut sta
                     }
                     Ok(None) => {
                         *slot = PrimRef { lo: [0.0; 3], geom: DROPPED, hi: [0.0; 3], prim: p };
-                        dropped += 1;
+                        cs.dropped += 1;
                     }
                     Err(e) => return Err(((gi as u64) << 32 | p as u64, e)),
                 }
             }
-            Ok(dropped)
+            Ok(cs)
         };
         let res = match stage.as_deref_mut() {
             Some(st) => {
@@ -1918,15 +1948,17 @@ fn ingest(desc: &BuildDesc, view: &dyn DeviceView, refs: &mut [PrimRef], mut sta
                     .zip(st.par_chunks_mut(chunk_len * STAGE_SIZE))
                     .enumerate()
                     .map(|(ci, (chunk, st))| work(ci, chunk, Some(st)))
-                    .reduce(|| Ok(0), first_err)
+                    .reduce(|| Ok(ChunkSum::EMPTY), first_err)
             }
-            None => slice.par_chunks_mut(chunk_len).enumerate().map(|(ci, chunk)| work(ci, chunk, None)).reduce(|| Ok(0), first_err),
+            None => slice.par_chunks_mut(chunk_len).enumerate().map(|(ci, chunk)| work(ci, chunk, None)).reduce(|| Ok(ChunkSum::EMPTY), first_err),
         };
-        dropped_total += res.map_err(|e| e.1)?;
+        sum = sum.join(&res.map_err(|e| e.1)?);
         base += count;
     }
+    let boxes = (to_aabb(sum.lo, sum.hi), to_aabb(sum.clo, sum.chi));
+    let dropped_total = sum.dropped;
     if dropped_total == 0 {
-        return Ok(base);
+        return Ok((base, boxes.0, boxes.1));
     }
     // Stable compaction in parallel: each of a fixed number of chunks copies its kept
     // references to their final range of `temp` (disjoint, from a prefix sum), then all come
@@ -1951,7 +1983,7 @@ fn ingest(desc: &BuildDesc, view: &dyn DeviceView, refs: &mut [PrimRef], mut sta
             }
         });
         refs[..kept].par_chunks_mut(chunk).zip(temp[..kept].par_chunks(chunk)).for_each(|(d, s)| d.copy_from_slice(s));
-        return Ok(kept);
+        return Ok((kept, boxes.0, boxes.1));
     }
     let first = refs[..base].par_iter().with_min_len(INGEST_CHUNK).position_first(|r| r.geom == DROPPED).unwrap_or(base);
     let mut w = first;
@@ -1961,7 +1993,7 @@ fn ingest(desc: &BuildDesc, view: &dyn DeviceView, refs: &mut [PrimRef], mut sta
             w += 1;
         }
     }
-    Ok(w)
+    Ok((w, boxes.0, boxes.1))
 }
 
 /// Leaf-order primitive data and records from the staging area; restores `PrimRef::prim` to
@@ -2173,7 +2205,7 @@ pub fn build(desc: &BuildDesc, view: &dyn DeviceView, dst: &mut [u8], scratch: &
     // vertices at random. Needs 40·total <= the worst-case node area (true for total >= 3).
     let stage_at = layout::sections(desc.ty, 0, total as u64, ngeo).nodes as usize;
     let staged = !is_tlas && total >= 3 && stage_at.checked_add(total * STAGE_SIZE).is_some_and(|e| e <= dst.len());
-    let active = {
+    let (active, root_box, root_cb) = {
         // The node slots are unused until the tree is built: compaction's temporary.
         let temp = node_refs_mut(nodes, total).unwrap_or(&mut []);
         ingest(desc, view, refs, if staged { dst.get_mut(stage_at..) } else { None }, temp)?
@@ -2199,10 +2231,6 @@ pub fn build(desc: &BuildDesc, view: &dyn DeviceView, dst: &mut [u8], scratch: &
     // Per-geometry active counts from the compacted refs (ordered by geometry).
     let params = BuildParams::from_flags(desc.flags);
     let ctx = Ctx { params, total: active, threads: rayon::current_num_threads().max(1) };
-    let (root_box, root_cb) = refs
-        .par_chunks(1 << 15)
-        .map(bounds_of)
-        .reduce(|| (Aabb::EMPTY, Aabb::EMPTY), |a, b| (a.0.union(&b.0), a.1.union(&b.1)));
     // Pre-emission area (see `finish_split`): after the staging area in the (still unused)
     // node section of dst. Whether a block fits there never changes the output bytes.
     // Without staging the area would start where the final nodes start, so no block could
