@@ -2611,6 +2611,68 @@ mod pass_timing {
         }
     }
 
+    /// What 16-byte references (a box quantised to 16 bits per coordinate on the root's grid,
+    /// and an index) would save in the out-of-place partition: `partition_out` over the
+    /// dragon's 32-byte references against the same loop over 16-byte ones, split at the
+    /// median centroid of x, over the whole array (memory) and in nodes of 16k and 1k
+    /// references (cache). ns per reference. Ignored; run by hand.
+    #[test]
+    #[ignore]
+    fn quantised_partition_timing() {
+        #[repr(C)]
+        #[derive(Clone, Copy, Pod, Zeroable)]
+        struct QRef {
+            lo: [u16; 3],
+            hi: [u16; 3],
+            id: u32,
+        }
+        let refs = mesh_refs();
+        let (root, cb) = bounds_of(&refs);
+        let q = |v: f32, a: usize| (((v - root.lo[a]) / (root.hi[a] - root.lo[a])).clamp(0.0, 1.0) * 65535.0) as u16;
+        let qrefs: Vec<QRef> = refs.iter().map(|r| QRef { lo: [q(r.lo[0], 0), q(r.lo[1], 1), q(r.lo[2], 2)], hi: [q(r.hi[0], 0), q(r.hi[1], 1), q(r.hi[2], 2)], id: r.prim }).collect();
+        let k = 2.0f32;
+        let sp = Splitter { a: 0, cmin: cb.lo[0], scale: k / (cb.hi[0] - cb.lo[0]), limit: 1.0 };
+        let qlimit = (q(cb.lo[0], 0) as u32 + q(cb.hi[0], 0) as u32) as u32;
+        for node in [refs.len(), 1 << 14, 1 << 10] {
+            for _ in 0..3 {
+                let mut out = vec![0u8; refs.len() * PRIMREF_BYTES + PRIMREF_BYTES];
+                let rounds = if node == refs.len() { 3 } else { 20 };
+                let part = &refs[..refs.len().min(if node == refs.len() { refs.len() } else { 1 << 16 })];
+                let s = std::time::Instant::now();
+                let mut total = 0usize;
+                for _ in 0..rounds {
+                    for c in part.chunks(node) {
+                        let nl = c.iter().filter(|r| sp.left(r)).count();
+                        total += partition_out(c, &mut out[..c.len() * PRIMREF_BYTES + PRIMREF_BYTES], nl, nl * PRIMREF_BYTES, &sp).unwrap_or(0);
+                    }
+                }
+                let t32 = s.elapsed().as_secs_f64() * 1e9 / (rounds * part.len()) as f64;
+                let qpart = &qrefs[..part.len()];
+                let mut qout = vec![QRef::zeroed(); qrefs.len() + 1];
+                let s = std::time::Instant::now();
+                let mut qtotal = 0usize;
+                for _ in 0..rounds {
+                    for c in qpart.chunks(node) {
+                        let left = |r: &QRef| (r.lo[0] as u32 + r.hi[0] as u32) < qlimit;
+                        let nl = c.iter().filter(|r| left(r)).count();
+                        let (mut li, mut ri) = (0usize, nl);
+                        let cap = qout.len() - 1;
+                        for r in c {
+                            let l = left(r) as usize;
+                            let at = if l != 0 { li } else { ri }.min(cap);
+                            qout[at] = *r;
+                            li += l;
+                            ri += l ^ 1;
+                        }
+                        qtotal += li;
+                    }
+                }
+                let t16 = s.elapsed().as_secs_f64() * 1e9 / (rounds * qpart.len()) as f64;
+                println!("nodes of {node}: count + partition, 32-byte {t32:.2} ns, 16-byte {t16:.2} ns per reference (lefts {total} / {qtotal})");
+            }
+        }
+    }
+
     /// `small_split` alone: 200,000 groups of 2–8 nearby references, one axis (FAST_BUILD) and
     /// three (FAST_TRACE), ns per call. Ignored; run by hand with `--ignored --nocapture`.
     #[test]
