@@ -2632,7 +2632,7 @@ mod pass_timing {
         let qrefs: Vec<QRef> = refs.iter().map(|r| QRef { lo: [q(r.lo[0], 0), q(r.lo[1], 1), q(r.lo[2], 2)], hi: [q(r.hi[0], 0), q(r.hi[1], 1), q(r.hi[2], 2)], id: r.prim }).collect();
         let k = 2.0f32;
         let sp = Splitter { a: 0, cmin: cb.lo[0], scale: k / (cb.hi[0] - cb.lo[0]), limit: 1.0 };
-        let qlimit = (q(cb.lo[0], 0) as u32 + q(cb.hi[0], 0) as u32) as u32;
+        let qlimit = q(cb.lo[0], 0) as u32 + q(cb.hi[0], 0) as u32;
         for node in [refs.len(), 1 << 14, 1 << 10] {
             for _ in 0..3 {
                 let mut out = vec![0u8; refs.len() * PRIMREF_BYTES + PRIMREF_BYTES];

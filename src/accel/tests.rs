@@ -1287,35 +1287,26 @@ fn encode_timing() {
 /// with an exact sweep over every sorted centroid order on three axes, C_T = C_I = 1, leaves of
 /// at most 8: the classic reference the binned tiers approximate. Independent of the builder
 /// (its own boxes, sorts and split rule).
-fn full_sweep_sah(items: &mut [([f32; 3], [f32; 3])]) -> f64 {
-    let area = |lo: [f32; 3], hi: [f32; 3]| {
-        let d = [(hi[0] - lo[0]) as f64, (hi[1] - lo[1]) as f64, (hi[2] - lo[2]) as f64];
-        d[0] * d[1] + d[1] * d[2] + d[2] * d[0]
-    };
-    let join = |a: ([f32; 3], [f32; 3]), b: &([f32; 3], [f32; 3])| {
-        ([a.0[0].min(b.0[0]), a.0[1].min(b.0[1]), a.0[2].min(b.0[2])], [a.1[0].max(b.1[0]), a.1[1].max(b.1[1]), a.1[2].max(b.1[2])])
-    };
-    let empty = ([f32::INFINITY; 3], [f32::NEG_INFINITY; 3]);
+fn full_sweep_sah(items: &mut [SweepBox]) -> f64 {
     let n = items.len();
-    let bb = items.iter().fold(empty, |a, b| join(a, b));
-    let a = area(bb.0, bb.1);
+    let a = sweep_area(items.iter().fold(SWEEP_EMPTY, sweep_join));
     if n == 1 {
         return a;
     }
-    let ctr = |x: &([f32; 3], [f32; 3]), k: usize| x.0[k] + x.1[k];
+    let ctr = |x: &SweepBox, k: usize| x.0[k] + x.1[k];
     let mut best = (f64::INFINITY, 0usize, 0usize);
     let mut suffix = vec![0f64; n + 1];
     for axis in 0..3 {
         items.sort_by(|x, y| ctr(x, axis).total_cmp(&ctr(y, axis)));
-        let mut acc = empty;
+        let mut acc = SWEEP_EMPTY;
         for i in (0..n).rev() {
-            acc = join(acc, &items[i]);
-            suffix[i] = area(acc.0, acc.1);
+            acc = sweep_join(acc, &items[i]);
+            suffix[i] = sweep_area(acc);
         }
-        let mut acc = empty;
+        let mut acc = SWEEP_EMPTY;
         for i in 1..n {
-            acc = join(acc, &items[i - 1]);
-            let cost = area(acc.0, acc.1) * i as f64 + suffix[i] * (n - i) as f64;
+            acc = sweep_join(acc, &items[i - 1]);
+            let cost = sweep_area(acc) * i as f64 + suffix[i] * (n - i) as f64;
             if cost < best.0 {
                 best = (cost, axis, i);
             }
@@ -1329,6 +1320,19 @@ fn full_sweep_sah(items: &mut [([f32; 3], [f32; 3])]) -> f64 {
     a + full_sweep_sah(l) + full_sweep_sah(r)
 }
 
+type SweepBox = ([f32; 3], [f32; 3]);
+const SWEEP_EMPTY: SweepBox = ([f32::INFINITY; 3], [f32::NEG_INFINITY; 3]);
+
+/// Half area of a (lo, hi) box in f64 (the reference builder's own arithmetic).
+fn sweep_area(b: SweepBox) -> f64 {
+    let d = [0, 1, 2].map(|k| (b.1[k] - b.0[k]) as f64);
+    d[0] * d[1] + d[1] * d[2] + d[2] * d[0]
+}
+
+fn sweep_join(a: SweepBox, b: &SweepBox) -> SweepBox {
+    ([0, 1, 2].map(|k| a.0[k].min(b.0[k])), [0, 1, 2].map(|k| a.1[k].max(b.1[k])))
+}
+
 /// Each tier's SAH against the full-sweep reference on the bunny and a 47k-triangle dragon:
 /// the quality the tiers promise (FAST_TRACE and the default tier within a few percent of a
 /// sweep builder, FAST_BUILD trading 10–15 % of it for speed, measured 1.009 / 1.017 / 1.103 on
@@ -1340,7 +1344,7 @@ fn tiers_keep_their_sah_against_a_full_sweep_builder() {
     for path in ["data/bunny.ply", "data/dragon_vrip_res3.ply.gz"] {
         let mesh = crate::scene::load(&format!("{}/{path}", env!("CARGO_MANIFEST_DIR"))).expect("mesh");
         let v = &mesh.positions;
-        let mut items: Vec<([f32; 3], [f32; 3])> = mesh
+        let mut items: Vec<SweepBox> = mesh
             .indices
             .iter()
             .map(|t| {
@@ -1348,11 +1352,8 @@ fn tiers_keep_their_sah_against_a_full_sweep_builder() {
                 (p[0].min(p[1]).min(p[2]).to_array(), p[0].max(p[1]).max(p[2]).to_array())
             })
             .collect();
-        let root = items.iter().fold(([f32::INFINITY; 3], [f32::NEG_INFINITY; 3]), |a, b| {
-            ([a.0[0].min(b.0[0]), a.0[1].min(b.0[1]), a.0[2].min(b.0[2])], [a.1[0].max(b.1[0]), a.1[1].max(b.1[1]), a.1[2].max(b.1[2])])
-        });
-        let d = [root.1[0] - root.0[0], root.1[1] - root.0[1], root.1[2] - root.0[2]].map(|x| x as f64);
-        let reference = full_sweep_sah(&mut items) / (d[0] * d[1] + d[1] * d[2] + d[2] * d[0]);
+        let root = sweep_area(items.iter().fold(SWEEP_EMPTY, sweep_join));
+        let reference = full_sweep_sah(&mut items) / root;
         let vb = mesh.vertex_bytes();
         let ib = mesh.index_bytes();
         let ntri = mesh.triangle_count() as u32;
