@@ -1,8 +1,10 @@
-//! Build: ingest (geometry → primitive references in scratch) → binned-SAH binary BVH in scratch
+//! Build: ingest (geometry → primitive references in scratch) → (fast-build tier: pairs of
+//! neighbouring primitives, `pairs`) → binned-SAH binary BVH in scratch
 //! (rayon::join on the current pool, node slots derived from primitive ranges so the tree is
 //! the same for any thread count) → collapse to BVH4 → encode into dst.
 //! Host heap use is O(threads): all arrays proportional to the input live in `scratch`.
 use super::input::{self, read_aabb, read_instance, read_triangle};
+use super::pairs;
 use super::layout::{self, GeometryRecord, InstanceRecord, PrimRecord, RawHeader, WideNode, CHILD_INTERNAL, NODE_SIZE, PRIM_SIZE, RECORD_SIZE};
 use super::{AsType, BuildDesc, BuildError, BuildFlags, BuildPhases, BuildReport, DeviceView, Geometry, GeometryData};
 use std::time::Instant;
@@ -77,12 +79,12 @@ impl Aabb {
 /// are adjacent) and a mask that zeroes the fourth lane: the integer's bits would be denormal
 /// floats, slow in arithmetic on some CPUs.
 #[inline(always)]
-fn ref_lo(r: &PrimRef) -> Vec3A {
+pub(super) fn ref_lo(r: &PrimRef) -> Vec3A {
     let a: &[[f32; 4]; 2] = bytemuck::cast_ref(r);
     Vec3A::from_vec4(Vec4::select(XYZ_MASK, Vec4::from_array(a[0]), Vec4::ZERO))
 }
 #[inline(always)]
-fn ref_hi(r: &PrimRef) -> Vec3A {
+pub(super) fn ref_hi(r: &PrimRef) -> Vec3A {
     let a: &[[f32; 4]; 2] = bytemuck::cast_ref(r);
     Vec3A::from_vec4(Vec4::select(XYZ_MASK, Vec4::from_array(a[1]), Vec4::ZERO))
 }
@@ -396,7 +398,7 @@ impl Splitter {
 /// Five vector operations, where glam's SSE2 floor takes about eight; replaces saturating
 /// float-to-int conversions, with no unsafe intrinsics.
 #[inline(always)]
-fn trunc_i32x4(v: Vec3A) -> [i32; 4] {
+pub(super) fn trunc_i32x4(v: Vec3A) -> [i32; 4] {
     trunc_i32x4_4(Vec4::from((v, 0.0)))
 }
 
@@ -528,7 +530,7 @@ fn bin_refs(refs: &[PrimRef], bn: &Binning, bins: &mut Bins) {
 }
 
 #[inline]
-fn half_area_v(lo: Vec3A, hi: Vec3A) -> f32 {
+pub(super) fn half_area_v(lo: Vec3A, hi: Vec3A) -> f32 {
     // (xy + yz) + zx, the same sum as `Aabb::half_area`, as one multiply and a lane sum.
     let d = (hi - lo).max(Vec3A::ZERO);
     (d * d.yzx()).element_sum()
@@ -569,6 +571,8 @@ struct Ctx {
     /// References of the whole build and the pool's thread count (see `one_pass`).
     total: usize,
     threads: usize,
+    /// The references are primitive pairs (`pairs`): leaves cost their primitives.
+    paired: bool,
 }
 impl Ctx {
     /// Whether a node of `n` references partitions in one sequential pass rather than in
@@ -612,19 +616,20 @@ fn build_rec(ctx: &Ctx, refs: &mut [PrimRef], nodes: &mut [BinNode], start: u32,
         in_nodes = false;
     }
     let area = bounds.half_area();
-    let make_leaf = |nodes: &mut [BinNode]| {
+    let make_leaf = |nodes: &mut [BinNode], refs: &[PrimRef]| {
         if let Some(slot) = nodes.get_mut(0) {
             *slot = BinNode { lo: bounds.lo, start, hi: bounds.hi, count: n as u32, left_count: 0, reserved: 0 };
         }
-        (area as f64 * n as f64, 1u32)
+        let prims = if ctx.paired { refs.iter().map(pairs::weight).sum::<u32>() as f64 } else { n as f64 };
+        (area as f64 * prims, 1u32)
     };
     if n <= 1 {
-        return make_leaf(nodes);
+        return make_leaf(nodes, refs);
     }
     if n as u32 <= p.max_leaf && n as f32 <= p.traversal_cost {
         // A split costs at least 0 more than C_T·A: no sweep can beat this leaf (the same
         // decision as the test below, made without sorting).
-        return make_leaf(nodes);
+        return make_leaf(nodes, refs);
     }
     if n <= p.small_n.min(MAX_SMALL) && depth < MAX_SAH_DEPTH {
         // Exact SAH sweep over sorted centroids: cheaper than binning for a handful of
@@ -633,12 +638,12 @@ fn build_rec(ctx: &Ctx, refs: &mut [PrimRef], nodes: &mut [BinNode], start: u32,
         let axes = if p.single_axis { (widest, widest + 1) } else { (0, 3) };
         if let Some((mid, cost)) = small_split(refs, axes) {
             if n as u32 <= p.max_leaf && area * n as f32 <= area * p.traversal_cost + cost {
-                return make_leaf(nodes);
+                return make_leaf(nodes, refs);
             }
             let (l, r) = refs.split_at(mid);
             return finish_split(ctx, refs, nodes, start, bounds, mid, box_of(l), box_of(r), depth, bins, false, pre, parent_count);
         }
-        return make_leaf(nodes);
+        return make_leaf(nodes, refs);
     }
     // Smaller nodes get fewer bins: at most one per four references, at least 8 (the sweep
     // costs O(bins) per node; on the dragon FAST_TRACE this is 7 % fewer instructions for
@@ -698,7 +703,7 @@ fn build_rec(ctx: &Ctx, refs: &mut [PrimRef], nodes: &mut [BinNode], start: u32,
                     if in_nodes {
                         restore(refs, nodes);
                     }
-                    return make_leaf(nodes);
+                    return make_leaf(nodes, refs);
                 }
             }
             if let Some((a, b, lbox, rbox, _)) = split {
@@ -759,7 +764,7 @@ fn build_rec(ctx: &Ctx, refs: &mut [PrimRef], nodes: &mut [BinNode], start: u32,
         restore(refs, nodes);
     }
     if n as u32 <= p.max_leaf {
-        return make_leaf(nodes);
+        return make_leaf(nodes, refs);
     }
     // Fallback: object median along the widest axis of `cb` (all centroids equal, no SAH
     // split found, or depth limit). select_nth_unstable is deterministic and allocation-free.
@@ -1276,7 +1281,7 @@ fn finish_split(ctx: &Ctx, refs: &mut [PrimRef], nodes: &mut [BinNode], start: u
     } else if is_cut(parent_count, n as u32) {
         let mut cursor = 0u32;
         let mut leaves = 0u32;
-        match emit_seq(nodes, 0, pre, 0, &mut cursor, &mut leaves) {
+        match emit_seq(nodes, 0, pre, 0, &mut cursor, &mut leaves, None) {
             Some(_) => cursor,
             None => wide_count(nodes, 0),
         }
@@ -1313,22 +1318,43 @@ fn pre_block(nd: &BinNode, pre_len: usize) -> Option<std::ops::Range<usize>> {
 }
 
 /// Copies a pre-emitted block (local indices) to wide index `base`; returns its leaf children.
-fn copy_block(src: &[u8], out: &mut [u8], base: u32) -> u32 {
+/// With `map` (paired builds) leaf children are turned from references into primitives
+/// (`leaf_span`), which the block was encoded without.
+fn copy_block(src: &[u8], out: &mut [u8], base: u32, map: Option<&[u32]>) -> u32 {
     let mut leaves = 0;
     out.copy_from_slice(src);
     for node in out.chunks_exact_mut(NODE_SIZE) {
         for c in 0..4 {
             let kind = node[56 + c];
+            let at = 40 + 4 * c;
+            let v = u32::from_le_bytes([node[at], node[at + 1], node[at + 2], node[at + 3]]);
             if kind == CHILD_INTERNAL {
-                let at = 40 + 4 * c;
-                let v = u32::from_le_bytes([node[at], node[at + 1], node[at + 2], node[at + 3]]);
                 node[at..at + 4].copy_from_slice(&v.wrapping_add(base).to_le_bytes());
             } else if kind != 0 {
                 leaves += 1;
+                if map.is_some() {
+                    let (first, count) = leaf_span(v, kind as u32, map);
+                    node[at..at + 4].copy_from_slice(&first.to_le_bytes());
+                    node[56 + c] = count.min(254) as u8;
+                }
             }
         }
     }
     leaves
+}
+
+/// A leaf's first primitive and primitive count from its first reference and reference count:
+/// the same numbers unpaired, through the prefix `map` of primitives per reference when paired.
+#[inline]
+fn leaf_span(start: u32, count: u32, map: Option<&[u32]>) -> (u32, u32) {
+    match map {
+        None => (start, count),
+        Some(m) => {
+            let a = m.get(start as usize).copied().unwrap_or(0);
+            let b = m.get(start.saturating_add(count) as usize).copied().unwrap_or(a);
+            (a, b.saturating_sub(a))
+        }
+    }
 }
 
 /// Binary children of a binary node: (left slot, right slot), for an internal node.
@@ -1492,26 +1518,26 @@ pub fn wide_size(nodes: &[BinNode]) -> u32 {
 type EmitTask<'a> = Option<(&'a [BinNode], u32, &'a mut [u8], Option<&'a [u8]>, bool)>;
 const PAR_EMIT_CUTOFF: u32 = 1024;
 
-fn run_emit(tasks: &mut [EmitTask<'_>]) -> u32 {
+fn run_emit(tasks: &mut [EmitTask<'_>], map: Option<&[u32]>) -> u32 {
     match tasks.len() {
         0 => 0,
         1 => match tasks[0].take() {
             Some((n, me, out, _, true)) => {
                 let (mut cursor, mut l) = (0u32, 0u32);
-                let _ = emit_seq(n, 0, out, me, &mut cursor, &mut l);
+                let _ = emit_seq(n, 0, out, me, &mut cursor, &mut l, map);
                 l
             }
-            Some((n, me, out, pre, false)) => emit_wide(n, me, out, pre),
+            Some((n, me, out, pre, false)) => emit_wide(n, me, out, pre, map),
             None => 0,
         },
         len => {
             let size: u32 = tasks.iter().map(|t| t.as_ref().map_or(0, |t| wide_size(t.0))).sum();
             let (a, b) = tasks.split_at_mut(len / 2);
             if size >= PAR_EMIT_CUTOFF {
-                let (x, y) = rayon::join(|| run_emit(a), || run_emit(b));
+                let (x, y) = rayon::join(|| run_emit(a, map), || run_emit(b, map));
                 x + y
             } else {
-                run_emit(a) + run_emit(b)
+                run_emit(a, map) + run_emit(b, map)
             }
         }
     }
@@ -1521,7 +1547,7 @@ fn run_emit(tasks: &mut [EmitTask<'_>]) -> u32 {
 /// point at their primitives, and `internal(slot, node, is_cut_root)` gives each internal
 /// child's node index, in child order (emission in preorder). Returns the node and its leaf
 /// children; None when `internal` does.
-fn wide_node(nodes: &[BinNode], i: usize, mut internal: impl FnMut(usize, &BinNode, bool) -> Option<u32>) -> Option<(WideNode, u32)> {
+fn wide_node(nodes: &[BinNode], i: usize, map: Option<&[u32]>, mut internal: impl FnMut(usize, &BinNode, bool) -> Option<u32>) -> Option<(WideNode, u32)> {
     let (ch, cnt, cut) = wide_children(nodes, i);
     let cnt = cnt.min(4);
     // Child boxes as vectors loaded straight from the (long since written) binary nodes.
@@ -1540,8 +1566,9 @@ fn wide_node(nodes: &[BinNode], i: usize, mut internal: impl FnMut(usize, &BinNo
             kind[k] = CHILD_INTERNAL;
             child[k] = internal(ch[k], nd, cut >> k & 1 != 0)?;
         } else {
-            kind[k] = nd.count.min(254) as u8;
-            child[k] = nd.start;
+            let (first, count) = leaf_span(nd.start, nd.count, map);
+            kind[k] = count.min(254) as u8;
+            child[k] = first;
             leaves += 1;
         }
     }
@@ -1555,14 +1582,14 @@ fn wide_node(nodes: &[BinNode], i: usize, mut internal: impl FnMut(usize, &BinNo
 /// preorder at local index `*cursor` onwards of `out`, child indices offset by `base`; the
 /// same bytes `emit_wide` writes, without needing subtree sizes in advance. Counts leaf
 /// children into `leaves`; None when `out` is too small (what was written is then garbage).
-fn emit_seq(nodes: &[BinNode], i: usize, out: &mut [u8], base: u32, cursor: &mut u32, leaves: &mut u32) -> Option<u32> {
+fn emit_seq(nodes: &[BinNode], i: usize, out: &mut [u8], base: u32, cursor: &mut u32, leaves: &mut u32, map: Option<&[u32]>) -> Option<u32> {
     let me = *cursor;
     *cursor += 1;
     let at = me as usize * NODE_SIZE;
     if at + NODE_SIZE > out.len() {
         return None;
     }
-    let (wn, l) = wide_node(nodes, i, |slot, _, _| emit_seq(nodes, slot, out, base, cursor, leaves).map(|c| base + c))?;
+    let (wn, l) = wide_node(nodes, i, map, |slot, _, _| emit_seq(nodes, slot, out, base, cursor, leaves, map).map(|c| base + c))?;
     *leaves += l;
     out.get_mut(at..at + NODE_SIZE)?.copy_from_slice(bytemuck::bytes_of(&wn));
     Some(me)
@@ -1585,11 +1612,11 @@ fn wide_count(nodes: &[BinNode], i: usize) -> u32 {
 /// Child indices follow from subtree sizes, never from timing: same bytes for any thread count.
 /// With `pre`, cut-root children whose blocks were pre-emitted are copied from there (the
 /// same bytes the recursion would write).
-fn emit_wide(nodes: &[BinNode], me: u32, out: &mut [u8], pre: Option<&[u8]>) -> u32 {
+fn emit_wide(nodes: &[BinNode], me: u32, out: &mut [u8], pre: Option<&[u8]>, map: Option<&[u32]>) -> u32 {
     let mut next = me + 1;
     let mut pending: [(usize, u32, u32, bool); 4] = [(0, 0, 0, false); 4];
     let mut np = 0;
-    let Some((wn, mut leaves)) = wide_node(nodes, 0, |slot, nd, is_cut_root| {
+    let Some((wn, mut leaves)) = wide_node(nodes, 0, map, |slot, nd, is_cut_root| {
         let idx = next;
         pending[np] = (slot, idx, nd.reserved, is_cut_root);
         np += 1;
@@ -1614,7 +1641,7 @@ fn emit_wide(nodes: &[BinNode], me: u32, out: &mut [u8], pre: Option<&[u8]>) -> 
             if let (Some(pre), Some(nd)) = (pre, nodes.get(rel)) {
                 if let Some(src) = pre_block(nd, pre.len()).and_then(|r| pre.get(r)) {
                     if src.len() == mine.len() {
-                        leaves += copy_block(src, mine, idx);
+                        leaves += copy_block(src, mine, idx, map);
                         continue;
                     }
                 }
@@ -1629,7 +1656,7 @@ fn emit_wide(nodes: &[BinNode], me: u32, out: &mut [u8], pre: Option<&[u8]>) -> 
         tasks[nt] = nodes.get(rel..).map(|n| (n, idx, mine, pre, false));
         nt += 1;
     }
-    leaves + run_emit(&mut tasks[..nt])
+    leaves + run_emit(&mut tasks[..nt], map)
 }
 
 /// FNV-style 64-bit hash over the index bytes, word at a time (the update's index check).
@@ -2178,6 +2205,31 @@ pub fn zero_gaps(dst: &mut [u8], filled: &[(u64, u64)], end: u64) {
     }
 }
 
+/// Pairs the active references `refs` (`pairs`), staging the pairs in the node area (`nodes`,
+/// 2·total slots, unused until the tree is built) and moving them over the start of `refs`.
+/// Returns the pair count and the pairs' centroid box; None, with `refs` untouched, when the
+/// input pairs poorly (`pairs::worth_pairing`), merges nothing, or leaves no room for the
+/// prefix of primitives per pair (m + 1 words) after the tree's 2m - 1 node slots.
+fn pair_up(refs: &mut [PrimRef], nodes: &mut [BinNode]) -> Option<(usize, Aabb)> {
+    let n = refs.len();
+    let room = nodes.len() * std::mem::size_of::<BinNode>();
+    if !pairs::worth_pairing(refs) {
+        return None;
+    }
+    let staged = node_refs_mut(nodes, n)?;
+    let (m, counts) = pairs::pair_refs(refs, staged);
+    if m == 0 || m >= n || (2 * m - 1) * std::mem::size_of::<BinNode>() + 4 * (m + 1) > room {
+        return None;
+    }
+    Some((m, pairs::place_pairs(staged, &counts, &mut refs[..m])))
+}
+
+#[cfg(test)]
+thread_local! {
+    /// The pair count of the last build on this thread (None: built unpaired), for tests.
+    pub static LAST_BUILD_PAIRS: std::cell::Cell<Option<usize>> = const { std::cell::Cell::new(None) };
+}
+
 pub fn build(desc: &BuildDesc, view: &dyn DeviceView, dst: &mut [u8], scratch: &mut [u8]) -> Result<(BuildReport, BuildPhases), BuildError> {
     let t_start = Instant::now();
     check_types(desc)?;
@@ -2197,6 +2249,7 @@ pub fn build(desc: &BuildDesc, view: &dyn DeviceView, dst: &mut [u8], scratch: &
         return Err(BuildError::DestinationTooSmall { needed: worst, got: dst.len() as u64 });
     }
     let total = total as usize;
+    let scratch_len = scratch.len() as u64;
     let (refs, rest) = carve::<PrimRef>(scratch, total).ok_or(BuildError::ScratchTooSmall { needed: need_scratch, got: 0 })?;
     let (nodes, _) = carve::<BinNode>(rest, 2 * total).ok_or(BuildError::ScratchTooSmall { needed: need_scratch, got: 0 })?;
 
@@ -2228,9 +2281,27 @@ pub fn build(desc: &BuildDesc, view: &dyn DeviceView, dst: &mut [u8], scratch: &
         }
     }
 
-    // Per-geometry active counts from the compacted refs (ordered by geometry).
     let params = BuildParams::from_flags(desc.flags);
-    let ctx = Ctx { params, total: active, threads: rayon::current_num_threads().max(1) };
+    let threads = rayon::current_num_threads().max(1);
+    // The fast-build tier builds over primitive pairs (`pairs`) where it can: staged BLAS
+    // builds of at least PAIR_MIN primitives over at most MAX_PAIR_GEOMETRIES geometries, when
+    // pairing merges enough references for the per-reference prefix to fit beside the tree.
+    let pairing = staged && params.single_axis && active >= pairs::PAIR_MIN && desc.geometries.len() <= pairs::MAX_PAIR_GEOMETRIES;
+    let paired = if pairing { pair_up(refs, nodes) } else { None };
+    #[cfg(test)]
+    LAST_BUILD_PAIRS.with(|c| c.set(paired.map(|p| p.0)));
+    let (built, root_cb, bparams) = match paired {
+        Some((m, cb)) => {
+            // A leaf holds up to max_leaf primitives, so half as many pairs; C_T scaled by the
+            // references per primitive keeps the leaf/split balance of the unpaired tier.
+            let mut q = params;
+            q.max_leaf = (params.max_leaf / 2).max(1);
+            q.traversal_cost = (params.traversal_cost * m as f32 / active as f32).max(1.0);
+            (m, cb, q)
+        }
+        None => (active, root_cb, params),
+    };
+    let ctx = Ctx { params: bparams, total: built, threads, paired: paired.is_some() };
     // Pre-emission area (see `finish_split`): after the staging area in the (still unused)
     // node section of dst. Whether a block fits there never changes the output bytes.
     // Without staging the area would start where the final nodes start, so no block could
@@ -2238,11 +2309,28 @@ pub fn build(desc: &BuildDesc, view: &dyn DeviceView, dst: &mut [u8], scratch: &
     // (TLAS builds spent a sixth of their time on blocks the final pass re-encoded).
     let pre_at = (stage_at + if staged { total * STAGE_SIZE } else { 0 }).min(dst.len());
     let pre_len = if staged { (dst.len() - pre_at).min(PRE_BYTES_PER_PRIM * active) } else { 0 };
-    let (sah_sum, _depth) = if active > 0 {
-        build_rec(&ctx, refs, &mut nodes[..2 * active - 1], 0, root_box, root_cb, 0, &mut Bins::new(), false, &mut dst[pre_at..pre_at + pre_len], u32::MAX)
+    let (sah_sum, _depth) = if built > 0 {
+        build_rec(&ctx, &mut refs[..built], &mut nodes[..2 * built - 1], 0, root_box, root_cb, 0, &mut Bins::new(), false, &mut dst[pre_at..pre_at + pre_len], u32::MAX)
     } else {
         (0.0, 0)
     };
+    // The tree's node slots, and after them (paired builds) the prefix of primitives per
+    // reference in leaf order: leaves name references while building, primitives in the output.
+    let (tree, spare) = nodes.split_at_mut((2 * built).saturating_sub(1));
+    let map: Option<&[u32]> = if paired.is_some() {
+        let p = bytemuck::try_cast_slice_mut::<u8, u32>(bytemuck::cast_slice_mut(spare)).ok().and_then(|p| p.get_mut(..=built));
+        p.map(|p| {
+            pairs::prim_prefix(&refs[..built], p);
+            &*p
+        })
+    } else {
+        None
+    };
+    if paired.is_some() && map.is_none() {
+        // Unreachable: `pair_up` made room for the prefix. Refuse rather than write leaves
+        // that name pairs as primitives.
+        return Err(BuildError::ScratchTooSmall { needed: need_scratch, got: scratch_len });
+    }
     let t_sah = Instant::now();
     // Leaf data first: with staging, the node section overlaps the staging area.
     let pre = layout::sections(desc.ty, 0, active as u64, ngeo);
@@ -2251,7 +2339,14 @@ pub fn build(desc: &BuildDesc, view: &dyn DeviceView, dst: &mut [u8], scratch: &
         let (head, rec_part) = head.split_at_mut(pre.records as usize);
         let prims = &mut head[pre.prims as usize..pre.prims as usize + active * PRIM_SIZE];
         let records = &mut rec_part[..active * RECORD_SIZE];
-        if staged {
+        if let Some(map) = map {
+            let mut firsts = [0u32; pairs::MAX_PAIR_GEOMETRIES + 1];
+            for (gi, g) in desc.geometries.iter().enumerate().take(pairs::MAX_PAIR_GEOMETRIES) {
+                firsts[gi + 1] = firsts[gi].saturating_add(g.primitive_count);
+            }
+            let ng = desc.geometries.len().min(pairs::MAX_PAIR_GEOMETRIES);
+            pairs::gather_pairs(&refs[..built], map, &tail[..total * STAGE_SIZE], prims, records, &firsts[..=ng]);
+        } else if staged {
             gather_leaf_data(refs, &tail[..total * STAGE_SIZE], prims, records);
         } else {
             write_leaf_data(desc, refs, prims, records);
@@ -2260,7 +2355,7 @@ pub fn build(desc: &BuildDesc, view: &dyn DeviceView, dst: &mut [u8], scratch: &
     let t_leaf = Instant::now();
     // Nodes are the last section, so their offset is known before their count: emit directly.
     let nodes_at = pre.nodes as usize;
-    let wide_count = if active > 0 { wide_size(nodes) } else { 0 };
+    let wide_count = if active > 0 { wide_size(tree) } else { 0 };
     let mut leaf_count = 0u32;
     if active > 0 {
         let end = nodes_at.saturating_add(wide_count as usize * NODE_SIZE);
@@ -2272,19 +2367,19 @@ pub fn build(desc: &BuildDesc, view: &dyn DeviceView, dst: &mut [u8], scratch: &
         let (head, tail) = dst.split_at_mut(pre_at.max(end));
         let out = &mut head[nodes_at..end];
         let pre_area = (end <= pre_at).then(|| &tail[..pre_len]);
-        let root_block = match (pre_area, nodes.first()) {
+        let root_block = match (pre_area, tree.first()) {
             (Some(p), Some(root)) if is_cut(u32::MAX, root.count) => pre_block(root, p.len()).and_then(|r| p.get(r)),
             _ => None,
         };
         leaf_count = match root_block {
-            Some(src) if src.len() == out.len() => copy_block(src, out, 0),
-            _ if nodes.first().is_some_and(|r| r.left_count != 0 && r.count <= EMIT_CUT) => {
+            Some(src) if src.len() == out.len() => copy_block(src, out, 0, map),
+            _ if tree.first().is_some_and(|r| r.left_count != 0 && r.count <= EMIT_CUT) => {
                 // The root is a cut root whose block is not usable: encode it here.
                 let (mut cursor, mut l) = (0u32, 0u32);
-                let _ = emit_seq(nodes, 0, out, 0, &mut cursor, &mut l);
+                let _ = emit_seq(tree, 0, out, 0, &mut cursor, &mut l, map);
                 l
             }
-            _ => emit_wide(nodes, 0, out, pre_area),
+            _ => emit_wide(tree, 0, out, pre_area, map),
         };
     }
     let t_nodes = Instant::now();

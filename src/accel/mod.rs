@@ -12,6 +12,7 @@ mod copy;
 mod input;
 mod layout;
 mod metrics;
+mod pairs;
 mod refit;
 mod traverse;
 

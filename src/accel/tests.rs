@@ -1371,3 +1371,116 @@ fn tiers_keep_their_sah_against_a_full_sweep_builder() {
         }
     }
 }
+
+/// A heightfield of `cells`² quads (two triangles each, row by row: neighbours in input order
+/// share an edge), split into two indexed geometries, the second with one triangle whose
+/// indices repeat (dropped, so global IDs have a gap). Returns the vertices and both index
+/// lists.
+fn paired_grid(cells: u32, phase: f32) -> (Vec<Vec3>, Vec<u32>, Vec<u32>) {
+    let side = cells + 1;
+    let v: Vec<Vec3> = (0..side * side)
+        .map(|i| {
+            let (x, z) = ((i % side) as f32, (i / side) as f32);
+            Vec3::new(x, (x * 0.37 + phase).sin() * 2.0 + (z * 0.23).cos() * 1.5, z)
+        })
+        .collect();
+    let mut idx = Vec::new();
+    for z in 0..cells {
+        for x in 0..cells {
+            let i = z * side + x;
+            idx.extend_from_slice(&[i, i + 1, i + side, i + 1, i + side + 1, i + side]);
+        }
+    }
+    let half = idx.len() / 6 * 3;
+    let mut second = idx.split_off(half);
+    second[4] = second[3];
+    (v, idx, second)
+}
+
+#[test]
+fn paired_fast_build_matches_brute_force_and_is_deterministic() {
+    let cells = 72; // 10,368 triangles: above the pairing threshold
+    for flags in [BuildFlags::PREFER_FAST_BUILD, BuildFlags::PREFER_FAST_BUILD | BuildFlags::ALLOW_UPDATE] {
+        let (v, i0, i1) = paired_grid(cells, 0.0);
+        let (vb, b0, b1) = (f32_bytes(&v), u32_bytes(&i0), u32_bytes(&i1));
+        let geoms = [tri_geom(&vb, v.len() as u32, &b0, (i0.len() / 3) as u32, GeometryFlags::OPAQUE), tri_geom(&vb, v.len() as u32, &b1, (i1.len() / 3) as u32, 0)];
+        let blas = build_ok(AsType::BottomLevel, flags, &geoms, &NoDevice);
+        let pairs = builder::LAST_BUILD_PAIRS.with(|c| c.get()).expect("the grid builds over pairs");
+        let prims = header(&blas).unwrap().primitive_count as usize;
+        assert_eq!(prims, (i0.len() + i1.len()) / 3 - 1);
+        assert!(pairs * 10 < prims * 6, "{pairs} pairs of {prims}");
+        validate(&blas).unwrap();
+        // Independent reference: every triangle of both geometries, tested one by one.
+        let tris: Vec<(u32, u32, [Vec3; 3])> = [&i0, &i1]
+            .iter()
+            .enumerate()
+            .flat_map(|(g, idx)| idx.chunks_exact(3).enumerate().filter(|(_, t)| t[0] != t[1]).map(move |(p, t)| (g as u32, p as u32, t)))
+            .map(|(g, p, t)| (g, p, [v[t[0] as usize], v[t[1] as usize], v[t[2] as usize]]))
+            .collect();
+        let check = |blas: &[u8], tris: &[(u32, u32, [Vec3; 3])], seed: u64| {
+            let mut rng = Rng::new(seed);
+            for k in 0..400 {
+                let origin = Vec3::new(rng.range(-5.0, cells as f32 + 5.0), rng.range(6.0, 12.0), rng.range(-5.0, cells as f32 + 5.0));
+                let target = Vec3::new(rng.range(0.0, cells as f32), rng.range(-3.0, 3.0), rng.range(0.0, cells as f32));
+                let ray = Ray { origin, direction: target - origin, tmin: 0.0, tmax: if k % 5 == 0 { 0.5 } else { f32::INFINITY } };
+                let mut best: Option<(f32, u32, u32)> = None;
+                let mut all: Vec<(u32, u32)> = Vec::new();
+                let mut r = ray;
+                for &(g, p, t) in tris {
+                    if intersect_triangle(&ray, t[0], t[1], t[2]).is_some() {
+                        all.push((g, p));
+                    }
+                    if let Some((tt, ..)) = intersect_triangle(&r, t[0], t[1], t[2]) {
+                        best = Some((tt, g, p));
+                        r.tmax = tt;
+                    }
+                }
+                let hit = closest_hit(blas, &NoDevice, ray, RayFlags(0), 0xff);
+                assert_eq!(hit.map(|h| h.t), best.map(|b| b.0), "ray {k}");
+                if let (Some(h), Some(b)) = (hit, best) {
+                    // Ties in t may pick either primitive; the named one must be hit at that t.
+                    let &(_, _, t) = tris.iter().find(|x| x.0 == h.geometry_index && x.1 == h.primitive_index).expect("a real primitive");
+                    assert_eq!(intersect_triangle(&ray, t[0], t[1], t[2]).map(|x| x.0), Some(b.0), "ray {k}");
+                }
+                let mut got: Vec<(u32, u32)> = all_hits(blas, &NoDevice, ray, RayFlags(0), 0xff).iter().map(|h| (h.geometry_index, h.primitive_index)).collect();
+                got.sort_unstable();
+                all.sort_unstable();
+                assert_eq!(got, all, "ray {k}");
+            }
+        };
+        check(&blas, &tris, 7);
+        // The same bytes on any thread count.
+        let used = header(&blas).unwrap().used_size as usize;
+        for threads in [1, 3, 8] {
+            let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
+            let again = pool.install(|| build_ok(AsType::BottomLevel, flags, &geoms, &NoDevice));
+            assert!(again[..used] == blas[..used], "flags {flags}, {threads} threads");
+        }
+        if flags & BuildFlags::ALLOW_UPDATE != 0 {
+            // A refit of the paired structure follows the moved vertices.
+            let (v2, ..) = paired_grid(cells, 1.3);
+            let vb2 = f32_bytes(&v2);
+            let g2 = [tri_geom(&vb2, v2.len() as u32, &b0, (i0.len() / 3) as u32, GeometryFlags::OPAQUE), tri_geom(&vb2, v2.len() as u32, &b1, (i1.len() / 3) as u32, 0)];
+            let shapes: Vec<_> = g2.iter().map(shape_of).collect();
+            let counts: Vec<u32> = g2.iter().map(|g| g.primitive_count).collect();
+            let sz = build_sizes(AsType::BottomLevel, BuildFlags(flags), &shapes, &counts);
+            let mut scratch = vec![0u8; sz.update_scratch_size as usize];
+            let desc = BuildDesc { ty: AsType::BottomLevel, flags: BuildFlags(flags), geometries: &g2 };
+            let mut dst = vec![0u8; blas.len()];
+            update(&desc, &NoDevice, Some(&blas), &mut dst, &mut scratch).unwrap();
+            validate(&dst).unwrap();
+            let tris2: Vec<(u32, u32, [Vec3; 3])> = tris.iter().map(|&(g, p, _)| {
+                let idx = if g == 0 { &i0 } else { &i1 };
+                let t = &idx[3 * p as usize..3 * p as usize + 3];
+                (g, p, [v2[t[0] as usize], v2[t[1] as usize], v2[t[2] as usize]])
+            }).collect();
+            check(&dst, &tris2, 8);
+        }
+    }
+    // Below the threshold nothing pairs (the bunny's tree is unchanged by pairing).
+    let (v, i0, _) = paired_grid(40, 0.0);
+    let (vb, b0) = (f32_bytes(&v), u32_bytes(&i0));
+    let g = tri_geom(&vb, v.len() as u32, &b0, (i0.len() / 3) as u32, 0);
+    build_ok(AsType::BottomLevel, BuildFlags::PREFER_FAST_BUILD, &[g], &NoDevice);
+    assert_eq!(builder::LAST_BUILD_PAIRS.with(|c| c.get()), None);
+}
