@@ -2295,7 +2295,7 @@ pub fn build(desc: &BuildDesc, view: &dyn DeviceView, dst: &mut [u8], scratch: &
             // A leaf holds up to max_leaf primitives, so half as many pairs; C_T scaled by the
             // references per primitive keeps the leaf/split balance of the unpaired tier.
             let mut q = params;
-            q.max_leaf = (params.max_leaf / 2).max(1);
+            q.max_leaf = (params.max_leaf / pairs::MAX_CLUSTER).max(1);
             q.traversal_cost = (params.traversal_cost * m as f32 / active as f32).max(1.0);
             (m, cb, q)
         }
