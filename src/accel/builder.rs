@@ -251,6 +251,9 @@ pub struct BuildParams {
     pub parallel_cutoff: u32,
     /// Nodes of at least PAR_BIN_CUTOFF references bin a strided sample of about this many.
     pub sample_target: usize,
+    /// Neighbouring primitives pair up before the build when their union's half area is at
+    /// most this many times the sum of theirs (`pairs`); 0: no pairing.
+    pub pair_tau: f32,
 }
 pub const MAX_BINS: usize = 32;
 /// Depth after which splits become balanced object-median splits: bounds recursion depth
@@ -274,13 +277,13 @@ const BIN_CHUNK: usize = 1 << 14;
 impl BuildParams {
     pub fn from_flags(flags: BuildFlags) -> Self {
         if flags.contains(BuildFlags::PREFER_FAST_TRACE) {
-            BuildParams { bins: 32, single_axis: false, traversal_cost: 1.0, max_leaf: 8, small_n: SMALL_N, parallel_cutoff: 1024, sample_target: 2 * SAMPLE_TARGET }
+            BuildParams { bins: 32, single_axis: false, traversal_cost: 1.0, max_leaf: 8, small_n: SMALL_N, parallel_cutoff: 1024, sample_target: 2 * SAMPLE_TARGET, pair_tau: 0.0 }
         } else if flags.contains(BuildFlags::PREFER_FAST_BUILD) {
             // 12 bins, not 8: over node boxes (see `build_rec`) 8 bins gave SAH 54.59 on the
             // dragon, 12 give 53.71 at the same speed.
-            BuildParams { bins: 12, single_axis: true, traversal_cost: 2.5, max_leaf: 8, small_n: SMALL_N, parallel_cutoff: 1024, sample_target: SAMPLE_TARGET }
+            BuildParams { bins: 12, single_axis: true, traversal_cost: 2.5, max_leaf: 8, small_n: SMALL_N, parallel_cutoff: 1024, sample_target: SAMPLE_TARGET, pair_tau: pairs::FAST_BUILD_TAU }
         } else {
-            BuildParams { bins: 16, single_axis: false, traversal_cost: 1.0, max_leaf: 8, small_n: SMALL_N, parallel_cutoff: 1024, sample_target: 2 * SAMPLE_TARGET }
+            BuildParams { bins: 16, single_axis: false, traversal_cost: 1.0, max_leaf: 8, small_n: SMALL_N, parallel_cutoff: 1024, sample_target: 2 * SAMPLE_TARGET, pair_tau: pairs::DEFAULT_TAU }
         }
     }
 }
@@ -2210,14 +2213,14 @@ pub fn zero_gaps(dst: &mut [u8], filled: &[(u64, u64)], end: u64) {
 /// Returns the pair count and the pairs' centroid box; None, with `refs` untouched, when the
 /// input pairs poorly (`pairs::worth_pairing`), merges nothing, or leaves no room for the
 /// prefix of primitives per pair (m + 1 words) after the tree's 2m - 1 node slots.
-fn pair_up(refs: &mut [PrimRef], nodes: &mut [BinNode]) -> Option<(usize, Aabb)> {
+fn pair_up(refs: &mut [PrimRef], nodes: &mut [BinNode], tau: f32) -> Option<(usize, Aabb)> {
     let n = refs.len();
     let room = nodes.len() * std::mem::size_of::<BinNode>();
-    if !pairs::worth_pairing(refs) {
+    if !pairs::worth_pairing(refs, tau) {
         return None;
     }
     let staged = node_refs_mut(nodes, n)?;
-    let (m, counts) = pairs::pair_refs(refs, staged);
+    let (m, counts) = pairs::pair_refs(refs, staged, tau);
     if m == 0 || m >= n || (2 * m - 1) * std::mem::size_of::<BinNode>() + 4 * (m + 1) > room {
         return None;
     }
@@ -2283,11 +2286,12 @@ pub fn build(desc: &BuildDesc, view: &dyn DeviceView, dst: &mut [u8], scratch: &
 
     let params = BuildParams::from_flags(desc.flags);
     let threads = rayon::current_num_threads().max(1);
-    // The fast-build tier builds over primitive pairs (`pairs`) where it can: staged BLAS
-    // builds of at least PAIR_MIN primitives over at most MAX_PAIR_GEOMETRIES geometries, when
-    // pairing merges enough references for the per-reference prefix to fit beside the tree.
-    let pairing = staged && params.single_axis && active >= pairs::PAIR_MIN && desc.geometries.len() <= pairs::MAX_PAIR_GEOMETRIES;
-    let paired = if pairing { pair_up(refs, nodes) } else { None };
+    // The fast-build and default tiers build over primitive pairs (`pairs`) where they can:
+    // staged BLAS builds of at least PAIR_MIN primitives over at most MAX_PAIR_GEOMETRIES
+    // geometries, when pairing merges enough references for the per-reference prefix to fit
+    // beside the tree.
+    let pairing = staged && params.pair_tau > 0.0 && active >= pairs::PAIR_MIN && desc.geometries.len() <= pairs::MAX_PAIR_GEOMETRIES;
+    let paired = if pairing { pair_up(refs, nodes, params.pair_tau) } else { None };
     #[cfg(test)]
     LAST_BUILD_PAIRS.with(|c| c.set(paired.map(|p| p.0)));
     let (built, root_cb, bparams) = match paired {

@@ -1,4 +1,4 @@
-//! Primitive pairing for the fast-build tier: after ingest, neighbours in input order (global
+//! Primitive pairing for the fast-build and default tiers: after ingest, neighbours in input order (global
 //! IDs that follow each other) whose union is tight become one two-primitive reference, and the
 //! binned builder runs over the pairs (dragon: about 658,700 references instead of 871,306, the
 //! same SAH). A pair reference keeps the first primitive's global ID in `PrimRef::prim` and its
@@ -23,32 +23,35 @@ pub const PAIR_MIN: usize = 8192;
 /// Geometries a paired build may have: the geometry of a primitive comes from its global ID
 /// through a table of first IDs kept on the stack.
 pub const MAX_PAIR_GEOMETRIES: usize = 64;
-/// Two neighbours pair when the half area of their union is at most this many times the sum
-/// of their half areas. Dragon FAST_BUILD, one thread, this repository's 2-vCPU box (build
-/// minimum; SAH; references): unpaired 117 ms, 53.75, 871,306; 0.8 → 114.0 ms, 53.15,
-/// 698,306; 0.9 → 111.6 ms, 53.74, 658,694; 1.0 → 108.3 ms, 54.35, 634,116; 1.1 → 105.9 ms,
-/// 55.02, 604,375. 0.9 keeps the tier's SAH. (The default and fast-trace tiers lose 1.6 % SAH
-/// at 0.9 and 0.2–0.3 % at 0.7, so they do not pair.)
-pub const PAIR_TAU: f32 = 0.9;
+/// Two neighbours pair when the half area of their union is at most `tau` times the sum of
+/// their half areas (`BuildParams::pair_tau`, per tier). Dragon FAST_BUILD, one thread, this
+/// repository's 2-vCPU box (build minimum; SAH; references): unpaired 117 ms, 53.75, 871,306;
+/// 0.8 → 114.0 ms, 53.15, 698,306; 0.9 → 111.6 ms, 53.74, 658,694; 1.0 → 108.3 ms, 54.35,
+/// 634,116; 1.1 → 105.9 ms, 55.02, 604,375: 0.9 keeps the tier's SAH. The default tier (16
+/// bins on three axes): unpaired 197–198 ms, 49.11; 0.6 pairs too few to pass
+/// `worth_pairing`; 0.7 → 185.4–185.7 ms, 49.19, 59.4 B/tri (60.6); 0.8 → 174–177 ms, 49.40.
+/// FAST_TRACE loses 0.3 % at 0.7 (48.97, over its 48.9) and does not pair.
+pub const FAST_BUILD_TAU: f32 = 0.9;
+pub const DEFAULT_TAU: f32 = 0.7;
 /// Pairing runs in at most this many fixed chunks of the input order, of at least
 /// PAIR_CHUNK_MIN references (pairs never cross a chunk).
 const PAIR_CHUNKS: usize = 64;
 const PAIR_CHUNK_MIN: usize = 4096;
 /// Whether references `a` and `b` are worth one leaf entry: the half area of their union is
-/// at most PAIR_TAU times the sum of theirs.
+/// at most `tau` times the sum of theirs.
 #[inline(always)]
-fn tight(a: &PrimRef, b: &PrimRef) -> bool {
+fn tight(a: &PrimRef, b: &PrimRef, tau: f32) -> bool {
     let (alo, ahi, blo, bhi) = (ref_lo(a), ref_hi(a), ref_lo(b), ref_hi(b));
-    half_area_v(alo.min(blo), ahi.max(bhi)) <= PAIR_TAU * (half_area_v(alo, ahi) + half_area_v(blo, bhi))
+    half_area_v(alo.min(blo), ahi.max(bhi)) <= tau * (half_area_v(alo, ahi) + half_area_v(blo, bhi))
 }
 
 /// Clusters one chunk `src` into `dst`: greedily, a cluster takes the next reference while
 /// it is `tight` with the last one, its global ID follows, the cluster has fewer than
-/// MAX_CLUSTER primitives and the union stays within PAIR_TAU times the sum of the members'
+/// MAX_CLUSTER primitives and the union stays within `tau` times the sum of the members'
 /// half areas. The neighbour tests of a block run first, independently. A cluster: the union
 /// box, `prim` = the first primitive's global ID, `geom` = how many (their IDs follow).
 /// Returns how many were written.
-fn pair_chunk(src: &[PrimRef], dst: &mut [PrimRef]) -> usize {
+fn pair_chunk(src: &[PrimRef], dst: &mut [PrimRef], tau: f32) -> usize {
     const BLOCK: usize = 256;
     let n = src.len();
     let mut flags = [false; BLOCK];
@@ -56,7 +59,7 @@ fn pair_chunk(src: &[PrimRef], dst: &mut [PrimRef]) -> usize {
     while base < n {
         let end = (base + BLOCK).min(n);
         for (j, f) in (base..end).zip(flags.iter_mut()) {
-            *f = src.get(j + 1).is_some_and(|b| b.prim == src[j].prim.wrapping_add(1) && tight(&src[j], b));
+            *f = src.get(j + 1).is_some_and(|b| b.prim == src[j].prim.wrapping_add(1) && tight(&src[j], b, tau));
         }
         while i < end {
             let a = &src[i];
@@ -66,7 +69,7 @@ fn pair_chunk(src: &[PrimRef], dst: &mut [PrimRef]) -> usize {
             let mut j = i;
             while count < MAX_CLUSTER && j + 1 < n {
                 // Flags beyond this block are computed on the fly.
-                let linked = if j < end { flags[(j - base) & (BLOCK - 1)] } else { src[j + 1].prim == src[j].prim.wrapping_add(1) && tight(&src[j], &src[j + 1]) };
+                let linked = if j < end { flags[(j - base) & (BLOCK - 1)] } else { src[j + 1].prim == src[j].prim.wrapping_add(1) && tight(&src[j], &src[j + 1], tau) };
                 if !linked {
                     break;
                 }
@@ -74,7 +77,7 @@ fn pair_chunk(src: &[PrimRef], dst: &mut [PrimRef]) -> usize {
                 let (blo, bhi) = (ref_lo(b), ref_hi(b));
                 let (ulo, uhi) = (lo.min(blo), hi.max(bhi));
                 let bsum = sum + half_area_v(blo, bhi);
-                if half_area_v(ulo, uhi) > PAIR_TAU * bsum {
+                if half_area_v(ulo, uhi) > tau * bsum {
                     break;
                 }
                 (lo, hi, sum) = (ulo, uhi, bsum);
@@ -95,7 +98,7 @@ fn pair_chunk(src: &[PrimRef], dst: &mut [PrimRef]) -> usize {
 /// Whether pairing `refs` is likely to pay: at least one in PAIR_WORTH of SAMPLE evenly spaced
 /// neighbours is `tight` (a random soup pairs almost nothing, and would pay the passes for
 /// nothing).
-pub fn worth_pairing(refs: &[PrimRef]) -> bool {
+pub fn worth_pairing(refs: &[PrimRef], tau: f32) -> bool {
     const SAMPLE: usize = 1024;
     const PAIR_WORTH: usize = 8;
     let n = refs.len();
@@ -107,7 +110,7 @@ pub fn worth_pairing(refs: &[PrimRef]) -> bool {
     let mut i = 0;
     while i + 1 < n {
         tested += 1;
-        hits += tight(&refs[i], &refs[i + 1]) as usize;
+        hits += tight(&refs[i], &refs[i + 1], tau) as usize;
         i += step;
     }
     hits * PAIR_WORTH >= tested
@@ -116,10 +119,10 @@ pub fn worth_pairing(refs: &[PrimRef]) -> bool {
 /// Pairs `refs` (input order) in fixed chunks (pairs never cross one), each chunk's pairs
 /// written at the start of its own range of `staged`. Returns the pair count and the count
 /// per chunk (`place_pairs` moves them into place).
-pub fn pair_refs(refs: &[PrimRef], staged: &mut [PrimRef]) -> (usize, [usize; PAIR_CHUNKS]) {
+pub fn pair_refs(refs: &[PrimRef], staged: &mut [PrimRef], tau: f32) -> (usize, [usize; PAIR_CHUNKS]) {
     let chunk = refs.len().div_ceil(PAIR_CHUNKS).max(PAIR_CHUNK_MIN);
     let mut counts = [0usize; PAIR_CHUNKS];
-    staged.par_chunks_mut(chunk).zip(refs.par_chunks(chunk)).zip(counts.par_iter_mut()).for_each(|((s, r), c)| *c = pair_chunk(r, s));
+    staged.par_chunks_mut(chunk).zip(refs.par_chunks(chunk)).zip(counts.par_iter_mut()).for_each(|((s, r), c)| *c = pair_chunk(r, s, tau));
     (counts.iter().sum(), counts)
 }
 
@@ -253,7 +256,7 @@ mod tests {
         // Touching unit boxes pair (union 1x2 against two 1x1); far ones stay single.
         let refs = vec![r(0.0, 10), r(1.0, 11), r(50.0, 12), r(51.0, 13), r(200.0, 14), r(90.0, 15), r(91.0, 17)];
         let mut staged = vec![PrimRef { lo: [0.0; 3], geom: 0, hi: [0.0; 3], prim: 0 }; refs.len()];
-        let (m, counts) = pair_refs(&refs, &mut staged);
+        let (m, counts) = pair_refs(&refs, &mut staged, FAST_BUILD_TAU);
         let mut out = vec![PrimRef { lo: [0.0; 3], geom: 0, hi: [0.0; 3], prim: 0 }; m];
         let cb = place_pairs(&staged, &counts, &mut out);
         let ids: Vec<(u32, u32)> = out.iter().map(|p| (p.prim, p.geom)).collect();

@@ -1398,9 +1398,9 @@ fn paired_grid(cells: u32, phase: f32) -> (Vec<Vec3>, Vec<u32>, Vec<u32>) {
 }
 
 #[test]
-fn paired_fast_build_matches_brute_force_and_is_deterministic() {
+fn paired_builds_match_brute_force_and_are_deterministic() {
     let cells = 72; // 10,368 triangles: above the pairing threshold
-    for flags in [BuildFlags::PREFER_FAST_BUILD, BuildFlags::PREFER_FAST_BUILD | BuildFlags::ALLOW_UPDATE] {
+    for flags in [BuildFlags::PREFER_FAST_BUILD, BuildFlags::PREFER_FAST_BUILD | BuildFlags::ALLOW_UPDATE, 0] {
         let (v, i0, i1) = paired_grid(cells, 0.0);
         let (vb, b0, b1) = (f32_bytes(&v), u32_bytes(&i0), u32_bytes(&i1));
         let geoms = [tri_geom(&vb, v.len() as u32, &b0, (i0.len() / 3) as u32, GeometryFlags::OPAQUE), tri_geom(&vb, v.len() as u32, &b1, (i1.len() / 3) as u32, 0)];
@@ -1477,10 +1477,16 @@ fn paired_fast_build_matches_brute_force_and_is_deterministic() {
             check(&dst, &tris2, 8);
         }
     }
-    // Below the threshold nothing pairs (the bunny's tree is unchanged by pairing).
+    // Below the threshold nothing pairs (the bunny's tree is unchanged by pairing), nor does the
+    // fast-trace tier.
     let (v, i0, _) = paired_grid(40, 0.0);
     let (vb, b0) = (f32_bytes(&v), u32_bytes(&i0));
     let g = tri_geom(&vb, v.len() as u32, &b0, (i0.len() / 3) as u32, 0);
     build_ok(AsType::BottomLevel, BuildFlags::PREFER_FAST_BUILD, &[g], &NoDevice);
+    assert_eq!(builder::LAST_BUILD_PAIRS.with(|c| c.get()), None);
+    let (v, i0, _) = paired_grid(cells, 0.0);
+    let (vb, b0) = (f32_bytes(&v), u32_bytes(&i0));
+    let g = tri_geom(&vb, v.len() as u32, &b0, (i0.len() / 3) as u32, 0);
+    build_ok(AsType::BottomLevel, BuildFlags::PREFER_FAST_TRACE, &[g], &NoDevice);
     assert_eq!(builder::LAST_BUILD_PAIRS.with(|c| c.get()), None);
 }
