@@ -119,101 +119,104 @@ fn device_build_of_the_bunny_traverses_like_brute_force() {
 
 /// The same build through every path: device, indirect (records written by vkCmdUpdateBuffer
 /// earlier in the same command buffer), host, and host under a deferred operation joined by
-/// 1, 2 and 8 threads — byte-identical serializations.
+/// 1, 2 and 8 threads — byte-identical serializations, for FAST_TRACE and FAST_BUILD.
 #[test]
 fn host_device_indirect_and_deferred_builds_are_byte_identical() {
     let ctx = as_context();
     let a = Accel::new(&ctx);
     let mesh = arbor::scene::load(concat!(env!("CARGO_MANIFEST_DIR"), "/data/dragon_vrip_res4.ply.gz")).unwrap();
     let m = upload_mesh(&a, &mesh);
-    let flags = vk::BuildAccelerationStructureFlagsKHR::PREFER_FAST_TRACE | vk::BuildAccelerationStructureFlagsKHR::ALLOW_COMPACTION;
-    let device = a.serialize(device_blas(&a, &m, flags));
+    // FAST_TRACE, and FAST_BUILD (built over primitive pairs: res4 has 11,102 triangles).
+    for tier in [vk::BuildAccelerationStructureFlagsKHR::PREFER_FAST_TRACE, vk::BuildAccelerationStructureFlagsKHR::PREFER_FAST_BUILD] {
+        let flags = tier | vk::BuildAccelerationStructureFlagsKHR::ALLOW_COMPACTION;
+        let device = a.serialize(device_blas(&a, &m, flags));
 
-    // Indirect: the range record is written by vkCmdUpdateBuffer in the same command buffer.
-    let geoms = [triangles(a.buf(m.vertices).address, a.buf(m.indices).address, m.max_vertex)];
-    let info = blas_info(&geoms, flags);
-    let sizes = a.sizes(vk::AccelerationStructureBuildTypeKHR::DEVICE, &info, &[m.count]);
-    let (s, _) = a.structure(vk::AccelerationStructureTypeKHR::BOTTOM_LEVEL, sizes.acceleration_structure_size);
-    let scratch = a.buffer(sizes.build_scratch_size);
-    let records = a.buffer(64);
-    let info = info.dst_acceleration_structure(s).scratch_data(vk::DeviceOrHostAddressKHR { device_address: a.buf(scratch).address });
-    let mut record = [0u8; 16];
-    record[..4].copy_from_slice(&m.count.to_le_bytes());
-    let (rb, raddr) = (a.buf(records).buffer, a.buf(records).address);
-    a.submit(|cb| {
-        // SAFETY: recording command buffer; valid buffers and infos.
-        unsafe {
-            ctx.device.cmd_update_buffer(cb, rb, 16, &record);
-            let barrier = vk::MemoryBarrier::default()
-                .src_access_mask(vk::AccessFlags::TRANSFER_WRITE)
-                .dst_access_mask(vk::AccessFlags::INDIRECT_COMMAND_READ);
-            ctx.device.cmd_pipeline_barrier(
-                cb,
-                vk::PipelineStageFlags::TRANSFER,
-                vk::PipelineStageFlags::ACCELERATION_STRUCTURE_BUILD_KHR,
-                vk::DependencyFlags::empty(),
-                &[barrier],
-                &[],
-                &[],
-            );
-            a.ext.cmd_build_acceleration_structures_indirect(cb, &[info], &[raddr + 16], &[16], &[&[m.count]]);
-        }
-    });
-    let indirect = a.serialize(s);
-    assert_eq!(device, indirect, "indirect build differs from the device build");
-
-    // Host builds: inputs by host pointer.
-    let vbytes = mesh.vertex_bytes();
-    let ibytes = mesh.index_bytes();
-    let host_build = |deferred: Option<usize>| -> Vec<u8> {
-        let geoms = [triangles(vbytes.as_ptr() as u64, ibytes.as_ptr() as u64, m.max_vertex)];
+        // Indirect: the range record is written by vkCmdUpdateBuffer in the same command buffer.
+        let geoms = [triangles(a.buf(m.vertices).address, a.buf(m.indices).address, m.max_vertex)];
         let info = blas_info(&geoms, flags);
-        let sizes = a.sizes(vk::AccelerationStructureBuildTypeKHR::HOST, &info, &[m.count]);
+        let sizes = a.sizes(vk::AccelerationStructureBuildTypeKHR::DEVICE, &info, &[m.count]);
         let (s, _) = a.structure(vk::AccelerationStructureTypeKHR::BOTTOM_LEVEL, sizes.acceleration_structure_size);
-        let mut scratch = vec![0u8; sizes.build_scratch_size as usize];
-        let info = info.dst_acceleration_structure(s).scratch_data(vk::DeviceOrHostAddressKHR { host_address: scratch.as_mut_ptr().cast() });
-        let range = [vk::AccelerationStructureBuildRangeInfoKHR::default().primitive_count(m.count)];
-        // SAFETY: valid infos; host memory outlives the build (joined below before returning).
-        unsafe {
-            match deferred {
-                None => a.ext.build_acceleration_structures(vk::DeferredOperationKHR::null(), &[info], &[&range]).unwrap(),
-                Some(joiners) => {
-                    let op = a.deferred.create_deferred_operation(None).unwrap();
-                    let r = (a.ext.fp().build_acceleration_structures_khr)(ctx.device.handle(), op, 1, &info, [range.as_ptr()].as_ptr());
-                    assert!(r == vk::Result::OPERATION_DEFERRED_KHR || r == vk::Result::OPERATION_NOT_DEFERRED_KHR, "{r:?}");
-                    if r == vk::Result::OPERATION_DEFERRED_KHR {
-                        assert_eq!(a.deferred.get_deferred_operation_result(op), Err(vk::Result::NOT_READY));
-                        assert!(a.deferred.get_deferred_operation_max_concurrency(op) >= 1);
-                        let dev = ctx.device.handle();
-                        let join = a.deferred.fp().deferred_operation_join_khr;
-                        let op_raw = vk::Handle::as_raw(op);
-                        let results: Vec<vk::Result> = std::thread::scope(|sc| {
-                            let hs: Vec<_> = (0..joiners)
-                                .map(|_| sc.spawn(move || loop {
-                                    let op = <vk::DeferredOperationKHR as vk::Handle>::from_raw(op_raw);
-                                    let r = join(dev, op);
-                                    if r != vk::Result::THREAD_IDLE_KHR {
-                                        break r;
-                                    }
-                                }))
-                                .collect();
-                            hs.into_iter().map(|h| h.join().unwrap()).collect()
-                        });
-                        assert!(results.contains(&vk::Result::SUCCESS), "no joiner saw completion: {results:?}");
-                        assert!(results.iter().all(|r| *r == vk::Result::SUCCESS || *r == vk::Result::THREAD_DONE_KHR), "{results:?}");
+        let scratch = a.buffer(sizes.build_scratch_size);
+        let records = a.buffer(64);
+        let info = info.dst_acceleration_structure(s).scratch_data(vk::DeviceOrHostAddressKHR { device_address: a.buf(scratch).address });
+        let mut record = [0u8; 16];
+        record[..4].copy_from_slice(&m.count.to_le_bytes());
+        let (rb, raddr) = (a.buf(records).buffer, a.buf(records).address);
+        a.submit(|cb| {
+            // SAFETY: recording command buffer; valid buffers and infos.
+            unsafe {
+                ctx.device.cmd_update_buffer(cb, rb, 16, &record);
+                let barrier = vk::MemoryBarrier::default()
+                    .src_access_mask(vk::AccessFlags::TRANSFER_WRITE)
+                    .dst_access_mask(vk::AccessFlags::INDIRECT_COMMAND_READ);
+                ctx.device.cmd_pipeline_barrier(
+                    cb,
+                    vk::PipelineStageFlags::TRANSFER,
+                    vk::PipelineStageFlags::ACCELERATION_STRUCTURE_BUILD_KHR,
+                    vk::DependencyFlags::empty(),
+                    &[barrier],
+                    &[],
+                    &[],
+                );
+                a.ext.cmd_build_acceleration_structures_indirect(cb, &[info], &[raddr + 16], &[16], &[&[m.count]]);
+            }
+        });
+        let indirect = a.serialize(s);
+        assert_eq!(device, indirect, "indirect build differs from the device build ({flags:?})");
+
+        // Host builds: inputs by host pointer.
+        let vbytes = mesh.vertex_bytes();
+        let ibytes = mesh.index_bytes();
+        let host_build = |deferred: Option<usize>| -> Vec<u8> {
+            let geoms = [triangles(vbytes.as_ptr() as u64, ibytes.as_ptr() as u64, m.max_vertex)];
+            let info = blas_info(&geoms, flags);
+            let sizes = a.sizes(vk::AccelerationStructureBuildTypeKHR::HOST, &info, &[m.count]);
+            let (s, _) = a.structure(vk::AccelerationStructureTypeKHR::BOTTOM_LEVEL, sizes.acceleration_structure_size);
+            let mut scratch = vec![0u8; sizes.build_scratch_size as usize];
+            let info = info.dst_acceleration_structure(s).scratch_data(vk::DeviceOrHostAddressKHR { host_address: scratch.as_mut_ptr().cast() });
+            let range = [vk::AccelerationStructureBuildRangeInfoKHR::default().primitive_count(m.count)];
+            // SAFETY: valid infos; host memory outlives the build (joined below before returning).
+            unsafe {
+                match deferred {
+                    None => a.ext.build_acceleration_structures(vk::DeferredOperationKHR::null(), &[info], &[&range]).unwrap(),
+                    Some(joiners) => {
+                        let op = a.deferred.create_deferred_operation(None).unwrap();
+                        let r = (a.ext.fp().build_acceleration_structures_khr)(ctx.device.handle(), op, 1, &info, [range.as_ptr()].as_ptr());
+                        assert!(r == vk::Result::OPERATION_DEFERRED_KHR || r == vk::Result::OPERATION_NOT_DEFERRED_KHR, "{r:?}");
+                        if r == vk::Result::OPERATION_DEFERRED_KHR {
+                            assert_eq!(a.deferred.get_deferred_operation_result(op), Err(vk::Result::NOT_READY));
+                            assert!(a.deferred.get_deferred_operation_max_concurrency(op) >= 1);
+                            let dev = ctx.device.handle();
+                            let join = a.deferred.fp().deferred_operation_join_khr;
+                            let op_raw = vk::Handle::as_raw(op);
+                            let results: Vec<vk::Result> = std::thread::scope(|sc| {
+                                let hs: Vec<_> = (0..joiners)
+                                    .map(|_| sc.spawn(move || loop {
+                                        let op = <vk::DeferredOperationKHR as vk::Handle>::from_raw(op_raw);
+                                        let r = join(dev, op);
+                                        if r != vk::Result::THREAD_IDLE_KHR {
+                                            break r;
+                                        }
+                                    }))
+                                    .collect();
+                                hs.into_iter().map(|h| h.join().unwrap()).collect()
+                            });
+                            assert!(results.contains(&vk::Result::SUCCESS), "no joiner saw completion: {results:?}");
+                            assert!(results.iter().all(|r| *r == vk::Result::SUCCESS || *r == vk::Result::THREAD_DONE_KHR), "{results:?}");
+                        }
+                        assert_eq!(a.deferred.get_deferred_operation_result(op), Ok(()));
+                        assert_eq!(a.deferred.get_deferred_operation_max_concurrency(op), 0);
+                        a.deferred.destroy_deferred_operation(op, None);
                     }
-                    assert_eq!(a.deferred.get_deferred_operation_result(op), Ok(()));
-                    assert_eq!(a.deferred.get_deferred_operation_max_concurrency(op), 0);
-                    a.deferred.destroy_deferred_operation(op, None);
                 }
             }
+            drop(scratch);
+            a.serialize(s)
+        };
+        assert_eq!(device, host_build(None), "host build differs from the device build ({flags:?})");
+        for joiners in [1, 2, 8] {
+            assert_eq!(device, host_build(Some(joiners)), "deferred host build joined by {joiners} threads differs ({flags:?})");
         }
-        drop(scratch);
-        a.serialize(s)
-    };
-    assert_eq!(device, host_build(None), "host build differs from the device build");
-    for joiners in [1, 2, 8] {
-        assert_eq!(device, host_build(Some(joiners)), "deferred host build joined by {joiners} threads differs");
     }
     a.destroy();
     ctx.finish();
