@@ -1850,14 +1850,17 @@ fn first_err(a: Result<ChunkSum, (u64, BuildError)>, b: Result<ChunkSum, (u64, B
 /// arithmetic as `bounds_of`; min/max do not depend on order).
 #[derive(Clone, Copy)]
 struct ChunkSum {
+    /// Reference slots freed (dropped primitives, and the second primitives of pairs).
     dropped: usize,
+    /// Primitives dropped.
+    lost: usize,
     lo: Vec3A,
     hi: Vec3A,
     clo: Vec3A,
     chi: Vec3A,
 }
 impl ChunkSum {
-    const EMPTY: ChunkSum = ChunkSum { dropped: 0, lo: Vec3A::INFINITY, hi: Vec3A::NEG_INFINITY, clo: Vec3A::INFINITY, chi: Vec3A::NEG_INFINITY };
+    const EMPTY: ChunkSum = ChunkSum { dropped: 0, lost: 0, lo: Vec3A::INFINITY, hi: Vec3A::NEG_INFINITY, clo: Vec3A::INFINITY, chi: Vec3A::NEG_INFINITY };
     #[inline(always)]
     fn add(&mut self, lo: Vec3A, hi: Vec3A) {
         let c = lo * 0.5 + hi * 0.5;
@@ -1867,7 +1870,7 @@ impl ChunkSum {
         self.chi = self.chi.max(c);
     }
     fn join(&self, o: &ChunkSum) -> ChunkSum {
-        ChunkSum { dropped: self.dropped + o.dropped, lo: self.lo.min(o.lo), hi: self.hi.max(o.hi), clo: self.clo.min(o.clo), chi: self.chi.max(o.chi) }
+        ChunkSum { dropped: self.dropped + o.dropped, lost: self.lost + o.lost, lo: self.lo.min(o.lo), hi: self.hi.max(o.hi), clo: self.clo.min(o.clo), chi: self.chi.max(o.chi) }
     }
 }
 
@@ -1881,12 +1884,17 @@ const INGEST_CHUNK_INSTANCES: usize = 256;
 pub const STAGE_SIZE: usize = 40;
 
 /// Fills `refs[..total]` (slot = global primitive ID), then compacts active ones to the front
-/// in order; returns the active count. With `stage`, the primitive data is also written there
-/// at the global ID (one sequential pass over the input) and `PrimRef::prim` holds the global
-/// ID until `gather_leaf_data` puts data and records in leaf order. Also returns the box and
-/// centroid box of the active references.
-fn ingest(desc: &BuildDesc, view: &dyn DeviceView, refs: &mut [PrimRef], mut stage: Option<&mut [u8]>, temp: &mut [PrimRef]) -> Result<(usize, Aabb, Aabb), BuildError> {
+/// in order. With `stage`, the primitive data is also written there at the global ID (one
+/// sequential pass over the input) and `PrimRef::prim` holds the global ID until
+/// `gather_leaf_data` puts data and records in leaf order. With `pair_tau` > 0 (staged builds
+/// only) each chunk is paired in place while in cache (`pairs::pair_in_place`), so the
+/// references are pairs. Writes each geometry's record (with its active count) into `geo`
+/// (the geometry table) and returns the reference count, the active primitive count, the box
+/// and the references' centroid box.
+#[allow(clippy::too_many_arguments)]
+fn ingest(desc: &BuildDesc, view: &dyn DeviceView, refs: &mut [PrimRef], mut stage: Option<&mut [u8]>, temp: &mut [PrimRef], pair_tau: f32, geo: &mut [u8]) -> Result<(usize, usize, Aabb, Aabb), BuildError> {
     let allow_update = desc.flags.contains(BuildFlags::ALLOW_UPDATE);
+    let pair_tau = if stage.is_some() { pair_tau } else { 0.0 };
     let mut base = 0usize;
     let mut sum = ChunkSum::EMPTY;
     for (gi, g) in desc.geometries.iter().enumerate() {
@@ -1929,6 +1937,7 @@ fn ingest(desc: &BuildDesc, view: &dyn DeviceView, refs: &mut [PrimRef], mut sta
                         Some(None) => {
                             *slot = PrimRef { lo: [0.0; 3], geom: DROPPED, hi: [0.0; 3], prim: p };
                             cs.dropped += 1;
+                            cs.lost += 1;
                             continue;
                         }
                         None => {}
@@ -1964,9 +1973,14 @@ fn ingest(desc: &BuildDesc, view: &dyn DeviceView, refs: &mut [PrimRef], mut sta
                     Ok(None) => {
                         *slot = PrimRef { lo: [0.0; 3], geom: DROPPED, hi: [0.0; 3], prim: p };
                         cs.dropped += 1;
+                        cs.lost += 1;
                     }
                     Err(e) => return Err(((gi as u64) << 32 | p as u64, e)),
                 }
+            }
+            if pair_tau > 0.0 {
+                let (w, clo, chi) = pairs::pair_in_place(chunk, pair_tau, DROPPED);
+                (cs.dropped, cs.clo, cs.chi) = (chunk.len() - w, clo, chi);
             }
             Ok(cs)
         };
@@ -1982,13 +1996,18 @@ fn ingest(desc: &BuildDesc, view: &dyn DeviceView, refs: &mut [PrimRef], mut sta
             }
             None => slice.par_chunks_mut(chunk_len).enumerate().map(|(ci, chunk)| work(ci, chunk, None)).reduce(|| Ok(ChunkSum::EMPTY), first_err),
         };
-        sum = sum.join(&res.map_err(|e| e.1)?);
+        let res = res.map_err(|e| e.1)?;
+        let rec = geometry_record(g, (count - res.lost) as u32, allow_update);
+        if let Some(d) = geo.get_mut(gi * layout::GEOMETRY_SIZE..(gi + 1) * layout::GEOMETRY_SIZE) {
+            d.copy_from_slice(bytemuck::bytes_of(&rec));
+        }
+        sum = sum.join(&res);
         base += count;
     }
     let boxes = (to_aabb(sum.lo, sum.hi), to_aabb(sum.clo, sum.chi));
-    let dropped_total = sum.dropped;
+    let (dropped_total, prims) = (sum.dropped, base - sum.lost);
     if dropped_total == 0 {
-        return Ok((base, boxes.0, boxes.1));
+        return Ok((base, prims, boxes.0, boxes.1));
     }
     // Stable compaction in parallel: each of a fixed number of chunks copies its kept
     // references to their final range of `temp` (disjoint, from a prefix sum), then all come
@@ -2013,7 +2032,7 @@ fn ingest(desc: &BuildDesc, view: &dyn DeviceView, refs: &mut [PrimRef], mut sta
             }
         });
         refs[..kept].par_chunks_mut(chunk).zip(temp[..kept].par_chunks(chunk)).for_each(|(d, s)| d.copy_from_slice(s));
-        return Ok((kept, boxes.0, boxes.1));
+        return Ok((kept, prims, boxes.0, boxes.1));
     }
     let first = refs[..base].par_iter().with_min_len(INGEST_CHUNK).position_first(|r| r.geom == DROPPED).unwrap_or(base);
     let mut w = first;
@@ -2023,7 +2042,7 @@ fn ingest(desc: &BuildDesc, view: &dyn DeviceView, refs: &mut [PrimRef], mut sta
             w += 1;
         }
     }
-    Ok((w, boxes.0, boxes.1))
+    Ok((w, prims, boxes.0, boxes.1))
 }
 
 /// Leaf-order primitive data and records from the staging area; restores `PrimRef::prim` to
@@ -2208,25 +2227,6 @@ pub fn zero_gaps(dst: &mut [u8], filled: &[(u64, u64)], end: u64) {
     }
 }
 
-/// Pairs the active references `refs` (`pairs`), staging the pairs in the node area (`nodes`,
-/// 2·total slots, unused until the tree is built) and moving them over the start of `refs`.
-/// Returns the pair count and the pairs' centroid box; None, with `refs` untouched, when the
-/// input pairs poorly (`pairs::worth_pairing`), merges nothing, or leaves no room for the
-/// prefix of primitives per pair (m + 1 words) after the tree's 2m - 1 node slots.
-fn pair_up(refs: &mut [PrimRef], nodes: &mut [BinNode], tau: f32) -> Option<(usize, Aabb)> {
-    let n = refs.len();
-    let room = nodes.len() * std::mem::size_of::<BinNode>();
-    if !pairs::worth_pairing(refs, tau) {
-        return None;
-    }
-    let staged = node_refs_mut(nodes, n)?;
-    let (m, counts) = pairs::pair_refs(refs, staged, tau);
-    if m == 0 || m >= n || (2 * m - 1) * std::mem::size_of::<BinNode>() + 4 * (m + 1) > room {
-        return None;
-    }
-    Some((m, pairs::place_pairs(staged, &counts, &mut refs[..m])))
-}
-
 #[cfg(test)]
 thread_local! {
     /// The pair count of the last build on this thread (None: built unpaired), for tests.
@@ -2252,60 +2252,51 @@ pub fn build(desc: &BuildDesc, view: &dyn DeviceView, dst: &mut [u8], scratch: &
         return Err(BuildError::DestinationTooSmall { needed: worst, got: dst.len() as u64 });
     }
     let total = total as usize;
-    let scratch_len = scratch.len() as u64;
     let (refs, rest) = carve::<PrimRef>(scratch, total).ok_or(BuildError::ScratchTooSmall { needed: need_scratch, got: 0 })?;
-    let (nodes, _) = carve::<BinNode>(rest, 2 * total).ok_or(BuildError::ScratchTooSmall { needed: need_scratch, got: 0 })?;
+    let (nodes, rest) = carve::<BinNode>(rest, 2 * total).ok_or(BuildError::ScratchTooSmall { needed: need_scratch, got: 0 })?;
+    // Paired builds: the prefix of primitives per reference in leaf order (`pairs`).
+    let (prefix, _) = carve::<u32>(rest, total + 1).ok_or(BuildError::ScratchTooSmall { needed: need_scratch, got: 0 })?;
 
     // BLAS primitive data is staged in the (still unused) node area of dst during ingest, so
     // the leaf-order pass reads one 40-byte record per primitive instead of indices and three
     // vertices at random. Needs 40·total <= the worst-case node area (true for total >= 3).
     let stage_at = layout::sections(desc.ty, 0, total as u64, ngeo).nodes as usize;
     let staged = !is_tlas && total >= 3 && stage_at.checked_add(total * STAGE_SIZE).is_some_and(|e| e <= dst.len());
-    let (active, root_box, root_cb) = {
+    let params = BuildParams::from_flags(desc.flags);
+    // The fast-build and default tiers build over primitive pairs (`pairs`) in staged BLAS
+    // builds of at least PAIR_MIN primitives over at most MAX_PAIR_GEOMETRIES geometries whose
+    // neighbours pair well in a sample. Ingest pairs each chunk while it is in cache.
+    let mut geo_counts = [0u32; pairs::MAX_PAIR_GEOMETRIES];
+    let pair_tau = if staged && params.pair_tau > 0.0 && total >= pairs::PAIR_MIN && desc.geometries.len() <= pairs::MAX_PAIR_GEOMETRIES {
+        for (c, g) in geo_counts.iter_mut().zip(desc.geometries) {
+            *c = g.primitive_count;
+        }
+        let read = |g: u32, p: u32| desc.geometries.get(g as usize).and_then(|geo| make_ref(g, geo, p, view, allow_update).ok().flatten());
+        if pairs::worth_pairing(&geo_counts[..desc.geometries.len()], params.pair_tau, read) { params.pair_tau } else { 0.0 }
+    } else {
+        0.0
+    };
+    let paired = pair_tau > 0.0;
+    let (built, active, root_box, root_cb) = {
         // The node slots are unused until the tree is built: compaction's temporary.
         let temp = node_refs_mut(nodes, total).unwrap_or(&mut []);
-        ingest(desc, view, refs, if staged { dst.get_mut(stage_at..) } else { None }, temp)?
-    };
-    let t_ingest = Instant::now();
-    let refs = &mut refs[..active];
-    // Geometry table now, while refs are still in geometry order (its offset is tree-independent).
-    {
         let goff = layout::sections(desc.ty, 0, 0, ngeo).geometries as usize;
-        let mut pos = 0usize;
-        for (gi, g) in desc.geometries.iter().enumerate() {
-            let begin = pos;
-            // refs are ordered by geometry: binary search for the end of this one.
-            pos = begin + refs[begin..].partition_point(|r| r.geom <= gi as u32);
-            let rec = geometry_record(g, (pos - begin) as u32, allow_update);
-            let off = goff + gi * layout::GEOMETRY_SIZE;
-            if let Some(d) = dst.get_mut(off..off + layout::GEOMETRY_SIZE) {
-                d.copy_from_slice(bytemuck::bytes_of(&rec));
-            }
-        }
-    }
-
-    let params = BuildParams::from_flags(desc.flags);
-    let threads = rayon::current_num_threads().max(1);
-    // The fast-build and default tiers build over primitive pairs (`pairs`) where they can:
-    // staged BLAS builds of at least PAIR_MIN primitives over at most MAX_PAIR_GEOMETRIES
-    // geometries, when pairing merges enough references for the per-reference prefix to fit
-    // beside the tree.
-    let pairing = staged && params.pair_tau > 0.0 && active >= pairs::PAIR_MIN && desc.geometries.len() <= pairs::MAX_PAIR_GEOMETRIES;
-    let paired = if pairing { pair_up(refs, nodes, params.pair_tau) } else { None };
-    #[cfg(test)]
-    LAST_BUILD_PAIRS.with(|c| c.set(paired.map(|p| p.0)));
-    let (built, root_cb, bparams) = match paired {
-        Some((m, cb)) => {
-            // A leaf holds up to max_leaf primitives, so half as many pairs; C_T scaled by the
-            // references per primitive keeps the leaf/split balance of the unpaired tier.
-            let mut q = params;
-            q.max_leaf = (params.max_leaf / pairs::MAX_CLUSTER).max(1);
-            q.traversal_cost = (params.traversal_cost * m as f32 / active as f32).max(1.0);
-            (m, cb, q)
-        }
-        None => (active, root_cb, params),
+        let (head, tail) = dst.split_at_mut(stage_at.min(dst.len()));
+        let geo = head.get_mut(goff..goff + desc.geometries.len() * layout::GEOMETRY_SIZE).unwrap_or(&mut []);
+        ingest(desc, view, refs, if staged { Some(tail) } else { None }, temp, pair_tau, geo)?
     };
-    let ctx = Ctx { params: bparams, total: built, threads, paired: paired.is_some() };
+    #[cfg(test)]
+    LAST_BUILD_PAIRS.with(|c| c.set(paired.then_some(built)));
+    let t_ingest = Instant::now();
+    let threads = rayon::current_num_threads().max(1);
+    // Paired: a leaf holds up to max_leaf primitives, so half as many pairs; C_T scaled by the
+    // references per primitive keeps the leaf/split balance of the unpaired tier.
+    let mut bparams = params;
+    if paired {
+        bparams.max_leaf = (params.max_leaf / pairs::MAX_CLUSTER).max(1);
+        bparams.traversal_cost = (params.traversal_cost * built as f32 / active.max(1) as f32).max(1.0);
+    }
+    let ctx = Ctx { params: bparams, total: built, threads, paired };
     // Pre-emission area (see `finish_split`): after the staging area in the (still unused)
     // node section of dst. Whether a block fits there never changes the output bytes.
     // Without staging the area would start where the final nodes start, so no block could
@@ -2318,23 +2309,16 @@ pub fn build(desc: &BuildDesc, view: &dyn DeviceView, dst: &mut [u8], scratch: &
     } else {
         (0.0, 0)
     };
-    // The tree's node slots, and after them (paired builds) the prefix of primitives per
-    // reference in leaf order: leaves name references while building, primitives in the output.
-    let (tree, spare) = nodes.split_at_mut((2 * built).saturating_sub(1));
-    let map: Option<&[u32]> = if paired.is_some() {
-        let p = bytemuck::try_cast_slice_mut::<u8, u32>(bytemuck::cast_slice_mut(spare)).ok().and_then(|p| p.get_mut(..=built));
-        p.map(|p| {
-            pairs::prim_prefix(&refs[..built], p);
-            &*p
-        })
+    // Paired builds: leaves name references while building, primitives in the output, through
+    // the prefix of primitives per reference in leaf order.
+    let tree = &nodes[..(2 * built).saturating_sub(1)];
+    let map: Option<&[u32]> = if paired {
+        let p = &mut prefix[..=built];
+        pairs::prim_prefix(&refs[..built], p);
+        Some(&*p)
     } else {
         None
     };
-    if paired.is_some() && map.is_none() {
-        // Unreachable: `pair_up` made room for the prefix. Refuse rather than write leaves
-        // that name pairs as primitives.
-        return Err(BuildError::ScratchTooSmall { needed: need_scratch, got: scratch_len });
-    }
     let t_sah = Instant::now();
     // Leaf data first: with staging, the node section overlaps the staging area.
     let pre = layout::sections(desc.ty, 0, active as u64, ngeo);
@@ -2351,9 +2335,9 @@ pub fn build(desc: &BuildDesc, view: &dyn DeviceView, dst: &mut [u8], scratch: &
             let ng = desc.geometries.len().min(pairs::MAX_PAIR_GEOMETRIES);
             pairs::gather_pairs(&refs[..built], map, &tail[..total * STAGE_SIZE], prims, records, &firsts[..=ng]);
         } else if staged {
-            gather_leaf_data(refs, &tail[..total * STAGE_SIZE], prims, records);
+            gather_leaf_data(&mut refs[..active], &tail[..total * STAGE_SIZE], prims, records);
         } else {
-            write_leaf_data(desc, refs, prims, records);
+            write_leaf_data(desc, &refs[..active], prims, records);
         }
     }
     let t_leaf = Instant::now();
@@ -2405,7 +2389,7 @@ pub fn build(desc: &BuildDesc, view: &dyn DeviceView, dst: &mut [u8], scratch: &
         // Reuse the binary node area (no longer needed) for the sort keys.
         let node_bytes: &mut [u8] = bytemuck::cast_slice_mut(nodes);
         let keys: &mut [u64] = bytemuck::try_cast_slice_mut(&mut node_bytes[..active * 8]).map_err(|_| BuildError::ScratchTooSmall { needed: need_scratch, got: 0 })?;
-        blas_refs = write_instances(desc, view, refs, keys, inst, records, table);
+        blas_refs = write_instances(desc, view, &refs[..active], keys, inst, records, table);
         instance_count = active as u32;
     }
     let filled = [

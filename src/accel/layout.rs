@@ -206,11 +206,14 @@ pub const BINNODE_SIZE: u64 = 40;
 
 pub fn build_scratch_size(n: u64) -> u64 {
     // Primitive references, then up to 2n binary nodes (slot scheme: a subtree over k
-    // primitives owns 2k-1 consecutive slots), each region aligned.
+    // primitives owns 2k-1 consecutive slots), then n + 1 words for the primitives per
+    // reference of paired builds, each region aligned.
     SCRATCH_SLACK
         .saturating_add(n.saturating_mul(PRIMREF_SIZE))
         .saturating_add(SCRATCH_SLACK)
         .saturating_add(n.saturating_mul(2).saturating_mul(BINNODE_SIZE))
+        .saturating_add(SCRATCH_SLACK)
+        .saturating_add(n.saturating_add(1).saturating_mul(4))
 }
 
 pub fn update_scratch_size(ty: AsType, n: u64) -> u64 {

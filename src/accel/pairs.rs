@@ -1,14 +1,15 @@
-//! Primitive pairing for the fast-build and default tiers: after ingest, neighbours in input order (global
+//! Primitive pairing for the fast-build and default tiers: neighbours in input order (global
 //! IDs that follow each other) whose union is tight become one two-primitive reference, and the
 //! binned builder runs over the pairs (dragon: about 658,700 references instead of 871,306, the
-//! same SAH). A pair reference keeps the first primitive's global ID in `PrimRef::prim` and its
-//! primitive count (1 or 2) in `PrimRef::geom`. A pair always ends in one leaf; leaves name
-//! references while building and primitives in the output, through the prefix of primitives
-//! per reference in leaf order (`prim_prefix`).
+//! same SAH). Ingest pairs each chunk while it is in cache (`pair_in_place`), after a sample of
+//! the input said it pays (`worth_pairing`). A pair reference keeps the first primitive's
+//! global ID in `PrimRef::prim` and its primitive count (1 or 2) in `PrimRef::geom`. A pair
+//! always ends in one leaf; leaves name references while building and primitives in the
+//! output, through the prefix of primitives per reference in leaf order (`prim_prefix`).
 //!
-//! Owns: pairing, that prefix, and the leaf-data gather for pairs. Deterministic: fixed
-//! chunks (pairs never cross one), independent of the thread count.
-use super::builder::{half_area_v, ref_hi, ref_lo, Aabb, PrimRef, STAGE_SIZE};
+//! Owns: pairing, that prefix, and the leaf-data gather for pairs. Deterministic: pairs never
+//! cross an ingest chunk, whose bounds depend on the input only.
+use super::builder::{half_area_v, ref_hi, ref_lo, PrimRef, STAGE_SIZE};
 use super::layout::{PRIM_SIZE, RECORD_SIZE};
 use glam::Vec3A;
 use rayon::prelude::*;
@@ -33,10 +34,7 @@ pub const MAX_PAIR_GEOMETRIES: usize = 64;
 /// FAST_TRACE loses 0.3 % at 0.7 (48.97, over its 48.9) and does not pair.
 pub const FAST_BUILD_TAU: f32 = 0.9;
 pub const DEFAULT_TAU: f32 = 0.7;
-/// Pairing runs in at most this many fixed chunks of the input order, of at least
-/// PAIR_CHUNK_MIN references (pairs never cross a chunk).
-const PAIR_CHUNKS: usize = 64;
-const PAIR_CHUNK_MIN: usize = 4096;
+
 /// Whether references `a` and `b` are worth one leaf entry: the half area of their union is
 /// at most `tau` times the sum of theirs.
 #[inline(always)]
@@ -45,35 +43,40 @@ fn tight(a: &PrimRef, b: &PrimRef, tau: f32) -> bool {
     half_area_v(alo.min(blo), ahi.max(bhi)) <= tau * (half_area_v(alo, ahi) + half_area_v(blo, bhi))
 }
 
-/// Clusters one chunk `src` into `dst`: greedily, a cluster takes the next reference while
-/// it is `tight` with the last one, its global ID follows, the cluster has fewer than
-/// MAX_CLUSTER primitives and the union stays within `tau` times the sum of the members'
-/// half areas. The neighbour tests of a block run first, independently. A cluster: the union
+/// Pairs one ingest chunk in place: references in input order, dropped ones marked by
+/// `geom == dropped`. A reference takes the next one when both are kept, their global IDs
+/// follow, they are `tight`, and the cluster stays under MAX_CLUSTER primitives with its union
+/// within `tau` times the sum of the members' half areas. The neighbour tests of a block run
+/// first, independently (the walk's next step depends on them; testing inside it serialised
+/// the loads). The pairs replace the chunk's start (pair w is written after the references it
+/// reads, all at w or later) and the rest of the chunk is marked dropped. A pair: the union
 /// box, `prim` = the first primitive's global ID, `geom` = how many (their IDs follow).
-/// Returns how many were written.
-fn pair_chunk(src: &[PrimRef], dst: &mut [PrimRef], tau: f32) -> usize {
+/// Returns how many there are and their centroid box.
+pub fn pair_in_place(c: &mut [PrimRef], tau: f32, dropped: u32) -> (usize, Vec3A, Vec3A) {
     const BLOCK: usize = 256;
-    let n = src.len();
+    let n = c.len();
+    let linked = |c: &[PrimRef], j: usize| c.get(j + 1).is_some_and(|b| c[j].geom != dropped && b.geom != dropped && b.prim == c[j].prim.wrapping_add(1) && tight(&c[j], b, tau));
     let mut flags = [false; BLOCK];
     let (mut w, mut i, mut base) = (0usize, 0usize, 0usize);
+    let (mut clo, mut chi) = (Vec3A::INFINITY, Vec3A::NEG_INFINITY);
     while base < n {
         let end = (base + BLOCK).min(n);
         for (j, f) in (base..end).zip(flags.iter_mut()) {
-            *f = src.get(j + 1).is_some_and(|b| b.prim == src[j].prim.wrapping_add(1) && tight(&src[j], b, tau));
+            *f = linked(c, j);
         }
         while i < end {
-            let a = &src[i];
-            let (mut lo, mut hi) = (ref_lo(a), ref_hi(a));
+            let a = c[i];
+            if a.geom == dropped {
+                i += 1;
+                continue;
+            }
+            let (mut lo, mut hi) = (ref_lo(&a), ref_hi(&a));
             let mut sum = half_area_v(lo, hi);
             let mut count = 1u32;
             let mut j = i;
-            while count < MAX_CLUSTER && j + 1 < n {
-                // Flags beyond this block are computed on the fly.
-                let linked = if j < end { flags[(j - base) & (BLOCK - 1)] } else { src[j + 1].prim == src[j].prim.wrapping_add(1) && tight(&src[j], &src[j + 1], tau) };
-                if !linked {
-                    break;
-                }
-                let b = &src[j + 1];
+            // Flags beyond this block are computed on the fly (nothing there is written yet).
+            while count < MAX_CLUSTER && if j < end { flags[(j - base) & (BLOCK - 1)] } else { linked(c, j) } {
+                let b = &c[j + 1];
                 let (blo, bhi) = (ref_lo(b), ref_hi(b));
                 let (ulo, uhi) = (lo.min(blo), hi.max(bhi));
                 let bsum = sum + half_area_v(blo, bhi);
@@ -84,7 +87,10 @@ fn pair_chunk(src: &[PrimRef], dst: &mut [PrimRef], tau: f32) -> usize {
                 count += 1;
                 j += 1;
             }
-            if let Some(d) = dst.get_mut(w) {
+            let ctr = lo * 0.5 + hi * 0.5;
+            clo = clo.min(ctr);
+            chi = chi.max(ctr);
+            if let Some(d) = c.get_mut(w) {
                 *d = PrimRef { lo: lo.to_array(), geom: count, hi: hi.to_array(), prim: a.prim };
             }
             w += 1;
@@ -92,69 +98,39 @@ fn pair_chunk(src: &[PrimRef], dst: &mut [PrimRef], tau: f32) -> usize {
         }
         base = end;
     }
-    w
+    for r in c.iter_mut().skip(w) {
+        r.geom = dropped;
+    }
+    (w, clo, chi)
 }
 
-/// Whether pairing `refs` is likely to pay: at least one in PAIR_WORTH of SAMPLE evenly spaced
-/// neighbours is `tight` (a random soup pairs almost nothing, and would pay the passes for
-/// nothing).
-pub fn worth_pairing(refs: &[PrimRef], tau: f32) -> bool {
-    const SAMPLE: usize = 1024;
-    const PAIR_WORTH: usize = 8;
-    let n = refs.len();
-    if n < 2 {
-        return false;
-    }
-    let step = (n / SAMPLE).max(1);
-    let (mut tested, mut hits) = (0usize, 0usize);
-    let mut i = 0;
-    while i + 1 < n {
-        tested += 1;
-        hits += tight(&refs[i], &refs[i + 1], tau) as usize;
-        i += step;
-    }
-    hits * PAIR_WORTH >= tested
-}
-
-/// Pairs `refs` (input order) in fixed chunks (pairs never cross one), each chunk's pairs
-/// written at the start of its own range of `staged`. Returns the pair count and the count
-/// per chunk (`place_pairs` moves them into place).
-pub fn pair_refs(refs: &[PrimRef], staged: &mut [PrimRef], tau: f32) -> (usize, [usize; PAIR_CHUNKS]) {
-    let chunk = refs.len().div_ceil(PAIR_CHUNKS).max(PAIR_CHUNK_MIN);
-    let mut counts = [0usize; PAIR_CHUNKS];
-    staged.par_chunks_mut(chunk).zip(refs.par_chunks(chunk)).zip(counts.par_iter_mut()).for_each(|((s, r), c)| *c = pair_chunk(r, s, tau));
-    (counts.iter().sum(), counts)
-}
-
-/// Moves the staged pairs of each chunk (`pair_refs`) to their place in `out`, in order;
-/// returns the pairs' centroid box.
-pub fn place_pairs(staged: &[PrimRef], counts: &[usize; PAIR_CHUNKS], out: &mut [PrimRef]) -> Aabb {
-    let n = staged.len();
-    let chunk = n.div_ceil(PAIR_CHUNKS).max(PAIR_CHUNK_MIN);
-    let mut outs: [&mut [PrimRef]; PAIR_CHUNKS] = std::array::from_fn(|_| &mut [][..]);
-    let mut rest = out;
-    for (o, &k) in outs.iter_mut().zip(counts) {
-        let cut = k.min(rest.len());
-        let (mine, r) = std::mem::take(&mut rest).split_at_mut(cut);
-        *o = mine;
-        rest = r;
-    }
-    let (clo, chi) = staged
-        .par_chunks(chunk)
-        .zip(outs.par_iter_mut())
-        .map(|(s, o)| {
-            let len = o.len().min(s.len());
-            o[..len].copy_from_slice(&s[..len]);
-            let (mut clo, mut chi) = (Vec3A::INFINITY, Vec3A::NEG_INFINITY);
-            for r in o.iter() {
-                let c = ref_lo(r) * 0.5 + ref_hi(r) * 0.5;
-                clo = clo.min(c);
-                chi = chi.max(c);
+/// Whether pairing is likely to pay for these geometries: at least one in PAIR_WORTH of
+/// SAMPLE neighbours, evenly spaced over the global primitive IDs, is `tight` (`boxes(g, p)`
+/// gives primitive p of geometry g's box, None for a dropped or unreadable one). A random soup
+/// pairs almost nothing and would pay the pass for nothing.
+pub fn worth_pairing(counts: &[u32], tau: f32, mut boxes: impl FnMut(u32, u32) -> Option<PrimRef>) -> bool {
+    const SAMPLE: u64 = 1024;
+    const PAIR_WORTH: u64 = 8;
+    let total: u64 = counts.iter().map(|&c| c as u64).sum();
+    let step = (total / SAMPLE).max(1);
+    let (mut tested, mut hits) = (0u64, 0u64);
+    let mut id = 0u64;
+    while id + 1 < total {
+        // The geometry and index of global ID `id`.
+        let (mut g, mut p) = (0usize, id);
+        while g < counts.len() && p >= counts[g] as u64 {
+            p -= counts[g] as u64;
+            g += 1;
+        }
+        if g < counts.len() && p + 1 < counts[g] as u64 {
+            tested += 1;
+            if let (Some(a), Some(b)) = (boxes(g as u32, p as u32), boxes(g as u32, p as u32 + 1)) {
+                hits += tight(&a, &b, tau) as u64;
             }
-            (clo, chi)
-        })
-        .reduce(|| (Vec3A::INFINITY, Vec3A::NEG_INFINITY), |a, b| (a.0.min(b.0), a.1.max(b.1)));
-    Aabb { lo: clo.to_array(), hi: chi.to_array() }
+        }
+        id += step;
+    }
+    tested > 0 && hits * PAIR_WORTH >= tested
 }
 
 /// Primitives of a cluster reference.
@@ -252,21 +228,26 @@ mod tests {
 
     #[test]
     fn pairs_prefix_and_geometries_account_for_every_primitive() {
+        const DROP: u32 = u32::MAX;
         let r = |x: f32, id: u32| PrimRef { lo: [x, 0.0, 0.0], geom: 0, hi: [x + 1.0, 1.0, 1.0], prim: id };
-        // Touching unit boxes pair (union 1x2 against two 1x1); far ones stay single.
-        let refs = vec![r(0.0, 10), r(1.0, 11), r(50.0, 12), r(51.0, 13), r(200.0, 14), r(90.0, 15), r(91.0, 17)];
-        let mut staged = vec![PrimRef { lo: [0.0; 3], geom: 0, hi: [0.0; 3], prim: 0 }; refs.len()];
-        let (m, counts) = pair_refs(&refs, &mut staged, FAST_BUILD_TAU);
-        let mut out = vec![PrimRef { lo: [0.0; 3], geom: 0, hi: [0.0; 3], prim: 0 }; m];
-        let cb = place_pairs(&staged, &counts, &mut out);
+        // Touching unit boxes pair (union 1x2 against two 1x1); far ones stay single; 15 and
+        // 17 touch but their IDs do not follow; a dropped reference (18) breaks the 17-19 run.
+        let mut c = vec![r(0.0, 10), r(1.0, 11), r(50.0, 12), r(51.0, 13), r(200.0, 14), r(90.0, 15), r(91.0, 17), PrimRef { geom: DROP, ..r(92.0, 18) }, r(93.0, 19)];
+        let (m, clo, chi) = pair_in_place(&mut c, FAST_BUILD_TAU, DROP);
+        let out = c[..m].to_vec();
         let ids: Vec<(u32, u32)> = out.iter().map(|p| (p.prim, p.geom)).collect();
-        // 15 and 17 touch, but their IDs do not follow: no pair.
-        assert_eq!(ids, vec![(10, 2), (12, 2), (14, 1), (15, 1), (17, 1)]);
+        assert_eq!(ids, vec![(10, 2), (12, 2), (14, 1), (15, 1), (17, 1), (19, 1)]);
+        assert!(c[m..].iter().all(|r| r.geom == DROP));
         assert_eq!((out[0].lo, out[0].hi), ([0.0; 3], [2.0, 1.0, 1.0]));
-        assert_eq!((cb.lo, cb.hi), ([1.0, 0.5, 0.5], [200.5, 0.5, 0.5]));
+        assert_eq!((clo.to_array(), chi.to_array()), ([1.0, 0.5, 0.5], [200.5, 0.5, 0.5]));
+        // The sampled test: every neighbour of a touching row is tight, none of a spread one.
+        let row = |gap: f32| move |_g: u32, p: u32| Some(r(p as f32 * gap, p));
+        assert!(worth_pairing(&[5000, 4000], FAST_BUILD_TAU, row(1.0)));
+        assert!(!worth_pairing(&[9000], FAST_BUILD_TAU, row(3.0)));
+        assert!(!worth_pairing(&[9000], FAST_BUILD_TAU, |_, _| None));
         let mut p = vec![0u32; m + 1];
         prim_prefix(&out, &mut p);
-        assert_eq!(p, vec![0, 2, 4, 5, 6, 7]);
+        assert_eq!(p, vec![0, 2, 4, 5, 6, 7, 8]);
         assert_eq!(geometry_of(7, &[0, 5, 9, 20]), 1);
         assert_eq!(geometry_of(9, &[0, 5, 9, 20]), 2);
         assert_eq!(geometry_of(0, &[0, 5, 9, 20]), 0);
