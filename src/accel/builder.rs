@@ -1,5 +1,5 @@
-//! Build: ingest (geometry → primitive references in scratch) → (fast-build tier: pairs of
-//! neighbouring primitives, `pairs`) → binned-SAH binary BVH in scratch
+//! Build: ingest (geometry → primitive references in scratch; in the fast-build and default
+//! tiers, pairs of neighbouring primitives, `pairs`) → binned-SAH binary BVH in scratch
 //! (rayon::join on the current pool, node slots derived from primitive ranges so the tree is
 //! the same for any thread count) → collapse to BVH4 → encode into dst.
 //! Host heap use is O(threads): all arrays proportional to the input live in `scratch`.
