@@ -254,6 +254,10 @@ pub struct BuildParams {
     /// Neighbouring primitives pair up before the build when their union's half area is at
     /// most this many times the sum of theirs (`pairs`); 0: no pairing.
     pub pair_tau: f32,
+    /// Paired builds: the most primitives per cluster reference (<= pairs::MAX_CLUSTER) and
+    /// the most cluster references per leaf.
+    pub cluster: u32,
+    pub cluster_leaf: u32,
 }
 pub const MAX_BINS: usize = 32;
 /// Depth after which splits become balanced object-median splits: bounds recursion depth
@@ -277,13 +281,16 @@ const BIN_CHUNK: usize = 1 << 14;
 impl BuildParams {
     pub fn from_flags(flags: BuildFlags) -> Self {
         if flags.contains(BuildFlags::PREFER_FAST_TRACE) {
-            BuildParams { bins: 32, single_axis: false, traversal_cost: 1.0, max_leaf: 8, small_n: SMALL_N, parallel_cutoff: 1024, sample_target: 2 * SAMPLE_TARGET, pair_tau: 0.0 }
+            BuildParams { bins: 32, single_axis: false, traversal_cost: 1.0, max_leaf: 8, small_n: SMALL_N, parallel_cutoff: 1024, sample_target: 2 * SAMPLE_TARGET, pair_tau: 0.0, cluster: 1, cluster_leaf: 8 }
         } else if flags.contains(BuildFlags::PREFER_FAST_BUILD) {
             // 12 bins, not 8: over node boxes (see `build_rec`) 8 bins gave SAH 54.59 on the
-            // dragon, 12 give 53.71 at the same speed.
-            BuildParams { bins: 12, single_axis: true, traversal_cost: 2.5, max_leaf: 8, small_n: SMALL_N, parallel_cutoff: 1024, sample_target: SAMPLE_TARGET, pair_tau: pairs::FAST_BUILD_TAU }
+            // dragon, 12 give 53.71 at the same speed. Clusters of up to 4 primitives, leaves
+            // of up to 3 clusters (12 primitives): dragon SAH 53.72 as with pairs in leaves of
+            // 4 (53.76), 53.7 B/tri (52.8), 16 threads 19.7–23.7 against 23.3–26.9 ms in three
+            // interleaved rounds on the 16-core machine (4 clusters per leaf: SAH 54.16).
+            BuildParams { bins: 12, single_axis: true, traversal_cost: 2.5, max_leaf: 8, small_n: SMALL_N, parallel_cutoff: 1024, sample_target: SAMPLE_TARGET, pair_tau: pairs::FAST_BUILD_TAU, cluster: 4, cluster_leaf: 3 }
         } else {
-            BuildParams { bins: 16, single_axis: false, traversal_cost: 1.0, max_leaf: 8, small_n: SMALL_N, parallel_cutoff: 1024, sample_target: 2 * SAMPLE_TARGET, pair_tau: pairs::DEFAULT_TAU }
+            BuildParams { bins: 16, single_axis: false, traversal_cost: 1.0, max_leaf: 8, small_n: SMALL_N, parallel_cutoff: 1024, sample_target: 2 * SAMPLE_TARGET, pair_tau: pairs::DEFAULT_TAU, cluster: 2, cluster_leaf: 4 }
         }
     }
 }
@@ -1892,7 +1899,7 @@ pub const STAGE_SIZE: usize = 40;
 /// (the geometry table) and returns the reference count, the active primitive count, the box
 /// and the references' centroid box.
 #[allow(clippy::too_many_arguments)]
-fn ingest(desc: &BuildDesc, view: &dyn DeviceView, refs: &mut [PrimRef], mut stage: Option<&mut [u8]>, temp: &mut [PrimRef], pair_tau: f32, geo: &mut [u8]) -> Result<(usize, usize, Aabb, Aabb), BuildError> {
+fn ingest(desc: &BuildDesc, view: &dyn DeviceView, refs: &mut [PrimRef], mut stage: Option<&mut [u8]>, temp: &mut [PrimRef], (pair_tau, cluster): (f32, u32), geo: &mut [u8]) -> Result<(usize, usize, Aabb, Aabb), BuildError> {
     let allow_update = desc.flags.contains(BuildFlags::ALLOW_UPDATE);
     let pair_tau = if stage.is_some() { pair_tau } else { 0.0 };
     let mut base = 0usize;
@@ -1979,7 +1986,7 @@ fn ingest(desc: &BuildDesc, view: &dyn DeviceView, refs: &mut [PrimRef], mut sta
                 }
             }
             if pair_tau > 0.0 {
-                let (w, clo, chi) = pairs::pair_in_place(chunk, pair_tau, DROPPED);
+                let (w, clo, chi) = pairs::pair_in_place(chunk, pair_tau, cluster.clamp(1, pairs::MAX_CLUSTER), DROPPED);
                 (cs.dropped, cs.clo, cs.chi) = (chunk.len() - w, clo, chi);
             }
             Ok(cs)
@@ -2283,17 +2290,17 @@ pub fn build(desc: &BuildDesc, view: &dyn DeviceView, dst: &mut [u8], scratch: &
         let goff = layout::sections(desc.ty, 0, 0, ngeo).geometries as usize;
         let (head, tail) = dst.split_at_mut(stage_at.min(dst.len()));
         let geo = head.get_mut(goff..goff + desc.geometries.len() * layout::GEOMETRY_SIZE).unwrap_or(&mut []);
-        ingest(desc, view, refs, if staged { Some(tail) } else { None }, temp, pair_tau, geo)?
+        ingest(desc, view, refs, if staged { Some(tail) } else { None }, temp, (pair_tau, params.cluster), geo)?
     };
     #[cfg(test)]
     LAST_BUILD_PAIRS.with(|c| c.set(paired.then_some(built)));
     let t_ingest = Instant::now();
     let threads = rayon::current_num_threads().max(1);
-    // Paired: a leaf holds up to max_leaf primitives, so half as many pairs; C_T scaled by the
-    // references per primitive keeps the leaf/split balance of the unpaired tier.
+    // Paired: leaves of up to `cluster_leaf` cluster references; C_T scaled by the references
+    // per primitive keeps the leaf/split balance of the unpaired tier.
     let mut bparams = params;
     if paired {
-        bparams.max_leaf = (params.max_leaf / pairs::MAX_CLUSTER).max(1);
+        bparams.max_leaf = params.cluster_leaf.max(1);
         bparams.traversal_cost = (params.traversal_cost * built as f32 / active.max(1) as f32).max(1.0);
     }
     let ctx = Ctx { params: bparams, total: built, threads, paired };
@@ -2427,7 +2434,7 @@ pub fn build(desc: &BuildDesc, view: &dyn DeviceView, dst: &mut [u8], scratch: &
         geometries_offset: s.geometries,
         instances_offset: s.instances,
         blas_table_offset: s.blas_table,
-        max_leaf_size: params.max_leaf,
+        max_leaf_size: if paired { bparams.max_leaf * params.cluster.clamp(1, pairs::MAX_CLUSTER) } else { params.max_leaf },
         reserved: 0,
     };
     layout::write_header(dst, &raw);

@@ -1,9 +1,10 @@
 //! Primitive pairing for the fast-build and default tiers: neighbours in input order (global
-//! IDs that follow each other) whose union is tight become one two-primitive reference, and the
-//! binned builder runs over the pairs (dragon: about 658,700 references instead of 871,306, the
-//! same SAH). Ingest pairs each chunk while it is in cache (`pair_in_place`), after a sample of
+//! IDs that follow each other) whose union is tight become one reference of up to four
+//! (fast-build) or two (default) primitives, and the binned builder runs over these clusters
+//! ("pairs" below; dragon fast-build: about 590,000 references instead of 871,306, the same
+//! SAH). Ingest pairs each chunk while it is in cache (`pair_in_place`), after a sample of
 //! the input said it pays (`worth_pairing`). A pair reference keeps the first primitive's
-//! global ID in `PrimRef::prim` and its primitive count (1 or 2) in `PrimRef::geom`. A pair
+//! global ID in `PrimRef::prim` and its primitive count in `PrimRef::geom`. A pair
 //! always ends in one leaf; leaves name references while building and primitives in the
 //! output, through the prefix of primitives per reference in leaf order (`prim_prefix`).
 //!
@@ -14,10 +15,9 @@ use super::layout::{PRIM_SIZE, RECORD_SIZE};
 use glam::Vec3A;
 use rayon::prelude::*;
 
-/// Primitives a cluster reference may hold (consecutive global IDs). Four: dragon SAH 52.78
-/// with leaves of up to two clusters but a 49 % larger tree (57.0 B/tri), 54.13 with up to
-/// four (more than 8 primitives per leaf), and not measurably faster than pairs on this box.
-pub const MAX_CLUSTER: u32 = 2;
+/// The most primitives a cluster reference may hold in any tier (consecutive global IDs;
+/// `BuildParams::cluster` per tier).
+pub const MAX_CLUSTER: u32 = 4;
 /// Builds with fewer active primitives are not paired (the bunny, 3,674 triangles, keeps its
 /// tree: small builds are dominated by fixed costs).
 pub const PAIR_MIN: usize = 8192;
@@ -45,14 +45,14 @@ fn tight(a: &PrimRef, b: &PrimRef, tau: f32) -> bool {
 
 /// Pairs one ingest chunk in place: references in input order, dropped ones marked by
 /// `geom == dropped`. A reference takes the next one when both are kept, their global IDs
-/// follow, they are `tight`, and the cluster stays under MAX_CLUSTER primitives with its union
+/// follow, they are `tight`, and the cluster stays within `cluster` primitives with its union
 /// within `tau` times the sum of the members' half areas. The neighbour tests of a block run
 /// first, independently (the walk's next step depends on them; testing inside it serialised
 /// the loads). The pairs replace the chunk's start (pair w is written after the references it
 /// reads, all at w or later) and the rest of the chunk is marked dropped. A pair: the union
 /// box, `prim` = the first primitive's global ID, `geom` = how many (their IDs follow).
 /// Returns how many there are and their centroid box.
-pub fn pair_in_place(c: &mut [PrimRef], tau: f32, dropped: u32) -> (usize, Vec3A, Vec3A) {
+pub fn pair_in_place(c: &mut [PrimRef], tau: f32, cluster: u32, dropped: u32) -> (usize, Vec3A, Vec3A) {
     const BLOCK: usize = 256;
     let n = c.len();
     let linked = |c: &[PrimRef], j: usize| c.get(j + 1).is_some_and(|b| c[j].geom != dropped && b.geom != dropped && b.prim == c[j].prim.wrapping_add(1) && tight(&c[j], b, tau));
@@ -75,7 +75,7 @@ pub fn pair_in_place(c: &mut [PrimRef], tau: f32, dropped: u32) -> (usize, Vec3A
             let mut count = 1u32;
             let mut j = i;
             // Flags beyond this block are computed on the fly (nothing there is written yet).
-            while count < MAX_CLUSTER && if j < end { flags[(j - base) & (BLOCK - 1)] } else { linked(c, j) } {
+            while count < cluster && if j < end { flags[(j - base) & (BLOCK - 1)] } else { linked(c, j) } {
                 let b = &c[j + 1];
                 let (blo, bhi) = (ref_lo(b), ref_hi(b));
                 let (ulo, uhi) = (lo.min(blo), hi.max(bhi));
@@ -233,7 +233,7 @@ mod tests {
         // Touching unit boxes pair (union 1x2 against two 1x1); far ones stay single; 15 and
         // 17 touch but their IDs do not follow; a dropped reference (18) breaks the 17-19 run.
         let mut c = vec![r(0.0, 10), r(1.0, 11), r(50.0, 12), r(51.0, 13), r(200.0, 14), r(90.0, 15), r(91.0, 17), PrimRef { geom: DROP, ..r(92.0, 18) }, r(93.0, 19)];
-        let (m, clo, chi) = pair_in_place(&mut c, FAST_BUILD_TAU, DROP);
+        let (m, clo, chi) = pair_in_place(&mut c, FAST_BUILD_TAU, 2, DROP);
         let out = c[..m].to_vec();
         let ids: Vec<(u32, u32)> = out.iter().map(|p| (p.prim, p.geom)).collect();
         assert_eq!(ids, vec![(10, 2), (12, 2), (14, 1), (15, 1), (17, 1), (19, 1)]);
@@ -252,5 +252,11 @@ mod tests {
         assert_eq!(geometry_of(9, &[0, 5, 9, 20]), 2);
         assert_eq!(geometry_of(0, &[0, 5, 9, 20]), 0);
         assert_eq!(geometry_of(19, &[0, 20]), 0);
+        // Clusters of up to four: a row of touching unit boxes groups by fours while the union
+        // stays within 0.9x the members' sum (2x1x1: 5 <= 5.4; 3x1x1: 7 <= 8.1; 4x1x1: 9 <= 10.8).
+        let mut row: Vec<PrimRef> = (0..10).map(|i| r(i as f32, 100 + i)).collect();
+        let (m, ..) = pair_in_place(&mut row, FAST_BUILD_TAU, 4, DROP);
+        let ids: Vec<(u32, u32)> = row[..m].iter().map(|p| (p.prim, p.geom)).collect();
+        assert_eq!(ids, vec![(100, 4), (104, 4), (108, 2)]);
     }
 }
