@@ -252,6 +252,9 @@ mod tests {
         assert_eq!(geometry_of(9, &[0, 5, 9, 20]), 2);
         assert_eq!(geometry_of(0, &[0, 5, 9, 20]), 0);
         assert_eq!(geometry_of(19, &[0, 20]), 0);
+        // An empty geometry (1) owns no ID: 5 is geometry 2's first.
+        assert_eq!(geometry_of(5, &[0, 5, 5, 9]), 2);
+        assert_eq!(geometry_of(4, &[0, 5, 5, 9]), 0);
         // Clusters of up to four: a row of touching unit boxes groups by fours while the union
         // stays within 0.9x the members' sum (2x1x1: 5 <= 5.4; 3x1x1: 7 <= 8.1; 4x1x1: 9 <= 10.8).
         let mut row: Vec<PrimRef> = (0..10).map(|i| r(i as f32, 100 + i)).collect();
