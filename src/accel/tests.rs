@@ -1482,6 +1482,28 @@ fn paired_builds_match_brute_force_and_are_deterministic() {
             check(&dst, &tris2, 8);
         }
     }
+    // An empty geometry between the two: hits name geometries 0 and 2.
+    {
+        let (v, i0, i1) = paired_grid(cells, 0.0);
+        let (vb, b0, b1) = (f32_bytes(&v), u32_bytes(&i0), u32_bytes(&i1));
+        let empty = tri_geom(&vb, v.len() as u32, &b0, 0, 0);
+        let geoms = [tri_geom(&vb, v.len() as u32, &b0, (i0.len() / 3) as u32, 0), empty, tri_geom(&vb, v.len() as u32, &b1, (i1.len() / 3) as u32, 0)];
+        let blas = build_ok(AsType::BottomLevel, BuildFlags::PREFER_FAST_BUILD, &geoms, &NoDevice);
+        assert!(builder::LAST_BUILD_PAIRS.with(|c| c.get()).is_some());
+        let mut seen = [0usize; 3];
+        for (g, idx) in [(0u32, &i0), (2, &i1)] {
+            for (p, t) in idx.chunks_exact(3).enumerate().filter(|(_, t)| t[0] != t[1]).step_by(97) {
+                // A ray straight down through the triangle's centroid hits it (or a neighbour at
+                // the same t on a shared edge, never another geometry's).
+                let c = (v[t[0] as usize] + v[t[1] as usize] + v[t[2] as usize]) / 3.0;
+                let ray = Ray { origin: c + Vec3::Y * 20.0, direction: -Vec3::Y, tmin: 0.0, tmax: f32::INFINITY };
+                let h = closest_hit(&blas, &NoDevice, ray, RayFlags(0), 0xff).expect("a hit");
+                assert_eq!((h.geometry_index, h.primitive_index), (g, p as u32));
+                seen[g as usize] += 1;
+            }
+        }
+        assert!(seen[0] > 10 && seen[2] > 10 && seen[1] == 0);
+    }
     // Below the threshold nothing pairs (the bunny's tree is unchanged by pairing), nor does the
     // fast-trace tier.
     let (v, i0, _) = paired_grid(40, 0.0);
