@@ -285,9 +285,10 @@ impl BuildParams {
         } else if flags.contains(BuildFlags::PREFER_FAST_BUILD) {
             // 12 bins, not 8: over node boxes (see `build_rec`) 8 bins gave SAH 54.59 on the
             // dragon, 12 give 53.71 at the same speed. Clusters of up to 4 primitives, leaves
-            // of up to 3 clusters (12 primitives): dragon SAH 53.72 as with pairs in leaves of
-            // 4 (53.76), 53.7 B/tri (52.8), 16 threads 19.7–23.7 against 23.3–26.9 ms in three
-            // interleaved rounds on the 16-core machine (4 clusters per leaf: SAH 54.16).
+            // of up to 3 clusters (12 primitives): with tau 1.0 (`pairs::FAST_BUILD_TAU`) dragon
+            // SAH 53.90, 53.8 B/tri; 16 threads 17.9–19.8 ms against 20.0–23.7 for pairs in
+            // leaves of 4 in interleaved rounds on the 16-core machine (4 clusters per leaf:
+            // SAH 54.16 with the reference-counting leaf rule).
             BuildParams { bins: 12, single_axis: true, traversal_cost: 2.5, max_leaf: 8, small_n: SMALL_N, parallel_cutoff: 1024, sample_target: SAMPLE_TARGET, pair_tau: pairs::FAST_BUILD_TAU, cluster: 4, cluster_leaf: 3 }
         } else {
             BuildParams { bins: 16, single_axis: false, traversal_cost: 1.0, max_leaf: 8, small_n: SMALL_N, parallel_cutoff: 1024, sample_target: 2 * SAMPLE_TARGET, pair_tau: pairs::DEFAULT_TAU, cluster: 2, cluster_leaf: 4 }
@@ -583,6 +584,9 @@ struct Ctx {
     threads: usize,
     /// The references are primitive pairs (`pairs`): leaves cost their primitives.
     paired: bool,
+    /// The tier's C_T for costs counted in primitives (`params.traversal_cost` is scaled to
+    /// references when paired).
+    prim_ct: f32,
 }
 impl Ctx {
     /// Whether a node of `n` references partitions in one sequential pass rather than in
@@ -646,8 +650,11 @@ fn build_rec(ctx: &Ctx, refs: &mut [PrimRef], nodes: &mut [BinNode], start: u32,
         // primitives, and these nodes are most of the tree.
         let widest = (0..3).fold(0, |w, a| if cb.hi[a] - cb.lo[a] > cb.hi[w] - cb.lo[w] { a } else { w });
         let axes = if p.single_axis { (widest, widest + 1) } else { (0, 3) };
-        if let Some((mid, cost)) = small_split(refs, axes) {
-            if n as u32 <= p.max_leaf && area * n as f32 <= area * p.traversal_cost + cost {
+        if let Some((mid, cost)) = small_split(refs, axes, ctx.paired) {
+            // Clusters: the sweep's costs count primitives, so the leaf does too, with the
+            // tier's own C_T.
+            let (prims, ct) = if ctx.paired { (refs.iter().map(pairs::weight).sum::<u32>() as f32, ctx.prim_ct) } else { (n as f32, p.traversal_cost) };
+            if n as u32 <= p.max_leaf && area * prims <= area * ct + cost {
                 return make_leaf(nodes, refs);
             }
             let (l, r) = refs.split_at(mid);
@@ -1161,23 +1168,27 @@ fn sort_network(v: &mut [u64; MAX_SMALL], net: &[(usize, usize)]) {
 /// the n-1 split positions, lowest position on ties. `S` (3 or 7) fixes the step count; the
 /// positions at and past n-1 get a NaN cost, which never wins.
 #[inline(always)]
-fn small_sweep<const S: usize>(order: &[u8; MAX_SMALL], lo: &[Vec3A; MAX_SMALL], hi: &[Vec3A; MAX_SMALL], n: usize) -> Option<(usize, f32)> {
+fn small_sweep<const S: usize>(order: &[u8; MAX_SMALL], lo: &[Vec3A; MAX_SMALL], hi: &[Vec3A; MAX_SMALL], w: &[f32; MAX_SMALL], n: usize) -> Option<(usize, f32)> {
     let mut l_area = [0f32; S];
+    let mut l_w = [0f32; S];
     let (mut l, mut h) = (Vec3A::INFINITY, Vec3A::NEG_INFINITY);
+    let mut acc = 0f32;
     for i in 0..S {
         let o = order[i] as usize & (MAX_SMALL - 1);
         l = l.min(lo[o]);
         h = h.max(hi[o]);
         l_area[i] = half_area_v(l, h);
+        acc += w[o];
+        l_w[i] = acc;
     }
     let (mut l, mut h) = (Vec3A::INFINITY, Vec3A::NEG_INFINITY);
     let (mut best_cost, mut best_i) = (f32::INFINITY, usize::MAX);
-    let nf = n as f32;
+    let nf = w.iter().sum::<f32>();
     for i in (0..S).rev() {
         let o = order[(i + 1) & (MAX_SMALL - 1)] as usize & (MAX_SMALL - 1);
         l = l.min(lo[o]);
         h = h.max(hi[o]);
-        let left = (i + 1) as f32;
+        let left = l_w[i];
         let cost = l_area[i] * left + half_area_v(l, h) * (nf - left);
         let cost = if i + 1 < n { cost } else { f32::NAN };
         let take = cost <= best_cost;
@@ -1188,15 +1199,20 @@ fn small_sweep<const S: usize>(order: &[u8; MAX_SMALL], lo: &[Vec3A; MAX_SMALL],
 }
 
 #[inline(never)]
-fn small_split(refs: &mut [PrimRef], axes: (usize, usize)) -> Option<(usize, f32)> {
+fn small_split(refs: &mut [PrimRef], axes: (usize, usize), weighted: bool) -> Option<(usize, f32)> {
     let n = refs.len();
     if !(2..=MAX_SMALL).contains(&n) {
         return None;
     }
+    // Primitives per reference (clusters when `weighted`), 0 in unused slots.
+    let mut w = [0f32; MAX_SMALL];
+    for (x, r) in w.iter_mut().zip(refs.iter()) {
+        *x = if weighted { pairs::weight(r) as f32 } else { 1.0 };
+    }
     if n == 2 {
         // Both orders give the same split and cost; keep the input order (what the sweep
         // picks on a tie).
-        return Some((1, half_area_v(ref_lo(&refs[0]), ref_hi(&refs[0])) + half_area_v(ref_lo(&refs[1]), ref_hi(&refs[1]))));
+        return Some((1, half_area_v(ref_lo(&refs[0]), ref_hi(&refs[0])) * w[0] + half_area_v(ref_lo(&refs[1]), ref_hi(&refs[1])) * w[1]));
     }
     // Boxes and centroids gathered once (the sweeps read them in sorted order per axis).
     // Unused slots hold empty boxes (+inf..-inf), which leave the sweeps' bounds unchanged,
@@ -1223,11 +1239,11 @@ fn small_split(refs: &mut [PrimRef], axes: (usize, usize)) -> Option<(usize, f32
         let axis_best = if n <= 4 {
             sort_network(&mut v, &NET4);
             order = std::array::from_fn(|i| v[i] as u8);
-            small_sweep::<3>(&order, &lo, &hi, n)
+            small_sweep::<3>(&order, &lo, &hi, &w, n)
         } else {
             sort_network(&mut v, &NET8);
             order = std::array::from_fn(|i| v[i] as u8);
-            small_sweep::<7>(&order, &lo, &hi, n)
+            small_sweep::<7>(&order, &lo, &hi, &w, n)
         };
         // Ties across axes keep the earlier axis; within an axis the sweep keeps the lowest
         // position.
@@ -2303,7 +2319,7 @@ pub fn build(desc: &BuildDesc, view: &dyn DeviceView, dst: &mut [u8], scratch: &
         bparams.max_leaf = params.cluster_leaf.max(1);
         bparams.traversal_cost = (params.traversal_cost * built as f32 / active.max(1) as f32).max(1.0);
     }
-    let ctx = Ctx { params: bparams, total: built, threads, paired };
+    let ctx = Ctx { params: bparams, total: built, threads, paired, prim_ct: params.traversal_cost };
     // Pre-emission area (see `finish_split`): after the staging area in the (still unused)
     // node section of dst. Whether a block fits there never changes the output bytes.
     // Without staging the area would start where the final nodes start, so no block could
@@ -2787,7 +2803,7 @@ mod pass_timing {
                 let s = std::time::Instant::now();
                 let mut sum = 0f64;
                 for g in work.iter_mut() {
-                    if let Some((mid, cost)) = small_split(g, axes) {
+                    if let Some((mid, cost)) = small_split(g, axes, false) {
                         sum += mid as f64 + cost as f64;
                     }
                 }

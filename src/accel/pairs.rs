@@ -25,14 +25,15 @@ pub const PAIR_MIN: usize = 8192;
 /// through a table of first IDs kept on the stack.
 pub const MAX_PAIR_GEOMETRIES: usize = 64;
 /// Two neighbours pair when the half area of their union is at most `tau` times the sum of
-/// their half areas (`BuildParams::pair_tau`, per tier). Dragon FAST_BUILD, one thread, this
-/// repository's 2-vCPU box (build minimum; SAH; references): unpaired 117 ms, 53.75, 871,306;
-/// 0.8 → 114.0 ms, 53.15, 698,306; 0.9 → 111.6 ms, 53.74, 658,694; 1.0 → 108.3 ms, 54.35,
-/// 634,116; 1.1 → 105.9 ms, 55.02, 604,375: 0.9 keeps the tier's SAH. The default tier (16
-/// bins on three axes): unpaired 197–198 ms, 49.11; 0.6 pairs too few to pass
-/// `worth_pairing`; 0.7 → 185.4–185.7 ms, 49.19, 59.4 B/tri (60.6); 0.8 → 174–177 ms, 49.40.
-/// FAST_TRACE loses 0.3 % at 0.7 (48.97, over its 48.9) and does not pair.
-pub const FAST_BUILD_TAU: f32 = 0.9;
+/// their half areas (`BuildParams::pair_tau`, per tier). Dragon FAST_BUILD (clusters of up to 4,
+/// leaves of up to 3, leaf decisions counting primitives), SAH and B/tri: unpaired 53.75, 52.4;
+/// 0.9 → 53.14, 54.2; **1.0 → 53.90, 53.8**; 1.1 → 54.98, 53.4. On the 16-core machine, four
+/// interleaved rounds at 16 threads, through the API: 0.9 18.3–21.5 ms, 1.0 17.9–19.8 ms (20.0–23.7
+/// for `95b33ec`, whose leaf rule counted references). The default tier (16 bins on three axes,
+/// pairs): 0.7 keeps its SAH (49.11) and is 2–4 % faster on one thread; at 0.6 too few
+/// neighbours pass `worth_pairing`. FAST_TRACE loses 0.3 % at 0.7 (48.97, over its 48.9) and does
+/// not pair.
+pub const FAST_BUILD_TAU: f32 = 1.0;
 pub const DEFAULT_TAU: f32 = 0.7;
 
 /// Whether references `a` and `b` are worth one leaf entry: the half area of their union is
@@ -256,7 +257,8 @@ mod tests {
         assert_eq!(geometry_of(5, &[0, 5, 5, 9]), 2);
         assert_eq!(geometry_of(4, &[0, 5, 5, 9]), 0);
         // Clusters of up to four: a row of touching unit boxes groups by fours while the union
-        // stays within 0.9x the members' sum (2x1x1: 5 <= 5.4; 3x1x1: 7 <= 8.1; 4x1x1: 9 <= 10.8).
+        // stays within tau times the members' sum (half areas 2x1x1: 5 against 2 x 3; 3x1x1: 7
+        // against 3 x 3; 4x1x1: 9 against 4 x 3).
         let mut row: Vec<PrimRef> = (0..10).map(|i| r(i as f32, 100 + i)).collect();
         let (m, ..) = pair_in_place(&mut row, FAST_BUILD_TAU, 4, DROP);
         let ids: Vec<(u32, u32)> = row[..m].iter().map(|p| (p.prim, p.geom)).collect();
