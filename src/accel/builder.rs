@@ -1143,7 +1143,7 @@ const MAX_SMALL: usize = 8;
 
 /// Best SAH split of <= MAX_SMALL references over the given axes: reorders `refs` along the
 /// winning axis (stable insertion sort: ties keep input order, so the result is deterministic)
-/// and returns (left count, A_L·N_L + A_R·N_R).
+/// and returns (left count, A_L·N_L + A_R·N_R), N counting primitives when `weighted`.
 /// f32 bits mapped so that unsigned integer order is the float order (-0 before +0).
 #[inline(always)]
 fn ordered_bits(f: f32) -> u32 {
