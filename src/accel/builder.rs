@@ -2289,13 +2289,15 @@ pub fn build(desc: &BuildDesc, view: &dyn DeviceView, dst: &mut [u8], scratch: &
     // The fast-build and default tiers build over primitive pairs (`pairs`) in staged BLAS
     // builds of at least PAIR_MIN primitives over at most MAX_PAIR_GEOMETRIES geometries whose
     // neighbours pair well in a sample. Ingest pairs each chunk while it is in cache.
-    let mut geo_counts = [0u32; pairs::MAX_PAIR_GEOMETRIES];
+    // First global primitive ID of each geometry, then the total (IDs → geometries).
+    let mut firsts = [0u32; pairs::MAX_PAIR_GEOMETRIES + 1];
+    for (gi, g) in desc.geometries.iter().enumerate().take(pairs::MAX_PAIR_GEOMETRIES) {
+        firsts[gi + 1] = firsts[gi].saturating_add(g.primitive_count);
+    }
+    let firsts = &firsts[..=desc.geometries.len().min(pairs::MAX_PAIR_GEOMETRIES)];
     let pair_tau = if staged && params.pair_tau > 0.0 && total >= pairs::PAIR_MIN && desc.geometries.len() <= pairs::MAX_PAIR_GEOMETRIES {
-        for (c, g) in geo_counts.iter_mut().zip(desc.geometries) {
-            *c = g.primitive_count;
-        }
         let read = |g: u32, p: u32| desc.geometries.get(g as usize).and_then(|geo| make_ref(g, geo, p, view, allow_update).ok().flatten());
-        if pairs::worth_pairing(&geo_counts[..desc.geometries.len()], params.pair_tau, read) { params.pair_tau } else { 0.0 }
+        if pairs::worth_pairing(firsts, params.pair_tau, read) { params.pair_tau } else { 0.0 }
     } else {
         0.0
     };
@@ -2351,12 +2353,7 @@ pub fn build(desc: &BuildDesc, view: &dyn DeviceView, dst: &mut [u8], scratch: &
         let prims = &mut head[pre.prims as usize..pre.prims as usize + active * PRIM_SIZE];
         let records = &mut rec_part[..active * RECORD_SIZE];
         if let Some(map) = map {
-            let mut firsts = [0u32; pairs::MAX_PAIR_GEOMETRIES + 1];
-            for (gi, g) in desc.geometries.iter().enumerate().take(pairs::MAX_PAIR_GEOMETRIES) {
-                firsts[gi + 1] = firsts[gi].saturating_add(g.primitive_count);
-            }
-            let ng = desc.geometries.len().min(pairs::MAX_PAIR_GEOMETRIES);
-            pairs::gather_pairs(&refs[..built], map, &tail[..total * STAGE_SIZE], prims, records, &firsts[..=ng]);
+            pairs::gather_pairs(&refs[..built], map, &tail[..total * STAGE_SIZE], prims, records, firsts);
         } else if staged {
             gather_leaf_data(&mut refs[..active], &tail[..total * STAGE_SIZE], prims, records);
         } else {

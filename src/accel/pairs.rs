@@ -81,7 +81,8 @@ pub fn pair_in_place(c: &mut [PrimRef], tau: f32, cluster: u32, dropped: u32) ->
                 let (blo, bhi) = (ref_lo(b), ref_hi(b));
                 let (ulo, uhi) = (lo.min(blo), hi.max(bhi));
                 let bsum = sum + half_area_v(blo, bhi);
-                if half_area_v(ulo, uhi) > tau * bsum {
+                // A pair is exactly the flag's test (`tight`); larger clusters test their union.
+                if count > 1 && half_area_v(ulo, uhi) > tau * bsum {
                     break;
                 }
                 (lo, hi, sum) = (ulo, uhi, bsum);
@@ -105,31 +106,26 @@ pub fn pair_in_place(c: &mut [PrimRef], tau: f32, cluster: u32, dropped: u32) ->
     (w, clo, chi)
 }
 
-/// Whether pairing is likely to pay for these geometries: at least one in PAIR_WORTH of
-/// SAMPLE neighbours, evenly spaced over the global primitive IDs, is `tight` (`boxes(g, p)`
-/// gives primitive p of geometry g's box, None for a dropped or unreadable one). A random soup
-/// pairs almost nothing and would pay the pass for nothing.
-pub fn worth_pairing(counts: &[u32], tau: f32, mut boxes: impl FnMut(u32, u32) -> Option<PrimRef>) -> bool {
-    const SAMPLE: u64 = 1024;
-    const PAIR_WORTH: u64 = 8;
-    let total: u64 = counts.iter().map(|&c| c as u64).sum();
+/// Whether pairing is likely to pay for these geometries (`firsts` as for `geometry_of`): at
+/// least one in PAIR_WORTH of SAMPLE neighbours, evenly spaced over the global primitive IDs,
+/// is `tight` (`boxes(g, p)` gives primitive p of geometry g's box, None for a dropped or
+/// unreadable one). A random soup pairs almost nothing and would pay the pass for nothing.
+pub fn worth_pairing(firsts: &[u32], tau: f32, mut boxes: impl FnMut(u32, u32) -> Option<PrimRef>) -> bool {
+    const SAMPLE: u32 = 1024;
+    const PAIR_WORTH: u32 = 8;
+    let total = firsts.last().copied().unwrap_or(0);
     let step = (total / SAMPLE).max(1);
-    let (mut tested, mut hits) = (0u64, 0u64);
-    let mut id = 0u64;
-    while id + 1 < total {
-        // The geometry and index of global ID `id`.
-        let (mut g, mut p) = (0usize, id);
-        while g < counts.len() && p >= counts[g] as u64 {
-            p -= counts[g] as u64;
-            g += 1;
-        }
-        if g < counts.len() && p + 1 < counts[g] as u64 {
+    let (mut tested, mut hits) = (0u32, 0u32);
+    for id in (0..total.saturating_sub(1)).step_by(step as usize) {
+        // Neighbours within one geometry.
+        let g = geometry_of(id, firsts);
+        let first = firsts.get(g as usize).copied().unwrap_or(0);
+        if firsts.get(g as usize + 1).is_some_and(|&end| id + 1 < end) {
             tested += 1;
-            if let (Some(a), Some(b)) = (boxes(g as u32, p as u32), boxes(g as u32, p as u32 + 1)) {
-                hits += tight(&a, &b, tau) as u64;
+            if let (Some(a), Some(b)) = (boxes(g, id - first), boxes(g, id - first + 1)) {
+                hits += tight(&a, &b, tau) as u32;
             }
         }
-        id += step;
     }
     tested > 0 && hits * PAIR_WORTH >= tested
 }
@@ -243,9 +239,9 @@ mod tests {
         assert_eq!((clo.to_array(), chi.to_array()), ([1.0, 0.5, 0.5], [200.5, 0.5, 0.5]));
         // The sampled test: every neighbour of a touching row is tight, none of a spread one.
         let row = |gap: f32| move |_g: u32, p: u32| Some(r(p as f32 * gap, p));
-        assert!(worth_pairing(&[5000, 4000], FAST_BUILD_TAU, row(1.0)));
-        assert!(!worth_pairing(&[9000], FAST_BUILD_TAU, row(3.0)));
-        assert!(!worth_pairing(&[9000], FAST_BUILD_TAU, |_, _| None));
+        assert!(worth_pairing(&[0, 5000, 9000], FAST_BUILD_TAU, row(1.0)));
+        assert!(!worth_pairing(&[0, 9000], FAST_BUILD_TAU, row(3.0)));
+        assert!(!worth_pairing(&[0, 9000], FAST_BUILD_TAU, |_, _| None));
         let mut p = vec![0u32; m + 1];
         prim_prefix(&out, &mut p);
         assert_eq!(p, vec![0, 2, 4, 5, 6, 7, 8]);
