@@ -1901,13 +1901,12 @@ pub const INGEST_CHUNK: usize = 4096;
 /// Ingest chunk of instance geometries (see `ingest`).
 const INGEST_CHUNK_INSTANCES: usize = 256;
 
-/// Fills `refs[..total]` (slot = global primitive ID), then compacts active ones to the front
-/// in order. Returns (active count, per-geometry active counts written into `active`).
 /// Staged primitive data: what the format stores plus the primitive's index in its geometry.
 pub const STAGE_SIZE: usize = 40;
 
-/// Fills `refs[..total]` (slot = global primitive ID), then compacts active ones to the front
-/// in order. With `stage`, the primitive data is also written there at the global ID (one
+/// Fills `refs[..total]` (slot = global primitive ID), then compacts the active ones, in
+/// order, to the front of `temp` when it holds them (the last value returned is then true:
+/// `temp` is the root's node slots, see `build_rec`'s `in_nodes`) or else of `refs`. With `stage`, the primitive data is also written there at the global ID (one
 /// sequential pass over the input) and `PrimRef::prim` holds the global ID until
 /// `gather_leaf_data` puts data and records in leaf order. With `pair_tau` > 0 (staged builds
 /// only) each chunk is paired in place while in cache (`pairs::pair_in_place`), so the
@@ -1915,7 +1914,7 @@ pub const STAGE_SIZE: usize = 40;
 /// (the geometry table) and returns the reference count, the active primitive count, the box
 /// and the references' centroid box.
 #[allow(clippy::too_many_arguments)]
-fn ingest(desc: &BuildDesc, view: &dyn DeviceView, refs: &mut [PrimRef], mut stage: Option<&mut [u8]>, temp: &mut [PrimRef], (pair_tau, cluster): (f32, u32), geo: &mut [u8]) -> Result<(usize, usize, Aabb, Aabb), BuildError> {
+fn ingest(desc: &BuildDesc, view: &dyn DeviceView, refs: &mut [PrimRef], mut stage: Option<&mut [u8]>, temp: &mut [PrimRef], (pair_tau, cluster): (f32, u32), geo: &mut [u8]) -> Result<(usize, usize, Aabb, Aabb, bool), BuildError> {
     let allow_update = desc.flags.contains(BuildFlags::ALLOW_UPDATE);
     let pair_tau = if stage.is_some() { pair_tau } else { 0.0 };
     let mut base = 0usize;
@@ -2030,7 +2029,7 @@ fn ingest(desc: &BuildDesc, view: &dyn DeviceView, refs: &mut [PrimRef], mut sta
     let boxes = (to_aabb(sum.lo, sum.hi), to_aabb(sum.clo, sum.chi));
     let (dropped_total, prims) = (sum.dropped, base - sum.lost);
     if dropped_total == 0 {
-        return Ok((base, prims, boxes.0, boxes.1));
+        return Ok((base, prims, boxes.0, boxes.1, false));
     }
     // Stable compaction in parallel: each of a fixed number of chunks copies its kept
     // references to their final range of `temp` (disjoint, from a prefix sum), then all come
@@ -2054,8 +2053,9 @@ fn ingest(desc: &BuildDesc, view: &dyn DeviceView, refs: &mut [PrimRef], mut sta
                 *d = *r;
             }
         });
-        refs[..kept].par_chunks_mut(chunk).zip(temp[..kept].par_chunks(chunk)).for_each(|(d, s)| d.copy_from_slice(s));
-        return Ok((kept, prims, boxes.0, boxes.1));
+        // They stay in `temp` (the root's node slots): the root's first partition moves them
+        // back (`build_rec`'s `in_nodes`), which saves a copy of every reference.
+        return Ok((kept, prims, boxes.0, boxes.1, true));
     }
     let first = refs[..base].par_iter().with_min_len(INGEST_CHUNK).position_first(|r| r.geom == DROPPED).unwrap_or(base);
     let mut w = first;
@@ -2065,7 +2065,7 @@ fn ingest(desc: &BuildDesc, view: &dyn DeviceView, refs: &mut [PrimRef], mut sta
             w += 1;
         }
     }
-    Ok((w, prims, boxes.0, boxes.1))
+    Ok((w, prims, boxes.0, boxes.1, false))
 }
 
 /// Leaf-order primitive data and records from the staging area; restores `PrimRef::prim` to
@@ -2302,7 +2302,7 @@ pub fn build(desc: &BuildDesc, view: &dyn DeviceView, dst: &mut [u8], scratch: &
         0.0
     };
     let paired = pair_tau > 0.0;
-    let (built, active, root_box, root_cb) = {
+    let (built, active, root_box, root_cb, in_temp) = {
         // The node slots are unused until the tree is built: compaction's temporary.
         let temp = node_refs_mut(nodes, total).unwrap_or(&mut []);
         let goff = layout::sections(desc.ty, 0, 0, ngeo).geometries as usize;
@@ -2330,7 +2330,7 @@ pub fn build(desc: &BuildDesc, view: &dyn DeviceView, dst: &mut [u8], scratch: &
     let pre_at = (stage_at + if staged { total * STAGE_SIZE } else { 0 }).min(dst.len());
     let pre_len = if staged { (dst.len() - pre_at).min(PRE_BYTES_PER_PRIM * active) } else { 0 };
     let (sah_sum, _depth) = if built > 0 {
-        build_rec(&ctx, &mut refs[..built], &mut nodes[..2 * built - 1], 0, root_box, root_cb, 0, &mut Bins::new(), false, &mut dst[pre_at..pre_at + pre_len], u32::MAX)
+        build_rec(&ctx, &mut refs[..built], &mut nodes[..2 * built - 1], 0, root_box, root_cb, 0, &mut Bins::new(), in_temp, &mut dst[pre_at..pre_at + pre_len], u32::MAX)
     } else {
         (0.0, 0)
     };

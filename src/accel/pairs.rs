@@ -110,23 +110,31 @@ pub fn pair_in_place(c: &mut [PrimRef], tau: f32, cluster: u32, dropped: u32) ->
 /// least one in PAIR_WORTH of SAMPLE neighbours, evenly spaced over the global primitive IDs,
 /// is `tight` (`boxes(g, p)` gives primitive p of geometry g's box, None for a dropped or
 /// unreadable one). A random soup pairs almost nothing and would pay the pass for nothing.
-pub fn worth_pairing(firsts: &[u32], tau: f32, mut boxes: impl FnMut(u32, u32) -> Option<PrimRef>) -> bool {
+/// The sample is read in parallel (counts, so the same answer for any thread count): through
+/// the driver's checked reads a neighbour costs about 0.2 µs on this box, 0.4 ms for the whole
+/// sample on one thread, which would otherwise be a serial step in front of every paired build.
+pub fn worth_pairing(firsts: &[u32], tau: f32, boxes: impl Fn(u32, u32) -> Option<PrimRef> + Sync) -> bool {
     const SAMPLE: u32 = 1024;
     const PAIR_WORTH: u32 = 8;
     let total = firsts.last().copied().unwrap_or(0);
     let step = (total / SAMPLE).max(1);
-    let (mut tested, mut hits) = (0u32, 0u32);
-    for id in (0..total.saturating_sub(1)).step_by(step as usize) {
-        // Neighbours within one geometry.
-        let g = geometry_of(id, firsts);
-        let first = firsts.get(g as usize).copied().unwrap_or(0);
-        if firsts.get(g as usize + 1).is_some_and(|&end| id + 1 < end) {
-            tested += 1;
-            if let (Some(a), Some(b)) = (boxes(g, id - first), boxes(g, id - first + 1)) {
-                hits += tight(&a, &b, tau) as u32;
+    let (tested, hits) = (0..total.saturating_sub(1).div_ceil(step))
+        .into_par_iter()
+        .with_min_len(64)
+        .map(|s| {
+            let id = s * step;
+            // Neighbours within one geometry.
+            let g = geometry_of(id, firsts);
+            let first = firsts.get(g as usize).copied().unwrap_or(0);
+            if !firsts.get(g as usize + 1).is_some_and(|&end| id + 1 < end) {
+                return (0u32, 0u32);
             }
-        }
-    }
+            match (boxes(g, id - first), boxes(g, id - first + 1)) {
+                (Some(a), Some(b)) => (1, tight(&a, &b, tau) as u32),
+                _ => (1, 0),
+            }
+        })
+        .reduce(|| (0, 0), |x, y| (x.0 + y.0, x.1 + y.1));
     tested > 0 && hits * PAIR_WORTH >= tested
 }
 
