@@ -1903,6 +1903,19 @@ const INGEST_CHUNK_INSTANCES: usize = 256;
 
 /// Staged primitive data: what the format stores plus the primitive's index in its geometry.
 pub const STAGE_SIZE: usize = 40;
+/// The leaf-data gathers prefetch the stage record this many records ahead of the one they
+/// copy. Dragon FAST_BUILD, one thread, this box (minimum ms, two rounds): none 106.7 / 105.2,
+/// 8 ahead 104.4 / 104.9, 16 104.9 / 103.1, 32 102.0 / 100.4, 64 101.9 / 99.6: the gather's
+/// 9 ms fall to about 4.
+pub(super) const PREFETCH_AHEAD: usize = 32;
+
+/// Prefetches the stage record of global ID `id` (both of its cache lines when it straddles).
+#[inline(always)]
+pub(super) fn prefetch_stage(stage: &[u8], id: u32) {
+    let o = id as usize * STAGE_SIZE;
+    crate::memory::prefetch_read(stage, o);
+    crate::memory::prefetch_read(stage, o + STAGE_SIZE - 1);
+}
 
 /// Fills `refs[..total]` (slot = global primitive ID), then compacts the active ones, in
 /// order, to the front of `temp` when it holds them (the last value returned is then true:
@@ -2077,8 +2090,15 @@ fn gather_leaf_data(refs: &mut [PrimRef], stage: &[u8], prims: &mut [u8], record
         .zip(records.par_chunks_mut(CH * RECORD_SIZE))
         .zip(refs.par_chunks_mut(CH))
         .for_each(|((pd, rd), rs)| {
+            for r in rs.iter().take(PREFETCH_AHEAD) {
+                prefetch_stage(stage, r.prim);
+            }
             // Fixed-size chunks and arrays: no per-byte bounds checks or variable-length copies.
-            for ((d, rec), r) in pd.chunks_exact_mut(PRIM_SIZE).zip(rd.chunks_exact_mut(RECORD_SIZE)).zip(rs.iter_mut()) {
+            for (k, (d, rec)) in pd.chunks_exact_mut(PRIM_SIZE).zip(rd.chunks_exact_mut(RECORD_SIZE)).enumerate() {
+                if let Some(next) = rs.get(k + PREFETCH_AHEAD) {
+                    prefetch_stage(stage, next.prim);
+                }
+                let Some(r) = rs.get_mut(k) else { break };
                 let o = r.prim as usize * STAGE_SIZE;
                 let Some((st, _)) = stage.get(o..).and_then(|x| x.split_first_chunk::<STAGE_SIZE>()) else { continue };
                 let (data, tail) = st.split_at(PRIM_SIZE);
