@@ -1818,6 +1818,17 @@ impl<'a> FastTris<'a> {
         Some(idx)
     }
 
+    /// Prefetches the vertices of triangle `p` (ingest runs this PREFETCH_AHEAD triangles
+    /// ahead: indices come in order, vertices at random).
+    #[inline(always)]
+    fn prefetch(&self, p: u32) {
+        if let Some(idx) = self.indices(p) {
+            for i in idx {
+                crate::memory::prefetch_read(self.vertices, i as usize * self.stride);
+            }
+        }
+    }
+
     /// The positions of vertices `idx` (what `read` gives second); None when out of range.
     #[inline(always)]
     pub(super) fn positions(&self, idx: [u32; 3]) -> Option<[Vec3A; 3]> {
@@ -1950,6 +1961,7 @@ fn ingest(desc: &BuildDesc, view: &dyn DeviceView, refs: &mut [PrimRef], mut sta
             for (k, slot) in chunk.iter_mut().enumerate() {
                 let p = (ci * chunk_len + k) as u32;
                 if let Some(ft) = fast.as_ref() {
+                    ft.prefetch(p + PREFETCH_AHEAD as u32);
                     // Plain f32 triangles: everything stored straight from registers.
                     match ft.bounds(p, allow_update) {
                         Some(Some((lo, hi, [a, b, c]))) => {
