@@ -285,10 +285,11 @@ impl BuildParams {
         } else if flags.contains(BuildFlags::PREFER_FAST_BUILD) {
             // 12 bins, not 8: over node boxes (see `build_rec`) 8 bins gave SAH 54.59 on the
             // dragon, 12 give 53.71 at the same speed. Clusters of up to 4 primitives, leaves
-            // of up to 3 clusters (12 primitives): with tau 1.0 (`pairs::FAST_BUILD_TAU`) dragon
-            // SAH 53.90, 53.8 B/tri; 16 threads 17.9–19.8 ms against 20.0–23.7 for pairs in
-            // leaves of 4 in interleaved rounds on the 16-core machine (4 clusters per leaf:
-            // SAH 54.16 with the reference-counting leaf rule).
+            // of up to 3 clusters (12 primitives): with tau 1.0 dragon SAH 53.90, 53.8 B/tri;
+            // 16 threads 17.9–19.8 ms against 20.0–23.7 for pairs in leaves of 4 in interleaved
+            // rounds on the 16-core machine (4 clusters per leaf: SAH 54.16 with the
+            // reference-counting leaf rule). Since session 9 tau 1.1 (`pairs::FAST_BUILD_TAU`):
+            // SAH 54.98, 53.4 B/tri, 6 % faster on one thread.
             BuildParams { bins: 12, single_axis: true, traversal_cost: 2.5, max_leaf: 8, small_n: SMALL_N, parallel_cutoff: 1024, sample_target: SAMPLE_TARGET, pair_tau: pairs::FAST_BUILD_TAU, cluster: 4, cluster_leaf: 3 }
         } else {
             BuildParams { bins: 16, single_axis: false, traversal_cost: 1.0, max_leaf: 8, small_n: SMALL_N, parallel_cutoff: 1024, sample_target: 2 * SAMPLE_TARGET, pair_tau: pairs::DEFAULT_TAU, cluster: 2, cluster_leaf: 4 }
