@@ -1335,7 +1335,7 @@ fn sweep_join(a: SweepBox, b: &SweepBox) -> SweepBox {
 
 /// Each tier's SAH against the full-sweep reference on the bunny and a 47k-triangle dragon:
 /// the quality the tiers promise (FAST_TRACE and the default tier within a few percent of a
-/// sweep builder, FAST_BUILD trading 10–15 % of it for speed, measured 1.009 / 1.017 / 1.103 on
+/// sweep builder, FAST_BUILD trading 10–15 % of it for speed, measured 1.009 / 1.017 / 1.124 on
 /// this dragon and 1.005 / 1.003 / 1.149 on the bunny), so that a speed change cannot trade it
 /// away unnoticed. The tiers' figures are the header's SAH of the built tree; the wide tree's
 /// SAH, recomputed from the stored (quantised) boxes, must not exceed it.
