@@ -1931,8 +1931,9 @@ pub(super) fn prefetch_stage(stage: &[u8], id: u32) {
 
 /// Fills `refs[..total]` (slot = global primitive ID), then compacts the active ones, in
 /// order, to the front of `temp` when it holds them (the last value returned is then true:
-/// `temp` is the root's node slots, see `build_rec`'s `in_nodes`) or else of `refs`. With `stage`, the primitive data is also written there at the global ID (one
-/// sequential pass over the input) and `PrimRef::prim` holds the global ID until
+/// `temp` is the root's node slots, see `build_rec`'s `in_nodes`) or else of `refs`. With
+/// `stage`, the primitive data is also written there at the global ID (one sequential pass
+/// over the input) and `PrimRef::prim` holds the global ID until
 /// `gather_leaf_data` puts data and records in leaf order. With `pair_tau` > 0 (staged builds
 /// only) each chunk is paired in place while in cache (`pairs::pair_in_place`), so the
 /// references are pairs. Writes each geometry's record (with its active count) into `geo`
@@ -2058,8 +2059,8 @@ fn ingest(desc: &BuildDesc, view: &dyn DeviceView, refs: &mut [PrimRef], mut sta
         return Ok((base, prims, boxes.0, boxes.1, false));
     }
     // Stable compaction in parallel: each of a fixed number of chunks copies its kept
-    // references to their final range of `temp` (disjoint, from a prefix sum), then all come
-    // back to `refs`. Without a large enough `temp`, sequentially in place below.
+    // references to their final range of `temp` (disjoint, from a prefix sum), where the root
+    // finds them. Without a large enough `temp`, sequentially in place in `refs` below.
     let kept = base - dropped_total;
     if temp.len() >= kept {
         const CC: usize = 64;
