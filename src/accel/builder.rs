@@ -1825,7 +1825,9 @@ impl<'a> FastTris<'a> {
     fn prefetch(&self, p: u32) {
         if let Some(idx) = self.indices(p) {
             for i in idx {
-                crate::memory::prefetch_read(self.vertices, i as usize * self.stride);
+                if let Some(o) = (i as usize).checked_mul(self.stride) {
+                    crate::memory::prefetch_read(self.vertices, o);
+                }
             }
         }
     }
@@ -1963,7 +1965,7 @@ fn ingest(desc: &BuildDesc, view: &dyn DeviceView, refs: &mut [PrimRef], mut sta
             for (k, slot) in chunk.iter_mut().enumerate() {
                 let p = (ci * chunk_len + k) as u32;
                 if let Some(ft) = fast.as_ref() {
-                    ft.prefetch(p + PREFETCH_AHEAD as u32);
+                    ft.prefetch(p.saturating_add(PREFETCH_AHEAD as u32));
                     // Plain f32 triangles: everything stored straight from registers.
                     match ft.bounds(p, allow_update) {
                         Some(Some((lo, hi, [a, b, c]))) => {
