@@ -631,20 +631,21 @@ fn build_rec(ctx: &Ctx, refs: &mut [PrimRef], nodes: &mut [BinNode], start: u32,
         in_nodes = false;
     }
     let area = bounds.half_area();
-    let make_leaf = |nodes: &mut [BinNode], refs: &[PrimRef]| {
+    // Primitives under these references (a cluster counts its members).
+    let prims_of = |refs: &[PrimRef]| if ctx.paired { refs.iter().map(pairs::weight).sum::<u32>() } else { refs.len() as u32 };
+    let make_leaf = |nodes: &mut [BinNode], prims: u32| {
         if let Some(slot) = nodes.get_mut(0) {
             *slot = BinNode { lo: bounds.lo, start, hi: bounds.hi, count: n as u32, left_count: 0, reserved: 0 };
         }
-        let prims = if ctx.paired { refs.iter().map(pairs::weight).sum::<u32>() as f64 } else { n as f64 };
-        (area as f64 * prims, 1u32)
+        (area as f64 * prims as f64, 1u32)
     };
     if n <= 1 {
-        return make_leaf(nodes, refs);
+        return make_leaf(nodes, prims_of(refs));
     }
     if n as u32 <= p.max_leaf && n as f32 <= p.traversal_cost {
         // A split costs at least 0 more than C_T·A: no sweep can beat this leaf (the same
         // decision as the test below, made without sorting).
-        return make_leaf(nodes, refs);
+        return make_leaf(nodes, prims_of(refs));
     }
     if n <= p.small_n.min(MAX_SMALL) && depth < MAX_SAH_DEPTH {
         // Exact SAH sweep over sorted centroids: cheaper than binning for a handful of
@@ -654,14 +655,14 @@ fn build_rec(ctx: &Ctx, refs: &mut [PrimRef], nodes: &mut [BinNode], start: u32,
         if let Some((mid, cost)) = small_split(refs, axes, ctx.paired) {
             // Clusters: the sweep's costs count primitives, so the leaf does too, with the
             // tier's own C_T.
-            let (prims, ct) = if ctx.paired { (refs.iter().map(pairs::weight).sum::<u32>() as f32, ctx.prim_ct) } else { (n as f32, p.traversal_cost) };
-            if n as u32 <= p.max_leaf && area * prims <= area * ct + cost {
-                return make_leaf(nodes, refs);
+            let (prims, ct) = (prims_of(refs), if ctx.paired { ctx.prim_ct } else { p.traversal_cost });
+            if n as u32 <= p.max_leaf && area * prims as f32 <= area * ct + cost {
+                return make_leaf(nodes, prims);
             }
             let (l, r) = refs.split_at(mid);
             return finish_split(ctx, refs, nodes, start, bounds, mid, box_of(l), box_of(r), depth, bins, false, pre, parent_count);
         }
-        return make_leaf(nodes, refs);
+        return make_leaf(nodes, prims_of(refs));
     }
     // Smaller nodes get fewer bins: at most one per four references, at least 8 (the sweep
     // costs O(bins) per node; on the dragon FAST_TRACE this is 7 % fewer instructions for
@@ -721,7 +722,7 @@ fn build_rec(ctx: &Ctx, refs: &mut [PrimRef], nodes: &mut [BinNode], start: u32,
                     if in_nodes {
                         restore(refs, nodes);
                     }
-                    return make_leaf(nodes, refs);
+                    return make_leaf(nodes, prims_of(refs));
                 }
             }
             if let Some((a, b, lbox, rbox, _)) = split {
@@ -782,7 +783,7 @@ fn build_rec(ctx: &Ctx, refs: &mut [PrimRef], nodes: &mut [BinNode], start: u32,
         restore(refs, nodes);
     }
     if n as u32 <= p.max_leaf {
-        return make_leaf(nodes, refs);
+        return make_leaf(nodes, prims_of(refs));
     }
     // Fallback: object median along the widest axis of `cb` (all centroids equal, no SAH
     // split found, or depth limit). select_nth_unstable is deterministic and allocation-free.
