@@ -258,6 +258,9 @@ pub struct BuildParams {
     /// the most cluster references per leaf.
     pub cluster: u32,
     pub cluster_leaf: u32,
+    /// The fewest bins a binned node gets (it gets one per REFS_PER_BIN references, up to
+    /// `bins`).
+    pub min_bins: usize,
 }
 pub const MAX_BINS: usize = 32;
 /// Depth after which splits become balanced object-median splits: bounds recursion depth
@@ -281,7 +284,7 @@ const BIN_CHUNK: usize = 1 << 14;
 impl BuildParams {
     pub fn from_flags(flags: BuildFlags) -> Self {
         if flags.contains(BuildFlags::PREFER_FAST_TRACE) {
-            BuildParams { bins: 32, single_axis: false, traversal_cost: 1.0, max_leaf: 8, small_n: SMALL_N, parallel_cutoff: 1024, sample_target: 2 * SAMPLE_TARGET, pair_tau: 0.0, cluster: 1, cluster_leaf: 8 }
+            BuildParams { bins: 32, single_axis: false, traversal_cost: 1.0, max_leaf: 8, small_n: SMALL_N, parallel_cutoff: 1024, sample_target: 2 * SAMPLE_TARGET, pair_tau: 0.0, cluster: 1, cluster_leaf: 8, min_bins: 6 }
         } else if flags.contains(BuildFlags::PREFER_FAST_BUILD) {
             // 12 bins, not 8: over node boxes (see `build_rec`) 8 bins gave SAH 54.59 on the
             // dragon, 12 give 53.71 at the same speed. Clusters of up to 4 primitives, leaves
@@ -290,9 +293,9 @@ impl BuildParams {
             // rounds on the 16-core machine (4 clusters per leaf: SAH 54.16 with the
             // reference-counting leaf rule). Since session 9 tau 1.1 (`pairs::FAST_BUILD_TAU`):
             // SAH 54.98, 53.4 B/tri, 6 % faster on one thread.
-            BuildParams { bins: 12, single_axis: true, traversal_cost: 2.5, max_leaf: 8, small_n: SMALL_N, parallel_cutoff: 1024, sample_target: SAMPLE_TARGET, pair_tau: pairs::FAST_BUILD_TAU, cluster: 4, cluster_leaf: 3 }
+            BuildParams { bins: 12, single_axis: true, traversal_cost: 2.5, max_leaf: 8, small_n: SMALL_N, parallel_cutoff: 1024, sample_target: SAMPLE_TARGET, pair_tau: pairs::FAST_BUILD_TAU, cluster: 4, cluster_leaf: 3, min_bins: 8 }
         } else {
-            BuildParams { bins: 16, single_axis: false, traversal_cost: 1.0, max_leaf: 8, small_n: SMALL_N, parallel_cutoff: 1024, sample_target: 2 * SAMPLE_TARGET, pair_tau: pairs::DEFAULT_TAU, cluster: 2, cluster_leaf: 4 }
+            BuildParams { bins: 16, single_axis: false, traversal_cost: 1.0, max_leaf: 8, small_n: SMALL_N, parallel_cutoff: 1024, sample_target: 2 * SAMPLE_TARGET, pair_tau: pairs::DEFAULT_TAU, cluster: 2, cluster_leaf: 4, min_bins: 6 }
         }
     }
 }
@@ -664,10 +667,13 @@ fn build_rec(ctx: &Ctx, refs: &mut [PrimRef], nodes: &mut [BinNode], start: u32,
         }
         return make_leaf(nodes, prims_of(refs));
     }
-    // Smaller nodes get fewer bins: at most one per four references, at least 8 (the sweep
-    // costs O(bins) per node; on the dragon FAST_TRACE this is 7 % fewer instructions for
-    // SAH 48.79 -> 48.81).
-    let k = p.bins.clamp(2, MAX_BINS).min((n / REFS_PER_BIN).max(8));
+    // Smaller nodes get fewer bins: at most one per four references, at least `min_bins` (the
+    // sweep costs O(bins) per node; on the dragon FAST_TRACE this is 7 % fewer instructions for
+    // SAH 48.79 -> 48.81 with at least 8). At least 6 in the three-axis tiers (session 10):
+    // FAST_TRACE 3–5 % faster on one thread, SAH 48.84 -> 48.87 (the tier's budget is 48.9),
+    // the default tier 1–3 %, 49.11 -> 49.14; FAST_BUILD keeps 8 (6: SAH 54.70 -> 54.78 for no
+    // time measurable; 4 cost FAST_TRACE 48.91).
+    let k = p.bins.clamp(2, MAX_BINS).min((n / REFS_PER_BIN).max(p.min_bins.max(2)));
     let split: Option<(usize, usize, Aabb, Aabb, f32)>; // (axis, bin, left box, right box, cost)
     if depth < MAX_SAH_DEPTH {
         let mut scale = [0f32; 3];
