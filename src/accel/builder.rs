@@ -1207,7 +1207,8 @@ fn small_sweep<const S: usize>(order: &[u8; MAX_SMALL], lo: &[Vec3A; MAX_SMALL],
 /// references (bit mask `m`, `H` = 2^(N-1) masks); the right side is the rest with the last
 /// reference. The boxes of those subsets come from adding one reference to a smaller subset.
 /// Reorders `refs` as (left, right), each side in its input order, and returns (left count,
-/// A_L·N_L + A_R·N_R), N counting primitives when `weighted`. Ties go to the lowest mask.
+/// A_L·N_L + A_R·N_R), N counting primitives when `weighted`. Ties go to the lowest mask; None
+/// only when every cost is NaN.
 #[inline(always)]
 fn enum_split<const N: usize, const H: usize>(refs: &mut [PrimRef], weighted: bool) -> Option<(usize, f32)> {
     if refs.len() != N || H != 1 << (N - 1) {
@@ -1237,7 +1238,9 @@ fn enum_split<const N: usize, const H: usize>(refs: &mut [PrimRef], weighted: bo
     for m in 1..H {
         let r = full ^ m;
         let c = half_area_v(lo[m], hi[m]) * w[m] + half_area_v(lo[r].min(last_lo), hi[r].max(last_hi)) * (w[r] + last_w);
-        let take = c < best;
+        // The first cost that is not NaN is taken even when infinite (huge sanitised boxes), as
+        // the sweeps do; after it only a lower one.
+        let take = c < best || (mask == 0 && c <= best);
         best = if take { c } else { best };
         mask = if take { m } else { mask };
     }
@@ -2680,6 +2683,15 @@ mod network_tests {
                 let mut ids: Vec<u32> = got.iter().map(|r| r.prim).collect();
                 ids.sort_unstable();
                 assert_eq!(ids, (0..n as u32).collect::<Vec<_>>());
+            }
+        }
+        // Huge sanitised boxes (areas overflow to infinity) still split, as the sweeps did.
+        for n in 3..=5 {
+            let huge: Vec<PrimRef> = (0..n).map(|k| PrimRef { lo: [-f32::MAX; 3], geom: 1, hi: [f32::MAX; 3], prim: k }).collect();
+            for axes in [(0, 3), (1, 2)] {
+                let mut got = huge.clone();
+                let (mid, cost) = small_split(&mut got, axes, true).expect("huge boxes split");
+                assert!((1..n as usize).contains(&mid) && cost == f32::INFINITY, "n {n}: {mid} {cost}");
             }
         }
     }
