@@ -1207,10 +1207,10 @@ fn small_sweep<const S: usize>(order: &[u8; MAX_SMALL], lo: &[Vec3A; MAX_SMALL],
 /// references (bit mask `m`, `H` = 2^(N-1) masks); the right side is the rest with the last
 /// reference. The boxes of those subsets come from adding one reference to a smaller subset.
 /// Reorders `refs` as (left, right), each side in its input order, and returns (left count,
-/// A_L·N_L + A_R·N_R), N counting primitives when `weighted`. Ties go to the lowest mask; None
-/// only when every cost is NaN.
+/// A_L·N_L + A_R·N_R), N the sum of `w` (primitives per reference). Ties go to the lowest
+/// mask; None only when every cost is NaN.
 #[inline(always)]
-fn enum_split<const N: usize, const H: usize>(refs: &mut [PrimRef], weighted: bool) -> Option<(usize, f32)> {
+fn enum_split<const N: usize, const H: usize>(refs: &mut [PrimRef], w_ref: &[f32; MAX_SMALL]) -> Option<(usize, f32)> {
     if refs.len() != N || H != 1 << (N - 1) {
         return None;
     }
@@ -1220,7 +1220,7 @@ fn enum_split<const N: usize, const H: usize>(refs: &mut [PrimRef], weighted: bo
     for i in 0..N {
         elo[i] = ref_lo(&refs[i]);
         ehi[i] = ref_hi(&refs[i]);
-        ew[i] = if weighted { pairs::weight(&refs[i]) as f32 } else { 1.0 };
+        ew[i] = w_ref[i & (MAX_SMALL - 1)];
     }
     let mut lo = [Vec3A::INFINITY; H];
     let mut hi = [Vec3A::NEG_INFINITY; H];
@@ -1286,13 +1286,11 @@ fn small_split(refs: &mut [PrimRef], axes: (usize, usize), weighted: bool) -> Op
     // faster, the same SAH to 0.01). One axis sorts faster from five references on, and four
     // cost the same either way: FAST_BUILD enumerates three and four (SAH 54.98 -> 54.70).
     let enum_max = if axes.1 - axes.0 == 1 { 4 } else { 5 };
-    if n <= enum_max {
-        match n {
-            3 => return enum_split::<3, 4>(refs, weighted),
-            4 => return enum_split::<4, 8>(refs, weighted),
-            5 => return enum_split::<5, 16>(refs, weighted),
-            _ => {}
-        }
+    match n {
+        3 => return enum_split::<3, 4>(refs, &w),
+        4 => return enum_split::<4, 8>(refs, &w),
+        5 if n <= enum_max => return enum_split::<5, 16>(refs, &w),
+        _ => {}
     }
     // Boxes and centroids gathered once (the sweeps read them in sorted order per axis).
     // Unused slots hold empty boxes (+inf..-inf), which leave the sweeps' bounds unchanged,
@@ -2612,15 +2610,13 @@ mod network_tests {
     /// 0-1 principle: a comparator network sorts every input iff it sorts every 0/1 input.
     #[test]
     fn sorting_networks_sort() {
-        for (net, n) in [(&NET8[..], 8usize)] {
-            for bits in 0u32..(1 << n) {
-                let mut v = [u64::MAX; MAX_SMALL];
-                for i in 0..n {
-                    v[i] = (bits >> i & 1) as u64;
-                }
-                sort_network(&mut v, net);
-                assert!(v[..n].windows(2).all(|w| w[0] <= w[1]), "n {n} input {bits:#b}: {v:?}");
+        for bits in 0u32..(1 << MAX_SMALL) {
+            let mut v = [u64::MAX; MAX_SMALL];
+            for (i, x) in v.iter_mut().enumerate() {
+                *x = (bits >> i & 1) as u64;
             }
+            sort_network(&mut v, &NET8);
+            assert!(v.windows(2).all(|w| w[0] <= w[1]), "input {bits:#b}: {v:?}");
         }
         let keys = [-1.5f32, -0.0, 0.0, 2.0, f32::MIN, f32::MAX, 1e-30, -1e-30];
         let mut sorted = keys;
