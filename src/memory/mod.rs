@@ -97,8 +97,8 @@ impl fmt::Display for AccessError {
 /// (page aligned, zero, uncommitted until touched, as above) advised for transparent huge
 /// pages: a build's scratch and destination are tens of megabytes read and written in
 /// patterns the TLB follows badly with 4 KiB pages (dragon, 16 threads on the 16-core machine:
-/// FAST_BUILD 4–5 % faster with huge pages, docs/BENCHMARKS.md). Where the system does not
-/// grant huge pages the advice changes nothing.
+/// builds through the API 1–5 % faster, docs/BENCHMARKS.md, session 11). Where the system does
+/// not grant huge pages the advice changes nothing.
 struct Backing {
     /// Page-aligned start of the bytes.
     ptr: NonNull<u8>,
@@ -106,13 +106,17 @@ struct Backing {
     base: NonNull<u8>,
     /// The allocator's layout, or None for a mapping of `mapped` bytes.
     layout: Option<std::alloc::Layout>,
+    #[cfg_attr(not(all(target_os = "linux", any(target_arch = "x86_64", target_arch = "aarch64"))), allow(dead_code))]
     mapped: usize,
 }
 
-/// Allocations from this size on get their own mapping advised for huge pages (Linux).
+/// Allocations from this size on get their own mapping advised for huge pages (Linux on
+/// x86-64 and AArch64).
 pub const HUGE_MAPPING_MIN: usize = 2 << 20;
 
-#[cfg(target_os = "linux")]
+/// Linux's mmap/madvise constants as on x86-64 and AArch64 (some other architectures number
+/// them differently, so they keep the allocator path).
+#[cfg(all(target_os = "linux", any(target_arch = "x86_64", target_arch = "aarch64")))]
 mod sys {
     use std::ffi::{c_int, c_long, c_void};
     pub const PROT_READ: c_int = 1;
@@ -131,7 +135,7 @@ impl Backing {
     /// Zeroed bytes for `size` (a multiple of [`ALLOCATION_ALIGNMENT`]); None when the host
     /// allocator fails.
     fn new(size: usize) -> Option<Backing> {
-        #[cfg(target_os = "linux")]
+        #[cfg(all(target_os = "linux", any(target_arch = "x86_64", target_arch = "aarch64")))]
         if size >= HUGE_MAPPING_MIN {
             // SAFETY: a fresh private anonymous mapping (no address hint, no file) touches no
             // existing memory; the kernel returns it zeroed and page aligned, or MAP_FAILED.
@@ -166,13 +170,13 @@ impl Drop for Backing {
         match self.layout {
             // SAFETY: allocated with this layout in Backing::new.
             Some(layout) => unsafe { std::alloc::dealloc(self.base.as_ptr(), layout) },
-            #[cfg(target_os = "linux")]
+            #[cfg(all(target_os = "linux", any(target_arch = "x86_64", target_arch = "aarch64")))]
             // SAFETY: the mapping of `mapped` bytes made in Backing::new, unmapped once; no
             // reference into it outlives the backing.
             None => unsafe {
                 sys::munmap(self.base.as_ptr().cast(), self.mapped);
             },
-            #[cfg(not(target_os = "linux"))]
+            #[cfg(not(all(target_os = "linux", any(target_arch = "x86_64", target_arch = "aarch64"))))]
             None => {}
         }
     }
