@@ -1316,10 +1316,9 @@ fn small_split(refs: &mut [PrimRef], axes: (usize, usize), weighted: bool) -> Op
         sort_network(&mut v, &NET8);
         let order: [u8; MAX_SMALL] = std::array::from_fn(|i| v[i] as u8);
         // n - 1 steps: the split positions there are (fewer steps than 7 save 16 % of a
-        // three-axis split of six references, 27 % of a one-axis split of five).
+        // three-axis split of six references, 27 % of a one-axis split of five). Three and
+        // four references never get here (`enum_split` above).
         let axis_best = match n {
-            3 => small_sweep::<2>(&order, &lo, &hi, &w, n),
-            4 => small_sweep::<3>(&order, &lo, &hi, &w, n),
             5 => small_sweep::<4>(&order, &lo, &hi, &w, n),
             6 => small_sweep::<5>(&order, &lo, &hi, &w, n),
             7 => small_sweep::<6>(&order, &lo, &hi, &w, n),
