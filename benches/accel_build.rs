@@ -9,6 +9,8 @@
 //!   ARBOR_BENCH_SCENES=dragon,soup  which scenes (default both)
 //!   ARBOR_BENCH_THREADS=1,4,16      thread counts (default: 1 and all)
 //!   ARBOR_BENCH_PEERS=embree,obvhs  which peers with --features peers (default both)
+//!   ARBOR_BENCH_EMBREE=low,medium,high,scene_low,scene_medium  which Embree builds (default:
+//!                    the generic builder at all three qualities and the MEDIUM scene commit)
 
 #[cfg(feature = "peers")]
 mod peers;
@@ -127,10 +129,12 @@ fn peer_benches(group: &mut criterion::BenchmarkGroup<'_, criterion::measurement
     use peers::{embree, obvhs_peer};
     let n = mesh.indices.len();
     let want = std::env::var("ARBOR_BENCH_PEERS").unwrap_or_else(|_| "embree,obvhs".into());
+    let builds = std::env::var("ARBOR_BENCH_EMBREE").unwrap_or_else(|_| "low,medium,high,scene_medium".into());
+    let wanted = |name: &str| builds.split(',').any(|b| b.trim() == name);
     let prims = embree::primitives(mesh, 2 * n);
     for &threads in thread_counts.iter().filter(|_| want.contains("embree")) {
         let dev = embree::Device::new(threads);
-        for (qname, q) in [("low", 0u32), ("medium", 1), ("high", 2)] {
+        for (qname, q) in [("low", 0u32), ("medium", 1), ("high", 2)].into_iter().filter(|(q, _)| wanted(q)) {
             let mut copy = prims.clone();
             let sah = dev.build(q, mesh, &mut copy, n).sah();
             println!("embree {qname} {threads}t: SAH {sah:.2}");
@@ -139,9 +143,12 @@ fn peer_benches(group: &mut criterion::BenchmarkGroup<'_, criterion::measurement
                 b.iter_batched_ref(|| prims.clone(), |p| dev.build(q, mesh, p, n), BatchSize::PerIteration)
             });
         }
-        // Embree's own scene build (its BVH8 for tracing), MEDIUM; SAH not exposed. Includes
-        // copying the mesh into the shared buffers (a few ms).
-        group.bench_function(format!("embree/scene_commit_medium/{threads}t"), |b| b.iter_with_large_drop(|| embree::Scene::new(&dev, mesh, 1)));
+        // Embree's own scene build (its BVH8 for tracing: LOW is its Morton builder, MEDIUM
+        // its binned SAH builder); SAH not exposed. Includes copying the mesh into the shared
+        // buffers (a few ms).
+        for (qname, q) in [("low", 0u32), ("medium", 1)].into_iter().filter(|(q, _)| wanted(&format!("scene_{q}"))) {
+            group.bench_function(format!("embree/scene_commit_{qname}/{threads}t"), |b| b.iter_with_large_drop(|| embree::Scene::new(&dev, mesh, q)));
+        }
     }
     let tris = obvhs_peer::triangles(mesh);
     for &threads in thread_counts.iter().filter(|_| want.contains("obvhs")) {
