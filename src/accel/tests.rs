@@ -283,6 +283,34 @@ fn determinism_across_thread_counts() {
     }
 }
 
+/// The two-phase build of a large tree (`builder::build_tree`: the top split by tasks that
+/// spawn tasks, then every subtree below TOP_CUT references as a task of its own, then the
+/// top's sums) gives the bytes of the one-thread recursion, on a real mesh: over clusters
+/// (FAST_BUILD, the default tier) and over triangles (FAST_TRACE with ALLOW_UPDATE), on 1, 3
+/// and 16 threads.
+#[test]
+fn real_mesh_builds_are_the_same_on_any_thread_count() {
+    let mesh = crate::scene::load(concat!(env!("CARGO_MANIFEST_DIR"), "/data/dragon_vrip_res2.ply.gz")).expect("mesh");
+    let (vb, ib) = (mesh.vertex_bytes(), mesh.index_bytes());
+    let ntri = mesh.triangle_count() as u32;
+    let g = tri_geom(&vb, mesh.vertex_count() as u32, &ib, ntri, GeometryFlags::OPAQUE);
+    for flags in [BuildFlags::PREFER_FAST_BUILD, 0, BuildFlags::PREFER_FAST_TRACE | BuildFlags::ALLOW_UPDATE] {
+        let mut out: Vec<Vec<u8>> = Vec::new();
+        for threads in [1, 3, 16] {
+            let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
+            let (blas, refs) = pool.install(|| {
+                let blas = build_ok(AsType::BottomLevel, flags, &[g], &NoDevice);
+                (blas, builder::LAST_BUILD_PAIRS.with(|c| c.get()).unwrap_or(ntri as usize))
+            });
+            assert!(refs > 4 * builder::TOP_CUT, "flags {flags:#x}: {refs} references, a top of fewer than three levels");
+            validate(&blas).unwrap();
+            let used = header(&blas).unwrap().used_size as usize;
+            out.push(blas[..used].to_vec());
+        }
+        assert!(out[0] == out[1] && out[1] == out[2], "flags {flags:#x}");
+    }
+}
+
 #[test]
 fn indexed_multi_geometry_transform_and_ids() {
     // Two geometries, indexed U16 and U32, one with a transform, with inactive triangles.
