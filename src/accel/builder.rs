@@ -267,15 +267,15 @@ pub const MAX_BINS: usize = 32;
 /// Depth after which splits become balanced object-median splits: bounds recursion depth
 /// (stack use) to about 64 + log2(n) on any input.
 const MAX_SAH_DEPTH: u32 = 64;
-/// Above this many primitives binning itself runs in parallel chunks, on a sample of about
-/// `BuildParams::sample_target` references (this cutoff must stay >= PAR_PART_CUTOFF: exact
+/// Above this many primitives binning runs on a sample of about `BuildParams::sample_target`
+/// references, in parallel chunks in the top of the tree (`Ctx::top`) (this cutoff must stay >= PAR_PART_CUTOFF: exact
 /// child boxes come from the parallel partition). Dragon, 1 thread: sampling 2^14 kept the
 /// fast-build SAH (54.03) for 3 % fewer instructions; 2^15 cost FAST_TRACE 48.77 -> 48.79
 /// for 6 % fewer. Since node boxes span the bins (`build_rec`), sampling from 2^14 references
 /// instead of 2^16, 2^12 (fast-build) and 2^13 (fast-trace) of them instead of 2^14 and
 /// 2^15, is 2 % faster on the dragon at the same SAH (53.74 -> 53.75, 48.85 -> 48.84); 2^13
 /// from 2^13 cost FAST_TRACE 48.97.
-const PAR_BIN_CUTOFF: usize = 1 << 14;
+pub(super) const PAR_BIN_CUTOFF: usize = 1 << 14;
 const SAMPLE_TARGET: usize = 1 << 12;
 /// Samples per parallel binning task of a sampled node (about 16 tasks: the strided reads
 /// miss the cache, so one task per node would serialise the top of the tree).
@@ -608,6 +608,12 @@ impl Ctx {
     fn big_partition(&self, n: usize) -> bool {
         n >= PAR_BIN_CUTOFF || (n >= PAR_PART_CUTOFF && !self.one_pass(n))
     }
+    /// A node of the top of the tree (`build_tree`): one whose binning and partition fork
+    /// (sampled, and too few nodes of its size to keep the threads busy otherwise).
+    #[inline]
+    fn top(&self, n: usize) -> bool {
+        n >= PAR_BIN_CUTOFF && !self.one_pass(n)
+    }
 }
 
 /// Builds the subtree over `refs` into `nodes[0..2n-1]`; returns its unnormalised SAH sum
@@ -701,6 +707,17 @@ fn build_rec<'a>(ctx: &Ctx, refs: &'a mut [PrimRef], nodes: &'a mut [BinNode], s
                 // costs, and these nodes always take the parallel partition, which computes
                 // the children's exact boxes.
                 let step = (n / p.sample_target.max(1)).max(1);
+                if !ctx.top(n) {
+                    // One of at least as many nodes of its size as threads: sampled here, with
+                    // no fork to wait on (see `build_tree`); the same bins as in chunks.
+                    if step == 1 {
+                        bin_refs(src, &bn, bins);
+                    } else {
+                        for r in src.iter().step_by(step) {
+                            bin_one(r, &bn, bins);
+                        }
+                    }
+                } else {
                 let merged = src
                     .par_chunks(if step == 1 { BIN_CHUNK } else { SAMPLE_CHUNK * step })
                     .map(|c| {
@@ -719,6 +736,7 @@ fn build_rec<'a>(ctx: &Ctx, refs: &'a mut [PrimRef], nodes: &'a mut [BinNode], s
                         x
                     });
                 bins.merge(&merged, k, axes);
+                }
             } else {
                 bin_refs(src, &bn, bins);
             }
@@ -1436,30 +1454,31 @@ struct Task<'a> {
     idx: usize,
 }
 
-/// Nodes of more than this many references are the top of the tree in pooled builds
-/// (`build_tree`). The dragon: about 45 subtrees below it in FAST_BUILD, 80 in FAST_TRACE.
-pub(super) const TOP_CUT: usize = PAR_BIN_CUTOFF;
-const _: () = assert!(TOP_CUT as u64 >= EMIT_CUT as u64);
+const _: () = assert!(PAR_BIN_CUTOFF as u64 > EMIT_CUT as u64);
 
 /// Builds the tree over `refs` (see `build_rec`): the same nodes in the same slots, the same
 /// sums, for any thread count. On more than one thread it runs in two phases. First the top
-/// of the tree (nodes of more than TOP_CUT references): each top node is a task that splits
-/// its node and spawns its larger children as tasks; its smaller children are set aside.
-/// Then every set-aside subtree is built as a task of its own, largest first. The top nodes'
-/// SAH sums, depths and wide sizes follow from their children's afterwards (`top_results`),
-/// added in the order `finish_split` adds them.
+/// of the tree (`Ctx::top`: nodes that bin a sample and partition in parallel chunks, since
+/// there are fewer nodes of their size than threads): each top node is a task that splits
+/// its node and spawns its top children as tasks; its other children are set aside. Then
+/// every set-aside subtree is built as a task of its own, largest first; none of their
+/// nodes forks inside its binning or partition. The top nodes' SAH sums, depths and wide
+/// sizes follow from their children's afterwards (`top_results`), added in the order
+/// `finish_split` adds them.
 ///
 /// Why not recursion all the way down: a thread waiting inside a top node's parallel
 /// partition or sampled binning (`rayon::join`) steals whatever task is queued, and once
 /// subtrees exist that is often a whole subtree, milliseconds of work; the top node's
 /// partition, and with it the next subtrees, waits until that is done. Timed on the 16-core
 /// machine (dragon, 16 threads), the subtrees started in waves, each when the last had ended,
-/// with 5–12 of the 16 threads at work; in the first phase only top-node work is queued,
-/// in the second every thread has subtrees to take. Dragon, 16 threads, four interleaved
-/// rounds of 30 builds (medians): FAST_BUILD 16.6–18.9 → 15.1–17.1 ms, FAST_TRACE
-/// 34.3–36.0 → 30.5–31.6 ms.
+/// with 5–12 of the 16 threads at work. In the first phase only top-node work is queued; in
+/// the second every thread has subtrees to take and nothing waits on a fork but the joins
+/// that sum a subtree. Dragon, 16 threads, interleaved rounds of 30 builds (medians): with
+/// the top cut at 16,384 references, FAST_BUILD 16.6–18.9 → 15.1–17.1 ms, FAST_TRACE
+/// 34.3–36.0 → 30.5–31.6 ms; cut where nodes stop forking (this), against that, FAST_BUILD
+/// 19.1–19.3 → 17.6–20.0, FAST_TRACE 35.8–37.6 → 32.9–35.9 on a slower instance.
 fn build_tree(ctx: &Ctx, refs: &mut [PrimRef], nodes: &mut [BinNode], bounds: Aabb, cb: Aabb, in_nodes: bool, pre: &mut [u8]) -> (f64, u32) {
-    if ctx.threads <= 1 || refs.len() <= TOP_CUT {
+    if ctx.threads <= 1 || !ctx.top(refs.len()) {
         return build_rec(ctx, refs, nodes, 0, bounds, cb, 0, &mut Bins::new(), in_nodes, pre, u32::MAX, None, 0);
     }
     let finished = Mutex::new(Vec::new());
@@ -1475,8 +1494,8 @@ fn build_tree(ctx: &Ctx, refs: &mut [PrimRef], nodes: &mut [BinNode], bounds: Aa
     top_results(nodes, 0, &done)
 }
 
-/// One top node of `build_tree`: splits it, spawns its children of more than TOP_CUT
-/// references as tasks, and sets the others aside in `below` (a node that ends as a leaf
+/// One top node of `build_tree`: splits it, spawns its top children as tasks, and sets the
+/// others aside in `below` (a node that ends as a leaf
 /// goes to `finished` with its result).
 fn split_top<'s, 'a: 's>(s: &rayon::Scope<'s>, ctx: &'s Ctx, t: Task<'a>, finished: &'s Mutex<Vec<(usize, (f64, u32))>>, below: &'s Mutex<Vec<Task<'a>>>) {
     let mut sink = Vec::new();
@@ -1487,7 +1506,7 @@ fn split_top<'s, 'a: 's>(s: &rayon::Scope<'s>, ctx: &'s Ctx, t: Task<'a>, finish
         }
     }
     for c in sink {
-        if c.refs.len() > TOP_CUT {
+        if ctx.top(c.refs.len()) {
             s.spawn(move |s| split_top(s, ctx, c, finished, below));
         } else if let Ok(mut b) = below.lock() {
             b.push(c);

@@ -284,8 +284,7 @@ fn determinism_across_thread_counts() {
 }
 
 /// The two-phase build of a large tree (`builder::build_tree`: the top split by tasks that
-/// spawn tasks, then every subtree below TOP_CUT references as a task of its own, then the
-/// top's sums) gives the bytes of the one-thread recursion, on a real mesh: over clusters
+/// spawn tasks, then every subtree below it as a task of its own, then the top's sums) gives the bytes of the one-thread recursion, on a real mesh: over clusters
 /// (FAST_BUILD, the default tier) and over triangles (FAST_TRACE with ALLOW_UPDATE), on 1, 3
 /// and 16 threads.
 #[test]
@@ -302,7 +301,7 @@ fn real_mesh_builds_are_the_same_on_any_thread_count() {
                 let blas = build_ok(AsType::BottomLevel, flags, &[g], &NoDevice);
                 (blas, builder::LAST_BUILD_PAIRS.with(|c| c.get()).unwrap_or(ntri as usize))
             });
-            assert!(refs > 4 * builder::TOP_CUT, "flags {flags:#x}: {refs} references, a top of fewer than three levels");
+            assert!(refs > 4 * builder::PAR_BIN_CUTOFF, "flags {flags:#x}: {refs} references, a top of fewer than three levels on 16 threads");
             validate(&blas).unwrap();
             let used = header(&blas).unwrap().used_size as usize;
             out.push(blas[..used].to_vec());
