@@ -2151,15 +2151,16 @@ pub(super) fn prefetch_stage(stage: &[u8], id: u32) {
 /// (the geometry table) and returns the reference count, the active primitive count, the box
 /// and the references' centroid box.
 #[allow(clippy::too_many_arguments)]
-fn ingest(desc: &BuildDesc, view: &dyn DeviceView, refs: &mut [PrimRef], mut stage: Option<&mut [u8]>, temp: &mut [PrimRef], (pair_tau, cluster): (f32, u32), geo: &mut [u8]) -> Result<(usize, usize, Aabb, Aabb, bool), BuildError> {
+fn ingest(desc: &BuildDesc, view: &dyn DeviceView, refs: &mut [PrimRef], mut stage: Option<&mut [u8]>, temp: &mut [PrimRef], (pair_tau, cluster): (f32, u32), geo: &mut [u8], kept: &mut [u32]) -> Result<(usize, usize, Aabb, Aabb, bool), BuildError> {
     let allow_update = desc.flags.contains(BuildFlags::ALLOW_UPDATE);
     let pair_tau = if stage.is_some() { pair_tau } else { 0.0 };
     let mut base = 0usize;
     let mut sum = ChunkSum::EMPTY;
     // Every chunk keeps its references as a prefix of its slots (pairs are written to the
-    // front, dropped primitives squeezed out): (first slot, references kept) per chunk, in
-    // order, for the compaction below.
-    let mut spans: Vec<(usize, usize)> = Vec::new();
+    // front, dropped primitives squeezed out); `kept` (scratch, at least one entry per chunk:
+    // a chunk holds at least one primitive) counts them, chunk by chunk in order, for the
+    // compaction below.
+    let mut chunks = 0usize;
     for (gi, g) in desc.geometries.iter().enumerate() {
         let count = g.primitive_count as usize;
         let slice = refs.get_mut(base..base + count).ok_or(BuildError::TooManyPrimitives)?;
@@ -2257,14 +2258,14 @@ fn ingest(desc: &BuildDesc, view: &dyn DeviceView, refs: &mut [PrimRef], mut sta
             }
             Ok(cs)
         };
-        let first_chunk = spans.len();
-        spans.extend((0..count.div_ceil(chunk_len)).map(|ci| (base + ci * chunk_len, 0)));
-        let kept = spans.get_mut(first_chunk..).unwrap_or(&mut []);
+        let nch = count.div_ceil(chunk_len);
+        let kept = kept.get_mut(chunks..chunks + nch).ok_or(BuildError::TooManyPrimitives)?;
+        chunks += nch;
         // Paired chunks are read and paired in a buffer of the task's and only their pairs
         // written to `refs`: the slots the pairs free are never written (dragon FAST_BUILD:
         // 15 MB of writes fewer).
         let buf_len = if pair_tau > 0.0 { chunk_len } else { 0 };
-        let work = |ci: usize, chunk: &mut [PrimRef], st: Option<&mut [u8]>, kept: &mut (usize, usize), buf: &mut Vec<PrimRef>| {
+        let work = |ci: usize, chunk: &mut [PrimRef], st: Option<&mut [u8]>, kept: &mut u32, buf: &mut Vec<PrimRef>| {
             let r = match buf.get_mut(..chunk.len()) {
                 Some(b) if pair_tau > 0.0 => {
                     let r = work(ci, b, st);
@@ -2277,7 +2278,7 @@ fn ingest(desc: &BuildDesc, view: &dyn DeviceView, refs: &mut [PrimRef], mut sta
                 _ => work(ci, chunk, st),
             };
             if let Ok(cs) = &r {
-                kept.1 = chunk.len() - cs.dropped;
+                *kept = (chunk.len() - cs.dropped) as u32;
             }
             r
         };
@@ -2308,39 +2309,72 @@ fn ingest(desc: &BuildDesc, view: &dyn DeviceView, refs: &mut [PrimRef], mut sta
     if dropped_total == 0 {
         return Ok((base, prims, boxes.0, boxes.1, false));
     }
-    // Stable compaction in parallel: each chunk's prefix is copied to its range of `temp`
-    // (disjoint, from a prefix sum of the chunks' counts), where the root finds them. Without
-    // a large enough `temp`, sequentially in place in `refs` below.
-    let kept = base - dropped_total;
-    if temp.len() >= kept {
-        let mut outs: Vec<&mut [PrimRef]> = Vec::with_capacity(spans.len());
-        let mut rest = &mut temp[..kept];
-        for &(_, k) in &spans {
-            let cut = k.min(rest.len());
-            let (mine, r) = std::mem::take(&mut rest).split_at_mut(cut);
-            outs.push(mine);
-            rest = r;
+    // Stable compaction: each chunk's prefix is copied to its range of `temp` (in parallel,
+    // geometry by geometry, from a prefix sum of the chunks' counts), where the root finds
+    // them. Without a large enough `temp`, sequentially in place in `refs` below.
+    let kept_total = base - dropped_total;
+    let in_temp = temp.len() >= kept_total;
+    let (mut w, mut first, mut src_base) = (0usize, 0usize, 0usize);
+    for g in desc.geometries {
+        let count = g.primitive_count as usize;
+        let chunk_len = if matches!(g.data, GeometryData::Instances { .. }) { INGEST_CHUNK_INSTANCES } else { INGEST_CHUNK };
+        let nch = count.div_ceil(chunk_len);
+        let Some(counts) = kept.get_mut(first..first + nch) else { break };
+        first += nch;
+        // Exclusive prefix sum in place: chunk ci's references go to [counts[ci], counts[ci + 1]).
+        let mut acc = 0usize;
+        for c in counts.iter_mut() {
+            let k = *c as usize;
+            *c = acc as u32;
+            acc += k;
         }
-        let refs = &refs[..base];
-        spans.par_iter().zip(outs.par_iter_mut()).with_max_len(8).for_each(|(&(start, k), o)| {
-            if let Some(src) = refs.get(start..start + k.min(o.len())) {
-                o[..src.len()].copy_from_slice(src);
+        if in_temp {
+            if let (Some(src), Some(dst)) = (refs.get(src_base..src_base + count), temp.get_mut(w..w + acc)) {
+                copy_prefixes(src, chunk_len, counts, 0, acc, dst);
             }
-        });
+        } else {
+            for ci in 0..nch {
+                let lo = counts[ci] as usize;
+                let hi = counts.get(ci + 1).map_or(acc, |&x| x as usize);
+                let s = src_base + ci * chunk_len;
+                refs.copy_within(s..s + (hi - lo), w + lo);
+            }
+        }
+        w += acc;
+        src_base += count;
+    }
+    if in_temp {
         // They stay in `temp` (the root's node slots): the root's first partition moves them
         // back (`build_rec`'s `in_nodes`), which saves a copy of every reference.
-        return Ok((kept, prims, boxes.0, boxes.1, true));
-    }
-    let mut w = 0;
-    for &(start, k) in &spans {
-        refs.copy_within(start..start + k, w);
-        w += k;
+        return Ok((kept_total, prims, boxes.0, boxes.1, true));
     }
     Ok((w, prims, boxes.0, boxes.1, false))
 }
 
 /// Leaf-order primitive data and records from the staging area; restores `PrimRef::prim` to
 /// the index within the geometry.
+/// Copies the kept prefix of each `chunk_len`-slot chunk of `src` (chunk ci keeps
+/// `offs[ci + 1] - offs[ci]` references, the last `hi - offs[last]`) to `dst`, which holds
+/// destination positions `lo..hi`: halves in parallel, no heap.
+fn copy_prefixes(src: &[PrimRef], chunk_len: usize, offs: &[u32], lo: usize, hi: usize, dst: &mut [PrimRef]) {
+    const LEAF: usize = 16;
+    if offs.len() > LEAF {
+        let mid = offs.len() / 2;
+        let cut = (offs[mid] as usize).clamp(lo, hi);
+        let (da, db) = dst.split_at_mut((cut - lo).min(dst.len()));
+        let (sa, sb) = src.split_at((mid * chunk_len).min(src.len()));
+        rayon::join(|| copy_prefixes(sa, chunk_len, &offs[..mid], lo, cut, da), || copy_prefixes(sb, chunk_len, &offs[mid..], cut, hi, db));
+        return;
+    }
+    for (ci, &o) in offs.iter().enumerate() {
+        let (a, b) = (o as usize, offs.get(ci + 1).map_or(hi, |&x| x as usize));
+        let (Some(from), Some(to)) = (src.get(ci * chunk_len..ci * chunk_len + b.saturating_sub(a)), dst.get_mut(a.saturating_sub(lo)..b.saturating_sub(lo))) else { continue };
+        if from.len() == to.len() {
+            to.copy_from_slice(from);
+        }
+    }
+}
+
 fn gather_leaf_data(refs: &mut [PrimRef], stage: &[u8], prims: &mut [u8], records: &mut [u8]) {
     const CH: usize = 4096;
     prims
@@ -2586,7 +2620,7 @@ pub fn build(desc: &BuildDesc, view: &dyn DeviceView, dst: &mut [u8], scratch: &
         let goff = layout::sections(desc.ty, 0, 0, ngeo).geometries as usize;
         let (head, tail) = dst.split_at_mut(stage_at.min(dst.len()));
         let geo = head.get_mut(goff..goff + desc.geometries.len() * layout::GEOMETRY_SIZE).unwrap_or(&mut []);
-        ingest(desc, view, refs, if staged { Some(tail) } else { None }, temp, (pair_tau, params.cluster), geo)?
+        ingest(desc, view, refs, if staged { Some(tail) } else { None }, temp, (pair_tau, params.cluster), geo, &mut *prefix)?
     };
     #[cfg(test)]
     LAST_BUILD_PAIRS.with(|c| c.set(paired.then_some(built)));
@@ -2888,6 +2922,29 @@ mod network_tests {
             let want = instance_box_corners(&m, &bb);
             let got = instance_bounds_of(&m, Some(&bb));
             assert_eq!(bits(got), bits(want), "transform {m:?} box {bb:?}");
+        }
+    }
+
+    /// The compaction's parallel copy of chunk prefixes gives what copying them one after the
+    /// other gives: chunks of every fill from empty to full, more of them than one task takes
+    /// (the halves in parallel), on a pool of three.
+    #[test]
+    fn chunk_prefixes_are_copied_in_order() {
+        let mut bits = xorshift(0x2545_f491_4f6c_dd1d);
+        let pool = rayon::ThreadPoolBuilder::new().num_threads(3).build().unwrap();
+        for (chunks, chunk_len) in [(1usize, 7usize), (5, 16), (40, 9), (133, 32)] {
+            let src: Vec<PrimRef> = (0..chunks * chunk_len).map(|i| PrimRef { lo: [i as f32; 3], geom: 0, hi: [i as f32 + 1.0; 3], prim: i as u32 }).collect();
+            let kept: Vec<usize> = (0..chunks).map(|c| if c % 7 == 3 { 0 } else if c % 5 == 1 { chunk_len } else { (bits() % (chunk_len as u64 + 1)) as usize }).collect();
+            let expect: Vec<u32> = (0..chunks).flat_map(|c| (0..kept[c]).map(move |k| (c * chunk_len + k) as u32)).collect();
+            let mut offs: Vec<u32> = Vec::new();
+            let mut acc = 0usize;
+            for &k in &kept {
+                offs.push(acc as u32);
+                acc += k;
+            }
+            let mut dst = vec![PrimRef { lo: [0.0; 3], geom: DROPPED, hi: [0.0; 3], prim: u32::MAX }; acc];
+            pool.install(|| copy_prefixes(&src, chunk_len, &offs, 0, acc, &mut dst));
+            assert_eq!(dst.iter().map(|r| r.prim).collect::<Vec<_>>(), expect, "{chunks} chunks of {chunk_len}");
         }
     }
 
