@@ -268,8 +268,9 @@ pub const MAX_BINS: usize = 32;
 /// (stack use) to about 64 + log2(n) on any input.
 const MAX_SAH_DEPTH: u32 = 64;
 /// Above this many primitives binning runs on a sample of about `BuildParams::sample_target`
-/// references, in parallel chunks in the top of the tree (`Ctx::top`) (this cutoff must stay >= PAR_PART_CUTOFF: exact
-/// child boxes come from the parallel partition). Dragon, 1 thread: sampling 2^14 kept the
+/// references, in parallel chunks in the top of the tree (`Ctx::top`) (this cutoff must stay
+/// >= PAR_PART_CUTOFF: exact child boxes come from the parallel partition or its one-pass
+/// form). Dragon, 1 thread: sampling 2^14 kept the
 /// fast-build SAH (54.03) for 3 % fewer instructions; 2^15 cost FAST_TRACE 48.77 -> 48.79
 /// for 6 % fewer. Since node boxes span the bins (`build_rec`), sampling from 2^14 references
 /// instead of 2^16, 2^12 (fast-build) and 2^13 (fast-trace) of them instead of 2^14 and
@@ -718,24 +719,24 @@ fn build_rec<'a>(ctx: &Ctx, refs: &'a mut [PrimRef], nodes: &'a mut [BinNode], s
                         }
                     }
                 } else {
-                let merged = src
-                    .par_chunks(if step == 1 { BIN_CHUNK } else { SAMPLE_CHUNK * step })
-                    .map(|c| {
-                        let mut b = Bins::new();
-                        if step == 1 {
-                            bin_refs(c, &bn, &mut b);
-                        } else {
-                            for r in c.iter().step_by(step) {
-                                bin_one(r, &bn, &mut b);
+                    let merged = src
+                        .par_chunks(if step == 1 { BIN_CHUNK } else { SAMPLE_CHUNK * step })
+                        .map(|c| {
+                            let mut b = Bins::new();
+                            if step == 1 {
+                                bin_refs(c, &bn, &mut b);
+                            } else {
+                                for r in c.iter().step_by(step) {
+                                    bin_one(r, &bn, &mut b);
+                                }
                             }
-                        }
-                        b
-                    })
-                    .reduce(Bins::new, |mut x, y| {
-                        x.merge(&y, k, axes);
-                        x
-                    });
-                bins.merge(&merged, k, axes);
+                            b
+                        })
+                        .reduce(Bins::new, |mut x, y| {
+                            x.merge(&y, k, axes);
+                            x
+                        });
+                    bins.merge(&merged, k, axes);
                 }
             } else {
                 bin_refs(src, &bn, bins);
@@ -1495,8 +1496,7 @@ fn build_tree(ctx: &Ctx, refs: &mut [PrimRef], nodes: &mut [BinNode], bounds: Aa
 }
 
 /// One top node of `build_tree`: splits it, spawns its top children as tasks, and sets the
-/// others aside in `below` (a node that ends as a leaf
-/// goes to `finished` with its result).
+/// others aside in `below` (a node that ends as a leaf goes to `finished` with its result).
 fn split_top<'s, 'a: 's>(s: &rayon::Scope<'s>, ctx: &'s Ctx, t: Task<'a>, finished: &'s Mutex<Vec<(usize, (f64, u32))>>, below: &'s Mutex<Vec<Task<'a>>>) {
     let mut sink = Vec::new();
     let r = build_rec(ctx, t.refs, t.nodes, t.start, t.bounds, t.cb, t.depth, &mut Bins::new(), t.in_nodes, t.pre, t.parent_count, Some(&mut sink), t.idx);
