@@ -2360,7 +2360,7 @@ fn copy_prefixes(src: &[PrimRef], chunk_len: usize, offs: &[u32], lo: usize, hi:
     const LEAF: usize = 16;
     if offs.len() > LEAF {
         let mid = offs.len() / 2;
-        let cut = (offs[mid] as usize).clamp(lo, hi);
+        let cut = (offs[mid] as usize).max(lo).min(hi.max(lo));
         let (da, db) = dst.split_at_mut((cut - lo).min(dst.len()));
         let (sa, sb) = src.split_at((mid * chunk_len).min(src.len()));
         rayon::join(|| copy_prefixes(sa, chunk_len, &offs[..mid], lo, cut, da), || copy_prefixes(sb, chunk_len, &offs[mid..], cut, hi, db));
