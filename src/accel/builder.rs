@@ -1523,7 +1523,7 @@ fn top_results(nodes: &mut [BinNode], i: usize, done: &[(usize, (f64, u32))]) ->
     }
     let Some((l, r)) = bin_children(nodes, i) else { return (0.0, 0) };
     let (a, b) = (top_results(nodes, l, done), top_results(nodes, r, done));
-    let Some(sub) = nodes.get_mut(i..) else { return (0.0, 0) };
+    let Some(sub) = nodes.get_mut(i..).filter(|s| !s.is_empty()) else { return (0.0, 0) };
     let w = wide_reserved(sub);
     sub[0].reserved = w;
     let area = Aabb { lo: sub[0].lo, hi: sub[0].hi }.half_area() as f64;
