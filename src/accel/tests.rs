@@ -265,28 +265,39 @@ fn random_soup_matches_brute_force() {
     }
 }
 
+/// Builds `geoms` with `flags` on a pool of each thread count: the used bytes of each build
+/// and what `inspect` (on the pool, right after the build) says of it.
+fn builds_on<T: Send>(threads: &[usize], flags: u32, geoms: &[Geometry], inspect: impl Fn(&[u8]) -> T + Sync) -> Vec<(Vec<u8>, T)> {
+    threads
+        .iter()
+        .map(|&t| {
+            let pool = rayon::ThreadPoolBuilder::new().num_threads(t).build().unwrap();
+            pool.install(|| {
+                let blas = build_ok(AsType::BottomLevel, flags, geoms, &NoDevice);
+                let seen = inspect(&blas);
+                let used = header(&blas).unwrap().used_size as usize;
+                (blas[..used].to_vec(), seen)
+            })
+        })
+        .collect()
+}
+
 #[test]
 fn determinism_across_thread_counts() {
     let mut rng = Rng::new(5);
     let v = random_soup(&mut rng, 40_000, 50.0, 1.0);
     let vb = f32_bytes(&v);
+    let g = tri_geom(&vb, v.len() as u32, &[], 40_000, 0);
     for &flags in &[BuildFlags::PREFER_FAST_BUILD, 0, BuildFlags::PREFER_FAST_TRACE] {
-        let mut out: Vec<Vec<u8>> = Vec::new();
-        for threads in [1, 2, 8] {
-            let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
-            let g = tri_geom(&vb, v.len() as u32, &[], 40_000, 0);
-            let blas = pool.install(|| build_ok(AsType::BottomLevel, flags, &[g], &NoDevice));
-            let used = header(&blas).unwrap().used_size as usize;
-            out.push(blas[..used].to_vec());
-        }
-        assert!(out[0] == out[1] && out[1] == out[2], "flags {flags}");
+        let out = builds_on(&[1, 2, 8], flags, &[g], |_| ());
+        assert!(out.windows(2).all(|w| w[0].0 == w[1].0), "flags {flags}");
     }
 }
 
 /// The two-phase build of a large tree (`builder::build_tree`: the top split by tasks that
-/// spawn tasks, then every subtree below it as a task of its own, then the top's sums) gives the bytes of the one-thread recursion, on a real mesh: over clusters
-/// (FAST_BUILD, the default tier) and over triangles (FAST_TRACE with ALLOW_UPDATE), on 1, 3
-/// and 16 threads.
+/// spawn tasks, then every subtree below it as a task of its own, then the top's sums) gives
+/// the bytes of the one-thread recursion, on a real mesh: over clusters (FAST_BUILD, the
+/// default tier) and over triangles (FAST_TRACE with ALLOW_UPDATE), on 1, 3 and 16 threads.
 #[test]
 fn real_mesh_builds_are_the_same_on_any_thread_count() {
     let mesh = crate::scene::load(concat!(env!("CARGO_MANIFEST_DIR"), "/data/dragon_vrip_res2.ply.gz")).expect("mesh");
@@ -294,19 +305,14 @@ fn real_mesh_builds_are_the_same_on_any_thread_count() {
     let ntri = mesh.triangle_count() as u32;
     let g = tri_geom(&vb, mesh.vertex_count() as u32, &ib, ntri, GeometryFlags::OPAQUE);
     for flags in [BuildFlags::PREFER_FAST_BUILD, 0, BuildFlags::PREFER_FAST_TRACE | BuildFlags::ALLOW_UPDATE] {
-        let mut out: Vec<Vec<u8>> = Vec::new();
-        for threads in [1, 3, 16] {
-            let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
-            let (blas, refs) = pool.install(|| {
-                let blas = build_ok(AsType::BottomLevel, flags, &[g], &NoDevice);
-                (blas, builder::LAST_BUILD_PAIRS.with(|c| c.get()).unwrap_or(ntri as usize))
-            });
+        let out = builds_on(&[1, 3, 16], flags, &[g], |blas| {
+            validate(blas).unwrap();
+            builder::LAST_BUILD_PAIRS.with(|c| c.get()).unwrap_or(ntri as usize)
+        });
+        for &(_, refs) in &out {
             assert!(refs > 4 * builder::PAR_BIN_CUTOFF, "flags {flags:#x}: {refs} references, a top of fewer than three levels on 16 threads");
-            validate(&blas).unwrap();
-            let used = header(&blas).unwrap().used_size as usize;
-            out.push(blas[..used].to_vec());
         }
-        assert!(out[0] == out[1] && out[1] == out[2], "flags {flags:#x}");
+        assert!(out.windows(2).all(|w| w[0].0 == w[1].0), "flags {flags:#x}");
     }
 }
 
@@ -336,16 +342,14 @@ fn multi_geometry_builds_with_drops_are_the_same_on_any_thread_count() {
     let (i0, i1, i2) = (u32_bytes(&idx[..3 * a]), u32_bytes(&idx[3 * a..3 * b]), u32_bytes(&idx[3 * b..]));
     let geoms = [tri_geom(&vb, nv, &i0, a as u32, GeometryFlags::OPAQUE), tri_geom(&vb, nv, &i1, (b - a) as u32, 0), tri_geom(&vb, nv, &i2, (ntri - b) as u32, GeometryFlags::OPAQUE)];
     for flags in [BuildFlags::PREFER_FAST_BUILD, 0, BuildFlags::PREFER_FAST_TRACE] {
-        let mut out: Vec<Vec<u8>> = Vec::new();
-        for threads in [1, 2, 7, 16] {
-            let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
-            let blas = pool.install(|| build_ok(AsType::BottomLevel, flags, &geoms, &NoDevice));
-            validate(&blas).unwrap();
-            let h = header(&blas).unwrap();
-            assert_eq!(h.primitive_count as usize, ntri - degenerate - inactive, "flags {flags:#x}");
-            out.push(blas[..h.used_size as usize].to_vec());
+        let out = builds_on(&[1, 2, 7, 16], flags, &geoms, |blas| {
+            validate(blas).unwrap();
+            header(blas).unwrap().primitive_count as usize
+        });
+        for &(_, prims) in &out {
+            assert_eq!(prims, ntri - degenerate - inactive, "flags {flags:#x}");
         }
-        assert!(out.windows(2).all(|w| w[0] == w[1]), "flags {flags:#x}");
+        assert!(out.windows(2).all(|w| w[0].0 == w[1].0), "flags {flags:#x}");
     }
 }
 
