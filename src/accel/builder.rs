@@ -2172,7 +2172,9 @@ fn ingest(desc: &BuildDesc, view: &dyn DeviceView, refs: &mut [PrimRef], mut sta
         // transformed corners), so instances go in smaller chunks: a 10,000-instance TLAS is
         // then more than three tasks.
         let chunk_len = if is_inst { INGEST_CHUNK_INSTANCES } else { INGEST_CHUNK };
-        let work = |ci: usize, chunk: &mut [PrimRef], st: Option<&mut [u8]>| -> Result<ChunkSum, (u64, BuildError)> {
+        // Reads chunk `ci`'s primitives into `chunk` (and their staged records into `st`),
+        // pairs them or squeezes out the dropped ones: the references kept are its prefix.
+        let fill = |ci: usize, chunk: &mut [PrimRef], st: Option<&mut [u8]>| -> Result<ChunkSum, (u64, BuildError)> {
             let mut st = st;
             let mut cs = ChunkSum::EMPTY;
             let mut memo = BlasBoundsMemo::new();
@@ -2268,14 +2270,14 @@ fn ingest(desc: &BuildDesc, view: &dyn DeviceView, refs: &mut [PrimRef], mut sta
         let work = |ci: usize, chunk: &mut [PrimRef], st: Option<&mut [u8]>, kept: &mut u32, buf: &mut Vec<PrimRef>| {
             let r = match buf.get_mut(..chunk.len()) {
                 Some(b) if pair_tau > 0.0 => {
-                    let r = work(ci, b, st);
+                    let r = fill(ci, b, st);
                     if let Ok(cs) = &r {
                         let w = b.len() - cs.dropped;
                         chunk[..w].copy_from_slice(&b[..w]);
                     }
                     r
                 }
-                _ => work(ci, chunk, st),
+                _ => fill(ci, chunk, st),
             };
             if let Ok(cs) = &r {
                 *kept = (chunk.len() - cs.dropped) as u32;
