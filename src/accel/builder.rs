@@ -1,7 +1,8 @@
 //! Build: ingest (geometry → primitive references in scratch; in the fast-build and default
 //! tiers, pairs of neighbouring primitives, `pairs`) → binned-SAH binary BVH in scratch
 //! (rayon::join on the current pool, node slots derived from primitive ranges so the tree is
-//! the same for any thread count) → collapse to BVH4 → encode into dst.
+//! the same for any thread count; in large fast-build and default-tier builds its first
+//! levels from one sample, `top`) → collapse to BVH4 → encode into dst.
 //! Host heap use is O(threads): all arrays proportional to the input live in `scratch`.
 use super::input::{self, read_aabb, read_instance, read_triangle};
 use super::pairs;
@@ -12,6 +13,8 @@ use std::time::Instant;
 use bytemuck::{Pod, Zeroable};
 use glam::{UVec3, Vec3, Vec3A, Vec3Swizzles, Vec4};
 use rayon::prelude::*;
+
+mod top;
 
 /// One primitive reference: its (sanitised, finite) bounds and where it came from.
 #[repr(C)]
@@ -262,6 +265,8 @@ pub struct BuildParams {
     /// The fewest bins a binned node gets (it gets one per REFS_PER_BIN references, up to
     /// `bins`).
     pub min_bins: usize,
+    /// Large builds take the top of their tree from one sample (`top`).
+    pub plan_top: bool,
 }
 pub const MAX_BINS: usize = 32;
 /// Depth after which splits become balanced object-median splits: bounds recursion depth
@@ -286,7 +291,7 @@ const BIN_CHUNK: usize = 1 << 14;
 impl BuildParams {
     pub fn from_flags(flags: BuildFlags) -> Self {
         if flags.contains(BuildFlags::PREFER_FAST_TRACE) {
-            BuildParams { bins: 32, single_axis: false, traversal_cost: 1.0, max_leaf: 8, small_n: SMALL_N, parallel_cutoff: 1024, sample_target: 2 * SAMPLE_TARGET, pair_tau: 0.0, cluster: 1, cluster_leaf: 8, min_bins: 6 }
+            BuildParams { bins: 32, single_axis: false, traversal_cost: 1.0, max_leaf: 8, small_n: SMALL_N, parallel_cutoff: 1024, sample_target: 2 * SAMPLE_TARGET, pair_tau: 0.0, cluster: 1, cluster_leaf: 8, min_bins: 6, plan_top: false }
         } else if flags.contains(BuildFlags::PREFER_FAST_BUILD) {
             // 12 bins, not 8: over node boxes (see `build_rec`) 8 bins gave SAH 54.59 on the
             // dragon, 12 give 53.71 at the same speed. Clusters of up to 4 primitives, leaves
@@ -295,9 +300,9 @@ impl BuildParams {
             // rounds on the 16-core machine (4 clusters per leaf: SAH 54.16 with the
             // reference-counting leaf rule). Since session 9 tau 1.1 (`pairs::FAST_BUILD_TAU`):
             // SAH 54.98, 53.4 B/tri, 6 % faster on one thread.
-            BuildParams { bins: 12, single_axis: true, traversal_cost: 2.5, max_leaf: 8, small_n: SMALL_N, parallel_cutoff: 1024, sample_target: SAMPLE_TARGET, pair_tau: pairs::FAST_BUILD_TAU, cluster: 4, cluster_leaf: 3, min_bins: 8 }
+            BuildParams { bins: 12, single_axis: true, traversal_cost: 2.5, max_leaf: 8, small_n: SMALL_N, parallel_cutoff: 1024, sample_target: SAMPLE_TARGET, pair_tau: pairs::FAST_BUILD_TAU, cluster: 4, cluster_leaf: 3, min_bins: 8, plan_top: true }
         } else {
-            BuildParams { bins: 16, single_axis: false, traversal_cost: 1.0, max_leaf: 8, small_n: SMALL_N, parallel_cutoff: 1024, sample_target: 2 * SAMPLE_TARGET, pair_tau: pairs::DEFAULT_TAU, cluster: 2, cluster_leaf: 4, min_bins: 6 }
+            BuildParams { bins: 16, single_axis: false, traversal_cost: 1.0, max_leaf: 8, small_n: SMALL_N, parallel_cutoff: 1024, sample_target: 2 * SAMPLE_TARGET, pair_tau: pairs::DEFAULT_TAU, cluster: 2, cluster_leaf: 4, min_bins: 6, plan_top: true }
         }
     }
 }
@@ -685,21 +690,8 @@ fn build_rec<'a>(ctx: &Ctx, refs: &'a mut [PrimRef], nodes: &'a mut [BinNode], s
     let k = p.bins.clamp(2, MAX_BINS).min((n / REFS_PER_BIN).max(p.min_bins.max(2)));
     let split: Option<(usize, usize, Aabb, Aabb, f32)>; // (axis, bin, left box, right box, cost)
     if depth < MAX_SAH_DEPTH {
-        let mut scale = [0f32; 3];
-        let mut any = false;
-        let widest = (0..3).fold(0, |w, a| if cb.hi[a] - cb.lo[a] > cb.hi[w] - cb.lo[w] { a } else { w });
-        let axes = if p.single_axis { (widest, widest + 1) } else { (0, 3) };
-        for a in axes.0..axes.1 {
-            let ext = cb.hi[a] - cb.lo[a];
-            let sc = k as f32 / ext;
-            if ext > 0.0 && sc.is_finite() && sc > 0.0 {
-                // Shrink slightly so the max centroid lands in bin k-1, not k.
-                scale[a] = sc * (1.0 - 1.0 / 1024.0);
-                any = true;
-            }
-        }
-        let bn = Binning { cmin: Vec3A::from(cb.lo), scale: Vec3A::from(scale), kmax: UVec3::splat(k as u32 - 1), kmax_f: Vec3A::splat((k - 1) as f32), axes };
-        if any {
+        if let Some((bn, scale)) = node_binning(p, &cb, k) {
+            let axes = bn.axes;
             bins.reset(k, axes);
             let src: &[PrimRef] = if in_nodes { node_refs(nodes, n).unwrap_or(&[]) } else { refs };
             if n >= PAR_BIN_CUTOFF {
@@ -825,6 +817,27 @@ fn build_rec<'a>(ctx: &Ctx, refs: &'a mut [PrimRef], nodes: &'a mut [BinNode], s
     let (l, r) = refs.split_at(mid);
     let (lb, rb) = (box_of(l), box_of(r));
     finish_split(ctx, refs, nodes, start, bounds, mid, lb, rb, depth, bins, false, pre, parent_count, sink, idx)
+}
+
+/// The bins of a node whose bins span `cb`: `k` per axis (the widest axis of `cb` alone in
+/// single-axis tiers), and the per-axis scales (0 for a flat axis); None when every binned
+/// axis is flat.
+fn node_binning(p: &BuildParams, cb: &Aabb, k: usize) -> Option<(Binning, [f32; 3])> {
+    let mut scale = [0f32; 3];
+    let mut any = false;
+    let widest = (0..3).fold(0, |w, a| if cb.hi[a] - cb.lo[a] > cb.hi[w] - cb.lo[w] { a } else { w });
+    let axes = if p.single_axis { (widest, widest + 1) } else { (0, 3) };
+    for a in axes.0..axes.1 {
+        let ext = cb.hi[a] - cb.lo[a];
+        let sc = k as f32 / ext;
+        if ext > 0.0 && sc.is_finite() && sc > 0.0 {
+            // Shrink slightly so the max centroid lands in bin k-1, not k.
+            scale[a] = sc * (1.0 - 1.0 / 1024.0);
+            any = true;
+        }
+    }
+    let bn = Binning { cmin: Vec3A::from(cb.lo), scale: Vec3A::from(scale), kmax: UVec3::splat(k as u32 - 1), kmax_f: Vec3A::splat((k - 1) as f32), axes };
+    any.then_some((bn, scale))
 }
 
 /// The best binned split: (axis, last left bin, left box, right box, A_L·N_L + A_R·N_R).
@@ -1482,17 +1495,40 @@ fn build_tree(ctx: &Ctx, refs: &mut [PrimRef], nodes: &mut [BinNode], bounds: Aa
     if ctx.threads <= 1 || !ctx.top(refs.len()) {
         return build_rec(ctx, refs, nodes, 0, bounds, cb, 0, &mut Bins::new(), in_nodes, pre, u32::MAX, None, 0);
     }
-    let finished = Mutex::new(Vec::new());
-    let below = Mutex::new(Vec::new());
     let root = Task { refs, nodes: &mut *nodes, start: 0, bounds, cb, depth: 0, in_nodes, pre, parent_count: u32::MAX, idx: 0 };
-    rayon::scope(|s| split_top(s, ctx, root, &finished, &below));
-    let mut subtrees = below.into_inner().unwrap_or_default();
-    subtrees.sort_by_key(|t| (std::cmp::Reverse(t.refs.len()), t.idx));
-    // (node slot, SAH sum and depth) of every subtree not split in the first phase.
-    let mut done: Vec<(usize, (f64, u32))> = finished.into_inner().unwrap_or_default();
-    done.par_extend(subtrees.into_par_iter().with_max_len(1).map(|t| (t.idx, build_rec(ctx, t.refs, t.nodes, t.start, t.bounds, t.cb, t.depth, &mut Bins::new(), t.in_nodes, t.pre, t.parent_count, None, t.idx))));
-    done.sort_by_key(|d| d.0);
+    let done = run_tasks(ctx, vec![root]);
     top_results(nodes, 0, &done)
+}
+
+/// Builds the subtrees of `tasks` (disjoint parts of one tree whose nodes above them are
+/// written) and returns (node slot, SAH sum and depth) of each subtree root not split by
+/// `split_top`, sorted by slot, for `top_results`: on one thread one after the other,
+/// otherwise in `build_tree`'s two phases.
+fn run_tasks(ctx: &Ctx, tasks: Vec<Task<'_>>) -> Vec<(usize, (f64, u32))> {
+    let mut done: Vec<(usize, (f64, u32))>;
+    if ctx.threads <= 1 {
+        done = tasks.into_iter().map(|t| (t.idx, build_rec(ctx, t.refs, t.nodes, t.start, t.bounds, t.cb, t.depth, &mut Bins::new(), t.in_nodes, t.pre, t.parent_count, None, t.idx))).collect();
+    } else {
+        let finished = Mutex::new(Vec::new());
+        let below = Mutex::new(Vec::new());
+        let (fin, bel) = (&finished, &below);
+        rayon::scope(|s| {
+            for t in tasks {
+                if ctx.top(t.refs.len()) {
+                    s.spawn(move |s| split_top(s, ctx, t, fin, bel));
+                } else if let Ok(mut b) = bel.lock() {
+                    b.push(t);
+                }
+            }
+        });
+        let mut subtrees = below.into_inner().unwrap_or_default();
+        subtrees.sort_by_key(|t| (std::cmp::Reverse(t.refs.len()), t.idx));
+        // (node slot, SAH sum and depth) of every subtree not split in the first phase.
+        done = finished.into_inner().unwrap_or_default();
+        done.par_extend(subtrees.into_par_iter().with_max_len(1).map(|t| (t.idx, build_rec(ctx, t.refs, t.nodes, t.start, t.bounds, t.cb, t.depth, &mut Bins::new(), t.in_nodes, t.pre, t.parent_count, None, t.idx))));
+    }
+    done.sort_by_key(|d| d.0);
+    done
 }
 
 /// One top node of `build_tree`: splits it, spawns its top children as tasks, and sets the
@@ -2140,7 +2176,8 @@ pub(super) fn prefetch_stage(stage: &[u8], id: u32) {
     crate::memory::prefetch_read(stage, o + STAGE_SIZE - 1);
 }
 
-/// Fills `refs[..total]` (slot = global primitive ID), then compacts the active ones, in
+/// Fills `refs[..total]` (slot = global primitive ID; each ingest chunk keeps its references
+/// as a prefix, counted in `kept`), then with `compact` compacts them (`compact_chunks`), in
 /// order, to the front of `temp` when it holds them (the last value returned is then true:
 /// `temp` is the root's node slots, see `build_rec`'s `in_nodes`) or else of `refs`. With
 /// `stage`, the primitive data is also written there at the global ID (one sequential pass
@@ -2151,7 +2188,7 @@ pub(super) fn prefetch_stage(stage: &[u8], id: u32) {
 /// (the geometry table) and returns the reference count, the active primitive count, the box
 /// and the references' centroid box.
 #[allow(clippy::too_many_arguments)]
-fn ingest(desc: &BuildDesc, view: &dyn DeviceView, refs: &mut [PrimRef], mut stage: Option<&mut [u8]>, temp: &mut [PrimRef], (pair_tau, cluster): (f32, u32), geo: &mut [u8], kept: &mut [u32]) -> Result<(usize, usize, Aabb, Aabb, bool), BuildError> {
+fn ingest(desc: &BuildDesc, view: &dyn DeviceView, refs: &mut [PrimRef], mut stage: Option<&mut [u8]>, temp: &mut [PrimRef], (pair_tau, cluster): (f32, u32), geo: &mut [u8], kept: &mut [u32], compact: bool) -> Result<(usize, usize, Aabb, Aabb, bool), BuildError> {
     let allow_update = desc.flags.contains(BuildFlags::ALLOW_UPDATE);
     let pair_tau = if stage.is_some() { pair_tau } else { 0.0 };
     let mut base = 0usize;
@@ -2308,13 +2345,20 @@ fn ingest(desc: &BuildDesc, view: &dyn DeviceView, refs: &mut [PrimRef], mut sta
     }
     let boxes = (to_aabb(sum.lo, sum.hi), to_aabb(sum.clo, sum.chi));
     let (dropped_total, prims) = (sum.dropped, base - sum.lost);
-    if dropped_total == 0 {
-        return Ok((base, prims, boxes.0, boxes.1, false));
+    if dropped_total == 0 || !compact {
+        return Ok((base - dropped_total, prims, boxes.0, boxes.1, false));
     }
-    // Stable compaction: each chunk's prefix is copied to its range of `temp` (in parallel,
-    // geometry by geometry, from a prefix sum of the chunks' counts), where the root finds
-    // them. Without a large enough `temp`, sequentially in place in `refs` below.
-    let kept_total = base - dropped_total;
+    let (w, in_temp) = compact_chunks(desc, refs, temp, kept, base - dropped_total);
+    Ok((w, prims, boxes.0, boxes.1, in_temp))
+}
+
+/// Stable compaction of ingest's chunks (each keeps the prefix `kept[c]` of its slots; the
+/// counts are consumed): each chunk's prefix is copied to its range of `temp` (in parallel,
+/// geometry by geometry, from a prefix sum of the chunks' counts), where the root finds them
+/// (`in_nodes`: the root's first partition moves them back, which saves a copy of every
+/// reference). Without a large enough `temp`, sequentially in place in `refs`. Returns the
+/// references kept and whether they are in `temp`.
+fn compact_chunks(desc: &BuildDesc, refs: &mut [PrimRef], temp: &mut [PrimRef], kept: &mut [u32], kept_total: usize) -> (usize, bool) {
     let in_temp = temp.len() >= kept_total;
     let (mut w, mut first, mut src_base) = (0usize, 0usize, 0usize);
     for g in desc.geometries {
@@ -2345,12 +2389,7 @@ fn ingest(desc: &BuildDesc, view: &dyn DeviceView, refs: &mut [PrimRef], mut sta
         w += acc;
         src_base += count;
     }
-    if in_temp {
-        // They stay in `temp` (the root's node slots): the root's first partition moves them
-        // back (`build_rec`'s `in_nodes`), which saves a copy of every reference.
-        return Ok((kept_total, prims, boxes.0, boxes.1, true));
-    }
-    Ok((w, prims, boxes.0, boxes.1, false))
+    (if in_temp { kept_total } else { w }, in_temp)
 }
 
 /// Leaf-order primitive data and records from the staging area; restores `PrimRef::prim` to
@@ -2616,14 +2655,26 @@ pub fn build(desc: &BuildDesc, view: &dyn DeviceView, dst: &mut [u8], scratch: &
         0.0
     };
     let paired = pair_tau > 0.0;
-    let (built, active, root_box, root_cb, in_temp) = {
+    // Large BLAS builds take the top of their tree from a sample of the references (`top`):
+    // ingest leaves its chunks uncompacted, and the scatter into the top's buckets moves them.
+    let nch = top::chunk_count(desc);
+    let want_plan = params.plan_top && top::wanted(desc, total, nch, prefix.len());
+    let (mut built, active, root_box, root_cb, mut in_temp) = {
         // The node slots are unused until the tree is built: compaction's temporary.
         let temp = node_refs_mut(nodes, total).unwrap_or(&mut []);
         let goff = layout::sections(desc.ty, 0, 0, ngeo).geometries as usize;
         let (head, tail) = dst.split_at_mut(stage_at.min(dst.len()));
         let geo = head.get_mut(goff..goff + desc.geometries.len() * layout::GEOMETRY_SIZE).unwrap_or(&mut []);
-        ingest(desc, view, refs, if staged { Some(tail) } else { None }, temp, (pair_tau, params.cluster), geo, &mut *prefix)?
+        let kept = if want_plan { &mut prefix[..nch] } else { &mut *prefix };
+        ingest(desc, view, refs, if staged { Some(tail) } else { None }, temp, (pair_tau, params.cluster), geo, kept, !want_plan)?
     };
+    // The sample goes to the node slots, which are unused until the scatter.
+    let plan = if want_plan { top::plan(desc, &params, refs, &prefix[..nch], built, root_cb, node_refs_mut(nodes, total).unwrap_or(&mut [])) } else { None };
+    if want_plan && plan.is_none() {
+        // No top from the sample (it did not split): the compaction ingest skipped.
+        let temp = node_refs_mut(nodes, total).unwrap_or(&mut []);
+        (built, in_temp) = compact_chunks(desc, refs, temp, &mut prefix[..nch], built);
+    }
     #[cfg(test)]
     LAST_BUILD_PAIRS.with(|c| c.set(paired.then_some(built)));
     let t_ingest = Instant::now();
@@ -2644,7 +2695,31 @@ pub fn build(desc: &BuildDesc, view: &dyn DeviceView, dst: &mut [u8], scratch: &
     let pre_at = (stage_at + if staged { total * STAGE_SIZE } else { 0 }).min(dst.len());
     let pre_len = if staged { (dst.len() - pre_at).min(PRE_BYTES_PER_PRIM * active) } else { 0 };
     let (sah_sum, _depth) = if built > 0 {
-        build_tree(&ctx, &mut refs[..built], &mut nodes[..2 * built - 1], root_box, root_cb, in_temp, &mut dst[pre_at..pre_at + pre_len])
+        let pre = &mut dst[pre_at..pre_at + pre_len];
+        let planned = plan.as_ref().and_then(|pl| {
+            let (kept, rest) = prefix.split_at_mut(nch);
+            let (cells, rest) = rest.split_at_mut(nch * pl.buckets * top::CELL_WORDS);
+            let cells: &mut [top::BucketCell] = bytemuck::cast_slice_mut(cells);
+            let ids = bytemuck::cast_slice_mut::<u32, u8>(rest).get_mut(..total)?;
+            top::classify_chunks(pl, desc, refs, kept, cells, ids);
+            let s = top::sums(pl, cells).filter(|s| s.total() == built)?;
+            top::scatter(pl, &s, desc, refs, kept, cells, ids, &mut nodes[..2 * built - 1])?;
+            Some(s)
+        });
+        match (plan.as_ref(), planned) {
+            (Some(pl), Some(s)) => {
+                let mut tasks = Vec::new();
+                top::tasks(pl, &s, 0, &mut refs[..built], &mut nodes[..2 * built - 1], pre, 0, 0, 0, u32::MAX, &mut tasks);
+                let done = run_tasks(&ctx, tasks);
+                top_results(&mut nodes[..2 * built - 1], 0, &done)
+            }
+            (plan, _) => {
+                if plan.is_some() {
+                    top::compact_in_place(desc, refs, &prefix[..nch]);
+                }
+                build_tree(&ctx, &mut refs[..built], &mut nodes[..2 * built - 1], root_box, root_cb, in_temp, pre)
+            }
+        }
     } else {
         (0.0, 0)
     };

@@ -353,6 +353,31 @@ fn multi_geometry_builds_with_drops_are_the_same_on_any_thread_count() {
     }
 }
 
+/// A large build whose references all share one centroid: the sample of the planned top
+/// (`builder::top`) cannot split, so the build takes the compaction ingest skipped and the
+/// recursion's median splits. 70,000 copies of one triangle, every tenth degenerate (so the
+/// chunks keep partial prefixes), in every tier: a valid structure with every triangle that
+/// was not dropped, the same bytes on 1 and 4 threads.
+#[test]
+fn builds_whose_sample_cannot_split_still_hold_every_primitive() {
+    let v = [Vec3::new(0.0, 0.0, 0.0), Vec3::new(1.0, 0.0, 0.0), Vec3::new(0.0, 1.0, 0.0)];
+    let vb = f32_bytes(&v);
+    let ntri = 70_000usize;
+    let idx: Vec<u32> = (0..ntri).flat_map(|t| if t % 10 == 3 { [0, 0, 1] } else { [0, 1, 2] }).collect();
+    let ib = u32_bytes(&idx);
+    let g = tri_geom(&vb, 3, &ib, ntri as u32, GeometryFlags::OPAQUE);
+    for flags in [BuildFlags::PREFER_FAST_BUILD, 0, BuildFlags::PREFER_FAST_TRACE] {
+        let out = builds_on(&[1, 4], flags, &[g], |blas| {
+            validate(blas).unwrap();
+            header(blas).unwrap().primitive_count as usize
+        });
+        for &(_, prims) in &out {
+            assert_eq!(prims, ntri - ntri / 10, "flags {flags:#x}");
+        }
+        assert!(out.windows(2).all(|w| w[0].0 == w[1].0), "flags {flags:#x}");
+    }
+}
+
 #[test]
 fn indexed_multi_geometry_transform_and_ids() {
     // Two geometries, indexed U16 and U32, one with a transform, with inactive triangles.
@@ -830,6 +855,7 @@ fn dragon_timing() {
             let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
             let desc = BuildDesc { ty: AsType::BottomLevel, flags: BuildFlags(flags), geometries: &[g] };
             let mut times = Vec::new();
+            let mut ph = [0f64; 4];
             // Process CPU time (utime + stime, clock ticks of 10 ms) next to wall time: on a
             // shared 2-core machine wall time includes waiting for the CPU.
             let cpu = || -> f64 {
@@ -841,8 +867,11 @@ fn dragon_timing() {
             let c0 = cpu();
             for _ in 0..reps {
                 let t = std::time::Instant::now();
-                pool.install(|| build(&desc, &NoDevice, &mut dst, &mut scratch)).unwrap();
+                let (_, p) = pool.install(|| build_timed(&desc, &NoDevice, &mut dst, &mut scratch)).unwrap();
                 times.push(t.elapsed().as_secs_f64() * 1e3);
+                for (a, b) in ph.iter_mut().zip([p.ingest_ms, p.sah_ms, p.leaf_data_ms, p.nodes_ms]) {
+                    *a += b / reps as f64;
+                }
             }
             let cpu_ms = (cpu() - c0) / reps as f64;
             times.sort_by(|a, b| a.total_cmp(b));
@@ -851,6 +880,7 @@ fn dragon_timing() {
                 "{name:10} threads {threads}: wall min {:.1} ms median {:.1} ms, CPU {cpu_ms:.0} ms/build | SAH {:.2} wide {:.2} | {:.1} B/tri | nodes {} leaves {} depth {}",
                 times[0], times[times.len() / 2], m.sah_cost, m.wide_sah_cost, m.bytes_per_primitive * m.node_count.max(1) as f32 / m.node_count.max(1) as f32 * header(&dst).unwrap().primitive_count as f32 / ntri as f32, m.node_count, m.leaf_count, m.max_depth
             );
+            println!("{:10} phases (mean ms): ingest {:.2} tree {:.2} leaf data {:.2} nodes {:.2}", "", ph[0], ph[1], ph[2], ph[3]);
         }
     }
 }
