@@ -27,14 +27,20 @@ const LEVELS: usize = 6;
 const BUCKETS: usize = 1 << LEVELS;
 /// Chunk groups of the scatter (fixed, whatever the thread count).
 const GROUPS: usize = 64;
-/// The root's sample is this many times the tier's `sample_target`, and a top node is split
-/// while its share of the sample holds at least `sample_target / MIN_SAMPLE_DIV` references.
-/// Dragon, one thread: FAST_BUILD 16,384 samples, 24 buckets, SAH 54.76 (54.70 with a sample
-/// per top node); the default tier 32,768 and 33 buckets, 49.14 (49.14). FAST_TRACE does not
-/// plan: with 32,768 samples its SAH was 48.93 against 48.87 (48.90 with 131,072 and splits
-/// down to 8,192 samples, which cost 5 ms on one thread), and on 16 threads it gained 0–4 %.
+/// The root's sample is this many times the tier's `sample_target`; a top node is split while
+/// its share of the sample holds at least `sample_target / MIN_SAMPLE_DIV` references and it
+/// is estimated to hold at least SPLIT_MIN. Dragon, one thread: FAST_BUILD 16,384 samples, 60
+/// buckets, SAH 54.79 (54.70 with a sample per top node); the default tier 32,768 samples, 64
+/// buckets, 49.12 (49.14). Smaller buckets fit a core's cache better: 16 threads on the
+/// 16-core machine, three interleaved rounds, FAST_BUILD medians 12.6 / 12.0 / 10.8 ms with
+/// 24 buckets (nodes split down to 32,768 and 512 samples), 11.0 / 11.0 / 11.4 with 60; the
+/// default tier 20.4 / 21.7 / 21.5 against 20.3 / 20.5 / 21.3. A sample twice as large cost
+/// as much planning (0.5 ms) as it saved. FAST_TRACE does not plan: with 32,768 samples its SAH
+/// was 48.93 against 48.87 (48.90 with 131,072 and splits down to 8,192 samples, which cost 5
+/// ms on one thread), and on 16 threads it gained 0–4 %.
 const ROOT_SAMPLE: usize = 4;
-const MIN_SAMPLE_DIV: usize = 8;
+const MIN_SAMPLE_DIV: usize = 32;
+const SPLIT_MIN: usize = PAR_BIN_CUTOFF / 2;
 /// Samples per parallel binning task of a top node.
 const SAMPLE_BIN_CHUNK: usize = 2048;
 
@@ -261,16 +267,16 @@ impl TopPlan {
     }
 }
 
-/// The planned top below a node whose sample is `sample` (`step` primitives per sample):
+/// The planned top below a node whose sample is `sample` (`step` references per sample):
 /// splits as `build_rec` chooses them over the sample's bins, while the sample keeps at least
-/// `min_sample` references and the node about 2·PAR_BIN_CUTOFF primitives. Returns the nodes
+/// `min_sample` references and the node about SPLIT_MIN references. Returns the nodes
 /// (this one first, indices relative to it) and the bucket count, buckets numbered left to
 /// right. Depends on the sample alone.
 fn grow(p: &BuildParams, sample: &mut [PrimRef], cb: Aabb, step: usize, level: usize, min_sample: usize) -> (Vec<TopNode>, u32) {
     let s = sample.len();
     let est = s.saturating_mul(step);
     let bucket = || (vec![TopNode { split: None, kids: [0; 2], bucket: 0 }], 1);
-    if level >= LEVELS || s < min_sample.max(2) || est < 2 * PAR_BIN_CUTOFF {
+    if level >= LEVELS || s < min_sample.max(2) || est < SPLIT_MIN {
         return bucket();
     }
     let k = p.bins.clamp(2, MAX_BINS).min((est / REFS_PER_BIN).max(p.min_bins.max(2)));
