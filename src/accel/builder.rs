@@ -1,8 +1,8 @@
 //! Build: ingest (geometry → primitive references in scratch; in the fast-build and default
 //! tiers, pairs of neighbouring primitives, `pairs`) → binned-SAH binary BVH in scratch
 //! (rayon::join on the current pool, node slots derived from primitive ranges so the tree is
-//! the same for any thread count; in large fast-build and default-tier builds its first
-//! levels from one sample, `top`) → collapse to BVH4 → encode into dst.
+//! the same for any thread count; in large BLAS builds its first levels from one sample,
+//! `top`) → collapse to BVH4 → encode into dst.
 //! Host heap use is O(threads): all arrays proportional to the input live in `scratch`.
 use super::input::{self, read_aabb, read_instance, read_triangle};
 use super::pairs;
@@ -265,8 +265,6 @@ pub struct BuildParams {
     /// The fewest bins a binned node gets (it gets one per REFS_PER_BIN references, up to
     /// `bins`).
     pub min_bins: usize,
-    /// Large builds take the top of their tree from one sample (`top`).
-    pub plan_top: bool,
 }
 pub const MAX_BINS: usize = 32;
 /// Depth after which splits become balanced object-median splits: bounds recursion depth
@@ -291,7 +289,7 @@ const BIN_CHUNK: usize = 1 << 14;
 impl BuildParams {
     pub fn from_flags(flags: BuildFlags) -> Self {
         if flags.contains(BuildFlags::PREFER_FAST_TRACE) {
-            BuildParams { bins: 32, single_axis: false, traversal_cost: 1.0, max_leaf: 8, small_n: SMALL_N, parallel_cutoff: 1024, sample_target: 2 * SAMPLE_TARGET, pair_tau: 0.0, cluster: 1, cluster_leaf: 8, min_bins: 6, plan_top: false }
+            BuildParams { bins: 32, single_axis: false, traversal_cost: 1.0, max_leaf: 8, small_n: SMALL_N, parallel_cutoff: 1024, sample_target: 2 * SAMPLE_TARGET, pair_tau: 0.0, cluster: 1, cluster_leaf: 8, min_bins: 6 }
         } else if flags.contains(BuildFlags::PREFER_FAST_BUILD) {
             // 12 bins, not 8: over node boxes (see `build_rec`) 8 bins gave SAH 54.59 on the
             // dragon, 12 give 53.71 at the same speed. Clusters of up to 4 primitives, leaves
@@ -300,9 +298,9 @@ impl BuildParams {
             // rounds on the 16-core machine (4 clusters per leaf: SAH 54.16 with the
             // reference-counting leaf rule). Since session 9 tau 1.1 (`pairs::FAST_BUILD_TAU`):
             // SAH 54.98, 53.4 B/tri, 6 % faster on one thread.
-            BuildParams { bins: 12, single_axis: true, traversal_cost: 2.5, max_leaf: 8, small_n: SMALL_N, parallel_cutoff: 1024, sample_target: SAMPLE_TARGET, pair_tau: pairs::FAST_BUILD_TAU, cluster: 4, cluster_leaf: 3, min_bins: 8, plan_top: true }
+            BuildParams { bins: 12, single_axis: true, traversal_cost: 2.5, max_leaf: 8, small_n: SMALL_N, parallel_cutoff: 1024, sample_target: SAMPLE_TARGET, pair_tau: pairs::FAST_BUILD_TAU, cluster: 4, cluster_leaf: 3, min_bins: 8 }
         } else {
-            BuildParams { bins: 16, single_axis: false, traversal_cost: 1.0, max_leaf: 8, small_n: SMALL_N, parallel_cutoff: 1024, sample_target: 2 * SAMPLE_TARGET, pair_tau: pairs::DEFAULT_TAU, cluster: 2, cluster_leaf: 4, min_bins: 6, plan_top: true }
+            BuildParams { bins: 16, single_axis: false, traversal_cost: 1.0, max_leaf: 8, small_n: SMALL_N, parallel_cutoff: 1024, sample_target: 2 * SAMPLE_TARGET, pair_tau: pairs::DEFAULT_TAU, cluster: 2, cluster_leaf: 4, min_bins: 6 }
         }
     }
 }
@@ -2658,7 +2656,7 @@ pub fn build(desc: &BuildDesc, view: &dyn DeviceView, dst: &mut [u8], scratch: &
     // Large BLAS builds take the top of their tree from a sample of the references (`top`):
     // ingest leaves its chunks uncompacted, and the scatter into the top's buckets moves them.
     let nch = top::chunk_count(desc);
-    let want_plan = params.plan_top && top::wanted(desc, total, nch, prefix.len());
+    let want_plan = top::wanted(desc, total, nch, prefix.len());
     let (mut built, active, root_box, root_cb, mut in_temp) = {
         // The node slots are unused until the tree is built: compaction's temporary.
         let temp = node_refs_mut(nodes, total).unwrap_or(&mut []);

@@ -1,5 +1,4 @@
-//! The top of large trees in the fast-build and default tiers, decided on one sample of the
-//! references (`plan`).
+//! The top of large BLAS trees, decided on one sample of the references (`plan`).
 //!
 //! Without it the first levels of a large tree each move every reference: a counting pass and
 //! a scatter per level (dragon: four to five levels above the subtrees that threads build on
@@ -15,7 +14,7 @@
 //!
 //! Deterministic: the sample depends on the input alone, the classification on the sample,
 //! and counts, boxes and the stable scatter order on neither chunking nor threads; whether a
-//! build plans depends on its tier and size alone. Host memory: the sample lives in the
+//! build plans depends on its type and size alone. Host memory: the sample lives in the
 //! unused node slots, the per-chunk cells and bucket bytes in scratch; the heap holds only
 //! tables of a fixed size (the grid, the tree, the scatter's ranges).
 use super::*;
@@ -28,18 +27,19 @@ const BUCKETS: usize = 1 << LEVELS;
 /// Chunk groups of the scatter (fixed, whatever the thread count).
 const GROUPS: usize = 64;
 /// The root's sample is this many times the tier's `sample_target`; a top node is split while
-/// its share of the sample holds at least `sample_target / MIN_SAMPLE_DIV` references and it
-/// is estimated to hold at least SPLIT_MIN. Dragon, one thread: FAST_BUILD 16,384 samples, 60
-/// buckets, SAH 54.79 (54.70 with a sample per top node); the default tier 32,768 samples, 64
-/// buckets, 49.12 (49.14). Smaller buckets fit a core's cache better: 16 threads on the
-/// 16-core machine, three interleaved rounds, FAST_BUILD medians 12.6 / 12.0 / 10.8 ms with
-/// 24 buckets (nodes split down to 32,768 and 512 samples), 11.0 / 11.0 / 11.4 with 60; the
-/// default tier 20.4 / 21.7 / 21.5 against 20.3 / 20.5 / 21.3. A sample twice as large cost
-/// as much planning (0.5 ms) as it saved. FAST_TRACE does not plan: with 32,768 samples its SAH
-/// was 48.93 against 48.87 (48.90 with 131,072 and splits down to 8,192 samples, which cost 5
-/// ms on one thread), and on 16 threads it gained 0–4 %.
+/// its share of the sample holds at least `sample_target / MIN_SAMPLE_DIV` references (a
+/// 32nd of the root's) and it is estimated to hold at least SPLIT_MIN. Dragon, one thread:
+/// FAST_BUILD 16,384 samples, SAH 54.77 (54.70 with a sample per top node); the default tier
+/// 32,768, 49.15 (49.14); FAST_TRACE 32,768, 48.96 (48.87; that per-node sampling gave 48.82
+/// to 48.99 for sample sizes from 6,000 to 10,000: the top's SAH is the draw of a sample).
+/// Smaller buckets fit a core's cache better: 16 threads on the 16-core machine, three
+/// interleaved rounds, FAST_BUILD medians 12.6 / 12.0 / 10.8 ms with 24 buckets (nodes split
+/// down to 32,768 references and 512 samples), 11.0 / 11.0 / 11.4 with 60; the default tier
+/// 20.4 / 21.7 / 21.5 against 20.3 / 20.5 / 21.3. FAST_TRACE, four rounds, the old top against
+/// this: 27.2 / 28.2 / 27.5 / 28.7 against 24.8 / 25.9 / 24.7 / 24.6. A sample twice as large
+/// cost as much planning (0.5 ms) as it saved.
 const ROOT_SAMPLE: usize = 4;
-const MIN_SAMPLE_DIV: usize = 32;
+const MIN_SAMPLE_DIV: usize = 8;
 const SPLIT_MIN: usize = PAR_BIN_CUTOFF / 2;
 /// Samples per parallel binning task of a top node.
 const SAMPLE_BIN_CHUNK: usize = 2048;
