@@ -41,6 +41,8 @@ const GROUPS: usize = 64;
 const ROOT_SAMPLE: usize = 4;
 const MIN_SAMPLE_DIV: usize = 8;
 const SPLIT_MIN: usize = PAR_BIN_CUTOFF / 2;
+/// Samples from which a top node's sample partitions in parallel.
+const PAR_SAMPLE_PARTITION: usize = 8192;
 /// Samples per parallel binning task of a top node.
 const SAMPLE_BIN_CHUNK: usize = 2048;
 
@@ -272,7 +274,7 @@ impl TopPlan {
 /// `min_sample` references and the node about SPLIT_MIN references. Returns the nodes
 /// (this one first, indices relative to it) and the bucket count, buckets numbered left to
 /// right. Depends on the sample alone.
-fn grow(p: &BuildParams, sample: &mut [PrimRef], cb: Aabb, step: usize, level: usize, min_sample: usize) -> (Vec<TopNode>, u32) {
+fn grow(p: &BuildParams, sample: &mut [PrimRef], scratch: &mut [PrimRef], cb: Aabb, step: usize, level: usize, min_sample: usize) -> (Vec<TopNode>, u32) {
     let s = sample.len();
     let est = s.saturating_mul(step);
     let bucket = || (vec![TopNode { split: None, kids: [0; 2], bucket: 0 }], 1);
@@ -300,15 +302,29 @@ fn grow(p: &BuildParams, sample: &mut [PrimRef], cb: Aabb, step: usize, level: u
     }
     let Some((a, b, lbox, rbox, _)) = sweep_bins(&bins, k, &scale) else { return bucket() };
     let sp = bn.splitter(a, (b + 1) as f32);
-    let i = partition_seq(sample, &sp);
+    // Large samples partition in parallel into `scratch` (stable, in fixed chunks), which then
+    // holds the children's samples and lends them `sample` as their scratch; small ones in
+    // place. The tree never depends on a sample's order (bins are sums, minima and maxima).
+    let is_left = |r: &PrimRef| sp.left(r);
+    let (i, (ls, lt), (rs, rt)) = if s >= PAR_SAMPLE_PARTITION && scratch.len() >= s {
+        let (chunk, nchunks, stats, nl, _, _) = part_stats(sample, &is_left);
+        let (lout, rout) = scratch[..s].split_at_mut(nl);
+        part_scatter(sample, chunk, nchunks, &stats, lout, rout, &is_left);
+        let (lt, rt) = sample.split_at_mut(nl);
+        (nl, (lout, lt), (rout, rt))
+    } else {
+        let i = partition_seq(sample, &sp);
+        let (lt, rt) = scratch.split_at_mut(i.min(scratch.len()));
+        let (ls, rs) = sample.split_at_mut(i);
+        (i, (ls, lt), (rs, rt))
+    };
     if i == 0 || i == s {
         return bucket();
     }
-    let (ls, rs) = sample.split_at_mut(i);
     let ((mut l, lb), (r, rb)) = if s >= 1024 {
-        rayon::join(|| grow(p, ls, lbox, step, level + 1, min_sample), || grow(p, rs, rbox, step, level + 1, min_sample))
+        rayon::join(|| grow(p, ls, lt, lbox, step, level + 1, min_sample), || grow(p, rs, rt, rbox, step, level + 1, min_sample))
     } else {
-        (grow(p, ls, lbox, step, level + 1, min_sample), grow(p, rs, rbox, step, level + 1, min_sample))
+        (grow(p, ls, lt, lbox, step, level + 1, min_sample), grow(p, rs, rt, rbox, step, level + 1, min_sample))
     };
     let off = 1 + l.len() as u32;
     let mut tree = Vec::with_capacity(1 + l.len() + r.len());
@@ -325,7 +341,7 @@ fn grow(p: &BuildParams, sample: &mut [PrimRef], cb: Aabb, step: usize, level: u
 /// `refs` (chunk c keeps the prefix `kept[c]` of its slots) from an evenly strided sample of
 /// them in chunk order (what the compacted references would be), with the root's bins over
 /// `cb` (the references' centroid box). The sample is gathered into `room` (scratch that is
-/// free until the scatter). None when the sample does not split or `room` is too small.
+/// free until the scatter), whose rest is the partitions' second buffer. None when the sample does not split or `room` is too small.
 pub(super) fn plan(desc: &BuildDesc, p: &BuildParams, refs: &[PrimRef], kept: &[u32], built: usize, cb: Aabb, room: &mut [PrimRef]) -> Option<TopPlan> {
     let target = p.sample_target.max(1) * ROOT_SAMPLE;
     let step = (built / target).max(1);
@@ -335,7 +351,8 @@ pub(super) fn plan(desc: &BuildDesc, p: &BuildParams, refs: &[PrimRef], kept: &[
     // In blocks of sample positions, each walking the chunks from the start (no per-chunk
     // table on the heap).
     const BLOCK: usize = 1024;
-    let sample = room.get_mut(..built.div_ceil(step))?;
+    let count = built.div_ceil(step);
+    let (sample, scratch) = room.split_at_mut_checked(count)?;
     sample.par_chunks_mut(BLOCK).enumerate().for_each(|(blk, out)| {
         let mut chunks = chunk_layout(desc).zip(kept).map(|((first, len), &k)| (first, (k as usize).min(len)));
         let (mut cur, mut before) = (chunks.next(), 0usize);
@@ -353,7 +370,7 @@ pub(super) fn plan(desc: &BuildDesc, p: &BuildParams, refs: &[PrimRef], kept: &[
             }
         }
     });
-    let (tree, buckets) = grow(p, sample, cb, step, 0, p.sample_target / MIN_SAMPLE_DIV);
+    let (tree, buckets) = grow(p, sample, scratch, cb, step, 0, p.sample_target / MIN_SAMPLE_DIV);
     let buckets = buckets as usize;
     (2..=BUCKETS).contains(&buckets).then(|| TopPlan::new(tree, buckets, &cb))
 }
@@ -653,7 +670,8 @@ mod tests {
             }
             let step = 8;
             let mut sample: Vec<PrimRef> = refs.iter().step_by(step).copied().collect();
-            let (tree, buckets) = grow(&p, &mut sample, cb, step, 0, p.sample_target / MIN_SAMPLE_DIV);
+            let mut scratch = vec![PrimRef::zeroed(); sample.len()];
+            let (tree, buckets) = grow(&p, &mut sample, &mut scratch, cb, step, 0, p.sample_target / MIN_SAMPLE_DIV);
             assert!(buckets >= 8, "case {case}: {buckets} buckets");
             let plan = TopPlan::new(tree, buckets as usize, &cb);
             // References on every threshold, just below it, and outside the root box.
