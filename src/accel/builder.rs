@@ -3090,8 +3090,8 @@ mod pass_timing {
             .collect()
     }
 
-    /// Xorshift floats in [0, 1) from `seed`.
-    fn unit_floats(mut seed: u64) -> impl FnMut() -> f32 {
+    /// Xorshift floats in [0, 1) from `seed` (also `top`'s tests).
+    pub(super) fn unit_floats(mut seed: u64) -> impl FnMut() -> f32 {
         move || {
             seed ^= seed << 13;
             seed ^= seed >> 7;

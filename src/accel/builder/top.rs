@@ -594,16 +594,7 @@ pub(super) fn compact_in_place(desc: &BuildDesc, refs: &mut [PrimRef], kept: &[u
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    /// A deterministic xorshift64 stream of floats in [0, 1).
-    fn floats(mut seed: u64) -> impl FnMut() -> f32 {
-        move || {
-            seed ^= seed << 13;
-            seed ^= seed >> 7;
-            seed ^= seed << 17;
-            (seed >> 40) as f32 / (1u64 << 24) as f32
-        }
-    }
+    use crate::accel::builder::pass_timing::unit_floats as floats;
 
     fn next_up(f: f32) -> f32 {
         if f >= 0.0 { f32::from_bits(f.to_bits() + 1) } else { f32::from_bits(f.to_bits() - 1) }
