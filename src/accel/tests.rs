@@ -378,6 +378,48 @@ fn builds_whose_sample_cannot_split_still_hold_every_primitive() {
     }
 }
 
+/// A large build with extreme coordinates: most triangles in a unit cube, some spanning
+/// ±3e38, some whole at x near +3e38 or -3e38 (the centroid box's x extent overflows to
+/// infinity, which the planned top's grid and bins must survive) and some with an infinite vertex
+/// (sanitised to ±f32::MAX). Every tier:
+/// a valid structure holding every triangle, the same bytes on 1 and 4 threads.
+#[test]
+fn large_builds_with_extreme_coordinates_hold_every_primitive() {
+    let mut rng = Rng::new(11);
+    let ntri = 70_000usize;
+    let mut v: Vec<Vec3> = Vec::with_capacity(3 * ntri);
+    for t in 0..ntri {
+        let c = Vec3::new(rng.f(), rng.f(), rng.f());
+        let e = 0.01;
+        let (mut a, mut b, mut c2) = (c, c + Vec3::new(e, 0.0, 0.0), c + Vec3::new(0.0, e, e));
+        if t % 997 == 5 {
+            a = Vec3::new(-3e38, -3e38, 3e38);
+        }
+        if t % 1301 == 7 {
+            a = Vec3::new(f32::INFINITY, 0.5, 0.5);
+        }
+        if t % 1499 == 9 {
+            // Whole triangles at x near +-3e38: centroids 6e38 apart in x, an infinite extent
+            // there (x cannot be binned), y and z as the others.
+            let s = if t % 2 == 0 { 3e38 } else { -3e38 };
+            (a, b, c2) = (Vec3::new(s, c.y, c.z), Vec3::new(s * 0.97, c.y, c.z), Vec3::new(s, c.y + e, c.z + e));
+        }
+        v.extend([a, b, c2]);
+    }
+    let vb = f32_bytes(&v);
+    let g = tri_geom(&vb, v.len() as u32, &[], ntri as u32, GeometryFlags::OPAQUE);
+    for flags in [BuildFlags::PREFER_FAST_BUILD, 0, BuildFlags::PREFER_FAST_TRACE] {
+        let out = builds_on(&[1, 4], flags, &[g], |blas| {
+            validate(blas).unwrap();
+            header(blas).unwrap().primitive_count as usize
+        });
+        for &(_, prims) in &out {
+            assert_eq!(prims, ntri, "flags {flags:#x}");
+        }
+        assert!(out.windows(2).all(|w| w[0].0 == w[1].0), "flags {flags:#x}");
+    }
+}
+
 #[test]
 fn indexed_multi_geometry_transform_and_ids() {
     // Two geometries, indexed U16 and U32, one with a transform, with inactive triangles.
