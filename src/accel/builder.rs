@@ -682,9 +682,10 @@ fn build_rec<'a>(ctx: &Ctx, refs: &'a mut [PrimRef], nodes: &'a mut [BinNode], s
     // Smaller nodes get fewer bins: at most one per four references, at least `min_bins` (the
     // sweep costs O(bins) per node; on the dragon FAST_TRACE this is 7 % fewer instructions for
     // SAH 48.79 -> 48.81 with at least 8). At least 6 in the three-axis tiers (session 10):
-    // FAST_TRACE 3–5 % faster on one thread, SAH 48.84 -> 48.87 (the tier's budget is 48.9),
-    // the default tier 1–3 %, 49.11 -> 49.14; FAST_BUILD keeps 8 (6: SAH 54.70 -> 54.78 for no
-    // time measurable; 4 cost FAST_TRACE 48.91).
+    // FAST_TRACE 3–5 % faster on one thread, SAH 48.84 -> 48.87 (then the tier's budget, 48.9;
+    // the sample draw of the top alone moves it by ±0.08, see `top`), the default tier 1–3 %,
+    // 49.11 -> 49.14; FAST_BUILD keeps 8 (6: SAH 54.70 -> 54.78 for no time measurable; 4 cost
+    // FAST_TRACE 48.91).
     let k = p.bins.clamp(2, MAX_BINS).min((n / REFS_PER_BIN).max(p.min_bins.max(2)));
     let split: Option<(usize, usize, Aabb, Aabb, f32)>; // (axis, bin, left box, right box, cost)
     if depth < MAX_SAH_DEPTH {
