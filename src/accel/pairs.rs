@@ -59,14 +59,29 @@ fn tight(a: &PrimRef, b: &PrimRef, tau: f32) -> bool {
 pub fn pair_in_place(c: &mut [PrimRef], tau: f32, cluster: u32, dropped: u32) -> (usize, Vec3A, Vec3A) {
     const BLOCK: usize = 256;
     let n = c.len();
-    let linked = |c: &[PrimRef], j: usize| c.get(j + 1).is_some_and(|b| c[j].geom != dropped && b.geom != dropped && b.prim == c[j].prim.wrapping_add(1) && tight(&c[j], b, tau));
+    // Each reference's half area once per block (the flags and the walk read it up to four
+    // times): the same values `tight` computes, so the same pairs.
+    let area_of = |r: &PrimRef| half_area_v(ref_lo(r), ref_hi(r));
+    let mut areas = [0f32; BLOCK + 1];
     let mut flags = [false; BLOCK];
     let (mut w, mut i, mut base) = (0usize, 0usize, 0usize);
     let (mut clo, mut chi) = (Vec3A::INFINITY, Vec3A::NEG_INFINITY);
     while base < n {
         let end = (base + BLOCK).min(n);
+        for (k, a) in (base..(end + 1).min(n)).zip(areas.iter_mut()) {
+            *a = area_of(&c[k]);
+        }
+        // Reference j's area: cached in this block (through `end`), else computed (the walk
+        // may run past the block; nothing there is written yet).
+        let area = |c: &[PrimRef], areas: &[f32; BLOCK + 1], j: usize| if j >= base && j <= end { areas[(j - base).min(BLOCK)] } else { area_of(&c[j]) };
+        let linked = |c: &[PrimRef], areas: &[f32; BLOCK + 1], j: usize| {
+            c.get(j + 1).is_some_and(|b| {
+                let a = &c[j];
+                a.geom != dropped && b.geom != dropped && b.prim == a.prim.wrapping_add(1) && half_area_v(ref_lo(a).min(ref_lo(b)), ref_hi(a).max(ref_hi(b))) <= tau * (area(c, areas, j) + area(c, areas, j + 1))
+            })
+        };
         for (j, f) in (base..end).zip(flags.iter_mut()) {
-            *f = linked(c, j);
+            *f = linked(c, &areas, j);
         }
         while i < end {
             let a = c[i];
@@ -75,15 +90,15 @@ pub fn pair_in_place(c: &mut [PrimRef], tau: f32, cluster: u32, dropped: u32) ->
                 continue;
             }
             let (mut lo, mut hi) = (ref_lo(&a), ref_hi(&a));
-            let mut sum = half_area_v(lo, hi);
+            let mut sum = area(c, &areas, i);
             let mut count = 1u32;
             let mut j = i;
             // Flags beyond this block are computed on the fly (nothing there is written yet).
-            while count < cluster && if j < end { flags[(j - base) & (BLOCK - 1)] } else { linked(c, j) } {
+            while count < cluster && if j < end { flags[(j - base) & (BLOCK - 1)] } else { linked(c, &areas, j) } {
+                let bsum = sum + area(c, &areas, j + 1);
                 let b = &c[j + 1];
                 let (blo, bhi) = (ref_lo(b), ref_hi(b));
                 let (ulo, uhi) = (lo.min(blo), hi.max(bhi));
-                let bsum = sum + half_area_v(blo, bhi);
                 // A pair is exactly the flag's test (`tight`); larger clusters test their union.
                 if count > 1 && half_area_v(ulo, uhi) > tau * bsum {
                     break;
