@@ -19,7 +19,7 @@
 //! tables of a fixed size (the grid, the tree, the scatter's ranges).
 use super::*;
 
-/// Builds with at least this many primitives plan their top (the tier permitting).
+/// BLAS builds with at least this many primitives plan their top (scratch permitting).
 pub(super) const TOP_MIN: usize = 4 * PAR_BIN_CUTOFF;
 /// Levels of the planned top at most: at most 64 buckets, one byte per reference names one.
 const LEVELS: usize = 6;
@@ -71,9 +71,9 @@ pub(super) const CELL_WORDS: usize = std::mem::size_of::<BucketCell>() / 4;
 /// c < t with the threshold t of `threshold`, and a bucket is exactly the box of centroids
 /// [lo, hi) its path's thresholds cut out. Neighbouring references mostly share a bucket, so
 /// a reference is first tested against the previous reference's bucket box (one vector test);
-/// only when it is outside does it walk the tree: complete, `depth` levels in heap order
-/// (children of i at 2i + 1 and 2i + 2; a bucket above the last level is padded with tests
-/// that send everything left).
+/// only when it is outside does it look up the grid, then the bucket before that one, then
+/// walk the tree: complete, `depth` levels in heap order (children of i at 2i + 1 and
+/// 2i + 2; a bucket above the last level is padded with tests that send everything left).
 pub(super) struct TopPlan {
     tree: Vec<TopNode>,
     pub(super) buckets: usize,
@@ -341,7 +341,8 @@ fn grow(p: &BuildParams, sample: &mut [PrimRef], scratch: &mut [PrimRef], cb: Aa
 /// `refs` (chunk c keeps the prefix `kept[c]` of its slots) from an evenly strided sample of
 /// them in chunk order (what the compacted references would be), with the root's bins over
 /// `cb` (the references' centroid box). The sample is gathered into `room` (scratch that is
-/// free until the scatter), whose rest is the partitions' second buffer. None when the sample does not split or `room` is too small.
+/// free until the scatter), whose rest is the partitions' second buffer. None when the sample
+/// does not split or `room` is too small.
 pub(super) fn plan(desc: &BuildDesc, p: &BuildParams, refs: &[PrimRef], kept: &[u32], built: usize, cb: Aabb, room: &mut [PrimRef]) -> Option<TopPlan> {
     let target = p.sample_target.max(1) * ROOT_SAMPLE;
     let step = (built / target).max(1);
