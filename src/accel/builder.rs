@@ -699,35 +699,21 @@ fn build_rec<'a>(ctx: &Ctx, refs: &'a mut [PrimRef], nodes: &'a mut [BinNode], s
                 // costs, and these nodes always take the parallel partition, which computes
                 // the children's exact boxes.
                 let step = (n / p.sample_target.max(1)).max(1);
+                let bin_sample = |c: &[PrimRef], b: &mut Bins| {
+                    if step == 1 {
+                        bin_refs(c, &bn, b);
+                    } else {
+                        for r in c.iter().step_by(step) {
+                            bin_one(r, &bn, b);
+                        }
+                    }
+                };
                 if !ctx.top(n) {
                     // One of at least as many nodes of its size as threads: sampled here, with
                     // no fork to wait on (see `build_tree`); the same bins as in chunks.
-                    if step == 1 {
-                        bin_refs(src, &bn, bins);
-                    } else {
-                        for r in src.iter().step_by(step) {
-                            bin_one(r, &bn, bins);
-                        }
-                    }
+                    bin_sample(src, bins);
                 } else {
-                    let merged = src
-                        .par_chunks(if step == 1 { BIN_CHUNK } else { SAMPLE_CHUNK * step })
-                        .map(|c| {
-                            let mut b = Bins::new();
-                            if step == 1 {
-                                bin_refs(c, &bn, &mut b);
-                            } else {
-                                for r in c.iter().step_by(step) {
-                                    bin_one(r, &bn, &mut b);
-                                }
-                            }
-                            b
-                        })
-                        .reduce(Bins::new, |mut x, y| {
-                            x.merge(&y, k, axes);
-                            x
-                        });
-                    bins.merge(&merged, k, axes);
+                    bins.merge(&bin_in_chunks(src, if step == 1 { BIN_CHUNK } else { SAMPLE_CHUNK * step }, k, axes, bin_sample), k, axes);
                 }
             } else {
                 bin_refs(src, &bn, bins);
@@ -816,6 +802,21 @@ fn build_rec<'a>(ctx: &Ctx, refs: &'a mut [PrimRef], nodes: &'a mut [BinNode], s
     let (l, r) = refs.split_at(mid);
     let (lb, rb) = (box_of(l), box_of(r));
     finish_split(ctx, refs, nodes, start, bounds, mid, lb, rb, depth, bins, false, pre, parent_count, sink, idx)
+}
+
+/// Bins of `src` binned by `bin` in parallel chunks of `chunk` references and merged (exact:
+/// minima, maxima and counts), `k` bins on `axes`.
+fn bin_in_chunks(src: &[PrimRef], chunk: usize, k: usize, axes: (usize, usize), bin: impl Fn(&[PrimRef], &mut Bins) + Sync) -> Bins {
+    src.par_chunks(chunk.max(1))
+        .map(|c| {
+            let mut b = Bins::new();
+            bin(c, &mut b);
+            b
+        })
+        .reduce(Bins::new, |mut x, y| {
+            x.merge(&y, k, axes);
+            x
+        })
 }
 
 /// The bins of a node whose bins span `cb`: `k` per axis (the widest axis of `cb` alone in
@@ -2159,6 +2160,13 @@ pub const INGEST_CHUNK: usize = 4096;
 /// Ingest chunk of instance geometries (see `ingest`).
 const INGEST_CHUNK_INSTANCES: usize = 256;
 
+/// The ingest chunk of geometry `g`'s primitives: an instance costs far more than a triangle
+/// (record decode, BLAS bounds, eight transformed corners), so instances go in smaller chunks
+/// (a 10,000-instance TLAS is then more than three tasks).
+fn ingest_chunk(g: &Geometry) -> usize {
+    if matches!(g.data, GeometryData::Instances { .. }) { INGEST_CHUNK_INSTANCES } else { INGEST_CHUNK }
+}
+
 /// Staged primitive data: what the format stores plus the primitive's index in its geometry.
 pub const STAGE_SIZE: usize = 40;
 /// The leaf-data gathers prefetch the stage record this many records ahead of the one they
@@ -2204,10 +2212,7 @@ fn ingest(desc: &BuildDesc, view: &dyn DeviceView, refs: &mut [PrimRef], mut sta
         let gbase = base;
         let fast = FastTris::of(g);
         let is_inst = matches!(g.data, GeometryData::Instances { .. });
-        // An instance costs far more than a triangle (record decode, BLAS bounds, eight
-        // transformed corners), so instances go in smaller chunks: a 10,000-instance TLAS is
-        // then more than three tasks.
-        let chunk_len = if is_inst { INGEST_CHUNK_INSTANCES } else { INGEST_CHUNK };
+        let chunk_len = ingest_chunk(g);
         // Reads chunk `ci`'s primitives into `chunk` (and their staged records into `st`),
         // pairs them or squeezes out the dropped ones: the references kept are its prefix.
         let fill = |ci: usize, chunk: &mut [PrimRef], st: Option<&mut [u8]>| -> Result<ChunkSum, (u64, BuildError)> {
@@ -2362,7 +2367,7 @@ fn compact_chunks(desc: &BuildDesc, refs: &mut [PrimRef], temp: &mut [PrimRef], 
     let (mut w, mut first, mut src_base) = (0usize, 0usize, 0usize);
     for g in desc.geometries {
         let count = g.primitive_count as usize;
-        let chunk_len = if matches!(g.data, GeometryData::Instances { .. }) { INGEST_CHUNK_INSTANCES } else { INGEST_CHUNK };
+        let chunk_len = ingest_chunk(g);
         let nch = count.div_ceil(chunk_len);
         let Some(counts) = kept.get_mut(first..first + nch) else { break };
         first += nch;
@@ -2714,7 +2719,8 @@ pub fn build(desc: &BuildDesc, view: &dyn DeviceView, dst: &mut [u8], scratch: &
             }
             (plan, _) => {
                 if plan.is_some() {
-                    top::compact_in_place(desc, refs, &prefix[..nch]);
+                    // The plan did not apply after all: the compaction ingest skipped, in place.
+                    compact_chunks(desc, refs, &mut [], &mut prefix[..nch], built);
                 }
                 build_tree(&ctx, &mut refs[..built], &mut nodes[..2 * built - 1], root_box, root_cb, in_temp, pre)
             }

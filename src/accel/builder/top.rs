@@ -283,23 +283,13 @@ fn grow(p: &BuildParams, sample: &mut [PrimRef], scratch: &mut [PrimRef], cb: Aa
     }
     let k = p.bins.clamp(2, MAX_BINS).min((est / REFS_PER_BIN).max(p.min_bins.max(2)));
     let Some((bn, scale)) = node_binning(p, &cb, k) else { return bucket() };
-    let mut bins = Bins::new();
-    if s >= 2 * SAMPLE_BIN_CHUNK {
-        let merged = sample
-            .par_chunks(SAMPLE_BIN_CHUNK)
-            .map(|c| {
-                let mut b = Bins::new();
-                bin_refs(c, &bn, &mut b);
-                b
-            })
-            .reduce(Bins::new, |mut x, y| {
-                x.merge(&y, k, bn.axes);
-                x
-            });
-        bins.merge(&merged, k, bn.axes);
+    let bins = if s >= 2 * SAMPLE_BIN_CHUNK {
+        bin_in_chunks(sample, SAMPLE_BIN_CHUNK, k, bn.axes, |c, b| bin_refs(c, &bn, b))
     } else {
-        bin_refs(sample, &bn, &mut bins);
-    }
+        let mut b = Bins::new();
+        bin_refs(sample, &bn, &mut b);
+        b
+    };
     let Some((a, b, lbox, rbox, _)) = sweep_bins(&bins, k, &scale) else { return bucket() };
     let sp = bn.splitter(a, (b + 1) as f32);
     // Large samples partition in parallel into `scratch` (stable, in fixed chunks), which then
@@ -389,7 +379,7 @@ fn chunk_layout<'d>(desc: &'d BuildDesc<'d>) -> impl Iterator<Item = (usize, usi
     let mut base = 0usize;
     desc.geometries.iter().flat_map(move |g| {
         let count = g.primitive_count as usize;
-        let len = if matches!(g.data, GeometryData::Instances { .. }) { INGEST_CHUNK_INSTANCES } else { INGEST_CHUNK };
+        let len = ingest_chunk(g);
         let b = base;
         base += count;
         (0..count.div_ceil(len)).map(move |ci| (b + ci * len, (count - ci * len).min(len)))
@@ -404,7 +394,7 @@ pub(super) fn classify_chunks(plan: &TopPlan, desc: &BuildDesc, refs: &[PrimRef]
     let (mut base, mut first_chunk) = (0usize, 0usize);
     for g in desc.geometries {
         let count = g.primitive_count as usize;
-        let len = if matches!(g.data, GeometryData::Instances { .. }) { INGEST_CHUNK_INSTANCES } else { INGEST_CHUNK };
+        let len = ingest_chunk(g);
         let nch = count.div_ceil(len);
         let (Some(src), Some(k), Some(id), Some(cell)) = (refs.get(base..base + count), kept.get(first_chunk..first_chunk + nch), ids.get_mut(base..base + count), cells.get_mut(first_chunk * nb..(first_chunk + nch) * nb)) else { return };
         src.par_chunks(len).zip(k.par_iter()).zip(id.par_chunks_mut(len)).zip(cell.par_chunks_mut(nb)).for_each(|(((src, &k), id), cell)| {
@@ -575,21 +565,6 @@ pub(super) fn tasks<'a>(plan: &TopPlan, s: &TopSums, i: usize, refs: &'a mut [Pr
 /// Ingest chunks of `desc` (one `kept` count each).
 pub(super) fn chunk_count(desc: &BuildDesc) -> usize {
     chunk_layout(desc).count()
-}
-
-/// The compaction ingest skipped, in place and in order: every chunk's kept prefix moved to
-/// follow the previous ones (the fallback should a planned top not apply after all). Returns
-/// the references kept.
-pub(super) fn compact_in_place(desc: &BuildDesc, refs: &mut [PrimRef], kept: &[u32]) -> usize {
-    let mut w = 0usize;
-    for ((first, len), &k) in chunk_layout(desc).zip(kept) {
-        let k = (k as usize).min(len);
-        if first + k <= refs.len() {
-            refs.copy_within(first..first + k, w);
-            w += k;
-        }
-    }
-    w
 }
 
 #[cfg(test)]
