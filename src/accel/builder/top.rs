@@ -6,17 +6,17 @@
 //! uncompacted; the splits of those levels are chosen on an evenly strided sample of the
 //! references (`grow`, the binned SAH of `build_rec` on the sample); one pass gives every
 //! reference its bucket (a leaf of that small tree) with exact per-chunk counts and boxes
-//! (`classify_chunks`: each split test is a threshold on one centroid coordinate, a bucket a
-//! box of centroids, looked up through the previous reference's bucket and a grid before any
-//! walk down the tree); one scatter moves the references from their chunks into their
-//! buckets' node slots (`scatter`), the copy compaction would otherwise have made. The top
+//! (`classify_chunks`: each split test is a threshold on one centroid coordinate, so a
+//! centroid's ranks among each axis' thresholds name its bucket through one table); one
+//! scatter moves the references from their chunks into their buckets' node slots
+//! (`scatter`), the copy compaction would otherwise have made. The top
 //! nodes are written from the exact counts and boxes and each bucket becomes a task (`tasks`).
 //!
 //! Deterministic: the sample depends on the input alone, the classification on the sample,
 //! and counts, boxes and the stable scatter order on neither chunking nor threads; whether a
 //! build plans depends on its type and size alone. Host memory: the sample lives in the
 //! unused node slots, the per-chunk cells and bucket bytes in scratch; the heap holds only
-//! tables of a fixed size (the grid, the tree, the scatter's ranges).
+//! tables of a fixed size (the axes' grids, the rank table, the tree, the scatter's ranges).
 use super::*;
 
 /// BLAS builds with at least this many primitives plan their top (scratch permitting).
@@ -68,48 +68,49 @@ pub(super) const CELL_WORDS: usize = std::mem::size_of::<BucketCell>() / 4;
 
 /// The planned top. Each split test `Splitter::left` (c < limit after (c - cmin)·scale, on
 /// the centroid c = lo·0.5 + hi·0.5 of one axis) is monotonic in c, so it is the comparison
-/// c < t with the threshold t of `threshold`, and a bucket is exactly the box of centroids
-/// [lo, hi) its path's thresholds cut out. Neighbouring references mostly share a bucket, so
-/// a reference is first tested against the previous reference's bucket box (one vector test);
-/// only when it is outside does it look up the grid, then the bucket before that one, then
-/// walk the tree: complete, `depth` levels in heap order (children of i at 2i + 1 and
-/// 2i + 2; a bucket above the last level is padded with tests that send everything left).
+/// c < t with the threshold t of `threshold`. On each axis the distinct thresholds T_0 < T_1
+/// < … cut the line into intervals; a centroid's rank on the axis, the number of thresholds
+/// it is not below, decides every test on that axis (c < T_i exactly when the rank is at
+/// most i), so the three ranks name the bucket through one table. A rank comes from a fine
+/// grid of the axis (`LINE` cells): every threshold in a lower cell counts, the one in the
+/// centroid's own cell is compared, and none in a higher cell does (the cell of a value is
+/// monotonic in it); a cell with two or more thresholds counts them one by one.
 pub(super) struct TopPlan {
     tree: Vec<TopNode>,
     pub(super) buckets: usize,
-    depth: usize,
-    /// Per test: its threshold in the split axis' lane, +inf in the others (left: c < t in
-    /// every lane).
-    t: [Vec3A; BUCKETS - 1],
-    /// Per heap leaf: its bucket.
-    bucket: [u8; BUCKETS],
-    /// Per bucket: its box of centroids [lo, hi).
-    lo: [Vec3A; BUCKETS],
-    hi: [Vec3A; BUCKETS],
-    /// A GRID³ grid over the root's centroid box: the bucket of every centroid in a cell that
-    /// lies inside one bucket's box, NO_BUCKET for a cell that straddles a threshold.
+    /// Per axis: the distinct thresholds of its tests, in order.
+    th: [Vec<f32>; 3],
+    /// The axes' grids over the root's centroid box: LINE cells per axis, axis by axis.
     gmin: Vec3A,
     ginv: Vec3A,
-    grid: Vec<u8>,
+    line: Box<[[LineCell; LINE]; 3]>,
+    /// Bucket per rank triple, at rx + stride[1]·ry + stride[2]·rz.
+    stride: [usize; 3],
+    table: Box<[u8; TABLE]>,
 }
 
-/// Cells of the classification grid per axis (a power of two) and the mark of a cell that
-/// straddles a threshold.
-const GRID: usize = 32;
-const NO_BUCKET: u8 = u8::MAX;
+/// One cell of an axis' grid: the thresholds in lower cells, and the one in this cell (`one`
+/// = 1; 0 for none). `base` = MANY: two or more thresholds in the cell.
+#[derive(Clone, Copy)]
+struct LineCell {
+    t: f32,
+    base: u16,
+    one: u16,
+}
+const MANY: u16 = u16::MAX;
+
+/// Cells of an axis' grid.
+const LINE: usize = 1024;
+/// Rank triples at most: the product of (thresholds + 1) over the axes, for at most
+/// BUCKETS - 1 thresholds in all, is at most 22³.
+const TABLE: usize = 1 << 14;
+const _: () = assert!(22 * 22 * 22 <= TABLE && BUCKETS - 1 <= 63);
 
 /// The grid cell of centroid coordinate `c` on one axis, as the vector lanes of
-/// `TopPlan::cell` compute it: truncation of the clamped scaled offset.
+/// `TopPlan::ranks` compute it: truncation of the clamped scaled offset (monotonic in `c`).
 #[inline(always)]
-fn grid_coord(c: f32, gmin: f32, ginv: f32) -> usize {
-    ((c - gmin) * ginv).max(0.0).min((GRID - 1) as f32) as usize
-}
-
-/// The smallest finite c in cell `j` or above on one axis (-inf for cell 0, +inf when no
-/// finite c reaches it): cells are intervals [first(j), first(j + 1)), since `grid_coord`
-/// rounds monotonically. Binary search over the floats in order.
-fn grid_first(j: usize, gmin: f32, ginv: f32) -> f32 {
-    first_where(|c| grid_coord(c, gmin, ginv) >= j, j == 0)
+fn line_coord(c: f32, gmin: f32, ginv: f32) -> usize {
+    ((c - gmin) * ginv).max(0.0).min((LINE - 1) as f32) as usize
 }
 
 /// The smallest finite c for which the monotonic `holds` is true (-inf when `below`, or when
@@ -148,123 +149,132 @@ fn threshold(sp: &Splitter) -> f32 {
 
 impl TopPlan {
     fn new(tree: Vec<TopNode>, buckets: usize, cb: &Aabb) -> TopPlan {
-        fn levels(tree: &[TopNode], i: usize) -> usize {
-            match tree.get(i) {
-                Some(TopNode { split: Some(_), kids, .. }) => 1 + levels(tree, kids[0] as usize).max(levels(tree, kids[1] as usize)),
-                _ => 0,
-            }
+        let mut th: [Vec<f32>; 3] = Default::default();
+        for sp in tree.iter().filter_map(|nd| nd.split) {
+            th[sp.a.min(2)].push(threshold(&sp));
         }
-        let depth = levels(&tree, 0).min(LEVELS);
+        for t in &mut th {
+            t.sort_by(f32::total_cmp);
+            t.dedup_by(|x, y| x.total_cmp(y).is_eq());
+        }
         let ext = Vec3A::from(cb.hi) - Vec3A::from(cb.lo);
-        let ginv = Vec3A::select(ext.cmpgt(Vec3A::ZERO), Vec3A::splat(GRID as f32) / ext, Vec3A::ZERO);
+        let ginv = Vec3A::select(ext.cmpgt(Vec3A::ZERO), Vec3A::splat(LINE as f32) / ext, Vec3A::ZERO);
         let ginv = Vec3A::select(ginv.is_finite_mask(), ginv, Vec3A::ZERO);
         let gmin = Vec3A::from(cb.lo);
-        let mut t = TopPlan { tree, buckets, depth, t: [Vec3A::INFINITY; BUCKETS - 1], bucket: [0; BUCKETS], lo: [Vec3A::NEG_INFINITY; BUCKETS], hi: [Vec3A::INFINITY; BUCKETS], gmin, ginv, grid: vec![NO_BUCKET; GRID * GRID * GRID] };
-        t.flatten(0, 0, 0, Vec3A::NEG_INFINITY, Vec3A::INFINITY);
-        // Cell boundaries per axis, then every bucket marks the cells inside its box.
-        let first: [[f32; GRID + 1]; 3] = std::array::from_fn(|a| std::array::from_fn(|j| if j == GRID { f32::INFINITY } else { grid_first(j, gmin[a], ginv[a]) }));
-        for b in 0..t.buckets.min(BUCKETS) {
-            let range = |a: usize| {
-                let f = &first[a];
-                // Cells j with first(j) >= lo and first(j + 1) <= hi.
-                let j0 = (0..GRID).find(|&j| f[j] >= t.lo[b][a]).unwrap_or(GRID);
-                let j1 = (0..GRID).rev().find(|&j| f[j + 1] <= t.hi[b][a]).map_or(0, |j| j + 1);
-                j0..j1.max(j0)
-            };
-            let (rx, ry, rz) = (range(0), range(1), range(2));
-            for z in rz.clone() {
-                for y in ry.clone() {
-                    for x in rx.clone() {
-                        t.grid[x + GRID * (y + GRID * z)] = b as u8;
+        let mut line = Box::new([[LineCell { t: 0.0, base: 0, one: 0 }; LINE]; 3]);
+        for (a, cells) in line.iter_mut().enumerate() {
+            let mut here = [0u16; LINE];
+            for &t in &th[a] {
+                here[line_coord(t, gmin[a], ginv[a])] += 1;
+            }
+            let mut below = 0u16;
+            for (j, cell) in cells.iter_mut().enumerate() {
+                let t = th[a].get(below as usize).copied().unwrap_or(0.0);
+                *cell = match here[j] {
+                    0 => LineCell { t, base: below, one: 0 },
+                    1 => LineCell { t, base: below, one: 1 },
+                    _ => LineCell { t, base: MANY, one: 0 },
+                };
+                below += here[j];
+            }
+        }
+        let dims = th.each_ref().map(|t| t.len() + 1);
+        let stride = [1, dims[0], dims[0] * dims[1]];
+        let mut plan = TopPlan { tree, buckets, th, gmin, ginv, line, stride, table: Box::new([0; TABLE]) };
+        plan.fill(0, [0..dims[0], 0..dims[1], 0..dims[2]]);
+        plan
+    }
+
+    /// Writes the bucket of every rank triple in `ranks` (ranges per axis), all of which reach
+    /// node `i` of the tree: its children's sides of its test, or its bucket.
+    fn fill(&mut self, i: usize, ranks: [std::ops::Range<usize>; 3]) {
+        if ranks.iter().any(|r| r.is_empty()) {
+            return;
+        }
+        let Some(&nd) = self.tree.get(i) else { return };
+        match nd.split {
+            Some(sp) => {
+                // c < T_k exactly for ranks up to k.
+                let (a, t) = (sp.a.min(2), threshold(&sp));
+                let k = self.th[a].partition_point(|x| x.total_cmp(&t).is_lt());
+                let (mut l, mut r) = (ranks.clone(), ranks);
+                l[a].end = l[a].end.min(k + 1);
+                r[a].start = r[a].start.max(k + 1);
+                self.fill(nd.kids[0] as usize, l);
+                self.fill(nd.kids[1] as usize, r);
+            }
+            None if ranks[2].end * self.stride[2] <= TABLE => {
+                for z in ranks[2].clone() {
+                    for y in ranks[1].clone() {
+                        for x in ranks[0].clone() {
+                            if let Some(b) = self.table.get_mut(x * self.stride[0] + y * self.stride[1] + z * self.stride[2]) {
+                                *b = nd.bucket as u8;
+                            }
+                        }
                     }
                 }
             }
+            None => {}
         }
-        t
     }
 
-    /// The grid cell of centroid `c` (`grid_coord` lane-wise).
+    /// The bucket of centroid `c`: its ranks from the axes' grids, then the table. (A rank
+    /// counts the thresholds `c` is not below, `!(c < t)`: the negation of the split test.)
     #[inline(always)]
-    fn cell(&self, c: Vec3A) -> usize {
-        let q = trunc_i32x4(((c - self.gmin) * self.ginv).max(Vec3A::ZERO).min(Vec3A::splat((GRID - 1) as f32)));
-        (q[0] as usize + GRID * (q[1] as usize + GRID * q[2] as usize)) & (GRID * GRID * GRID - 1)
+    #[allow(clippy::neg_cmp_op_on_partial_ord)]
+    fn bucket_of(&self, c: Vec3A) -> usize {
+        let q = trunc_i32x4(((c - self.gmin) * self.ginv).max(Vec3A::ZERO).min(Vec3A::splat((LINE - 1) as f32)));
+        let mut idx = 0usize;
+        for a in 0..3 {
+            let cell = self.line[a][q[a] as usize & (LINE - 1)];
+            let rank = if cell.base != MANY { cell.base as usize + (!(c[a] < cell.t) as usize & cell.one as usize) } else { self.rank(a, c[a]) };
+            idx += rank * self.stride[a];
+        }
+        self.table[idx & (TABLE - 1)] as usize & (BUCKETS - 1)
     }
 
-    fn flatten(&mut self, i: usize, at: usize, level: usize, lo: Vec3A, hi: Vec3A) {
-        let Some(&nd) = self.tree.get(i) else { return };
-        match nd.split {
-            Some(sp) if level < self.depth && at < BUCKETS - 1 => {
-                let (a, th) = (sp.a.min(2), threshold(&sp));
-                self.t[at][a] = th;
-                let (mut lhi, mut rlo) = (hi, lo);
-                lhi[a] = lhi[a].min(th);
-                rlo[a] = rlo[a].max(th);
-                self.flatten(nd.kids[0] as usize, 2 * at + 1, level + 1, lo, lhi);
-                self.flatten(nd.kids[1] as usize, 2 * at + 2, level + 1, rlo, hi);
-            }
-            // A bucket above the last level: the padding test (+inf) sends it left.
-            _ if level < self.depth => self.flatten(i, 2 * at + 1, level + 1, lo, hi),
-            _ => {
-                let b = nd.bucket as usize & (BUCKETS - 1);
-                if let Some(x) = self.bucket.get_mut((at + 1).saturating_sub(1 << self.depth)) {
-                    *x = b as u8;
-                }
-                (self.lo[b], self.hi[b]) = (lo, hi);
-            }
-        }
-    }
-
-    /// The bucket of centroid `c`: the walk down the thresholds.
-    #[inline(always)]
-    fn walk(&self, c: Vec3A) -> usize {
-        let mut i = 0usize;
-        for _ in 0..self.depth {
-            let k = i.min(BUCKETS - 2);
-            i = 2 * k + 1 + !c.cmplt(self.t[k]).all() as usize;
-        }
-        self.bucket[(i + 1).saturating_sub(1 << self.depth) & (BUCKETS - 1)] as usize & (BUCKETS - 1)
+    /// The rank of `c` on axis `a`, threshold by threshold (a grid cell with several).
+    #[cold]
+    #[inline(never)]
+    #[allow(clippy::neg_cmp_op_on_partial_ord)]
+    fn rank(&self, a: usize, c: f32) -> usize {
+        self.th[a].iter().filter(|&&t| !(c < t)).count()
     }
 
     /// The buckets of `refs` into `out`, and each bucket's count and box into `cells`.
     fn classify(&self, refs: &[PrimRef], out: &mut [u8], cells: &mut [BucketCell]) {
-        let mut lo = [Vec3A::INFINITY; BUCKETS];
-        let mut hi = [Vec3A::NEG_INFINITY; BUCKETS];
-        let mut count = [0u32; BUCKETS];
-        // A run of references in one bucket keeps its box and count in registers.
-        let (mut cur, mut rlo, mut rhi, mut rk) = (0usize, Vec3A::INFINITY, Vec3A::NEG_INFINITY, 0u32);
-        let (mut blo, mut bhi) = (self.lo[0], self.hi[0]);
-        // The bucket before the current one: boundaries are crossed back and forth.
-        let (mut prev, mut plo, mut phi) = (0usize, self.lo[0], self.hi[0]);
-        for (r, d) in refs.iter().zip(out.iter_mut()) {
+        // Four sets of sums, one per reference of a group of four: neighbours mostly share a
+        // bucket, and one set would chain each sum through memory from one to the next.
+        const SETS: usize = 4;
+        // Each bucket's box as one pair (split arrays 4 KiB apart alias in the store buffer).
+        let mut acc = [[[Vec3A::INFINITY, Vec3A::NEG_INFINITY]; BUCKETS]; SETS];
+        let mut count = [[0u32; BUCKETS]; SETS];
+        let n = refs.len().min(out.len());
+        let (refs, out) = (&refs[..n], &mut out[..n]);
+        let mut add = |k: usize, r: &PrimRef, d: &mut u8| {
             let (l, h) = (ref_lo(r), ref_hi(r));
-            let c = l * 0.5 + h * 0.5;
-            if !(c.cmpge(blo) & c.cmplt(bhi)).all() {
-                count[cur] += rk;
-                lo[cur] = lo[cur].min(rlo);
-                hi[cur] = hi[cur].max(rhi);
-                let g = self.grid[self.cell(c)];
-                let next = if g != NO_BUCKET {
-                    g as usize & (BUCKETS - 1)
-                } else if (c.cmpge(plo) & c.cmplt(phi)).all() {
-                    prev
-                } else {
-                    self.walk(c)
-                };
-                (prev, plo, phi) = (cur, blo, bhi);
-                cur = next;
-                (rlo, rhi, rk) = (Vec3A::INFINITY, Vec3A::NEG_INFINITY, 0);
-                (blo, bhi) = (self.lo[cur], self.hi[cur]);
+            let b = self.bucket_of(l * 0.5 + h * 0.5);
+            *d = b as u8;
+            let [bl, bh] = &mut acc[k][b];
+            (*bl, *bh) = (bl.min(l), bh.max(h));
+            count[k][b] += 1;
+        };
+        let mut groups = refs.chunks_exact(SETS).zip(out.chunks_exact_mut(SETS));
+        for (rs, ds) in &mut groups {
+            for (k, (r, d)) in rs.iter().zip(ds.iter_mut()).enumerate() {
+                add(k, r, d);
             }
-            *d = cur as u8;
-            rlo = rlo.min(l);
-            rhi = rhi.max(h);
-            rk += 1;
         }
-        count[cur] += rk;
-        lo[cur] = lo[cur].min(rlo);
-        hi[cur] = hi[cur].max(rhi);
-        for (b, c) in cells.iter_mut().enumerate() {
-            *c = BucketCell { lo: lo[b].to_array(), count: count[b], hi: hi[b].to_array(), pad: 0 };
+        let tail = n / SETS * SETS;
+        for (r, d) in refs[tail..].iter().zip(&mut out[tail..]) {
+            add(0, r, d);
+        }
+        for (b, c) in cells.iter_mut().enumerate().take(BUCKETS) {
+            let ([mut l, mut h], mut k) = (acc[0][b], count[0][b]);
+            for s in 1..SETS {
+                (l, h, k) = (l.min(acc[s][b][0]), h.max(acc[s][b][1]), k + count[s][b]);
+            }
+            *c = BucketCell { lo: l.to_array(), count: k, hi: h.to_array(), pad: 0 };
         }
     }
 }
@@ -579,6 +589,16 @@ mod tests {
         if f > 0.0 { f32::from_bits(f.to_bits() - 1) } else if f == 0.0 { -f32::from_bits(1) } else { f32::from_bits(f.to_bits() + 1) }
     }
 
+    /// Values around `at` on scales from `span` down to single floats.
+    fn probes_sorted(f: &mut impl FnMut() -> f32, at: f32, span: f32) -> Vec<f32> {
+        let mut v = vec![-f32::MAX, f32::MAX, 0.0, at];
+        for _ in 0..40 {
+            let x = at + (f() - 0.5) * 2.0 * span;
+            v.extend([x, next_up(x), next_down(x)]);
+        }
+        v
+    }
+
     /// The threshold of a split test is exact: c < t gives the test's own answer for values
     /// at, next to and far from t, for offsets and scales of every sign and size; and a grid
     /// cell's first value is exact the same way.
@@ -600,12 +620,12 @@ mod tests {
             for c in probes {
                 assert_eq!(c < t, left(c), "case {case}: c {c} threshold {t} ({sp_a} {cmin} {scale} {limit})", sp_a = sp.a);
             }
-            let (gmin, ginv) = (cmin, scale);
-            for j in 0..=GRID {
-                let first = if j == GRID { f32::INFINITY } else { grid_first(j, gmin, ginv) };
-                if first.is_finite() {
-                    assert!(grid_coord(first, gmin, ginv) >= j && (j == 0 || grid_coord(next_down(first), gmin, ginv) < j), "case {case}: cell {j} starts at {first}");
-                }
+            // An axis' grid cell is monotonic in the value (what the ranks rely on).
+            let (gmin, ginv) = (cmin, scale * LINE as f32 / 32.0);
+            let mut vals: Vec<f32> = probes_sorted(&mut f, cmin, limit / scale);
+            vals.sort_by(f32::total_cmp);
+            for w in vals.windows(2) {
+                assert!(line_coord(w[0], gmin, ginv) <= line_coord(w[1], gmin, ginv), "case {case}: {} {}", w[0], w[1]);
             }
         }
     }
@@ -654,32 +674,133 @@ mod tests {
             }
             refs.push(PrimRef { lo: [-1e6; 3], geom: 0, hi: [-1e6; 3], prim: 0 });
             refs.push(PrimRef { lo: [1e6; 3], geom: 0, hi: [1e6; 3], prim: 0 });
-            let walk = |r: &PrimRef| {
-                let mut i = 0usize;
-                loop {
-                    let nd = plan.tree[i];
-                    match nd.split {
-                        Some(sp) => i = nd.kids[!sp.left(r) as usize] as usize,
-                        None => return nd.bucket as usize,
-                    }
+            check_against_walk(&plan, &refs, &format!("case {case}"));
+        }
+    }
+
+    /// `plan.classify` gives every reference of `refs` the bucket of the walk down the split
+    /// tests, and every bucket its exact count and box.
+    fn check_against_walk(plan: &TopPlan, refs: &[PrimRef], what: &str) {
+        let walk = |r: &PrimRef| {
+            let mut i = 0usize;
+            loop {
+                let nd = plan.tree[i];
+                match nd.split {
+                    Some(sp) => i = nd.kids[!sp.left(r) as usize] as usize,
+                    None => return nd.bucket as usize,
                 }
-            };
+            }
+        };
+        let mut ids = vec![0u8; refs.len()];
+        let mut cells = vec![BucketCell::zeroed(); plan.buckets];
+        plan.classify(refs, &mut ids, &mut cells);
+        let mut want = vec![(0u32, Aabb::EMPTY); plan.buckets];
+        for (r, &id) in refs.iter().zip(&ids) {
+            let b = walk(r);
+            assert_eq!(id as usize, b, "{what}: reference {r:?}");
+            want[b].0 += 1;
+            want[b].1.grow(&r.lo, &r.hi);
+        }
+        for (c, (k, bx)) in cells.iter().zip(&want) {
+            assert_eq!(c.count, *k, "{what}");
+            if *k > 0 {
+                assert_eq!((c.lo, c.hi), (bx.lo, bx.hi), "{what}");
+            }
+        }
+    }
+
+    /// Thresholds closer than one cell of an axis' grid (three in one cell, the slow count)
+    /// still classify exactly, at, next to and between them.
+    #[test]
+    fn thresholds_sharing_a_grid_cell_classify_exactly() {
+        let x = |a: usize, t: f32| Some(Splitter { a, cmin: 0.0, scale: 1.0, limit: t });
+        let node = |split, kids: [u32; 2], bucket| TopNode { split, kids, bucket };
+        let tree = vec![
+            node(x(0, 0.5005), [1, 6], 0),
+            node(x(0, 0.5), [2, 3], 0),
+            node(None, [0; 2], 0),
+            node(x(0, 0.5003), [4, 5], 0),
+            node(None, [0; 2], 1),
+            node(None, [0; 2], 2),
+            node(x(1, 0.3), [7, 8], 0),
+            node(None, [0; 2], 3),
+            node(None, [0; 2], 4),
+        ];
+        let cb = Aabb { lo: [0.0; 3], hi: [1.0; 3] };
+        let plan = TopPlan::new(tree, 5, &cb);
+        let cell = |t: f32| line_coord(t, plan.gmin[0], plan.ginv[0]);
+        assert!(cell(0.5) == cell(0.5005) && plan.line[0][cell(0.5)].base == MANY, "the three thresholds share a cell");
+        let mut f = floats(0x1234_5678_9abc_def1);
+        let mut refs = Vec::new();
+        for t in [0.5f32, 0.5003, 0.5005, 0.3] {
+            for c in [t, next_up(t), next_down(t), t + 1e-4, t - 1e-4] {
+                for axis in 0..2 {
+                    let mut p = [f(), f(), f()];
+                    p[axis] = c;
+                    refs.push(PrimRef { lo: p, geom: 0, hi: p, prim: 0 });
+                }
+            }
+        }
+        refs.extend((0..2000).map(|_| {
+            let p = [0.499 + f() * 0.002, f(), f()];
+            PrimRef { lo: p, geom: 0, hi: p, prim: 0 }
+        }));
+        check_against_walk(&plan, &refs, "close thresholds");
+    }
+
+    /// Classification timing on one thread (not a test of correctness; run explicitly):
+    /// `ARBOR_MESH=data/dragon_vrip.ply.gz cargo test --release --lib classify_timing --
+    /// --ignored --nocapture`: the dragon's references (FAST_BUILD's clusters, FAST_TRACE's
+    /// triangles) classified in ingest chunks 30 times, and a hash of the bucket ids (equal
+    /// for classifications that agree).
+    #[test]
+    #[ignore]
+    fn classify_timing() {
+        let path = std::env::var("ARBOR_MESH").unwrap_or_else(|_| "data/dragon_vrip.ply.gz".into());
+        let mesh = crate::scene::load(&path).expect("mesh");
+        let tris: Vec<PrimRef> = (0..mesh.triangle_count())
+            .map(|i| {
+                let t = mesh.triangle(i);
+                let (lo, hi) = triangle_box(Vec3A::from(t[0]), Vec3A::from(t[1]), Vec3A::from(t[2]));
+                PrimRef { lo: lo.to_array(), geom: 0, hi: hi.to_array(), prim: i as u32 }
+            })
+            .collect();
+        for (name, flags) in [("FAST_BUILD", BuildFlags::PREFER_FAST_BUILD), ("FAST_TRACE", BuildFlags::PREFER_FAST_TRACE)] {
+            let p = BuildParams::from_flags(BuildFlags(flags));
+            let mut refs = tris.clone();
+            if p.pair_tau > 0.0 {
+                let mut out = Vec::new();
+                for c in refs.chunks_mut(4096) {
+                    let (w, ..) = crate::accel::pairs::pair_in_place(c, p.pair_tau, p.cluster, u32::MAX);
+                    out.extend_from_slice(&c[..w]);
+                }
+                refs = out;
+            }
+            let mut cb = Aabb::EMPTY;
+            for r in &refs {
+                cb.grow_point(&centroid(r));
+            }
+            let target = p.sample_target * ROOT_SAMPLE;
+            let step = (refs.len() / target).max(1);
+            let mut sample: Vec<PrimRef> = refs.iter().step_by(step).copied().collect();
+            let mut scratch = vec![PrimRef::zeroed(); sample.len()];
+            let (tree, buckets) = grow(&p, &mut sample, &mut scratch, cb, step, 0, p.sample_target / MIN_SAMPLE_DIV);
+            let t0 = std::time::Instant::now();
+            let plan = TopPlan::new(tree, buckets as usize, &cb);
+            let tnew = t0.elapsed();
             let mut ids = vec![0u8; refs.len()];
-            let mut cells = vec![BucketCell::zeroed(); buckets as usize];
-            plan.classify(&refs, &mut ids, &mut cells);
-            let mut want = vec![(0u32, Aabb::EMPTY); buckets as usize];
-            for (r, &id) in refs.iter().zip(&ids) {
-                let b = walk(r);
-                assert_eq!(id as usize, b, "case {case}: reference {r:?}");
-                want[b].0 += 1;
-                want[b].1.grow(&r.lo, &r.hi);
-            }
-            for (c, (k, bx)) in cells.iter().zip(&want) {
-                assert_eq!(c.count, *k, "case {case}");
-                if *k > 0 {
-                    assert_eq!((c.lo, c.hi), (bx.lo, bx.hi), "case {case}");
+            let mut cells = vec![BucketCell::zeroed(); buckets as usize * refs.len().div_ceil(4096)];
+            let mut times = Vec::new();
+            for _ in 0..30 {
+                let t0 = std::time::Instant::now();
+                for ((r, d), c) in refs.chunks(4096).zip(ids.chunks_mut(4096)).zip(cells.chunks_mut(buckets as usize)) {
+                    plan.classify(r, d, c);
                 }
+                times.push(t0.elapsed().as_secs_f64() * 1e3);
             }
+            times.sort_by(f64::total_cmp);
+            let h = ids.iter().fold(0u64, |h, &x| h.wrapping_mul(31).wrapping_add(x as u64));
+            println!("{name}: {} refs {buckets} buckets new {:.3} ms classify min {:.2} med {:.2} ms hash {h:x}", refs.len(), tnew.as_secs_f64() * 1e3, times[0], times[15]);
         }
     }
 }
