@@ -2611,6 +2611,9 @@ pub fn zero_gaps(dst: &mut [u8], filled: &[(u64, u64)], end: u64) {
 thread_local! {
     /// The pair count of the last build on this thread (None: built unpaired), for tests.
     pub static LAST_BUILD_PAIRS: std::cell::Cell<Option<usize>> = const { std::cell::Cell::new(None) };
+    /// Where the last build on this thread planned its top (`top`): 0 nowhere, 1 from the
+    /// input beside ingest, 2 from the references after it. For tests.
+    pub static LAST_BUILD_PLAN: std::cell::Cell<u8> = const { std::cell::Cell::new(0) };
 }
 
 pub fn build(desc: &BuildDesc, view: &dyn DeviceView, dst: &mut [u8], scratch: &mut [u8]) -> Result<(BuildReport, BuildPhases), BuildError> {
@@ -2663,17 +2666,33 @@ pub fn build(desc: &BuildDesc, view: &dyn DeviceView, dst: &mut [u8], scratch: &
     // ingest leaves its chunks uncompacted, and the scatter into the top's buckets moves them.
     let nch = top::chunk_count(desc);
     let want_plan = top::wanted(desc, total, nch, prefix.len());
-    let (mut built, active, root_box, root_cb, mut in_temp) = {
-        // The node slots are unused until the tree is built: compaction's temporary.
-        let temp = node_refs_mut(nodes, total).unwrap_or(&mut []);
+    let (ingested, input_plan) = {
+        // The node slots are unused until the tree is built: compaction's temporary, or the
+        // planned top's sample (the plan from the input runs beside ingest, which then does
+        // not compact).
+        let slots = node_refs_mut(nodes, total).unwrap_or(&mut []);
         let goff = layout::sections(desc.ty, 0, 0, ngeo).geometries as usize;
         let (head, tail) = dst.split_at_mut(stage_at.min(dst.len()));
         let geo = head.get_mut(goff..goff + desc.geometries.len() * layout::GEOMETRY_SIZE).unwrap_or(&mut []);
         let kept = if want_plan { &mut prefix[..nch] } else { &mut *prefix };
-        ingest(desc, view, refs, if staged { Some(tail) } else { None }, temp, (pair_tau, params.cluster), geo, kept, !want_plan)?
+        let stage = if staged { Some(tail) } else { None };
+        let pair = (pair_tau, params.cluster);
+        if want_plan {
+            let (i, pl) = rayon::join(|| ingest(desc, view, refs, stage, &mut [], pair, geo, kept, false), || top::plan_from_input(desc, &params, total, slots));
+            (i, pl.map(Some))
+        } else {
+            (ingest(desc, view, refs, stage, slots, pair, geo, kept, true), None)
+        }
     };
-    // The sample goes to the node slots, which are unused until the scatter.
-    let plan = if want_plan { top::plan(desc, &params, refs, &prefix[..nch], built, root_cb, node_refs_mut(nodes, total).unwrap_or(&mut [])) } else { None };
+    let (mut built, active, root_box, root_cb, mut in_temp) = ingested?;
+    // Otherwise the sample of the references goes to the node slots, unused until the scatter.
+    let (plan, _from) = match input_plan {
+        Some(pl) => (pl, 1u8),
+        None if want_plan => (top::plan(desc, &params, refs, &prefix[..nch], built, root_cb, node_refs_mut(nodes, total).unwrap_or(&mut [])), 2),
+        None => (None, 0),
+    };
+    #[cfg(test)]
+    LAST_BUILD_PLAN.with(|c| c.set(if plan.is_some() { _from } else { 0 }));
     if want_plan && plan.is_none() {
         // No top from the sample (it did not split): the compaction ingest skipped.
         let temp = node_refs_mut(nodes, total).unwrap_or(&mut []);

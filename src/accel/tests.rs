@@ -381,8 +381,8 @@ fn builds_whose_sample_cannot_split_still_hold_every_primitive() {
 /// A large build with extreme coordinates: most triangles in a unit cube, some spanning
 /// ±3e38, some whole at x near +3e38 or -3e38 (the centroid box's x extent overflows to
 /// infinity, which the planned top's grid and bins must survive) and some with an infinite vertex
-/// (sanitised to ±f32::MAX). Every tier:
-/// a valid structure holding every triangle, the same bytes on 1 and 4 threads.
+/// (sanitised to ±f32::MAX). Every tier, the top planned from the references and from the
+/// input: a valid structure holding every triangle, the same bytes on 1 and 4 threads.
 #[test]
 fn large_builds_with_extreme_coordinates_hold_every_primitive() {
     let mut rng = Rng::new(11);
@@ -407,16 +407,24 @@ fn large_builds_with_extreme_coordinates_hold_every_primitive() {
         v.extend([a, b, c2]);
     }
     let vb = f32_bytes(&v);
-    let g = tri_geom(&vb, v.len() as u32, &[], ntri as u32, GeometryFlags::OPAQUE);
-    for flags in [BuildFlags::PREFER_FAST_BUILD, 0, BuildFlags::PREFER_FAST_TRACE] {
-        let out = builds_on(&[1, 4], flags, &[g], |blas| {
-            validate(blas).unwrap();
-            header(blas).unwrap().primitive_count as usize
-        });
-        for &(_, prims) in &out {
-            assert_eq!(prims, ntri, "flags {flags:#x}");
+    // Without indices the top is planned from the references after ingest, with them from
+    // the input beside ingest.
+    let ib = u32_bytes(&(0..3 * ntri as u32).collect::<Vec<u32>>());
+    for (idx, from) in [(&[][..], 2u8), (&ib[..], 1)] {
+        let g = tri_geom(&vb, v.len() as u32, idx, ntri as u32, GeometryFlags::OPAQUE);
+        for flags in [BuildFlags::PREFER_FAST_BUILD, 0, BuildFlags::PREFER_FAST_TRACE] {
+            let out = builds_on(&[1, 4], flags, &[g], |blas| {
+                validate(blas).unwrap();
+                (header(blas).unwrap().primitive_count as usize, builder::LAST_BUILD_PLAN.with(|c| c.get()))
+            });
+            for &(_, (prims, planned)) in &out {
+                assert_eq!(prims, ntri, "flags {flags:#x}");
+                // FAST_BUILD bins the widest axis only, the infinite one here: no plan.
+                let want = if flags == BuildFlags::PREFER_FAST_BUILD { 0 } else { from };
+                assert_eq!(planned, want, "flags {flags:#x}: where the top was planned");
+            }
+            assert!(out.windows(2).all(|w| w[0].0 == w[1].0), "flags {flags:#x}");
         }
-        assert!(out.windows(2).all(|w| w[0].0 == w[1].0), "flags {flags:#x}");
     }
 }
 

@@ -41,6 +41,15 @@ const GROUPS: usize = 64;
 const ROOT_SAMPLE: usize = 4;
 const MIN_SAMPLE_DIV: usize = 8;
 const SPLIT_MIN: usize = PAR_BIN_CUTOFF / 2;
+/// The sample of a plan from the input (`plan_from_input`), every tier. Sequential beside
+/// ingest, a plan has to end before ingest does: dragon, 16 threads on the 16-core machine
+/// (four interleaved rounds, ingest phase with the plan): FAST_TRACE 2.95 / 2.52 / 2.70 / 2.81
+/// ms when planned after ingest from 32,768 references in parallel, 2.33 / 2.15 / 2.42 / 2.36
+/// with 16,384 input triangles beside it, 4.19 / 3.81 / 3.70 / 3.83 with 32,768; FAST_BUILD
+/// 3.41 / 3.32 / 3.64 / 3.75 against 3.57 / 3.20 / 3.24 / 3.30. SAH: FAST_BUILD 54.77 → 54.52,
+/// the default tier 49.15 → 49.21, FAST_TRACE 48.96 → 49.00 (the draw of the sample, as above;
+/// 8,192: 54.56, 49.18, 49.09; 32,768: 54.65, 49.17, 48.96).
+const INPUT_SAMPLE: usize = 1 << 14;
 /// Samples from which a top node's sample partitions in parallel.
 const PAR_SAMPLE_PARTITION: usize = 8192;
 /// Samples per parallel binning task of a top node.
@@ -283,8 +292,10 @@ impl TopPlan {
 /// splits as `build_rec` chooses them over the sample's bins, while the sample keeps at least
 /// `min_sample` references and the node about SPLIT_MIN references. Returns the nodes
 /// (this one first, indices relative to it) and the bucket count, buckets numbered left to
-/// right. Depends on the sample alone.
-fn grow(p: &BuildParams, sample: &mut [PrimRef], scratch: &mut [PrimRef], cb: Aabb, step: usize, level: usize, min_sample: usize) -> (Vec<TopNode>, u32) {
+/// right. Depends on the sample alone (`par`: whether large samples bin, partition and
+/// split their children in parallel, or everything runs on the calling thread).
+#[allow(clippy::too_many_arguments)]
+fn grow(p: &BuildParams, sample: &mut [PrimRef], scratch: &mut [PrimRef], cb: Aabb, step: usize, level: usize, min_sample: usize, par: bool) -> (Vec<TopNode>, u32) {
     let s = sample.len();
     let est = s.saturating_mul(step);
     let bucket = || (vec![TopNode { split: None, kids: [0; 2], bucket: 0 }], 1);
@@ -293,7 +304,7 @@ fn grow(p: &BuildParams, sample: &mut [PrimRef], scratch: &mut [PrimRef], cb: Aa
     }
     let k = p.bins.clamp(2, MAX_BINS).min((est / REFS_PER_BIN).max(p.min_bins.max(2)));
     let Some((bn, scale)) = node_binning(p, &cb, k) else { return bucket() };
-    let bins = if s >= 2 * SAMPLE_BIN_CHUNK {
+    let bins = if par && s >= 2 * SAMPLE_BIN_CHUNK {
         bin_in_chunks(sample, SAMPLE_BIN_CHUNK, k, bn.axes, |c, b| bin_refs(c, &bn, b))
     } else {
         let mut b = Bins::new();
@@ -306,7 +317,7 @@ fn grow(p: &BuildParams, sample: &mut [PrimRef], scratch: &mut [PrimRef], cb: Aa
     // holds the children's samples and lends them `sample` as their scratch; small ones in
     // place. The tree never depends on a sample's order (bins are sums, minima and maxima).
     let is_left = |r: &PrimRef| sp.left(r);
-    let (i, (ls, lt), (rs, rt)) = if s >= PAR_SAMPLE_PARTITION && scratch.len() >= s {
+    let (i, (ls, lt), (rs, rt)) = if par && s >= PAR_SAMPLE_PARTITION && scratch.len() >= s {
         let (chunk, nchunks, stats, nl, _, _) = part_stats(sample, &is_left);
         let (lout, rout) = scratch[..s].split_at_mut(nl);
         part_scatter(sample, chunk, nchunks, &stats, lout, rout, &is_left);
@@ -321,10 +332,10 @@ fn grow(p: &BuildParams, sample: &mut [PrimRef], scratch: &mut [PrimRef], cb: Aa
     if i == 0 || i == s {
         return bucket();
     }
-    let ((mut l, lb), (r, rb)) = if s >= 1024 {
-        rayon::join(|| grow(p, ls, lt, lbox, step, level + 1, min_sample), || grow(p, rs, rt, rbox, step, level + 1, min_sample))
+    let ((mut l, lb), (r, rb)) = if par && s >= 1024 {
+        rayon::join(|| grow(p, ls, lt, lbox, step, level + 1, min_sample, par), || grow(p, rs, rt, rbox, step, level + 1, min_sample, par))
     } else {
-        (grow(p, ls, lt, lbox, step, level + 1, min_sample), grow(p, rs, rt, rbox, step, level + 1, min_sample))
+        (grow(p, ls, lt, lbox, step, level + 1, min_sample, par), grow(p, rs, rt, rbox, step, level + 1, min_sample, par))
     };
     let off = 1 + l.len() as u32;
     let mut tree = Vec::with_capacity(1 + l.len() + r.len());
@@ -371,7 +382,78 @@ pub(super) fn plan(desc: &BuildDesc, p: &BuildParams, refs: &[PrimRef], kept: &[
             }
         }
     });
-    let (tree, buckets) = grow(p, sample, scratch, cb, step, 0, p.sample_target / MIN_SAMPLE_DIV);
+    let (tree, buckets) = grow(p, sample, scratch, cb, step, 0, p.sample_target / MIN_SAMPLE_DIV, true);
+    let buckets = buckets as usize;
+    (2..=BUCKETS).contains(&buckets).then(|| TopPlan::new(tree, buckets, &cb))
+}
+
+/// Plans the top, as `plan` does, from an evenly strided sample of INPUT_SAMPLE input
+/// primitives instead of the references, on the calling thread alone, so that it runs beside
+/// ingest (`build` joins the two): every geometry holds plain f32 triangles (`FastTris`, read
+/// directly, the sample's index bytes and vertices prefetched ahead); the root's bins span the
+/// sample's centroid box. FAST_BUILD's clusters are made by ingest later, so its sample is of
+/// triangles: the plan only chooses the buckets, and any choice gives a valid top (their counts
+/// and boxes come from the references themselves). The sample goes to `room`, whose rest is
+/// the partitions' second buffer. None when a geometry is not plain, the sample does not
+/// split or `room` is too small.
+pub(super) fn plan_from_input(desc: &BuildDesc, p: &BuildParams, total: usize, room: &mut [PrimRef]) -> Option<TopPlan> {
+    if !desc.geometries.iter().all(|g| FastTris::of(g).is_some()) {
+        return None;
+    }
+    let allow_update = desc.flags.contains(BuildFlags::ALLOW_UPDATE);
+    let step = (total / INPUT_SAMPLE).max(1);
+    let count = total.div_ceil(step);
+    // Samples per gathering task; each keeps its triangles (not the dropped ones) at the front
+    // of its block, and the blocks are closed up in order afterwards.
+    const BLOCK: usize = 1024;
+    // The index bytes of the sample this many ahead are prefetched, and the vertices of the
+    // sample half as far ahead (their indices are in cache by then).
+    const AHEAD: usize = 16;
+    let (sample, scratch) = room.split_at_mut_checked(count)?;
+    let blocks: Vec<(usize, Vec3A, Vec3A)> = sample
+        .chunks_mut(BLOCK)
+        .enumerate()
+        .map(|(blk, out)| {
+            let (mut w, mut clo, mut chi) = (0usize, Vec3A::INFINITY, Vec3A::NEG_INFINITY);
+            // The geometry of the current sample: its index, first global ID and reader.
+            let (mut gi, mut gbase) = (0usize, 0usize);
+            let mut fast = desc.geometries.first().and_then(FastTris::of);
+            for j in 0..out.len() {
+                let id = (blk * BLOCK + j) * step;
+                while let Some(g) = desc.geometries.get(gi).filter(|g| id >= gbase + g.primitive_count as usize) {
+                    gbase += g.primitive_count as usize;
+                    gi += 1;
+                    fast = desc.geometries.get(gi).and_then(FastTris::of);
+                }
+                let Some(ft) = fast.as_ref() else { break };
+                let end = gbase + desc.geometries.get(gi).map_or(0, |g| g.primitive_count as usize);
+                let ahead = |k: usize| Some(id + k * step).filter(|&x| x < end).map(|x| (x - gbase) as u32);
+                if let Some(q) = ahead(AHEAD) {
+                    crate::memory::prefetch_read(ft.indices, q as usize * if ft.u16_indices { 6 } else { 12 });
+                }
+                if let Some(q) = ahead(AHEAD / 2) {
+                    ft.prefetch(q);
+                }
+                if let Some(Some((lo, hi, _))) = ft.bounds((id - gbase) as u32, allow_update) {
+                    if let Some(d) = out.get_mut(w) {
+                        *d = PrimRef { lo: lo.to_array(), geom: gi as u32, hi: hi.to_array(), prim: id as u32 };
+                        w += 1;
+                        let c = lo * 0.5 + hi * 0.5;
+                        (clo, chi) = (clo.min(c), chi.max(c));
+                    }
+                }
+            }
+            (w, clo, chi)
+        })
+        .collect();
+    let (mut n, mut clo, mut chi) = (0usize, Vec3A::INFINITY, Vec3A::NEG_INFINITY);
+    for (blk, &(k, lo, hi)) in blocks.iter().enumerate() {
+        sample.copy_within(blk * BLOCK..blk * BLOCK + k, n);
+        n += k;
+        (clo, chi) = (clo.min(lo), chi.max(hi));
+    }
+    let cb = to_aabb(clo, chi);
+    let (tree, buckets) = grow(p, &mut sample[..n], scratch, cb, step, 0, INPUT_SAMPLE / (ROOT_SAMPLE * MIN_SAMPLE_DIV), false);
     let buckets = buckets as usize;
     (2..=BUCKETS).contains(&buckets).then(|| TopPlan::new(tree, buckets, &cb))
 }
@@ -658,7 +740,7 @@ mod tests {
             let step = 8;
             let mut sample: Vec<PrimRef> = refs.iter().step_by(step).copied().collect();
             let mut scratch = vec![PrimRef::zeroed(); sample.len()];
-            let (tree, buckets) = grow(&p, &mut sample, &mut scratch, cb, step, 0, p.sample_target / MIN_SAMPLE_DIV);
+            let (tree, buckets) = grow(&p, &mut sample, &mut scratch, cb, step, 0, p.sample_target / MIN_SAMPLE_DIV, true);
             assert!(buckets >= 8, "case {case}: {buckets} buckets");
             let plan = TopPlan::new(tree, buckets as usize, &cb);
             // References on every threshold, just below it, and outside the root box.
@@ -784,7 +866,7 @@ mod tests {
             let step = (refs.len() / target).max(1);
             let mut sample: Vec<PrimRef> = refs.iter().step_by(step).copied().collect();
             let mut scratch = vec![PrimRef::zeroed(); sample.len()];
-            let (tree, buckets) = grow(&p, &mut sample, &mut scratch, cb, step, 0, p.sample_target / MIN_SAMPLE_DIV);
+            let (tree, buckets) = grow(&p, &mut sample, &mut scratch, cb, step, 0, p.sample_target / MIN_SAMPLE_DIV, true);
             let t0 = std::time::Instant::now();
             let plan = TopPlan::new(tree, buckets as usize, &cb);
             let tnew = t0.elapsed();
