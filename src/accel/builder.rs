@@ -2614,6 +2614,9 @@ thread_local! {
     /// Where the last build on this thread planned its top (`top`): 0 nowhere, 1 from the
     /// input beside ingest, 2 from the references after it. For tests.
     pub static LAST_BUILD_PLAN: std::cell::Cell<u8> = const { std::cell::Cell::new(0) };
+    /// How many buckets of the last planned build on this thread split further in parallel
+    /// (`split_top`). For tests.
+    pub static LAST_BUILD_SPLIT_BUCKETS: std::cell::Cell<usize> = const { std::cell::Cell::new(0) };
 }
 
 pub fn build(desc: &BuildDesc, view: &dyn DeviceView, dst: &mut [u8], scratch: &mut [u8]) -> Result<(BuildReport, BuildPhases), BuildError> {
@@ -2733,6 +2736,8 @@ pub fn build(desc: &BuildDesc, view: &dyn DeviceView, dst: &mut [u8], scratch: &
             (Some(pl), Some(s)) => {
                 let mut tasks = Vec::new();
                 top::tasks(pl, &s, 0, &mut refs[..built], &mut nodes[..2 * built - 1], pre, 0, 0, 0, u32::MAX, &mut tasks);
+                #[cfg(test)]
+                LAST_BUILD_SPLIT_BUCKETS.with(|c| c.set(tasks.iter().filter(|t| ctx.threads > 1 && ctx.top(t.refs.len())).count()));
                 let done = run_tasks(&ctx, tasks);
                 top_results(&mut nodes[..2 * built - 1], 0, &done)
             }

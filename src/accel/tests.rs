@@ -378,6 +378,47 @@ fn builds_whose_sample_cannot_split_still_hold_every_primitive() {
     }
 }
 
+/// A planned build one of whose buckets is too large for one thread (half of the triangles
+/// share one centroid, so the plan cannot split them; on 4 and 16 threads that bucket's subtree
+/// splits further in parallel, `split_top`): the same bytes on 1, 4 and 16 threads, every
+/// triangle once with its own vertices, in every tier.
+#[test]
+fn planned_builds_whose_bucket_splits_further_are_the_same_on_any_thread_count() {
+    let mut rng = Rng::new(5);
+    let n = 100_000usize;
+    let mut v: Vec<Vec3> = Vec::with_capacity(3 * n);
+    for t in 0..n {
+        let c = if t % 2 == 0 { Vec3::new(rng.f(), rng.f(), rng.f()) } else { Vec3::splat(0.5) };
+        let e = 0.004;
+        v.extend([c, c + Vec3::new(e, 0.0, 0.0), c + Vec3::new(0.0, e, 0.0)]);
+    }
+    let vb = f32_bytes(&v);
+    let ib = u32_bytes(&(0..3 * n as u32).collect::<Vec<u32>>());
+    let g = tri_geom(&vb, v.len() as u32, &ib, n as u32, GeometryFlags::OPAQUE);
+    for flags in [BuildFlags::PREFER_FAST_BUILD, 0, BuildFlags::PREFER_FAST_TRACE] {
+        let out = builds_on(&[1, 4, 16], flags, &[g], |blas| {
+            validate(blas).unwrap();
+            (header(blas).unwrap().primitive_count as usize, builder::LAST_BUILD_PLAN.with(|c| c.get()), builder::LAST_BUILD_SPLIT_BUCKETS.with(|c| c.get()))
+        });
+        for (i, (_, (prims, planned, later))) in out.iter().enumerate() {
+            assert_eq!((*prims, *planned), (n, 1), "flags {flags:#x}");
+            assert_eq!(*later > 0, i > 0, "flags {flags:#x}: {later} buckets split further on {} threads", [1, 4, 16][i]);
+        }
+        assert!(out.windows(2).all(|w| w[0].0 == w[1].0), "flags {flags:#x}");
+        // Every triangle exactly once in the records, with its own vertices.
+        let parsed = layout::parse(&out[0].0).unwrap();
+        let mut seen = vec![false; n];
+        for k in 0..n as u32 {
+            let rec = parsed.record(k).unwrap();
+            let p = rec.primitive as usize;
+            assert_eq!(rec.geometry, 0);
+            assert!(!std::mem::replace(&mut seen[p], true), "triangle {p} twice");
+            let data = parsed.prim(k).unwrap();
+            assert_eq!(data[..3], v[3 * p].to_array(), "triangle {p}'s first vertex");
+        }
+    }
+}
+
 /// A large build with extreme coordinates: most triangles in a unit cube, some spanning
 /// ±3e38, some whole at x near +3e38 or -3e38 (the centroid box's x extent overflows to
 /// infinity, which the planned top's grid and bins must survive) and some with an infinite vertex
