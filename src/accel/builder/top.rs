@@ -388,11 +388,9 @@ pub(super) fn plan(desc: &BuildDesc, p: &BuildParams, refs: &[PrimRef], kept: &[
 }
 
 /// Plans the top, as `plan` does, from an evenly strided sample of INPUT_SAMPLE input
-/// primitives instead of the references, so that it runs beside ingest (`build` joins the
-/// two): every geometry holds plain f32 triangles (`FastTris`, read directly, the sample's
-/// index bytes and vertices prefetched ahead; blocks of the sample in parallel, each about
-/// 30 ns per triangle on one thread, 0.5 ms for the whole sample), the tree on the calling
-/// thread alone (`grow` without forks: dragon, one thread, 0.3–0.8 ms); the root's bins span the
+/// primitives instead of the references, on the calling thread alone, so that it runs beside
+/// ingest (`build` joins the two): every geometry holds plain f32 triangles (`FastTris`, read
+/// directly, the sample's index bytes and vertices prefetched ahead); the root's bins span the
 /// sample's centroid box. FAST_BUILD's clusters are made by ingest later, so its sample is of
 /// triangles: the plan only chooses the buckets, and any choice gives a valid top (their counts
 /// and boxes come from the references themselves). The sample goes to `room`, whose rest is
@@ -413,7 +411,7 @@ pub(super) fn plan_from_input(desc: &BuildDesc, p: &BuildParams, total: usize, r
     const AHEAD: usize = 16;
     let (sample, scratch) = room.split_at_mut_checked(count)?;
     let blocks: Vec<(usize, Vec3A, Vec3A)> = sample
-        .par_chunks_mut(BLOCK)
+        .chunks_mut(BLOCK)
         .enumerate()
         .map(|(blk, out)| {
             let (mut w, mut clo, mut chi) = (0usize, Vec3A::INFINITY, Vec3A::NEG_INFINITY);
