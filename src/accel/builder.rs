@@ -289,9 +289,11 @@ const BIN_CHUNK: usize = 1 << 14;
 impl BuildParams {
     pub fn from_flags(flags: BuildFlags) -> Self {
         if flags.contains(BuildFlags::PREFER_FAST_TRACE) {
-            // Pairs of tight neighbours since session 14 (`pairs::FAST_TRACE_TAU`), as in the
-            // default tier, over 32 bins.
-            BuildParams { bins: 32, single_axis: false, traversal_cost: 1.0, max_leaf: 8, small_n: SMALL_N, parallel_cutoff: 1024, sample_target: 2 * SAMPLE_TARGET, pair_tau: pairs::FAST_TRACE_TAU, cluster: 2, cluster_leaf: 4, min_bins: 6 }
+            // Clusters of up to 3 tight neighbours since session 14 (`pairs::FAST_TRACE_TAU`),
+            // leaves of up to 3 clusters: dragon SAH 48.90, BVH4 28.74 (clusters of 2 in
+            // leaves of 4: 48.92 / 28.81; of 3 in leaves of 4: 48.89 / 28.76; of 4 in leaves of
+            // 2: 49.02 / 28.56 but 61.9 B/tri), the same time on one thread.
+            BuildParams { bins: 32, single_axis: false, traversal_cost: 1.0, max_leaf: 8, small_n: SMALL_N, parallel_cutoff: 1024, sample_target: 2 * SAMPLE_TARGET, pair_tau: pairs::FAST_TRACE_TAU, cluster: 3, cluster_leaf: 3, min_bins: 6 }
         } else if flags.contains(BuildFlags::PREFER_FAST_BUILD) {
             // 12 bins, not 8: over node boxes (see `build_rec`) 8 bins gave SAH 54.59 on the
             // dragon, 12 give 53.71 at the same speed. Clusters of up to 4 primitives, leaves

@@ -34,14 +34,14 @@ pub const MAX_PAIR_GEOMETRIES: usize = 64;
 /// for 2 % SAH; res3 1.124 of the full sweep, the tier's guard is 1.18); 1.1 with leaves of 4
 /// clusters 91.7–95.8 at SAH 55.49. The default tier (16 bins on three axes,
 /// pairs): 0.7 keeps its SAH (49.11) and is 2–4 % faster on one thread; at 0.6 too few
-/// neighbours pass `worth_pairing`. FAST_TRACE (32 bins, clusters of up to 2, leaves of up to 4
-/// clusters) did not pair while its top came from per-node samples (0.7: 48.97 against 48.87);
-/// with the top planned from the input (`top`) it pairs at 0.7: dragon SAH 49.00 → 48.92, the
-/// BVH4's 28.89 → 28.81, 60.6 → 60.5 B/tri, 16 threads on the 16-core machine (four
-/// interleaved rounds, medians) 26.4 / 26.5 / 24.5 / 27.1 → 25.8 / 24.5 / 23.5 / 25.2 ms; the
-/// terrain 34.65 → 34.63; the bunny, the soup and the res3 and res4 dragons do not pair. 0.8 is
-/// 11 % faster on the dragon at its old SAH (49.00, BVH4 28.82) but the res4 dragon's goes 30.37
-/// → 30.45.
+/// neighbours pass `worth_pairing`. FAST_TRACE (32 bins) did not pair while its top came from
+/// per-node samples (0.7: 48.97 against 48.87); with the top planned from the input (`top`) it
+/// pairs at 0.7: clusters of up to 2 in leaves of up to 4, dragon SAH 49.00 → 48.92, the BVH4's
+/// 28.89 → 28.81, 60.6 → 60.5 B/tri, 16 threads on the 16-core machine (four interleaved
+/// rounds, medians) 26.4 / 26.5 / 24.5 / 27.1 → 25.8 / 24.5 / 23.5 / 25.2 ms (the tier takes
+/// clusters of 3 in leaves of 3: 48.90 / 28.74); the terrain 34.65 → 34.63; the bunny, the soup
+/// and the res3 and res4 dragons do not pair. 0.8 is 11 % faster on the dragon at its old SAH
+/// (49.00, BVH4 28.82) but the res4 dragon's goes 30.37 → 30.45.
 pub const FAST_BUILD_TAU: f32 = 1.1;
 pub const DEFAULT_TAU: f32 = 0.7;
 pub const FAST_TRACE_TAU: f32 = 0.7;
