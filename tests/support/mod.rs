@@ -157,9 +157,19 @@ pub fn context() -> Context {
     Context::new(Options::default())
 }
 
+/// Held while an instance and device are created or destroyed: the tests of one binary run on
+/// parallel threads, and once in about a hundred runs of tests/memory.rs the validation layer
+/// crashed (SIGSEGV inside libVkLayer_khronos_validation.so, in out_of_device_memory_and_recovery)
+/// while other threads created and destroyed their instances. Commands between stay parallel.
+fn lifecycle() -> std::sync::MutexGuard<'static, ()> {
+    static LOCK: Mutex<()> = Mutex::new(());
+    LOCK.lock().unwrap_or_else(|e| e.into_inner())
+}
+
 impl Context {
     pub fn new(opts: Options) -> Context {
         use_arbor_manifest();
+        let _serial = lifecycle();
         // SAFETY: loading the system Vulkan loader.
         let entry = unsafe { ash::Entry::load() }.expect("libvulkan.so.1 (install libvulkan1)");
         let messages: Messages = Arc::new(Mutex::new(Vec::new()));
@@ -267,6 +277,7 @@ impl Context {
 
     fn teardown(&mut self) {
         if let Some((du, m)) = self.messenger.take() {
+            let _serial = lifecycle();
             // SAFETY: all objects created by the test were destroyed by it; device idle first.
             unsafe {
                 let _ = self.device.device_wait_idle();
