@@ -158,7 +158,7 @@ pub fn context() -> Context {
 }
 
 /// Held while an instance and device are created or destroyed: the tests of one binary run on
-/// parallel threads, and once in about a hundred runs of tests/memory.rs the validation layer
+/// parallel threads, and once in 141 runs of tests/memory.rs (session 14) the validation layer
 /// crashed (SIGSEGV inside libVkLayer_khronos_validation.so, in out_of_device_memory_and_recovery)
 /// while other threads created and destroyed their instances. Commands between stay parallel.
 fn lifecycle() -> std::sync::MutexGuard<'static, ()> {

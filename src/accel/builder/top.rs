@@ -1,10 +1,12 @@
-//! The top of large BLAS trees, decided on one sample of the references (`plan`).
+//! The top of large BLAS trees, decided on one sample (`plan_from_input`, `plan`).
 //!
 //! Without it the first levels of a large tree each move every reference: a counting pass and
 //! a scatter per level (dragon: four to five levels above the subtrees that threads build on
 //! their own, 2.3–2.8 ms of a 16-thread FAST_BUILD build). Here ingest leaves its chunks
-//! uncompacted; the splits of those levels are chosen on an evenly strided sample of the
-//! references (`grow`, the binned SAH of `build_rec` on the sample); one pass gives every
+//! uncompacted; the splits of those levels are chosen on an evenly strided sample (`grow`, the
+//! binned SAH of `build_rec` on the sample): of the input triangles, on one thread beside
+//! ingest, when every geometry holds plain f32 triangles, else of the references after
+//! ingest; one pass gives every
 //! reference its bucket (a leaf of that small tree) with exact per-chunk counts and boxes
 //! (`classify_chunks`: each split test is a threshold on one centroid coordinate, so a
 //! centroid's ranks among each axis' thresholds name its bucket through one table); one
