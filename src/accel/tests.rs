@@ -1591,7 +1591,7 @@ fn paired_grid(cells: u32, phase: f32) -> (Vec<Vec3>, Vec<u32>, Vec<u32>) {
 #[test]
 fn paired_builds_match_brute_force_and_are_deterministic() {
     let cells = 72; // 10,368 triangles: above the pairing threshold
-    for flags in [BuildFlags::PREFER_FAST_BUILD, BuildFlags::PREFER_FAST_BUILD | BuildFlags::ALLOW_UPDATE, 0, BuildFlags::PREFER_FAST_TRACE] {
+    for flags in [BuildFlags::PREFER_FAST_BUILD, BuildFlags::PREFER_FAST_BUILD | BuildFlags::ALLOW_UPDATE, 0, BuildFlags::PREFER_FAST_TRACE, BuildFlags::PREFER_FAST_TRACE | BuildFlags::ALLOW_UPDATE] {
         let (mut v, i0, i1) = paired_grid(cells, 0.0);
         // Hostile vertices in the paired range: a NaN height and an infinite depth give the
         // triangles around them sanitised, huge boxes (they never hit, in the tree or below).
