@@ -2685,8 +2685,7 @@ pub fn build(desc: &BuildDesc, view: &dyn DeviceView, dst: &mut [u8], scratch: &
         let stage = if staged { Some(tail) } else { None };
         let pair = (pair_tau, params.cluster);
         if want_plan {
-            let (i, pl) = rayon::join(|| ingest(desc, view, refs, stage, &mut [], pair, geo, kept, false), || top::plan_from_input(desc, &params, total, slots));
-            (i, pl.map(Some))
+            rayon::join(|| ingest(desc, view, refs, stage, &mut [], pair, geo, kept, false), || top::plan_from_input(desc, &params, total, slots))
         } else {
             (ingest(desc, view, refs, stage, slots, pair, geo, kept, true), None)
         }
@@ -2694,7 +2693,7 @@ pub fn build(desc: &BuildDesc, view: &dyn DeviceView, dst: &mut [u8], scratch: &
     let (mut built, active, root_box, root_cb, mut in_temp) = ingested?;
     // Otherwise the sample of the references goes to the node slots, unused until the scatter.
     let (plan, _from) = match input_plan {
-        Some(pl) => (pl, 1u8),
+        Some(pl) => (Some(pl), 1u8),
         None if want_plan => (top::plan(desc, &params, refs, &prefix[..nch], built, root_cb, node_refs_mut(nodes, total).unwrap_or(&mut [])), 2),
         None => (None, 0),
     };

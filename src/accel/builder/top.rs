@@ -384,9 +384,7 @@ pub(super) fn plan(desc: &BuildDesc, p: &BuildParams, refs: &[PrimRef], kept: &[
             }
         }
     });
-    let (tree, buckets) = grow(p, sample, scratch, cb, step, 0, p.sample_target / MIN_SAMPLE_DIV, true);
-    let buckets = buckets as usize;
-    (2..=BUCKETS).contains(&buckets).then(|| TopPlan::new(tree, buckets, &cb))
+    plan_on(p, sample, scratch, cb, step, p.sample_target / MIN_SAMPLE_DIV, true)
 }
 
 /// Plans the top, as `plan` does, from an evenly strided sample of INPUT_SAMPLE input
@@ -407,58 +405,47 @@ pub(super) fn plan_from_input(desc: &BuildDesc, p: &BuildParams, total: usize, r
     }
     let allow_update = desc.flags.contains(BuildFlags::ALLOW_UPDATE);
     let step = (total / INPUT_SAMPLE).max(1);
-    let count = total.div_ceil(step);
-    // Samples per gathering task; each keeps its triangles (not the dropped ones) at the front
-    // of its block, and the blocks are closed up in order afterwards.
-    const BLOCK: usize = 1024;
+    let (sample, scratch) = room.split_at_mut_checked(total.div_ceil(step))?;
     // The index bytes of the sample this many ahead are prefetched, and the vertices of the
     // sample half as far ahead (their indices are in cache by then).
     const AHEAD: usize = 16;
-    let (sample, scratch) = room.split_at_mut_checked(count)?;
-    let blocks: Vec<(usize, Vec3A, Vec3A)> = sample
-        .chunks_mut(BLOCK)
-        .enumerate()
-        .map(|(blk, out)| {
-            let (mut w, mut clo, mut chi) = (0usize, Vec3A::INFINITY, Vec3A::NEG_INFINITY);
-            // The geometry of the current sample: its index, first global ID and reader.
-            let (mut gi, mut gbase) = (0usize, 0usize);
-            let mut fast = desc.geometries.first().and_then(FastTris::of);
-            for j in 0..out.len() {
-                let id = (blk * BLOCK + j) * step;
-                while let Some(g) = desc.geometries.get(gi).filter(|g| id >= gbase + g.primitive_count as usize) {
-                    gbase += g.primitive_count as usize;
-                    gi += 1;
-                    fast = desc.geometries.get(gi).and_then(FastTris::of);
-                }
-                let Some(ft) = fast.as_ref() else { break };
-                let end = gbase + desc.geometries.get(gi).map_or(0, |g| g.primitive_count as usize);
-                let ahead = |k: usize| Some(id + k * step).filter(|&x| x < end).map(|x| (x - gbase) as u32);
-                if let Some(q) = ahead(AHEAD) {
-                    crate::memory::prefetch_read(ft.indices, q as usize * if ft.u16_indices { 6 } else { 12 });
-                }
-                if let Some(q) = ahead(AHEAD / 2) {
-                    ft.prefetch(q);
-                }
-                if let Some(Some((lo, hi, _))) = ft.bounds((id - gbase) as u32, allow_update) {
-                    if let Some(d) = out.get_mut(w) {
-                        *d = PrimRef { lo: lo.to_array(), geom: gi as u32, hi: hi.to_array(), prim: id as u32 };
-                        w += 1;
-                        let c = lo * 0.5 + hi * 0.5;
-                        (clo, chi) = (clo.min(c), chi.max(c));
-                    }
-                }
-            }
-            (w, clo, chi)
-        })
-        .collect();
+    // Kept triangles (not the dropped ones) in order from the front, and their centroid box.
     let (mut n, mut clo, mut chi) = (0usize, Vec3A::INFINITY, Vec3A::NEG_INFINITY);
-    for (blk, &(k, lo, hi)) in blocks.iter().enumerate() {
-        sample.copy_within(blk * BLOCK..blk * BLOCK + k, n);
-        n += k;
-        (clo, chi) = (clo.min(lo), chi.max(hi));
+    // The geometry of the current sample: its index, first global ID and reader.
+    let (mut gi, mut gbase) = (0usize, 0usize);
+    let mut fast = desc.geometries.first().and_then(FastTris::of);
+    for j in 0..sample.len() {
+        let id = j * step;
+        while let Some(g) = desc.geometries.get(gi).filter(|g| id >= gbase + g.primitive_count as usize) {
+            gbase += g.primitive_count as usize;
+            gi += 1;
+            fast = desc.geometries.get(gi).and_then(FastTris::of);
+        }
+        let Some(ft) = fast.as_ref() else { break };
+        let end = gbase + desc.geometries.get(gi).map_or(0, |g| g.primitive_count as usize);
+        let ahead = |k: usize| Some(id + k * step).filter(|&x| x < end).map(|x| (x - gbase) as u32);
+        if let Some(q) = ahead(AHEAD) {
+            crate::memory::prefetch_read(ft.indices, q as usize * if ft.u16_indices { 6 } else { 12 });
+        }
+        if let Some(q) = ahead(AHEAD / 2) {
+            ft.prefetch(q);
+        }
+        if let Some(Some((lo, hi, _))) = ft.bounds((id - gbase) as u32, allow_update) {
+            if let Some(d) = sample.get_mut(n) {
+                *d = PrimRef { lo: lo.to_array(), geom: gi as u32, hi: hi.to_array(), prim: id as u32 };
+                n += 1;
+                let c = lo * 0.5 + hi * 0.5;
+                (clo, chi) = (clo.min(c), chi.max(c));
+            }
+        }
     }
-    let cb = to_aabb(clo, chi);
-    let (tree, buckets) = grow(p, &mut sample[..n], scratch, cb, step, 0, INPUT_SAMPLE / (ROOT_SAMPLE * MIN_SAMPLE_DIV), false);
+    plan_on(p, &mut sample[..n], scratch, to_aabb(clo, chi), step, INPUT_SAMPLE / (ROOT_SAMPLE * MIN_SAMPLE_DIV), false)
+}
+
+/// The planned top grown from `sample` (`grow`, root bins over `cb`), when it has 2 to
+/// BUCKETS buckets.
+fn plan_on(p: &BuildParams, sample: &mut [PrimRef], scratch: &mut [PrimRef], cb: Aabb, step: usize, min_sample: usize, par: bool) -> Option<TopPlan> {
+    let (tree, buckets) = grow(p, sample, scratch, cb, step, 0, min_sample, par);
     let buckets = buckets as usize;
     (2..=BUCKETS).contains(&buckets).then(|| TopPlan::new(tree, buckets, &cb))
 }
