@@ -239,9 +239,10 @@ impl BlasBoundsMemo {
 #[derive(Clone, Copy, Debug)]
 pub struct BuildParams {
     pub bins: usize,
-    /// Bin only along the widest axis of the node's box (fast-build tier: a third of the
-    /// binning work for a few percent of SAH).
-    pub single_axis: bool,
+    /// Nodes of at least this many references bin (and sweep) all three axes; smaller ones only
+    /// the widest axis of their box (a third of the binning work for a few percent of SAH):
+    /// 0 in the fast-trace tier, 1,024 in the default tier, never in the fast-build tier.
+    pub all_axes_from: usize,
     /// C_T relative to C_I in the leaf/split decision (the reported SAH always uses 1): above
     /// 1 the fast-build tier makes bigger leaves, hence fewer nodes to build and encode.
     pub traversal_cost: f32,
@@ -293,7 +294,7 @@ impl BuildParams {
             // leaves of up to 3 clusters: dragon SAH 48.90, BVH4 28.74 (clusters of 2 in
             // leaves of 4: 48.92 / 28.81; of 3 in leaves of 4: 48.89 / 28.76; of 4 in leaves of
             // 2: 49.02 / 28.56 but 61.9 B/tri), the same time on one thread.
-            BuildParams { bins: 32, single_axis: false, traversal_cost: 1.0, max_leaf: 8, small_n: SMALL_N, parallel_cutoff: 1024, sample_target: 2 * SAMPLE_TARGET, pair_tau: pairs::FAST_TRACE_TAU, cluster: 3, cluster_leaf: 3, min_bins: 6 }
+            BuildParams { bins: 32, all_axes_from: 0, traversal_cost: 1.0, max_leaf: 8, small_n: SMALL_N, parallel_cutoff: 1024, sample_target: 2 * SAMPLE_TARGET, pair_tau: pairs::FAST_TRACE_TAU, cluster: 3, cluster_leaf: 3, min_bins: 6 }
         } else if flags.contains(BuildFlags::PREFER_FAST_BUILD) {
             // 12 bins, not 8: over node boxes (see `build_rec`) 8 bins gave SAH 54.59 on the
             // dragon, 12 give 53.71 at the same speed. Clusters of up to 4 primitives, leaves
@@ -302,9 +303,16 @@ impl BuildParams {
             // rounds on the 16-core machine (4 clusters per leaf: SAH 54.16 with the
             // reference-counting leaf rule). Since session 9 tau 1.1 (`pairs::FAST_BUILD_TAU`):
             // SAH 54.98, 53.4 B/tri, 6 % faster on one thread.
-            BuildParams { bins: 12, single_axis: true, traversal_cost: 2.5, max_leaf: 8, small_n: SMALL_N, parallel_cutoff: 1024, sample_target: SAMPLE_TARGET, pair_tau: pairs::FAST_BUILD_TAU, cluster: 4, cluster_leaf: 3, min_bins: 8 }
+            BuildParams { bins: 12, all_axes_from: usize::MAX, traversal_cost: 2.5, max_leaf: 8, small_n: SMALL_N, parallel_cutoff: 1024, sample_target: SAMPLE_TARGET, pair_tau: pairs::FAST_BUILD_TAU, cluster: 4, cluster_leaf: 3, min_bins: 8 }
         } else {
-            BuildParams { bins: 16, single_axis: false, traversal_cost: 1.0, max_leaf: 8, small_n: SMALL_N, parallel_cutoff: 1024, sample_target: 2 * SAMPLE_TARGET, pair_tau: pairs::DEFAULT_TAU, cluster: 2, cluster_leaf: 4, min_bins: 6 }
+            // Between the other two since session 15: the fast-trace tier's bins and clusters,
+            // with three-axis binning only in nodes of at least 1,024 references. Dragon, one
+            // thread (this box, minima of 7, two interleaved rounds): 141–144 ms at SAH 50.11
+            // (BVH4 29.24), where the tier took 169–184 ms at 49.21 (16 bins on three axes,
+            // clusters of 2 in leaves of 4), no faster than FAST_TRACE (176–187 ms, 48.90).
+            // Three axes from 256 references: 145–148 ms at 49.91; from 16,384 (the sampled
+            // nodes): 132–133 at 50.50, but the bunny's SAH 1.041× a full sweep's.
+            BuildParams { bins: 32, all_axes_from: 1024, traversal_cost: 1.0, max_leaf: 8, small_n: SMALL_N, parallel_cutoff: 1024, sample_target: 2 * SAMPLE_TARGET, pair_tau: pairs::DEFAULT_TAU, cluster: 3, cluster_leaf: 3, min_bins: 6 }
         }
     }
 }
@@ -669,7 +677,7 @@ fn build_rec<'a>(ctx: &Ctx, refs: &'a mut [PrimRef], nodes: &'a mut [BinNode], s
         // Exact SAH sweep over sorted centroids: cheaper than binning for a handful of
         // primitives, and these nodes are most of the tree.
         let widest = (0..3).fold(0, |w, a| if cb.hi[a] - cb.lo[a] > cb.hi[w] - cb.lo[w] { a } else { w });
-        let axes = if p.single_axis { (widest, widest + 1) } else { (0, 3) };
+        let axes = if n >= p.all_axes_from { (0, 3) } else { (widest, widest + 1) };
         if let Some((mid, cost)) = small_split(refs, axes, ctx.paired) {
             // Clusters: the sweep's costs count primitives, so the leaf does too, with the
             // tier's own C_T.
@@ -693,7 +701,7 @@ fn build_rec<'a>(ctx: &Ctx, refs: &'a mut [PrimRef], nodes: &'a mut [BinNode], s
     let k = p.bins.clamp(2, MAX_BINS).min((n / REFS_PER_BIN).max(p.min_bins.max(2)));
     let split: Option<(usize, usize, Aabb, Aabb, f32)>; // (axis, bin, left box, right box, cost)
     if depth < MAX_SAH_DEPTH {
-        if let Some((bn, scale)) = node_binning(p, &cb, k) {
+        if let Some((bn, scale)) = node_binning(p, &cb, k, n) {
             let axes = bn.axes;
             bins.reset(k, axes);
             let src: &[PrimRef] = if in_nodes { node_refs(nodes, n).unwrap_or(&[]) } else { refs };
@@ -823,14 +831,14 @@ fn bin_in_chunks(src: &[PrimRef], chunk: usize, k: usize, axes: (usize, usize), 
         })
 }
 
-/// The bins of a node whose bins span `cb`: `k` per axis (the widest axis of `cb` alone in
-/// single-axis tiers), and the per-axis scales (0 for a flat axis); None when every binned
-/// axis is flat.
-fn node_binning(p: &BuildParams, cb: &Aabb, k: usize) -> Option<(Binning, [f32; 3])> {
+/// The bins of a node of `n` references whose bins span `cb`: `k` per axis (the widest axis of
+/// `cb` alone below the tier's `all_axes_from`), and the per-axis scales (0 for a flat axis);
+/// None when every binned axis is flat.
+fn node_binning(p: &BuildParams, cb: &Aabb, k: usize, n: usize) -> Option<(Binning, [f32; 3])> {
     let mut scale = [0f32; 3];
     let mut any = false;
     let widest = (0..3).fold(0, |w, a| if cb.hi[a] - cb.lo[a] > cb.hi[w] - cb.lo[w] { a } else { w });
-    let axes = if p.single_axis { (widest, widest + 1) } else { (0, 3) };
+    let axes = if n >= p.all_axes_from { (0, 3) } else { (widest, widest + 1) };
     for a in axes.0..axes.1 {
         let ext = cb.hi[a] - cb.lo[a];
         let sc = k as f32 / ext;
@@ -2652,8 +2660,13 @@ pub fn build(desc: &BuildDesc, view: &dyn DeviceView, dst: &mut [u8], scratch: &
     // vertices at random. Needs 40·total <= the worst-case node area (true for total >= 3).
     let stage_at = layout::sections(desc.ty, 0, total as u64, ngeo).nodes as usize;
     let staged = !is_tlas && total >= 3 && stage_at.checked_add(total * STAGE_SIZE).is_some_and(|e| e <= dst.len());
-    let params = BuildParams::from_flags(desc.flags);
-    // The fast-build and default tiers build over primitive pairs (`pairs`) in staged BLAS
+    let mut params = BuildParams::from_flags(desc.flags);
+    if is_tlas && params.all_axes_from != usize::MAX {
+        // Instance trees bin all three axes outside the fast-build tier: few, overlapping
+        // boxes at the top of every ray's walk.
+        params.all_axes_from = 0;
+    }
+    // Every tier builds over primitive clusters (`pairs`) in staged BLAS
     // builds of at least PAIR_MIN primitives over at most MAX_PAIR_GEOMETRIES geometries whose
     // neighbours pair well in a sample. Ingest pairs each chunk while it is in cache.
     // First global primitive ID of each geometry, then the total (IDs → geometries).

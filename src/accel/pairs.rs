@@ -1,6 +1,6 @@
-//! Primitive pairing for the fast-build and default tiers: neighbours in input order (global
-//! IDs that follow each other) whose union is tight become one reference of up to four
-//! (fast-build) or two (default) primitives, and the binned builder runs over these clusters
+//! Primitive pairing for all three tiers: neighbours in input order (global IDs that follow
+//! each other) whose union is tight become one reference of up to four (fast-build) or three
+//! (default, fast-trace) primitives, and the binned builder runs over these clusters
 //! ("pairs" below; dragon fast-build: about 590,000 references instead of 871,306, the same
 //! SAH). Ingest pairs each chunk while it is in cache (`pair_in_place`), after a sample of
 //! the input said it pays (`worth_pairing`). A pair reference keeps the first primitive's
@@ -41,7 +41,8 @@ pub const MAX_PAIR_GEOMETRIES: usize = 64;
 /// rounds, medians) 26.4 / 26.5 / 24.5 / 27.1 → 25.8 / 24.5 / 23.5 / 25.2 ms (the tier takes
 /// clusters of 3 in leaves of 3: 48.90 / 28.74); the terrain 34.65 → 34.63; the bunny, the soup
 /// and the res3 and res4 dragons do not pair. 0.8 is 11 % faster on the dragon at its old SAH
-/// (49.00, BVH4 28.82) but the res4 dragon's goes 30.37 → 30.45.
+/// (49.00, BVH4 28.82) but the res4 dragon's goes 30.37 → 30.45. Since session 15 the default
+/// tier clusters as FAST_TRACE does (`BuildParams::from_flags`).
 pub const FAST_BUILD_TAU: f32 = 1.1;
 pub const DEFAULT_TAU: f32 = 0.7;
 pub const FAST_TRACE_TAU: f32 = 0.7;

@@ -305,7 +305,7 @@ fn grow(p: &BuildParams, sample: &mut [PrimRef], scratch: &mut [PrimRef], cb: Aa
         return bucket();
     }
     let k = p.bins.clamp(2, MAX_BINS).min((est / REFS_PER_BIN).max(p.min_bins.max(2)));
-    let Some((bn, scale)) = node_binning(p, &cb, k) else { return bucket() };
+    let Some((bn, scale)) = node_binning(p, &cb, k, est) else { return bucket() };
     let bins = if par && s >= 2 * SAMPLE_BIN_CHUNK {
         bin_in_chunks(sample, SAMPLE_BIN_CHUNK, k, bn.axes, |c, b| bin_refs(c, &bn, b))
     } else {
