@@ -241,7 +241,9 @@ pub struct BuildParams {
     pub bins: usize,
     /// Nodes of at least this many references bin (and sweep) all three axes; smaller ones only
     /// the widest axis of their box (a third of the binning work for a few percent of SAH):
-    /// 0 in the fast-trace tier, 1,024 in the default tier, never in the fast-build tier.
+    /// from SMALL_N + 1 in the fast-trace tier (its exact sweeps of small nodes sort one axis),
+    /// 1,024 in the default tier, never in the fast-build tier; instance trees outside the
+    /// fast-build tier from 0 (`build`).
     pub all_axes_from: usize,
     /// C_T relative to C_I in the leaf/split decision (the reported SAH always uses 1): above
     /// 1 the fast-build tier makes bigger leaves, hence fewer nodes to build and encode.
@@ -293,8 +295,13 @@ impl BuildParams {
             // Clusters of up to 3 tight neighbours since session 14 (`pairs::FAST_TRACE_TAU`),
             // leaves of up to 3 clusters: dragon SAH 48.90, BVH4 28.74 (clusters of 2 in
             // leaves of 4: 48.92 / 28.81; of 3 in leaves of 4: 48.89 / 28.76; of 4 in leaves of
-            // 2: 49.02 / 28.56 but 61.9 B/tri), the same time on one thread.
-            BuildParams { bins: 32, all_axes_from: 0, traversal_cost: 1.0, max_leaf: 8, small_n: SMALL_N, parallel_cutoff: 1024, sample_target: 2 * SAMPLE_TARGET, pair_tau: pairs::FAST_TRACE_TAU, cluster: 3, cluster_leaf: 3, min_bins: 6 }
+            // 2: 49.02 / 28.56 but 61.9 B/tri), the same time on one thread. Since session 15
+            // the exact sweep of nodes of at most SMALL_N references sorts only their widest
+            // axis: dragon one thread (this box, minima of 7, two interleaved rounds) 171–176 →
+            // 163–167 ms, SAH 48.90 → 49.07 but the BVH4's 28.74 → 28.76, primary rays in the
+            // same time (`trace_timing`: 27.8–28.1 ms either way); binning one axis below 12 / 16
+            // references too: 160–162 ms at 49.18 / 28.80, 159–160 at 49.30 / 28.85.
+            BuildParams { bins: 32, all_axes_from: SMALL_N + 1, traversal_cost: 1.0, max_leaf: 8, small_n: SMALL_N, parallel_cutoff: 1024, sample_target: 2 * SAMPLE_TARGET, pair_tau: pairs::FAST_TRACE_TAU, cluster: 3, cluster_leaf: 3, min_bins: 6 }
         } else if flags.contains(BuildFlags::PREFER_FAST_BUILD) {
             // 12 bins, not 8: over node boxes (see `build_rec`) 8 bins gave SAH 54.59 on the
             // dragon, 12 give 53.71 at the same speed. Clusters of up to 4 primitives, leaves
