@@ -705,7 +705,7 @@ fn build_rec<'a>(ctx: &Ctx, refs: &'a mut [PrimRef], nodes: &'a mut [BinNode], s
     // the sample draw of the top alone moves it by ±0.08, see `top`), the default tier 1–3 %,
     // 49.11 -> 49.14; FAST_BUILD keeps 8 (6: SAH 54.70 -> 54.78 for no time measurable; 4 cost
     // FAST_TRACE 48.91).
-    let k = p.bins.clamp(2, MAX_BINS).min((n / REFS_PER_BIN).max(p.min_bins.max(2)));
+    let k = bin_count(p, n);
     let split: Option<(usize, usize, Aabb, Aabb, f32)>; // (axis, bin, left box, right box, cost)
     if depth < MAX_SAH_DEPTH {
         if let Some((bn, scale)) = node_binning(p, &cb, k, n) {
@@ -821,6 +821,13 @@ fn build_rec<'a>(ctx: &Ctx, refs: &'a mut [PrimRef], nodes: &'a mut [BinNode], s
     let (l, r) = refs.split_at(mid);
     let (lb, rb) = (box_of(l), box_of(r));
     finish_split(ctx, refs, nodes, start, bounds, mid, lb, rb, depth, bins, false, pre, parent_count, sink, idx)
+}
+
+/// Bins per axis of a binned node of `n` references: at most one per REFS_PER_BIN, at least the
+/// tier's `min_bins`, at most its `bins` (see `build_rec`).
+#[inline]
+pub(super) fn bin_count(p: &BuildParams, n: usize) -> usize {
+    p.bins.clamp(2, MAX_BINS).min((n / REFS_PER_BIN).max(p.min_bins.max(2)))
 }
 
 /// Bins of `src` binned by `bin` in parallel chunks of `chunk` references and merged (exact:

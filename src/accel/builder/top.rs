@@ -304,7 +304,7 @@ fn grow(p: &BuildParams, sample: &mut [PrimRef], scratch: &mut [PrimRef], cb: Aa
     if level >= LEVELS || s < min_sample.max(2) || est < SPLIT_MIN {
         return bucket();
     }
-    let k = p.bins.clamp(2, MAX_BINS).min((est / REFS_PER_BIN).max(p.min_bins.max(2)));
+    let k = bin_count(p, est);
     let Some((bn, scale)) = node_binning(p, &cb, k, est) else { return bucket() };
     let bins = if par && s >= 2 * SAMPLE_BIN_CHUNK {
         bin_in_chunks(sample, SAMPLE_BIN_CHUNK, k, bn.axes, |c, b| bin_refs(c, &bn, b))
