@@ -16,9 +16,9 @@ mod support;
 
 use support::accel::{triangles, Accel};
 
-fn mesh() -> arbor::scene::Mesh {
+fn mesh() -> arbor_scene::Mesh {
     let path = std::env::var("ARBOR_BENCH_MESH").unwrap_or_else(|_| concat!(env!("CARGO_MANIFEST_DIR"), "/data/dragon_vrip.ply.gz").into());
-    arbor::scene::load(&path).expect("mesh")
+    arbor_scene::load(&path).expect("mesh")
 }
 
 fn bench(c: &mut Criterion) {

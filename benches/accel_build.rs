@@ -16,7 +16,7 @@
 mod peers;
 
 use arbor::accel::{self, AsType, BuildDesc, BuildFlags, Geometry, GeometryData, GeometryFlags, IndexType, VertexFormat};
-use arbor::scene::{self, Mesh};
+use arbor_scene::{self as scene, Mesh};
 use criterion::{criterion_group, criterion_main, BatchSize, Criterion, SamplingMode, Throughput};
 use std::time::Duration;
 

@@ -13,7 +13,7 @@
 mod peers;
 
 use arbor::accel::{self, AsType, BuildDesc, BuildFlags, Geometry, GeometryData, GeometryFlags, IndexType, Ray, RayFlags, VertexFormat};
-use arbor::scene::{self, Rng};
+use arbor_scene::{self as scene, Rng};
 use criterion::{criterion_group, criterion_main, Criterion, Throughput};
 use glam::Vec3;
 use rayon::prelude::*;
@@ -72,7 +72,7 @@ fn bench_trace(c: &mut Criterion) {
     drop(scratch);
     let bvh = &dst[..];
     let b = mesh.bounds();
-    let primary = scene::primary_rays(b, 256, 256);
+    let primary: Vec<Ray> = scene::primary_rays(b, 256, 256).into_iter().map(|r| Ray { origin: r.origin, direction: r.direction, tmin: 0.0, tmax: f32::INFINITY }).collect();
     let random = random_rays(b, BATCH, 7);
     let hit_rate = |rays: &[Ray]| rays.iter().filter(|r| accel::closest_hit(bvh, &accel::NoDevice, copy(r), RayFlags(0), 0xFF).is_some()).count() as f64 / rays.len() as f64;
     println!("\ndragon {} triangles; primary rays hit {:.1}%, random rays hit {:.1}%", mesh.indices.len(), 100.0 * hit_rate(&primary), 100.0 * hit_rate(&random));

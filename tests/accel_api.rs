@@ -12,8 +12,8 @@ fn as_context() -> support::Context {
     support::Context::new(support::Options { acceleration_structure: true, ..Default::default() })
 }
 
-fn bunny() -> arbor::scene::Mesh {
-    arbor::scene::load(concat!(env!("CARGO_MANIFEST_DIR"), "/data/bunny.ply")).unwrap()
+fn bunny() -> arbor_scene::Mesh {
+    arbor_scene::load(concat!(env!("CARGO_MANIFEST_DIR"), "/data/bunny.ply")).unwrap()
 }
 
 /// Deterministic rays through the mesh's bounds (xorshift).
@@ -38,7 +38,7 @@ fn rays(bounds: [f32; 6], n: usize, seed: u64) -> Vec<Ray> {
 }
 
 /// Closest hit by brute force over the mesh (the library's watertight test, every triangle).
-fn brute_closest(mesh: &arbor::scene::Mesh, ray: &Ray) -> Option<(f32, u32)> {
+fn brute_closest(mesh: &arbor_scene::Mesh, ray: &Ray) -> Option<(f32, u32)> {
     let mut best: Option<(f32, u32)> = None;
     for i in 0..mesh.triangle_count() {
         let t = mesh.triangle(i);
@@ -58,7 +58,7 @@ struct MeshInput {
     count: u32,
 }
 
-fn upload_mesh(a: &Accel, mesh: &arbor::scene::Mesh) -> MeshInput {
+fn upload_mesh(a: &Accel, mesh: &arbor_scene::Mesh) -> MeshInput {
     MeshInput {
         vertices: a.upload(&mesh.vertex_bytes()),
         indices: a.upload(&mesh.index_bytes()),
@@ -124,7 +124,7 @@ fn device_build_of_the_bunny_traverses_like_brute_force() {
 fn host_device_indirect_and_deferred_builds_are_byte_identical() {
     let ctx = as_context();
     let a = Accel::new(&ctx);
-    let mesh = arbor::scene::load(concat!(env!("CARGO_MANIFEST_DIR"), "/data/dragon_vrip_res4.ply.gz")).unwrap();
+    let mesh = arbor_scene::load(concat!(env!("CARGO_MANIFEST_DIR"), "/data/dragon_vrip_res4.ply.gz")).unwrap();
     let m = upload_mesh(&a, &mesh);
     // FAST_TRACE, and FAST_BUILD (built over primitive pairs: res4 has 11,102 triangles).
     for tier in [vk::BuildAccelerationStructureFlagsKHR::PREFER_FAST_TRACE, vk::BuildAccelerationStructureFlagsKHR::PREFER_FAST_BUILD] {

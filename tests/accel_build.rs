@@ -5,7 +5,7 @@
 mod common;
 
 use arbor::accel::{self, AsType, BuildDesc, BuildError, BuildFlags, Geometry, GeometryData, GeometryFlags, GeometryShape, MapView, Ray, RayFlags};
-use arbor::scene::{self, InstanceRecord, Mesh, Rng};
+use arbor_scene::{self as scene, InstanceRecord, Mesh, Rng};
 use common::*;
 use std::collections::HashMap;
 

@@ -75,9 +75,9 @@ fn host_memory_is_o_threads() {
 
 fn update_and_tlas_build_allocate_o_threads() {
     use arbor::accel::{GeometryData, GeometryFlags, MapView};
-    use arbor::scene::InstanceRecord;
+    use arbor_scene::InstanceRecord;
     let n = 1_000_000usize;
-    let mesh = arbor::scene::random_soup(n, 2);
+    let mesh = arbor_scene::random_soup(n, 2);
     let data = common::TriData::from_mesh(&mesh, 0);
     let geoms = [data.geometry()];
     let flags = BuildFlags(BuildFlags::ALLOW_UPDATE | BuildFlags::PREFER_FAST_TRACE);
@@ -94,12 +94,12 @@ fn update_and_tlas_build_allocate_o_threads() {
     assert!(total < n * 8 / 16, "update allocated {total} bytes on the host");
     // TLAS of 200k instances.
     let m = 200_000usize;
-    let small = arbor::scene::random_soup(100, 3);
+    let small = arbor_scene::random_soup(100, 3);
     let sd = common::TriData::from_mesh(&small, 0);
     let blas = common::build_blas(0, &[sd.geometry()]);
     let mut view = MapView::new();
     view.insert(0x1000_0000, blas.bytes);
-    let packed = InstanceRecord::pack(&arbor::scene::instance_records(m, &[0x1000_0000], 4));
+    let packed = InstanceRecord::pack(&arbor_scene::instance_records(m, &[0x1000_0000], 4));
     let g = [accel::Geometry { flags: GeometryFlags(0), primitive_count: m as u32, data: GeometryData::Instances { array_of_pointers: false, data: &packed } }];
     let tflags = BuildFlags(BuildFlags::PREFER_FAST_TRACE);
     let tsizes = accel::build_sizes(AsType::TopLevel, tflags, &[accel::GeometryShape::Instances], &[m as u32]);
@@ -114,7 +114,7 @@ fn update_and_tlas_build_allocate_o_threads() {
 
 fn build_of_one_million_triangles_allocates_o_threads() {
     let n = 1_000_000usize;
-    let mesh = arbor::scene::random_soup(n, 1);
+    let mesh = arbor_scene::random_soup(n, 1);
     let data = common::TriData::from_mesh(&mesh, 0);
     let geoms = [data.geometry()];
     for (threads, tier) in [(1, BuildFlags::PREFER_FAST_TRACE), (2, BuildFlags::PREFER_FAST_TRACE), (2, BuildFlags::PREFER_FAST_BUILD), (8, 0)] {

@@ -5,7 +5,7 @@
 mod common;
 
 use arbor::accel::{self, Geometry, GeometryData, GeometryFlags, IndexType, Ray, VertexFormat};
-use arbor::scene::Rng;
+use arbor_scene::Rng;
 use common::*;
 use glam::Vec3;
 

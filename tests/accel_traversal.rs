@@ -6,7 +6,7 @@
 mod common;
 
 use arbor::accel::{self, AsType, BuildFlags, Geometry, GeometryData, GeometryFlags, IndexType, MapView, Ray, VertexFormat};
-use arbor::scene::{self, InstanceRecord, Mesh, Rng};
+use arbor_scene::{self as scene, InstanceRecord, Mesh, Rng};
 use common::*;
 use std::collections::HashMap;
 

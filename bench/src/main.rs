@@ -250,15 +250,15 @@ fn mesh_scene_name(path: &Path) -> String {
 }
 
 fn load_scenes(a: &Args) -> Result<Vec<Scene>, String> {
-    let bunny = || arbor::scene::parse_ply(BUNNY_PLY).map_err(|e| format!("embedded bunny: {e}"));
+    let bunny = || arbor_scene::parse_ply(BUNNY_PLY).map_err(|e| format!("embedded bunny: {e}"));
     let mut out = Vec::new();
     for s in &a.scenes {
         let kind = match s.as_str() {
             "bunny" => SceneKind::Mesh(bunny()?),
-            "soup" => SceneKind::Mesh(arbor::scene::random_soup(a.soup, 1)),
-            "terrain" => SceneKind::Mesh(arbor::scene::terrain(a.terrain)),
+            "soup" => SceneKind::Mesh(arbor_scene::random_soup(a.soup, 1)),
+            "terrain" => SceneKind::Mesh(arbor_scene::terrain(a.terrain)),
             "instances" => SceneKind::Instances {
-                blases: vec![work::normalized(&bunny()?), arbor::scene::terrain(64), arbor::scene::random_soup(4096, 7)],
+                blases: vec![work::normalized(&bunny()?), arbor_scene::terrain(64), arbor_scene::random_soup(4096, 7)],
                 count: a.instances,
                 seed: 1,
             },
@@ -267,7 +267,7 @@ fn load_scenes(a: &Args) -> Result<Vec<Scene>, String> {
         out.push(Scene { name: s.clone(), kind });
     }
     for p in &a.meshes {
-        let m = arbor::scene::load(p).map_err(|e| format!("{}: {e}", p.display()))?;
+        let m = arbor_scene::load(p).map_err(|e| format!("{}: {e}", p.display()))?;
         if m.triangle_count() == 0 {
             return Err(format!("{}: no triangles", p.display()));
         }

@@ -4,7 +4,7 @@
 //! "not supported" row.
 use std::time::Instant;
 
-use arbor::scene::{InstanceRecord, Mesh};
+use arbor_scene::{InstanceRecord, Mesh};
 use ash::vk;
 
 use crate::vkctx::{payload, Arena, Gpu, Place};
@@ -313,7 +313,7 @@ fn prepare(a: &Arena, scene: &Scene) -> Result<Inputs, String> {
                 handles.push(vk::Handle::as_raw(s));
                 addresses.push(addr);
             }
-            let records = arbor::scene::instance_records(*count, &addresses, *seed);
+            let records = arbor_scene::instance_records(*count, &addresses, *seed);
             let host_records: Vec<InstanceRecord> = records
                 .iter()
                 .map(|r| InstanceRecord { reference: handles[addresses.iter().position(|x| *x == r.reference).unwrap_or(0)], ..*r })

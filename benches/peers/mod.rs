@@ -4,7 +4,7 @@
 
 #![allow(dead_code)]
 
-use arbor::scene::Mesh;
+use arbor_scene::Mesh;
 
 /// Box as [min x, y, z, max x, y, z].
 pub type Bounds = [f32; 6];
@@ -33,7 +33,7 @@ pub fn triangle_bounds(m: &Mesh, i: usize) -> Bounds {
 pub mod embree {
     //! Minimal FFI to Embree 3.13's generic BVH builder (`rtcore_builder.h`).
     use super::{area, Bounds};
-    use arbor::scene::Mesh;
+    use arbor_scene::Mesh;
     use std::ffi::{c_char, c_uint, c_void, CString};
 
     #[repr(C, align(32))]
@@ -434,7 +434,7 @@ pub mod embree {
 pub mod obvhs_peer {
     //! obvhs 0.3.3 PLOC (fastest_build preset, as in PEERS.md) and its SAH by our formula.
     use super::area;
-    use arbor::scene::Mesh;
+    use arbor_scene::Mesh;
     use obvhs::{bvh2::builder::build_bvh2_from_tris, triangle::Triangle, BvhBuildParams};
     use obvhs_glam::Vec3A;
 

@@ -3139,7 +3139,7 @@ mod pass_timing {
     /// The references of `ARBOR_MESH` (default: the full dragon), one per triangle.
     fn mesh_refs() -> Vec<PrimRef> {
         let path = std::env::var("ARBOR_MESH").unwrap_or_else(|_| concat!(env!("CARGO_MANIFEST_DIR"), "/data/dragon_vrip.ply.gz").to_string());
-        let mesh = crate::scene::load(&path).expect("mesh");
+        let mesh = arbor_scene::load(&path).expect("mesh");
         let v = &mesh.positions;
         mesh.indices
             .iter()

@@ -300,7 +300,7 @@ fn determinism_across_thread_counts() {
 /// default tier) and over triangles (FAST_TRACE with ALLOW_UPDATE), on 1, 3 and 16 threads.
 #[test]
 fn real_mesh_builds_are_the_same_on_any_thread_count() {
-    let mesh = crate::scene::load(concat!(env!("CARGO_MANIFEST_DIR"), "/data/dragon_vrip_res2.ply.gz")).expect("mesh");
+    let mesh = arbor_scene::load(concat!(env!("CARGO_MANIFEST_DIR"), "/data/dragon_vrip_res2.ply.gz")).expect("mesh");
     let (vb, ib) = (mesh.vertex_bytes(), mesh.index_bytes());
     let ntri = mesh.triangle_count() as u32;
     let g = tri_geom(&vb, mesh.vertex_count() as u32, &ib, ntri, GeometryFlags::OPAQUE);
@@ -323,7 +323,7 @@ fn real_mesh_builds_are_the_same_on_any_thread_count() {
 /// that holds every triangle that was not dropped.
 #[test]
 fn multi_geometry_builds_with_drops_are_the_same_on_any_thread_count() {
-    let mesh = crate::scene::load(concat!(env!("CARGO_MANIFEST_DIR"), "/data/dragon_vrip_res2.ply.gz")).expect("mesh");
+    let mesh = arbor_scene::load(concat!(env!("CARGO_MANIFEST_DIR"), "/data/dragon_vrip_res2.ply.gz")).expect("mesh");
     let mut v = mesh.positions.iter().map(|p| Vec3::from(*p)).collect::<Vec<_>>();
     let nv = v.len() as u32;
     let mut idx: Vec<u32> = mesh.indices.iter().flat_map(|t| t.iter().copied()).collect();
@@ -912,9 +912,9 @@ fn aabb_blas_matches_brute_force() {
 }
 
 /// The mesh the ignored timing entries use: ARBOR_MESH, else `default` under the crate.
-fn timing_mesh(default: &str) -> crate::scene::Mesh {
+fn timing_mesh(default: &str) -> arbor_scene::Mesh {
     let path = std::env::var("ARBOR_MESH").unwrap_or_else(|_| format!("{}/{default}", env!("CARGO_MANIFEST_DIR")));
-    crate::scene::load(&path).expect("mesh")
+    arbor_scene::load(&path).expect("mesh")
 }
 
 /// Destination and scratch for building `g` (`n` primitives) with `flags`, from the size query.
@@ -991,7 +991,7 @@ fn trace_timing() {
     let (mut dst, mut scratch) = blas_buffers(&g, ntri, flags);
     build(&BuildDesc { ty: AsType::BottomLevel, flags, geometries: &[g] }, &NoDevice, &mut dst, &mut scratch).unwrap();
     let side = (std::env::var("ARBOR_RAYS").ok().and_then(|s| s.parse::<f64>().ok()).unwrap_or(65536.0)).sqrt() as usize;
-    let rays = crate::scene::primary_rays(mesh.bounds(), side, side);
+    let rays = arbor_scene::primary_rays(mesh.bounds(), side, side);
     let reps: usize = std::env::var("ARBOR_REPS").ok().and_then(|s| s.parse().ok()).unwrap_or(5);
     let mut best = f64::MAX;
     let mut sum = 0f64;
@@ -999,7 +999,7 @@ fn trace_timing() {
         let t = std::time::Instant::now();
         sum = 0.0;
         for r in &rays {
-            let ray = Ray { origin: r.origin, direction: r.direction, tmin: r.tmin, tmax: r.tmax };
+            let ray = Ray { origin: r.origin, direction: r.direction, tmin: 0.0, tmax: f32::INFINITY };
             sum += closest_hit(&dst, &NoDevice, ray, RayFlags(0), 0xFF).map_or(0.0, |h| h.t as f64);
         }
         best = best.min(t.elapsed().as_secs_f64() * 1e3);
@@ -1070,7 +1070,7 @@ fn structure_digests() {
     // ARBOR_DIGEST_MESHES: comma-separated paths relative to the crate (default: two small ones).
     let list = std::env::var("ARBOR_DIGEST_MESHES").unwrap_or_else(|_| "data/bunny.ply,data/dragon_vrip_res4.ply.gz".to_string());
     for path in list.split(',') {
-        let mesh = crate::scene::load(concat!(env!("CARGO_MANIFEST_DIR"), "/").to_string() + path).expect("mesh");
+        let mesh = arbor_scene::load(concat!(env!("CARGO_MANIFEST_DIR"), "/").to_string() + path).expect("mesh");
         let nv = mesh.vertex_count() as u32;
         let ntri = mesh.triangle_count() as u32;
         let vb12 = mesh.vertex_bytes();
@@ -1115,7 +1115,7 @@ fn structure_digests() {
 fn build_timed_builds_the_same_structure() {
     // build_timed is build plus a clock: same report, same bytes; its phases are a
     // breakdown of its total (each non-negative, together no more than the total).
-    let mesh = crate::scene::load(concat!(env!("CARGO_MANIFEST_DIR"), "/data/bunny.ply")).expect("mesh");
+    let mesh = arbor_scene::load(concat!(env!("CARGO_MANIFEST_DIR"), "/data/bunny.ply")).expect("mesh");
     let (vb, ib) = (mesh.vertex_bytes(), mesh.index_bytes());
     let g = tri_geom(&vb, mesh.vertex_count() as u32, &ib, mesh.triangle_count() as u32, GeometryFlags::OPAQUE);
     for flags in [BuildFlags::PREFER_FAST_TRACE, BuildFlags::PREFER_FAST_BUILD] {
@@ -1364,7 +1364,7 @@ fn tlas_refit_is_deterministic_and_returns_to_the_build() {
         addrs.push(0x1000_0000 * (k + 1));
     }
     let m = 3000usize;
-    let recs = crate::scene::instance_records(m, &addrs, 4);
+    let recs = arbor_scene::instance_records(m, &addrs, 4);
     let mut recs2 = recs.clone();
     for (i, r) in recs2.iter_mut().enumerate() {
         r.transform[3] += (i % 7) as f32;
@@ -1372,7 +1372,7 @@ fn tlas_refit_is_deterministic_and_returns_to_the_build() {
             r.reference = addrs[(i / 5) % 3];
         }
     }
-    let (packed, packed2) = (crate::scene::InstanceRecord::pack(&recs), crate::scene::InstanceRecord::pack(&recs2));
+    let (packed, packed2) = (arbor_scene::InstanceRecord::pack(&recs), arbor_scene::InstanceRecord::pack(&recs2));
     let geom = |data| [Geometry { flags: GeometryFlags(0), primitive_count: m as u32, data: GeometryData::Instances { array_of_pointers: false, data } }];
     let (g0, g1) = (geom(&packed), geom(&packed2));
     for tier in [BuildFlags::PREFER_FAST_TRACE, BuildFlags::PREFER_FAST_BUILD] {
@@ -1542,7 +1542,7 @@ fn sweep_join(a: SweepBox, b: &SweepBox) -> SweepBox {
 #[test]
 fn tiers_keep_their_sah_against_a_full_sweep_builder() {
     for path in ["data/bunny.ply", "data/dragon_vrip_res3.ply.gz"] {
-        let mesh = crate::scene::load(&format!("{}/{path}", env!("CARGO_MANIFEST_DIR"))).expect("mesh");
+        let mesh = arbor_scene::load(&format!("{}/{path}", env!("CARGO_MANIFEST_DIR"))).expect("mesh");
         let v = &mesh.positions;
         let mut items: Vec<SweepBox> = mesh
             .indices

@@ -14,7 +14,7 @@ use arbor::accel::{
     self, AsType, BuildDesc, BuildFlags, BuildReport, BuildSizes, DeviceView, Geometry, GeometryData, GeometryShape,
     Hit, HitKind, Ray, RayFlags,
 };
-use arbor::scene::{InstanceRecord, Rng};
+use arbor_scene::{InstanceRecord, Rng};
 use glam::Vec3;
 use std::collections::{BTreeSet, HashMap};
 
@@ -152,7 +152,7 @@ pub struct TriData {
 
 impl TriData {
     /// R32G32B32_SFLOAT, U32 indices.
-    pub fn from_mesh(m: &arbor::scene::Mesh, flags: u32) -> Self {
+    pub fn from_mesh(m: &arbor_scene::Mesh, flags: u32) -> Self {
         TriData {
             vertices: m.vertex_bytes(),
             stride: 12,
@@ -215,7 +215,7 @@ impl AabbData {
 }
 
 /// Boxes around the triangles of a mesh (with a small pad), for AABB geometries.
-pub fn boxes_of(m: &arbor::scene::Mesh) -> Vec<[f32; 6]> {
+pub fn boxes_of(m: &arbor_scene::Mesh) -> Vec<[f32; 6]> {
     (0..m.indices.len())
         .map(|i| {
             let t = m.triangle(i);

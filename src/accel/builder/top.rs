@@ -831,7 +831,7 @@ mod tests {
     #[ignore]
     fn classify_timing() {
         let path = std::env::var("ARBOR_MESH").unwrap_or_else(|_| "data/dragon_vrip.ply.gz".into());
-        let mesh = crate::scene::load(&path).expect("mesh");
+        let mesh = arbor_scene::load(&path).expect("mesh");
         let tris: Vec<PrimRef> = (0..mesh.triangle_count())
             .map(|i| {
                 let t = mesh.triangle(i);

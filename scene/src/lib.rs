@@ -2,9 +2,9 @@
 //! Wavefront OBJ files (optionally gzip-compressed), deterministic procedural scenes, TLAS
 //! instance records, and the byte views that feed `arbor::accel::Geometry`.
 //!
-//! This module owns no Vulkan state and does not depend on `crate::accel`: it only produces
-//! plain data (positions, indices, bytes) so that tests can feed the same input to the
-//! library under test and to independent references.
+//! This crate owns no Vulkan state and does not depend on Arbor: it only produces plain data
+//! (positions, indices, bytes) so that tests can feed the same input to the library under test
+//! and to independent references. It is not part of the driver that applications load.
 
 mod obj;
 mod ply;
@@ -16,7 +16,7 @@ use std::path::Path;
 
 pub use obj::parse_obj;
 pub use ply::parse_ply;
-pub use procedural::{instance_records, primary_rays, random_soup, terrain, InstanceRecord, Rng};
+pub use procedural::{instance_records, primary_rays, random_soup, terrain, CameraRay, InstanceRecord, Rng};
 
 /// An indexed triangle mesh.
 #[derive(Clone, Debug, Default, PartialEq)]

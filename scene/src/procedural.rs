@@ -201,10 +201,17 @@ pub fn instance_records(n: usize, blas_references: &[u64], seed: u64) -> Vec<Ins
         .collect()
 }
 
+/// A ray of `primary_rays`: from the eye, through one pixel.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct CameraRay {
+    pub origin: glam::Vec3,
+    pub direction: glam::Vec3,
+}
+
 /// Primary rays of a `width` × `height` image of a scene with these bounds ([lo; 3], [hi; 3]):
 /// a pinhole camera in front of the box (+z, slightly above), looking at its centre, rows top to
-/// bottom. The rays of `benches/accel_trace.rs` and `accel::tests::trace_timing`.
-pub fn primary_rays(b: [f32; 6], width: usize, height: usize) -> Vec<crate::accel::Ray> {
+/// bottom, with unit directions.
+pub fn primary_rays(b: [f32; 6], width: usize, height: usize) -> Vec<CameraRay> {
     use glam::Vec3;
     let centre = Vec3::new((b[0] + b[3]) / 2.0, (b[1] + b[4]) / 2.0, (b[2] + b[5]) / 2.0);
     let ext = Vec3::new(b[3] - b[0], b[4] - b[1], b[5] - b[2]);
@@ -218,7 +225,7 @@ pub fn primary_rays(b: [f32; 6], width: usize, height: usize) -> Vec<crate::acce
         for x in 0..width {
             let u = (2.0 * (x as f32 + 0.5) / width as f32 - 1.0) * half;
             let v = (1.0 - 2.0 * (y as f32 + 0.5) / height as f32) * half;
-            out.push(crate::accel::Ray { origin: eye, direction: (forward + right * u + up * v).normalize(), tmin: 0.0, tmax: f32::INFINITY });
+            out.push(CameraRay { origin: eye, direction: (forward + right * u + up * v).normalize() });
         }
     }
     out

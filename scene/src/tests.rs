@@ -2,7 +2,8 @@ use super::*;
 use std::io::Write;
 
 fn data(name: &str) -> std::path::PathBuf {
-    std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("data").join(name)
+    // The meshes live in the workspace root's data/ (one copy for the driver's tests, the benches and these).
+    std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../data").join(name)
 }
 
 #[test]
