@@ -1,7 +1,7 @@
 //! Command buffers through the real loader with validation on: transfer commands verified byte
 //! for byte (including ordering inside one command buffer), secondary command buffers,
 //! reset/re-record, ONE_TIME_SUBMIT and SIMULTANEOUS_USE.
-mod support;
+mod harness;
 
 use ash::vk;
 
@@ -15,7 +15,7 @@ struct Buf {
 }
 
 impl Buf {
-    fn new(ctx: &support::Context, size: usize) -> Buf {
+    fn new(ctx: &harness::Context, size: usize) -> Buf {
         let (buffer, memory, ptr) = ctx.host_buffer(size as u64, USAGE);
         Buf { buffer, memory, ptr, size }
     }
@@ -25,7 +25,7 @@ impl Buf {
         unsafe { std::slice::from_raw_parts_mut(self.ptr, self.size) }
     }
 
-    fn destroy(self, ctx: &support::Context) {
+    fn destroy(self, ctx: &harness::Context) {
         // SAFETY: the device is idle; destroyed once.
         unsafe {
             ctx.device.destroy_buffer(self.buffer, None);
@@ -34,24 +34,24 @@ impl Buf {
     }
 }
 
-fn pool(ctx: &support::Context, flags: vk::CommandPoolCreateFlags) -> vk::CommandPool {
+fn pool(ctx: &harness::Context, flags: vk::CommandPoolCreateFlags) -> vk::CommandPool {
     // SAFETY: valid create info.
     unsafe { ctx.device.create_command_pool(&vk::CommandPoolCreateInfo::default().queue_family_index(0).flags(flags), None) }.unwrap()
 }
 
-fn allocate(ctx: &support::Context, pool: vk::CommandPool, level: vk::CommandBufferLevel, n: u32) -> Vec<vk::CommandBuffer> {
+fn allocate(ctx: &harness::Context, pool: vk::CommandPool, level: vk::CommandBufferLevel, n: u32) -> Vec<vk::CommandBuffer> {
     let info = vk::CommandBufferAllocateInfo::default().command_pool(pool).level(level).command_buffer_count(n);
     // SAFETY: valid allocate info.
     unsafe { ctx.device.allocate_command_buffers(&info) }.unwrap()
 }
 
-fn begin(ctx: &support::Context, cb: vk::CommandBuffer, flags: vk::CommandBufferUsageFlags) {
+fn begin(ctx: &harness::Context, cb: vk::CommandBuffer, flags: vk::CommandBufferUsageFlags) {
     // SAFETY: cb may be begun (initial state, or its pool allows implicit reset).
     unsafe { ctx.device.begin_command_buffer(cb, &vk::CommandBufferBeginInfo::default().flags(flags)) }.unwrap();
 }
 
 /// Submit and wait with a fresh fence.
-fn submit_wait(ctx: &support::Context, queue: vk::Queue, cbs: &[vk::CommandBuffer]) {
+fn submit_wait(ctx: &harness::Context, queue: vk::Queue, cbs: &[vk::CommandBuffer]) {
     // SAFETY: valid submission of executable command buffers; the fence is destroyed after it signalled.
     unsafe {
         let f = ctx.device.create_fence(&vk::FenceCreateInfo::default(), None).unwrap();
@@ -61,7 +61,7 @@ fn submit_wait(ctx: &support::Context, queue: vk::Queue, cbs: &[vk::CommandBuffe
     }
 }
 
-fn transfer_barrier(ctx: &support::Context, cb: vk::CommandBuffer) {
+fn transfer_barrier(ctx: &harness::Context, cb: vk::CommandBuffer) {
     let mb = [vk::MemoryBarrier::default().src_access_mask(vk::AccessFlags::TRANSFER_WRITE).dst_access_mask(vk::AccessFlags::TRANSFER_READ | vk::AccessFlags::TRANSFER_WRITE)];
     // SAFETY: recording command buffer.
     unsafe { ctx.device.cmd_pipeline_barrier(cb, vk::PipelineStageFlags::TRANSFER, vk::PipelineStageFlags::TRANSFER, vk::DependencyFlags::empty(), &mb, &[], &[]) };
@@ -73,7 +73,7 @@ fn pattern(n: usize, seed: u8) -> Vec<u8> {
 
 #[test]
 fn copy_fill_update_byte_for_byte() {
-    let ctx = support::context();
+    let ctx = harness::context();
     let a = Buf::new(&ctx, 4096);
     let b = Buf::new(&ctx, 1034);
     a.bytes().copy_from_slice(&pattern(4096, 7));
@@ -122,7 +122,7 @@ fn copy_fill_update_byte_for_byte() {
 /// fill → copy → copy), and submissions see earlier submissions.
 #[test]
 fn later_commands_see_earlier_writes() {
-    let ctx = support::context();
+    let ctx = harness::context();
     let a = Buf::new(&ctx, 1024);
     let b = Buf::new(&ctx, 1024);
     a.bytes().fill(0);
@@ -163,7 +163,7 @@ fn later_commands_see_earlier_writes() {
 
 #[test]
 fn copy_buffer2_and_large_copies() {
-    let ctx = support::context();
+    let ctx = harness::context();
     let copy2 = ash::khr::copy_commands2::Device::new(&ctx.instance, &ctx.device);
     let n = 9 << 20; // larger than the executor's staging chunk
     let a = Buf::new(&ctx, n);
@@ -191,7 +191,7 @@ fn copy_buffer2_and_large_copies() {
 
 #[test]
 fn secondary_command_buffers_execute_inline() {
-    let ctx = support::context();
+    let ctx = harness::context();
     let a = Buf::new(&ctx, 256);
     a.bytes().fill(0);
     let p = pool(&ctx, vk::CommandPoolCreateFlags::RESET_COMMAND_BUFFER);
@@ -251,7 +251,7 @@ fn secondary_command_buffers_execute_inline() {
 /// vkResetCommandPool, ONE_TIME_SUBMIT recordings re-recorded, trim, free.
 #[test]
 fn reset_and_rerecord() {
-    let ctx = support::context();
+    let ctx = harness::context();
     let a = Buf::new(&ctx, 64);
     let record_fill = |cb: vk::CommandBuffer, value: u32, flags: vk::CommandBufferUsageFlags| {
         begin(&ctx, cb, flags);
@@ -310,7 +310,7 @@ fn reset_and_rerecord() {
 /// SIMULTANEOUS_USE: one recording pending on two queues at once (held by an event).
 #[test]
 fn simultaneous_use_on_two_queues() {
-    let ctx = support::context();
+    let ctx = harness::context();
     let a = Buf::new(&ctx, 64);
     a.bytes().fill(0);
     let p = pool(&ctx, vk::CommandPoolCreateFlags::empty());
@@ -341,7 +341,7 @@ fn simultaneous_use_on_two_queues() {
 /// usage, so without the validation layer.
 #[test]
 fn a_failing_command_is_skipped_and_the_rest_runs() {
-    let ctx = support::Context::new(support::Options { validation: false, ..Default::default() });
+    let ctx = harness::Context::new(harness::Options { validation: false, ..Default::default() });
     let a = Buf::new(&ctx, 256);
     let b = Buf::new(&ctx, 256);
     a.bytes().fill(0x99);
@@ -359,7 +359,7 @@ fn a_failing_command_is_skipped_and_the_rest_runs() {
     submit_wait(&ctx, ctx.queues[0], &[cb]);
     assert!(b.bytes()[..128].iter().all(|x| *x == 0), "the failed copy wrote nothing");
     assert!(b.bytes()[128..].iter().all(|x| *x == 0x22), "the fill after it ran");
-    assert!(support::diagnostics().contains("vkCmdCopyBuffer: device-memory access refused: the memory was freed"), "reported");
+    assert!(harness::diagnostics().contains("vkCmdCopyBuffer: device-memory access refused: the memory was freed"), "reported");
     // SAFETY: the device is idle.
     unsafe { ctx.device.destroy_command_pool(p, None) };
     b.destroy(&ctx);
@@ -383,7 +383,7 @@ fn strict_mode_loses_the_device() {
 #[test]
 #[ignore = "run by strict_mode_loses_the_device with ARBOR_STRICT=1"]
 fn strict_mode_child() {
-    let ctx = support::Context::new(support::Options { validation: false, ..Default::default() });
+    let ctx = harness::Context::new(harness::Options { validation: false, ..Default::default() });
     let b = Buf::new(&ctx, 64);
     let p = pool(&ctx, vk::CommandPoolCreateFlags::empty());
     let cb = allocate(&ctx, p, vk::CommandBufferLevel::PRIMARY, 1)[0];
@@ -409,7 +409,7 @@ fn strict_mode_child() {
 /// not recorded (guard bytes stay), the process goes on. Without the validation layer.
 #[test]
 fn misuse_is_diagnosed() {
-    let ctx = support::Context::new(support::Options { validation: false, ..Default::default() });
+    let ctx = harness::Context::new(harness::Options { validation: false, ..Default::default() });
     let b = Buf::new(&ctx, 64);
     b.bytes().fill(0xAA);
     let p = pool(&ctx, vk::CommandPoolCreateFlags::empty());
@@ -451,7 +451,7 @@ fn misuse_is_diagnosed() {
         d.destroy_command_pool(p, None);
     }
     assert!(b.bytes().iter().all(|x| *x == 0xAA), "no invalid command was executed");
-    let log = support::diagnostics();
+    let log = harness::diagnostics();
     for vuid in [
         "VUID-vkQueueSubmit-pCommandBuffers-00070",
         "VUID-vkCmdFillBuffer-dstOffset-00025",

@@ -1,6 +1,8 @@
-//! Shared helpers of the `accel_*` integration tests: building structures with guard bytes,
-//! vertex-format encoders, random rays, and a brute-force reference of the Vulkan ray
-//! traversal rules that is written independently of `arbor::accel`'s traversal.
+//! The library-level test support of the `accel_*` integration tests: they call `arbor::accel`
+//! directly, with no Vulkan loader or device. Helpers for building structures with guard bytes,
+//! vertex-format encoders, random rays, and a brute-force reference of the Vulkan ray traversal
+//! rules that is written independently of `arbor::accel`'s traversal. (API tests through the
+//! loader use `tests/harness` instead.)
 //!
 //! The reference only borrows three things from the library, on purpose:
 //! `fetch_triangle`/`fetch_aabb` (decode exactly what the builder reads, checked separately
@@ -8,6 +10,7 @@
 //! checked separately against a double-precision test). Everything else — instance masks,
 //! instance and ray flags, opacity, facing, culling, tmin/tmax, inactive instances, the
 //! instance transform and its inverse — is implemented here from the specification.
+// Each test binary uses a different part of these helpers.
 #![allow(dead_code)]
 
 use arbor::accel::{
