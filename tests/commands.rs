@@ -20,8 +20,13 @@ impl Buf {
         Buf { buffer, memory, ptr, size }
     }
 
-    fn bytes(&self) -> &mut [u8] {
+    fn bytes(&self) -> &[u8] {
         // SAFETY: the mapping covers the whole buffer; tests touch it only while the queue is idle.
+        unsafe { std::slice::from_raw_parts(self.ptr, self.size) }
+    }
+
+    fn bytes_mut(&mut self) -> &mut [u8] {
+        // SAFETY: as for `bytes`; `&mut self` keeps this the only view the test holds.
         unsafe { std::slice::from_raw_parts_mut(self.ptr, self.size) }
     }
 
@@ -74,10 +79,10 @@ fn pattern(n: usize, seed: u8) -> Vec<u8> {
 #[test]
 fn copy_fill_update_byte_for_byte() {
     let ctx = harness::context();
-    let a = Buf::new(&ctx, 4096);
-    let b = Buf::new(&ctx, 1034);
-    a.bytes().copy_from_slice(&pattern(4096, 7));
-    b.bytes().fill(0xEE);
+    let mut a = Buf::new(&ctx, 4096);
+    let mut b = Buf::new(&ctx, 1034);
+    a.bytes_mut().copy_from_slice(&pattern(4096, 7));
+    b.bytes_mut().fill(0xEE);
     let p = pool(&ctx, vk::CommandPoolCreateFlags::empty());
     let cb = allocate(&ctx, p, vk::CommandBufferLevel::PRIMARY, 1)[0];
     let update: Vec<u8> = (100..116).collect();
@@ -123,10 +128,10 @@ fn copy_fill_update_byte_for_byte() {
 #[test]
 fn later_commands_see_earlier_writes() {
     let ctx = harness::context();
-    let a = Buf::new(&ctx, 1024);
-    let b = Buf::new(&ctx, 1024);
-    a.bytes().fill(0);
-    b.bytes().fill(0);
+    let mut a = Buf::new(&ctx, 1024);
+    let mut b = Buf::new(&ctx, 1024);
+    a.bytes_mut().fill(0);
+    b.bytes_mut().fill(0);
     let p = pool(&ctx, vk::CommandPoolCreateFlags::TRANSIENT);
     let cbs = allocate(&ctx, p, vk::CommandBufferLevel::PRIMARY, 2);
     let data: Vec<u8> = (1..=64).collect();
@@ -166,11 +171,11 @@ fn copy_buffer2_and_large_copies() {
     let ctx = harness::context();
     let copy2 = ash::khr::copy_commands2::Device::new(&ctx.instance, &ctx.device);
     let n = 9 << 20; // larger than the executor's staging chunk
-    let a = Buf::new(&ctx, n);
-    let b = Buf::new(&ctx, n);
+    let mut a = Buf::new(&ctx, n);
+    let mut b = Buf::new(&ctx, n);
     let src = pattern(n, 3);
-    a.bytes().copy_from_slice(&src);
-    b.bytes().fill(0);
+    a.bytes_mut().copy_from_slice(&src);
+    b.bytes_mut().fill(0);
     let p = pool(&ctx, vk::CommandPoolCreateFlags::empty());
     let cb = allocate(&ctx, p, vk::CommandBufferLevel::PRIMARY, 1)[0];
     begin(&ctx, cb, vk::CommandBufferUsageFlags::empty());
@@ -192,8 +197,8 @@ fn copy_buffer2_and_large_copies() {
 #[test]
 fn secondary_command_buffers_execute_inline() {
     let ctx = harness::context();
-    let a = Buf::new(&ctx, 256);
-    a.bytes().fill(0);
+    let mut a = Buf::new(&ctx, 256);
+    a.bytes_mut().fill(0);
     let p = pool(&ctx, vk::CommandPoolCreateFlags::RESET_COMMAND_BUFFER);
     let primary = allocate(&ctx, p, vk::CommandBufferLevel::PRIMARY, 1)[0];
     let secondaries = allocate(&ctx, p, vk::CommandBufferLevel::SECONDARY, 2);
@@ -252,42 +257,43 @@ fn secondary_command_buffers_execute_inline() {
 #[test]
 fn reset_and_rerecord() {
     let ctx = harness::context();
-    let a = Buf::new(&ctx, 64);
+    let mut a = Buf::new(&ctx, 64);
+    let buffer = a.buffer;
     let record_fill = |cb: vk::CommandBuffer, value: u32, flags: vk::CommandBufferUsageFlags| {
         begin(&ctx, cb, flags);
         // SAFETY: recording a valid fill.
         unsafe {
-            ctx.device.cmd_fill_buffer(cb, a.buffer, 0, 64, value);
+            ctx.device.cmd_fill_buffer(cb, buffer, 0, 64, value);
             ctx.device.end_command_buffer(cb).unwrap();
         }
     };
-    let check = |value: u32| {
+    let check = |a: &Buf, value: u32| {
         assert!(a.bytes().chunks(4).all(|w| w == value.to_le_bytes()), "buffer holds {value:#x}");
     };
     let p = pool(&ctx, vk::CommandPoolCreateFlags::RESET_COMMAND_BUFFER);
     let cb = allocate(&ctx, p, vk::CommandBufferLevel::PRIMARY, 1)[0];
     record_fill(cb, 1, vk::CommandBufferUsageFlags::empty());
     submit_wait(&ctx, ctx.queues[0], &[cb]);
-    check(1);
-    a.bytes().fill(0);
+    check(&a, 1);
+    a.bytes_mut().fill(0);
     submit_wait(&ctx, ctx.queues[1], &[cb]);
-    check(1);
+    check(&a, 1);
     // SAFETY: not pending; the pool allows resets.
     unsafe { ctx.device.reset_command_buffer(cb, vk::CommandBufferResetFlags::empty()) }.unwrap();
     record_fill(cb, 2, vk::CommandBufferUsageFlags::ONE_TIME_SUBMIT);
     submit_wait(&ctx, ctx.queues[0], &[cb]);
-    check(2);
+    check(&a, 2);
     // Invalid after its one submission: begin resets it implicitly.
     record_fill(cb, 3, vk::CommandBufferUsageFlags::empty());
     submit_wait(&ctx, ctx.queues[0], &[cb]);
-    check(3);
+    check(&a, 3);
 
     // A pool without RESET_COMMAND_BUFFER: reset through the pool.
     let p2 = pool(&ctx, vk::CommandPoolCreateFlags::TRANSIENT);
     let cbs = allocate(&ctx, p2, vk::CommandBufferLevel::PRIMARY, 3);
     record_fill(cbs[0], 4, vk::CommandBufferUsageFlags::ONE_TIME_SUBMIT);
     submit_wait(&ctx, ctx.queues[3], &cbs[..1]);
-    check(4);
+    check(&a, 4);
     // SAFETY: nothing pending.
     unsafe {
         ctx.device.reset_command_pool(p2, vk::CommandPoolResetFlags::RELEASE_RESOURCES).unwrap();
@@ -296,7 +302,7 @@ fn reset_and_rerecord() {
     record_fill(cbs[0], 5, vk::CommandBufferUsageFlags::ONE_TIME_SUBMIT);
     record_fill(cbs[1], 6, vk::CommandBufferUsageFlags::ONE_TIME_SUBMIT);
     submit_wait(&ctx, ctx.queues[3], &cbs[..2]);
-    check(6);
+    check(&a, 6);
     // SAFETY: nothing pending; the remaining buffers go with their pools.
     unsafe {
         ctx.device.free_command_buffers(p2, &cbs[..1]);
@@ -311,8 +317,8 @@ fn reset_and_rerecord() {
 #[test]
 fn simultaneous_use_on_two_queues() {
     let ctx = harness::context();
-    let a = Buf::new(&ctx, 64);
-    a.bytes().fill(0);
+    let mut a = Buf::new(&ctx, 64);
+    a.bytes_mut().fill(0);
     let p = pool(&ctx, vk::CommandPoolCreateFlags::empty());
     let cb = allocate(&ctx, p, vk::CommandBufferLevel::PRIMARY, 1)[0];
     // SAFETY: objects created here; destroyed after the device is idle.
@@ -342,10 +348,10 @@ fn simultaneous_use_on_two_queues() {
 #[test]
 fn a_failing_command_is_skipped_and_the_rest_runs() {
     let ctx = harness::Context::new(harness::Options { validation: false, ..Default::default() });
-    let a = Buf::new(&ctx, 256);
-    let b = Buf::new(&ctx, 256);
-    a.bytes().fill(0x99);
-    b.bytes().fill(0);
+    let mut a = Buf::new(&ctx, 256);
+    let mut b = Buf::new(&ctx, 256);
+    a.bytes_mut().fill(0x99);
+    b.bytes_mut().fill(0);
     let p = pool(&ctx, vk::CommandPoolCreateFlags::empty());
     let cb = allocate(&ctx, p, vk::CommandBufferLevel::PRIMARY, 1)[0];
     begin(&ctx, cb, vk::CommandBufferUsageFlags::empty());
@@ -410,8 +416,8 @@ fn strict_mode_child() {
 #[test]
 fn misuse_is_diagnosed() {
     let ctx = harness::Context::new(harness::Options { validation: false, ..Default::default() });
-    let b = Buf::new(&ctx, 64);
-    b.bytes().fill(0xAA);
+    let mut b = Buf::new(&ctx, 64);
+    b.bytes_mut().fill(0xAA);
     let p = pool(&ctx, vk::CommandPoolCreateFlags::empty());
     let cbs = allocate(&ctx, p, vk::CommandBufferLevel::PRIMARY, 2);
     let d = &ctx.device;

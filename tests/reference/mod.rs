@@ -509,6 +509,8 @@ pub fn slab_f64(o: [f64; 3], d: [f64; 3], b: &[f32; 6]) -> (f64, f64) {
 }
 
 /// The reference traversal of one BLAS for an object-space ray.
+// why: the ray in two precisions and the four attributes of the instance that reached the BLAS
+// (0 for a bare BLAS) are what a reference hit records; two private call sites.
 #[allow(clippy::too_many_arguments)]
 fn ref_blas(
     geometries: &[Geometry],
@@ -789,6 +791,8 @@ pub fn check_closest(lib: Option<&Hit>, r: &RefResult, flags: u32, tol: Toleranc
 }
 
 /// Runs closest_hit, any_hit and all_hits for one ray and compares each with the reference.
+// why: each argument is an independent input of the comparison (structure, view, scene, ray,
+// flags, mask, tolerance, label), and the many one-line call sites read best flat.
 #[allow(clippy::too_many_arguments)]
 pub fn compare_ray(structure: &[u8], view: &dyn DeviceView, scene: &RefScene, ray: &Ray, flags: u32, mask: u8, tol: Tolerance, ctx: &str) -> usize {
     let r = reference(scene, ray, flags, mask);
