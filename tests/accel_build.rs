@@ -6,6 +6,7 @@ mod reference;
 
 use arbor::accel::{self, AsType, BuildDesc, BuildError, BuildFlags, Geometry, GeometryData, GeometryFlags, GeometryShape, MapView, Ray, RayFlags};
 use arbor_scene::{self as scene, InstanceRecord, Mesh, Rng};
+use reference::brute_force::*;
 use reference::*;
 use std::collections::HashMap;
 

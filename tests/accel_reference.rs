@@ -6,6 +6,7 @@ mod reference;
 
 use arbor::accel::{self, Geometry, GeometryData, GeometryFlags, IndexType, Ray, VertexFormat};
 use arbor_scene::Rng;
+use reference::brute_force::*;
 use reference::*;
 use glam::Vec3;
 

@@ -7,6 +7,7 @@ mod reference;
 
 use arbor::accel::{self, AsType, BuildFlags, Geometry, GeometryData, GeometryFlags, IndexType, MapView, Ray, VertexFormat};
 use arbor_scene::{self as scene, InstanceRecord, Mesh, Rng};
+use reference::brute_force::*;
 use reference::*;
 use std::collections::HashMap;
 

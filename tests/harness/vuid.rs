@@ -1,6 +1,8 @@
-//! The scenario of the negative valid-usage tests (`tests/vuid_*.rs`, one per command family):
-//! one test per valid-usage check the driver implements for acceleration-structure builds,
-//! copies and property queries (DESIGN.md principle 7).
+//! The scenario of the negative valid-usage tests (`tests/vuid_*.rs`, one file per command
+//! family): one test per valid-usage check the driver implements for acceleration-structure
+//! builds, copies and property queries. Arbor reports each violation it can see, data in device
+//! memory included, with its VUID, skips the invalid command and writes nothing outside its
+//! destination and scratch.
 //!
 //! The validation layer is off: every input is invalid on purpose, in exactly one way. Each test
 //! checks that
