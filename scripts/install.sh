@@ -69,8 +69,11 @@ if [ "$uninstall" -eq 1 ]; then
 fi
 
 if [ "$build" -eq 1 ]; then
-  echo "Building the release driver: cargo build --release -p vulkan_arbor"
-  (cd "$root" && cargo build --release -p vulkan_arbor)
+  # The whole workspace, as scripts/test.sh builds it: `-p vulkan_arbor` alone does not compile
+  # while the library's ash dependency lacks the "debug" feature that another member enables, and
+  # building the same feature set as the tests keeps one libvulkan_arbor.so in target/release.
+  echo "Building the release driver: cargo build --release --workspace"
+  (cd "$root" && cargo build --release --workspace)
 fi
 
 # CARGO_TARGET_DIR moves target/ as it does for cargo (relative to the checkout, as cargo reads it there).
