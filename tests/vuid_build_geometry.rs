@@ -21,6 +21,7 @@ fn invalid_blas_build(a: &Accel, m: &Mesh, geoms: &[Geom], count: u32, vuid: &st
     );
 }
 
+/// `n` thin AABB records (24 bytes each) side by side over the unit square.
 fn boxes(n: usize) -> Vec<u8> {
     (0..n)
         .flat_map(|k| {
