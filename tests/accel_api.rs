@@ -1,15 +1,15 @@
 //! VK_KHR_acceleration_structure through the real loader with validation on: builds of every
 //! kind, copies, serialization, queries, deferred joins — checked against an independent
 //! brute-force intersection over the application's input and against each other.
-mod support;
+mod harness;
 
 use arbor::accel::{self, NoDevice, Ray, RayFlags};
 use ash::vk;
 use glam::Vec3;
-use support::accel::{instance_record, instances, payload, triangles, Accel};
+use harness::accel::{instance_record, instances, payload, triangles, Accel};
 
-fn as_context() -> support::Context {
-    support::Context::new(support::Options { acceleration_structure: true, ..Default::default() })
+fn as_context() -> harness::Context {
+    harness::Context::new(harness::Options { acceleration_structure: true, ..Default::default() })
 }
 
 fn bunny() -> arbor_scene::Mesh {
@@ -626,7 +626,7 @@ fn limits_and_size_queries_for_maximum_counts() {
 /// deviceAddress that cannot be honoured is refused with VK_ERROR_INVALID_OPAQUE_CAPTURE_ADDRESS.
 #[test]
 fn capture_replay_reproduces_structure_addresses() {
-    let usage = support::accel::ALL_USAGE;
+    let usage = harness::accel::ALL_USAGE;
     let flags = vk::MemoryAllocateFlags::DEVICE_ADDRESS | vk::MemoryAllocateFlags::DEVICE_ADDRESS_CAPTURE_REPLAY;
     let size = 1u64 << 20;
     // Returns (memory capture address, structure address, serialization of a build into it).

@@ -2,11 +2,12 @@
 //! round trips, degenerate inputs, errors, invalid structures — each checked against the
 //! brute-force reference rather than against numbers taken from the code under test.
 
-mod common;
+mod reference;
 
 use arbor::accel::{self, AsType, BuildDesc, BuildError, BuildFlags, Geometry, GeometryData, GeometryFlags, GeometryShape, MapView, Ray, RayFlags};
 use arbor_scene::{self as scene, InstanceRecord, Mesh, Rng};
-use common::*;
+use reference::brute_force::*;
+use reference::*;
 use std::collections::HashMap;
 
 const FAST_TRACE: u32 = BuildFlags::PREFER_FAST_TRACE;

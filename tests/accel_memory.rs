@@ -2,7 +2,7 @@
 //! triangles allocates far less than 8 bytes per primitive beyond the caller's dst/scratch.
 //! (Its own test binary: the allocator counts every allocation of the process.)
 
-mod common;
+mod reference;
 
 use arbor::accel::{self, AsType, BuildDesc, BuildFlags};
 use std::alloc::{GlobalAlloc, Layout, System};
@@ -78,10 +78,10 @@ fn update_and_tlas_build_allocate_o_threads() {
     use arbor_scene::InstanceRecord;
     let n = 1_000_000usize;
     let mesh = arbor_scene::random_soup(n, 2);
-    let data = common::TriData::from_mesh(&mesh, 0);
+    let data = reference::TriData::from_mesh(&mesh, 0);
     let geoms = [data.geometry()];
     let flags = BuildFlags(BuildFlags::ALLOW_UPDATE | BuildFlags::PREFER_FAST_TRACE);
-    let sizes = accel::build_sizes(AsType::BottomLevel, flags, &[common::shape_of(&geoms[0])], &[n as u32]);
+    let sizes = accel::build_sizes(AsType::BottomLevel, flags, &[reference::shape_of(&geoms[0])], &[n as u32]);
     let mut dst = vec![0u8; sizes.acceleration_structure_size as usize];
     let mut scratch = vec![0u8; sizes.build_scratch_size.max(sizes.update_scratch_size) as usize];
     let desc = BuildDesc { ty: AsType::BottomLevel, flags, geometries: &geoms };
@@ -95,8 +95,8 @@ fn update_and_tlas_build_allocate_o_threads() {
     // TLAS of 200k instances.
     let m = 200_000usize;
     let small = arbor_scene::random_soup(100, 3);
-    let sd = common::TriData::from_mesh(&small, 0);
-    let blas = common::build_blas(0, &[sd.geometry()]);
+    let sd = reference::TriData::from_mesh(&small, 0);
+    let blas = reference::build_blas(0, &[sd.geometry()]);
     let mut view = MapView::new();
     view.insert(0x1000_0000, blas.bytes);
     let packed = InstanceRecord::pack(&arbor_scene::instance_records(m, &[0x1000_0000], 4));
@@ -115,10 +115,10 @@ fn update_and_tlas_build_allocate_o_threads() {
 fn build_of_one_million_triangles_allocates_o_threads() {
     let n = 1_000_000usize;
     let mesh = arbor_scene::random_soup(n, 1);
-    let data = common::TriData::from_mesh(&mesh, 0);
+    let data = reference::TriData::from_mesh(&mesh, 0);
     let geoms = [data.geometry()];
     for (threads, tier) in [(1, BuildFlags::PREFER_FAST_TRACE), (2, BuildFlags::PREFER_FAST_TRACE), (2, BuildFlags::PREFER_FAST_BUILD), (8, 0)] {
-        let sizes = accel::build_sizes(AsType::BottomLevel, BuildFlags(tier), &[common::shape_of(&geoms[0])], &[n as u32]);
+        let sizes = accel::build_sizes(AsType::BottomLevel, BuildFlags(tier), &[reference::shape_of(&geoms[0])], &[n as u32]);
         let mut dst = vec![0u8; sizes.acceleration_structure_size as usize];
         let mut scratch = vec![0u8; sizes.build_scratch_size as usize];
         let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();

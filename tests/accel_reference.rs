@@ -2,11 +2,12 @@
 //! `intersect_triangle` against an independent double-precision test, and `fetch_triangle` /
 //! `fetch_aabb` against our own vertex-format decoders and the inactive-primitive rules.
 
-mod common;
+mod reference;
 
 use arbor::accel::{self, Geometry, GeometryData, GeometryFlags, IndexType, Ray, VertexFormat};
 use arbor_scene::Rng;
-use common::*;
+use reference::brute_force::*;
+use reference::*;
 use glam::Vec3;
 
 fn rv(rng: &mut Rng, s: f32) -> Vec3 {

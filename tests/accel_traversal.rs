@@ -3,11 +3,12 @@
 //! for triangles and AABBs, several geometries, index types, vertex formats, two-level
 //! structures with instance transforms/masks/flags, and every ray/instance flag combination.
 
-mod common;
+mod reference;
 
 use arbor::accel::{self, AsType, BuildFlags, Geometry, GeometryData, GeometryFlags, IndexType, MapView, Ray, VertexFormat};
 use arbor_scene::{self as scene, InstanceRecord, Mesh, Rng};
-use common::*;
+use reference::brute_force::*;
+use reference::*;
 use std::collections::HashMap;
 
 const FAST_TRACE: u32 = BuildFlags::PREFER_FAST_TRACE;

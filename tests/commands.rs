@@ -1,7 +1,7 @@
 //! Command buffers through the real loader with validation on: transfer commands verified byte
 //! for byte (including ordering inside one command buffer), secondary command buffers,
 //! reset/re-record, ONE_TIME_SUBMIT and SIMULTANEOUS_USE.
-mod support;
+mod harness;
 
 use ash::vk;
 
@@ -15,17 +15,22 @@ struct Buf {
 }
 
 impl Buf {
-    fn new(ctx: &support::Context, size: usize) -> Buf {
+    fn new(ctx: &harness::Context, size: usize) -> Buf {
         let (buffer, memory, ptr) = ctx.host_buffer(size as u64, USAGE);
         Buf { buffer, memory, ptr, size }
     }
 
-    fn bytes(&self) -> &mut [u8] {
+    fn bytes(&self) -> &[u8] {
         // SAFETY: the mapping covers the whole buffer; tests touch it only while the queue is idle.
+        unsafe { std::slice::from_raw_parts(self.ptr, self.size) }
+    }
+
+    fn bytes_mut(&mut self) -> &mut [u8] {
+        // SAFETY: as for `bytes`; `&mut self` keeps this the only view the test holds.
         unsafe { std::slice::from_raw_parts_mut(self.ptr, self.size) }
     }
 
-    fn destroy(self, ctx: &support::Context) {
+    fn destroy(self, ctx: &harness::Context) {
         // SAFETY: the device is idle; destroyed once.
         unsafe {
             ctx.device.destroy_buffer(self.buffer, None);
@@ -34,24 +39,24 @@ impl Buf {
     }
 }
 
-fn pool(ctx: &support::Context, flags: vk::CommandPoolCreateFlags) -> vk::CommandPool {
+fn pool(ctx: &harness::Context, flags: vk::CommandPoolCreateFlags) -> vk::CommandPool {
     // SAFETY: valid create info.
     unsafe { ctx.device.create_command_pool(&vk::CommandPoolCreateInfo::default().queue_family_index(0).flags(flags), None) }.unwrap()
 }
 
-fn allocate(ctx: &support::Context, pool: vk::CommandPool, level: vk::CommandBufferLevel, n: u32) -> Vec<vk::CommandBuffer> {
+fn allocate(ctx: &harness::Context, pool: vk::CommandPool, level: vk::CommandBufferLevel, n: u32) -> Vec<vk::CommandBuffer> {
     let info = vk::CommandBufferAllocateInfo::default().command_pool(pool).level(level).command_buffer_count(n);
     // SAFETY: valid allocate info.
     unsafe { ctx.device.allocate_command_buffers(&info) }.unwrap()
 }
 
-fn begin(ctx: &support::Context, cb: vk::CommandBuffer, flags: vk::CommandBufferUsageFlags) {
+fn begin(ctx: &harness::Context, cb: vk::CommandBuffer, flags: vk::CommandBufferUsageFlags) {
     // SAFETY: cb may be begun (initial state, or its pool allows implicit reset).
     unsafe { ctx.device.begin_command_buffer(cb, &vk::CommandBufferBeginInfo::default().flags(flags)) }.unwrap();
 }
 
 /// Submit and wait with a fresh fence.
-fn submit_wait(ctx: &support::Context, queue: vk::Queue, cbs: &[vk::CommandBuffer]) {
+fn submit_wait(ctx: &harness::Context, queue: vk::Queue, cbs: &[vk::CommandBuffer]) {
     // SAFETY: valid submission of executable command buffers; the fence is destroyed after it signalled.
     unsafe {
         let f = ctx.device.create_fence(&vk::FenceCreateInfo::default(), None).unwrap();
@@ -61,7 +66,7 @@ fn submit_wait(ctx: &support::Context, queue: vk::Queue, cbs: &[vk::CommandBuffe
     }
 }
 
-fn transfer_barrier(ctx: &support::Context, cb: vk::CommandBuffer) {
+fn transfer_barrier(ctx: &harness::Context, cb: vk::CommandBuffer) {
     let mb = [vk::MemoryBarrier::default().src_access_mask(vk::AccessFlags::TRANSFER_WRITE).dst_access_mask(vk::AccessFlags::TRANSFER_READ | vk::AccessFlags::TRANSFER_WRITE)];
     // SAFETY: recording command buffer.
     unsafe { ctx.device.cmd_pipeline_barrier(cb, vk::PipelineStageFlags::TRANSFER, vk::PipelineStageFlags::TRANSFER, vk::DependencyFlags::empty(), &mb, &[], &[]) };
@@ -73,11 +78,11 @@ fn pattern(n: usize, seed: u8) -> Vec<u8> {
 
 #[test]
 fn copy_fill_update_byte_for_byte() {
-    let ctx = support::context();
-    let a = Buf::new(&ctx, 4096);
-    let b = Buf::new(&ctx, 1034);
-    a.bytes().copy_from_slice(&pattern(4096, 7));
-    b.bytes().fill(0xEE);
+    let ctx = harness::context();
+    let mut a = Buf::new(&ctx, 4096);
+    let mut b = Buf::new(&ctx, 1034);
+    a.bytes_mut().copy_from_slice(&pattern(4096, 7));
+    b.bytes_mut().fill(0xEE);
     let p = pool(&ctx, vk::CommandPoolCreateFlags::empty());
     let cb = allocate(&ctx, p, vk::CommandBufferLevel::PRIMARY, 1)[0];
     let update: Vec<u8> = (100..116).collect();
@@ -122,11 +127,11 @@ fn copy_fill_update_byte_for_byte() {
 /// fill → copy → copy), and submissions see earlier submissions.
 #[test]
 fn later_commands_see_earlier_writes() {
-    let ctx = support::context();
-    let a = Buf::new(&ctx, 1024);
-    let b = Buf::new(&ctx, 1024);
-    a.bytes().fill(0);
-    b.bytes().fill(0);
+    let ctx = harness::context();
+    let mut a = Buf::new(&ctx, 1024);
+    let mut b = Buf::new(&ctx, 1024);
+    a.bytes_mut().fill(0);
+    b.bytes_mut().fill(0);
     let p = pool(&ctx, vk::CommandPoolCreateFlags::TRANSIENT);
     let cbs = allocate(&ctx, p, vk::CommandBufferLevel::PRIMARY, 2);
     let data: Vec<u8> = (1..=64).collect();
@@ -163,14 +168,14 @@ fn later_commands_see_earlier_writes() {
 
 #[test]
 fn copy_buffer2_and_large_copies() {
-    let ctx = support::context();
+    let ctx = harness::context();
     let copy2 = ash::khr::copy_commands2::Device::new(&ctx.instance, &ctx.device);
     let n = 9 << 20; // larger than the executor's staging chunk
-    let a = Buf::new(&ctx, n);
-    let b = Buf::new(&ctx, n);
+    let mut a = Buf::new(&ctx, n);
+    let mut b = Buf::new(&ctx, n);
     let src = pattern(n, 3);
-    a.bytes().copy_from_slice(&src);
-    b.bytes().fill(0);
+    a.bytes_mut().copy_from_slice(&src);
+    b.bytes_mut().fill(0);
     let p = pool(&ctx, vk::CommandPoolCreateFlags::empty());
     let cb = allocate(&ctx, p, vk::CommandBufferLevel::PRIMARY, 1)[0];
     begin(&ctx, cb, vk::CommandBufferUsageFlags::empty());
@@ -191,9 +196,9 @@ fn copy_buffer2_and_large_copies() {
 
 #[test]
 fn secondary_command_buffers_execute_inline() {
-    let ctx = support::context();
-    let a = Buf::new(&ctx, 256);
-    a.bytes().fill(0);
+    let ctx = harness::context();
+    let mut a = Buf::new(&ctx, 256);
+    a.bytes_mut().fill(0);
     let p = pool(&ctx, vk::CommandPoolCreateFlags::RESET_COMMAND_BUFFER);
     let primary = allocate(&ctx, p, vk::CommandBufferLevel::PRIMARY, 1)[0];
     let secondaries = allocate(&ctx, p, vk::CommandBufferLevel::SECONDARY, 2);
@@ -251,43 +256,44 @@ fn secondary_command_buffers_execute_inline() {
 /// vkResetCommandPool, ONE_TIME_SUBMIT recordings re-recorded, trim, free.
 #[test]
 fn reset_and_rerecord() {
-    let ctx = support::context();
-    let a = Buf::new(&ctx, 64);
+    let ctx = harness::context();
+    let mut a = Buf::new(&ctx, 64);
+    let buffer = a.buffer;
     let record_fill = |cb: vk::CommandBuffer, value: u32, flags: vk::CommandBufferUsageFlags| {
         begin(&ctx, cb, flags);
         // SAFETY: recording a valid fill.
         unsafe {
-            ctx.device.cmd_fill_buffer(cb, a.buffer, 0, 64, value);
+            ctx.device.cmd_fill_buffer(cb, buffer, 0, 64, value);
             ctx.device.end_command_buffer(cb).unwrap();
         }
     };
-    let check = |value: u32| {
+    let check = |a: &Buf, value: u32| {
         assert!(a.bytes().chunks(4).all(|w| w == value.to_le_bytes()), "buffer holds {value:#x}");
     };
     let p = pool(&ctx, vk::CommandPoolCreateFlags::RESET_COMMAND_BUFFER);
     let cb = allocate(&ctx, p, vk::CommandBufferLevel::PRIMARY, 1)[0];
     record_fill(cb, 1, vk::CommandBufferUsageFlags::empty());
     submit_wait(&ctx, ctx.queues[0], &[cb]);
-    check(1);
-    a.bytes().fill(0);
+    check(&a, 1);
+    a.bytes_mut().fill(0);
     submit_wait(&ctx, ctx.queues[1], &[cb]);
-    check(1);
+    check(&a, 1);
     // SAFETY: not pending; the pool allows resets.
     unsafe { ctx.device.reset_command_buffer(cb, vk::CommandBufferResetFlags::empty()) }.unwrap();
     record_fill(cb, 2, vk::CommandBufferUsageFlags::ONE_TIME_SUBMIT);
     submit_wait(&ctx, ctx.queues[0], &[cb]);
-    check(2);
+    check(&a, 2);
     // Invalid after its one submission: begin resets it implicitly.
     record_fill(cb, 3, vk::CommandBufferUsageFlags::empty());
     submit_wait(&ctx, ctx.queues[0], &[cb]);
-    check(3);
+    check(&a, 3);
 
     // A pool without RESET_COMMAND_BUFFER: reset through the pool.
     let p2 = pool(&ctx, vk::CommandPoolCreateFlags::TRANSIENT);
     let cbs = allocate(&ctx, p2, vk::CommandBufferLevel::PRIMARY, 3);
     record_fill(cbs[0], 4, vk::CommandBufferUsageFlags::ONE_TIME_SUBMIT);
     submit_wait(&ctx, ctx.queues[3], &cbs[..1]);
-    check(4);
+    check(&a, 4);
     // SAFETY: nothing pending.
     unsafe {
         ctx.device.reset_command_pool(p2, vk::CommandPoolResetFlags::RELEASE_RESOURCES).unwrap();
@@ -296,7 +302,7 @@ fn reset_and_rerecord() {
     record_fill(cbs[0], 5, vk::CommandBufferUsageFlags::ONE_TIME_SUBMIT);
     record_fill(cbs[1], 6, vk::CommandBufferUsageFlags::ONE_TIME_SUBMIT);
     submit_wait(&ctx, ctx.queues[3], &cbs[..2]);
-    check(6);
+    check(&a, 6);
     // SAFETY: nothing pending; the remaining buffers go with their pools.
     unsafe {
         ctx.device.free_command_buffers(p2, &cbs[..1]);
@@ -310,9 +316,9 @@ fn reset_and_rerecord() {
 /// SIMULTANEOUS_USE: one recording pending on two queues at once (held by an event).
 #[test]
 fn simultaneous_use_on_two_queues() {
-    let ctx = support::context();
-    let a = Buf::new(&ctx, 64);
-    a.bytes().fill(0);
+    let ctx = harness::context();
+    let mut a = Buf::new(&ctx, 64);
+    a.bytes_mut().fill(0);
     let p = pool(&ctx, vk::CommandPoolCreateFlags::empty());
     let cb = allocate(&ctx, p, vk::CommandBufferLevel::PRIMARY, 1)[0];
     // SAFETY: objects created here; destroyed after the device is idle.
@@ -341,11 +347,11 @@ fn simultaneous_use_on_two_queues() {
 /// usage, so without the validation layer.
 #[test]
 fn a_failing_command_is_skipped_and_the_rest_runs() {
-    let ctx = support::Context::new(support::Options { validation: false, ..Default::default() });
-    let a = Buf::new(&ctx, 256);
-    let b = Buf::new(&ctx, 256);
-    a.bytes().fill(0x99);
-    b.bytes().fill(0);
+    let ctx = harness::Context::new(harness::Options { validation: false, ..Default::default() });
+    let mut a = Buf::new(&ctx, 256);
+    let mut b = Buf::new(&ctx, 256);
+    a.bytes_mut().fill(0x99);
+    b.bytes_mut().fill(0);
     let p = pool(&ctx, vk::CommandPoolCreateFlags::empty());
     let cb = allocate(&ctx, p, vk::CommandBufferLevel::PRIMARY, 1)[0];
     begin(&ctx, cb, vk::CommandBufferUsageFlags::empty());
@@ -359,7 +365,7 @@ fn a_failing_command_is_skipped_and_the_rest_runs() {
     submit_wait(&ctx, ctx.queues[0], &[cb]);
     assert!(b.bytes()[..128].iter().all(|x| *x == 0), "the failed copy wrote nothing");
     assert!(b.bytes()[128..].iter().all(|x| *x == 0x22), "the fill after it ran");
-    assert!(support::diagnostics().contains("vkCmdCopyBuffer: device-memory access refused: the memory was freed"), "reported");
+    assert!(harness::diagnostics().contains("vkCmdCopyBuffer: device-memory access refused: the memory was freed"), "reported");
     // SAFETY: the device is idle.
     unsafe { ctx.device.destroy_command_pool(p, None) };
     b.destroy(&ctx);
@@ -383,7 +389,7 @@ fn strict_mode_loses_the_device() {
 #[test]
 #[ignore = "run by strict_mode_loses_the_device with ARBOR_STRICT=1"]
 fn strict_mode_child() {
-    let ctx = support::Context::new(support::Options { validation: false, ..Default::default() });
+    let ctx = harness::Context::new(harness::Options { validation: false, ..Default::default() });
     let b = Buf::new(&ctx, 64);
     let p = pool(&ctx, vk::CommandPoolCreateFlags::empty());
     let cb = allocate(&ctx, p, vk::CommandBufferLevel::PRIMARY, 1)[0];
@@ -409,9 +415,9 @@ fn strict_mode_child() {
 /// not recorded (guard bytes stay), the process goes on. Without the validation layer.
 #[test]
 fn misuse_is_diagnosed() {
-    let ctx = support::Context::new(support::Options { validation: false, ..Default::default() });
-    let b = Buf::new(&ctx, 64);
-    b.bytes().fill(0xAA);
+    let ctx = harness::Context::new(harness::Options { validation: false, ..Default::default() });
+    let mut b = Buf::new(&ctx, 64);
+    b.bytes_mut().fill(0xAA);
     let p = pool(&ctx, vk::CommandPoolCreateFlags::empty());
     let cbs = allocate(&ctx, p, vk::CommandBufferLevel::PRIMARY, 2);
     let d = &ctx.device;
@@ -451,7 +457,7 @@ fn misuse_is_diagnosed() {
         d.destroy_command_pool(p, None);
     }
     assert!(b.bytes().iter().all(|x| *x == 0xAA), "no invalid command was executed");
-    let log = support::diagnostics();
+    let log = harness::diagnostics();
     for vuid in [
         "VUID-vkQueueSubmit-pCommandBuffers-00070",
         "VUID-vkCmdFillBuffer-dstOffset-00025",

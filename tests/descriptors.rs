@@ -2,7 +2,7 @@
 //! loader with validation on. What a set stores is not observable through the API without
 //! shaders; `runtime::descriptor`'s unit tests read it back. Here: every command's results and
 //! return codes, pool exhaustion, and Arbor's own diagnostics for invalid updates.
-mod support;
+mod harness;
 
 use std::ffi::CString;
 
@@ -29,7 +29,7 @@ fn basic_layout(device: &ash::Device) -> vk::DescriptorSetLayout {
 
 #[test]
 fn pools_allocate_until_out_of_pool_memory() {
-    let ctx = support::context();
+    let ctx = harness::context();
     let d = &ctx.device;
     // SAFETY: valid create infos; everything destroyed below.
     unsafe {
@@ -89,7 +89,7 @@ fn pools_allocate_until_out_of_pool_memory() {
 
 #[test]
 fn writes_copies_and_templates() {
-    let ctx = support::context();
+    let ctx = harness::context();
     let d = &ctx.device;
     let (storage, storage_mem, _) = ctx.host_buffer(4096, vk::BufferUsageFlags::STORAGE_BUFFER | vk::BufferUsageFlags::UNIFORM_BUFFER);
     // SAFETY: valid create infos and updates; everything destroyed below.
@@ -167,14 +167,14 @@ fn writes_copies_and_templates() {
         d.free_memory(storage_mem, None);
     }
     ctx.finish();
-    let diag = support::diagnostics();
+    let diag = harness::diagnostics();
     for cmd in ["vkUpdateDescriptorSetWithTemplate", "vkCreateDescriptorUpdateTemplate", "vkCreatePipelineLayout"] {
         assert!(!diag.contains(cmd), "Arbor reported a problem with {cmd}:\n{diag}");
     }
 }
 
 /// A device with VK_EXT_descriptor_indexing and the features Arbor offers for it.
-fn indexing_device(ctx: &support::Context) -> ash::Device {
+fn indexing_device(ctx: &harness::Context) -> ash::Device {
     let exts: Vec<CString> = ["VK_KHR_maintenance3", "VK_EXT_descriptor_indexing"].iter().map(|e| CString::new(*e).unwrap()).collect();
     let ext_p: Vec<*const i8> = exts.iter().map(|c| c.as_ptr()).collect();
     let prio = [1.0f32];
@@ -193,7 +193,7 @@ fn indexing_device(ctx: &support::Context) -> ash::Device {
 
 #[test]
 fn binding_flags_update_after_bind_and_variable_counts() {
-    let ctx = support::context();
+    let ctx = harness::context();
     let d = indexing_device(&ctx);
     // SAFETY: valid create infos; everything destroyed below, the device last.
     unsafe {
@@ -261,7 +261,7 @@ fn binding_flags_update_after_bind_and_variable_counts() {
 /// skip them; nothing crashes.
 #[test]
 fn invalid_updates_are_reported() {
-    let ctx = support::Context::new(support::Options { validation: false, ..Default::default() });
+    let ctx = harness::Context::new(harness::Options { validation: false, ..Default::default() });
     let d = &ctx.device;
     // SAFETY: deliberately invalid usage that Arbor must survive; objects destroyed below.
     unsafe {
@@ -296,7 +296,7 @@ fn invalid_updates_are_reported() {
         d.free_memory(mem, None);
     }
     ctx.finish();
-    let diag = support::diagnostics();
+    let diag = harness::diagnostics();
     for vuid in [
         "VUID-VkWriteDescriptorSet-descriptorType-00331",
         "VUID-VkWriteDescriptorSet-descriptorType-00319",
@@ -311,7 +311,7 @@ fn invalid_updates_are_reported() {
 /// directly and through a template.
 #[test]
 fn acceleration_structure_descriptors() {
-    let ctx = support::Context::new(support::Options { acceleration_structure: true, ..Default::default() });
+    let ctx = harness::Context::new(harness::Options { acceleration_structure: true, ..Default::default() });
     let d = &ctx.device;
     let as_fns = ash::khr::acceleration_structure::Device::new(&ctx.instance, d);
     let (buffer, mem, _) = ctx.host_buffer(
@@ -369,6 +369,6 @@ fn acceleration_structure_descriptors() {
         d.free_memory(mem, None);
     }
     ctx.finish();
-    let diag = support::diagnostics();
+    let diag = harness::diagnostics();
     assert!(!diag.contains("VkWriteDescriptorSetAccelerationStructureKHR") && !diag.contains("descriptorType-02382"), "{diag}");
 }

@@ -1,11 +1,11 @@
 //! Instance, physical device and device through the real loader with validation on.
-mod support;
+mod harness;
 
 use ash::vk;
 
 #[test]
 fn device_properties_through_loader() {
-    let ctx = support::context();
+    let ctx = harness::context();
     // SAFETY: plain queries on live objects.
     unsafe {
         let p = ctx.instance.get_physical_device_properties(ctx.physical);
@@ -35,7 +35,7 @@ fn device_properties_through_loader() {
 #[test]
 fn stable_uuids_across_instances() {
     let read = || {
-        let ctx = support::context();
+        let ctx = harness::context();
         let mut id = vk::PhysicalDeviceIDProperties::default();
         let mut p2 = vk::PhysicalDeviceProperties2::default().push_next(&mut id);
         // SAFETY: plain query.

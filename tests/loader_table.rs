@@ -2,7 +2,7 @@
 //! resolves, both through the real loader (vkGetInstanceProcAddr / vkGetDeviceProcAddr) and in
 //! the driver's own table (vk_icdGetInstanceProcAddr on libvulkan_arbor.so opened directly).
 //! vk.xml is parsed here independently of tools/gen_registry.py.
-mod support;
+mod harness;
 
 use std::collections::BTreeSet;
 use std::ffi::{c_char, CString};
@@ -120,19 +120,19 @@ fn names(props: &[vk::ExtensionProperties]) -> Vec<String> {
 
 #[test]
 fn every_advertised_command_resolves_through_the_loader() {
-    support::use_arbor_manifest();
+    harness::use_arbor_manifest();
     // Enable every device extension Arbor advertises.
-    let probe = support::context();
+    let probe = harness::context();
     // SAFETY: plain queries.
     let dev_exts = names(&unsafe { probe.instance.enumerate_device_extension_properties(probe.physical) }.unwrap());
     let props = unsafe { probe.instance.get_physical_device_properties(probe.physical) };
     probe.finish();
-    let opts = support::Options {
+    let opts = harness::Options {
         device_extensions: dev_exts.iter().map(|s| &*Box::leak(s.clone().into_boxed_str())).collect(),
         instance_extensions: vec!["VK_KHR_get_physical_device_properties2"],
         ..Default::default()
     };
-    let ctx = support::Context::new(opts);
+    let ctx = harness::Context::new(opts);
     // Instance extensions: Arbor's own list (enumerated without layers through the loader would include the loader's).
     let inst_exts = vec!["VK_KHR_get_physical_device_properties2".to_string()];
     let req = required(&inst_exts, &dev_exts, vk::api_version_minor(props.api_version));
@@ -160,7 +160,7 @@ type Gipa = unsafe extern "system" fn(vk::Instance, *const c_char) -> vk::PFN_vk
 
 #[test]
 fn driver_table_has_every_command_and_gates_device_extensions() {
-    let lib_path = support::driver_library();
+    let lib_path = harness::driver_library();
     // SAFETY: loading our own driver library; its initialisers are trivial.
     let lib = unsafe { libloading::Library::new(&lib_path) }.unwrap();
     // SAFETY: the exported symbol has this signature (vk_icd.h).

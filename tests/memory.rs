@@ -1,6 +1,6 @@
 //! Device memory and buffers through the real loader with validation on: allocation, device
 //! addresses, capture/replay, mapping, flush/invalidate, out-of-memory, requirements.
-mod support;
+mod harness;
 
 use ash::vk;
 
@@ -8,13 +8,13 @@ const STORAGE_ADDR: vk::BufferUsageFlags = vk::BufferUsageFlags::from_raw(
     vk::BufferUsageFlags::STORAGE_BUFFER.as_raw() | vk::BufferUsageFlags::SHADER_DEVICE_ADDRESS.as_raw(),
 );
 
-fn bda(ctx: &support::Context) -> ash::khr::buffer_device_address::Device {
+fn bda(ctx: &harness::Context) -> ash::khr::buffer_device_address::Device {
     ash::khr::buffer_device_address::Device::new(&ctx.instance, &ctx.device)
 }
 
 #[test]
 fn device_addresses_distinct_aligned_stable() {
-    let ctx = support::context();
+    let ctx = harness::context();
     let bda = bda(&ctx);
     let mut made = Vec::new();
     let mut addrs = Vec::new();
@@ -50,7 +50,7 @@ fn device_addresses_distinct_aligned_stable() {
 
 #[test]
 fn two_buffers_in_one_allocation() {
-    let ctx = support::context();
+    let ctx = harness::context();
     let bda = bda(&ctx);
     // SAFETY: valid create infos; everything destroyed below.
     unsafe {
@@ -84,7 +84,7 @@ fn two_buffers_in_one_allocation() {
 
 #[test]
 fn memory_requirements() {
-    let ctx = support::context();
+    let ctx = harness::context();
     // SAFETY: valid create infos; everything destroyed below.
     unsafe {
         for (size, usage) in [
@@ -129,7 +129,7 @@ fn memory_requirements() {
 
 #[test]
 fn map_write_read_back_flush_invalidate() {
-    let ctx = support::context();
+    let ctx = harness::context();
     let (b, m, p) = ctx.host_buffer(8192, vk::BufferUsageFlags::STORAGE_BUFFER);
     assert_eq!(p as usize % 64, 0, "minMemoryMapAlignment");
     // SAFETY: the mapping covers 8192 bytes; objects destroyed below.
@@ -162,7 +162,7 @@ fn map_write_read_back_flush_invalidate() {
 
 #[test]
 fn new_memory_is_zeroed() {
-    let ctx = support::context();
+    let ctx = harness::context();
     let (b, m, p) = ctx.host_buffer(1 << 16, vk::BufferUsageFlags::STORAGE_BUFFER);
     // SAFETY: mapping covers the buffer; objects destroyed below.
     unsafe {
@@ -175,7 +175,7 @@ fn new_memory_is_zeroed() {
 
 #[test]
 fn out_of_device_memory_and_recovery() {
-    let ctx = support::context();
+    let ctx = harness::context();
     // SAFETY: valid allocate infos; memory freed below.
     unsafe {
         let heap = ctx.instance.get_physical_device_memory_properties(ctx.physical).memory_heaps[0].size;
@@ -204,7 +204,7 @@ fn capture_replay_reproduces_buffer_address() {
     let size = 3 * 4096u64;
 
     // Capture: a few ordinary allocations first, then the captured buffer at offset 512.
-    let ctx = support::context();
+    let ctx = harness::context();
     let bda1 = bda(&ctx);
     let (buffer_address, memory_address) = {
         // SAFETY: valid create infos; everything destroyed below.
@@ -242,7 +242,7 @@ fn capture_replay_reproduces_buffer_address() {
 
     // Replay on a second device: other allocations happen in a different order, the captured
     // memory address is requested explicitly, and the buffer lands where it was.
-    let ctx = support::context();
+    let ctx = harness::context();
     let bda2 = bda(&ctx);
     // SAFETY: valid create infos; everything destroyed below.
     unsafe {
@@ -287,7 +287,7 @@ fn capture_replay_reproduces_buffer_address() {
 
 #[test]
 fn khr_aliases_resolve_to_the_same_commands() {
-    let ctx = support::context();
+    let ctx = harness::context();
     // SAFETY: plain lookups.
     unsafe {
         for name in [c"vkGetBufferDeviceAddressKHR", c"vkGetBufferOpaqueCaptureAddressKHR", c"vkGetDeviceMemoryOpaqueCaptureAddressKHR"] {
@@ -301,7 +301,7 @@ fn khr_aliases_resolve_to_the_same_commands() {
 /// return errors; the process survives.
 #[test]
 fn invalid_usage_is_reported() {
-    let ctx = support::Context::new(support::Options { validation: false, ..Default::default() });
+    let ctx = harness::Context::new(harness::Options { validation: false, ..Default::default() });
     let d = &ctx.device;
     let bda = bda(&ctx);
     const FAILED: Option<vk::Result> = Some(vk::Result::ERROR_VALIDATION_FAILED_EXT);
@@ -341,7 +341,7 @@ fn invalid_usage_is_reported() {
         d.free_memory(m, None);
     }
     ctx.finish();
-    let diag = support::diagnostics();
+    let diag = harness::diagnostics();
     for vuid in [
         "VUID-vkAllocateMemory-pAllocateInfo-01713",
         "VUID-vkGetDeviceMemoryCommitment-memory-00690",

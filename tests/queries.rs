@@ -1,17 +1,17 @@
 //! Timestamp query pools through the real loader with validation on: timestamps in order,
 //! vkGetQueryPoolResults with every flag combination, vkCmdCopyQueryPoolResults, host reset.
-mod support;
+mod harness;
 
 use ash::vk;
 use ash::vk::Handle;
 
-fn timestamp_pool(ctx: &support::Context, count: u32) -> vk::QueryPool {
+fn timestamp_pool(ctx: &harness::Context, count: u32) -> vk::QueryPool {
     let info = vk::QueryPoolCreateInfo::default().query_type(vk::QueryType::TIMESTAMP).query_count(count);
     // SAFETY: valid create info.
     unsafe { ctx.device.create_query_pool(&info, None) }.unwrap()
 }
 
-fn host_reset(ctx: &support::Context) -> vk::PFN_vkResetQueryPool {
+fn host_reset(ctx: &harness::Context) -> vk::PFN_vkResetQueryPool {
     // SAFETY: VK_EXT_host_query_reset is enabled by the harness; the name resolves to vkResetQueryPool's type.
     unsafe {
         let f = ctx.instance.get_device_proc_addr(ctx.device.handle(), c"vkResetQueryPoolEXT".as_ptr()).expect("vkResetQueryPoolEXT");
@@ -19,7 +19,7 @@ fn host_reset(ctx: &support::Context) -> vk::PFN_vkResetQueryPool {
     }
 }
 
-fn one_command_buffer(ctx: &support::Context) -> (vk::CommandPool, vk::CommandBuffer) {
+fn one_command_buffer(ctx: &harness::Context) -> (vk::CommandPool, vk::CommandBuffer) {
     // SAFETY: valid create/allocate infos.
     unsafe {
         let pool = ctx
@@ -31,7 +31,7 @@ fn one_command_buffer(ctx: &support::Context) -> (vk::CommandPool, vk::CommandBu
     }
 }
 
-fn submit_wait(ctx: &support::Context, cb: vk::CommandBuffer) {
+fn submit_wait(ctx: &harness::Context, cb: vk::CommandBuffer) {
     // SAFETY: valid submission; the fence is destroyed after it signalled.
     unsafe {
         let f = ctx.device.create_fence(&vk::FenceCreateInfo::default(), None).unwrap();
@@ -43,7 +43,7 @@ fn submit_wait(ctx: &support::Context, cb: vk::CommandBuffer) {
 }
 
 /// Raw vkGetQueryPoolResults with an explicit stride.
-fn raw_results(ctx: &support::Context, pool: vk::QueryPool, first: u32, count: u32, out: &mut [u8], stride: u64, flags: vk::QueryResultFlags) -> vk::Result {
+fn raw_results(ctx: &harness::Context, pool: vk::QueryPool, first: u32, count: u32, out: &mut [u8], stride: u64, flags: vk::QueryResultFlags) -> vk::Result {
     // SAFETY: `out` is valid for out.len() bytes.
     unsafe { (ctx.device.fp_v1_0().get_query_pool_results)(ctx.device.handle(), pool, first, count, out.len(), out.as_mut_ptr().cast(), stride, flags) }
 }
@@ -58,7 +58,7 @@ fn u32_at(b: &[u8], at: usize) -> u32 {
 
 #[test]
 fn timestamps_increase_within_and_across_submissions() {
-    let ctx = support::context();
+    let ctx = harness::context();
     let sync2 = ash::khr::synchronization2::Device::new(&ctx.instance, &ctx.device);
     let qp = timestamp_pool(&ctx, 6);
     let (pool, cb) = one_command_buffer(&ctx);
@@ -99,7 +99,7 @@ fn timestamps_increase_within_and_across_submissions() {
 
 #[test]
 fn query_results_with_every_flag_combination() {
-    let ctx = support::context();
+    let ctx = harness::context();
     let reset = host_reset(&ctx);
     let qp = timestamp_pool(&ctx, 4);
     let d = &ctx.device;
@@ -174,7 +174,7 @@ fn query_results_with_every_flag_combination() {
 /// WAIT blocks until the queue writes the query (the queue is held by an event).
 #[test]
 fn wait_flag_blocks_until_the_query_is_written() {
-    let ctx = support::context();
+    let ctx = harness::context();
     let reset = host_reset(&ctx);
     let qp = timestamp_pool(&ctx, 1);
     let d = &ctx.device;
@@ -212,7 +212,7 @@ fn wait_flag_blocks_until_the_query_is_written() {
 
 #[test]
 fn copy_query_pool_results_into_a_buffer() {
-    let ctx = support::context();
+    let ctx = harness::context();
     let qp = timestamp_pool(&ctx, 3);
     let d = &ctx.device;
     let (buffer, memory, ptr) = ctx.host_buffer(256, vk::BufferUsageFlags::TRANSFER_DST);

@@ -1,13 +1,13 @@
 //! Fences, events, binary and timeline semaphores, queue submission from several threads and
 //! idle waits, through the real loader with validation on.
-mod support;
+mod harness;
 
 use std::sync::{Arc, Barrier, Mutex};
 use std::time::{Duration, Instant};
 
 use ash::vk;
 
-fn command_pool(ctx: &support::Context) -> vk::CommandPool {
+fn command_pool(ctx: &harness::Context) -> vk::CommandPool {
     let info = vk::CommandPoolCreateInfo::default().queue_family_index(0).flags(vk::CommandPoolCreateFlags::RESET_COMMAND_BUFFER);
     // SAFETY: valid create info.
     unsafe { ctx.device.create_command_pool(&info, None) }.unwrap()
@@ -40,7 +40,7 @@ fn begin(device: &ash::Device, cb: vk::CommandBuffer) {
 /// VK_TIMEOUT) and is after.
 #[test]
 fn fence_timeouts_and_host_event_unblocks_wait_events() {
-    let ctx = support::context();
+    let ctx = harness::context();
     let d = &ctx.device;
     let pool = command_pool(&ctx);
     let cb = command_buffer(d, pool);
@@ -86,7 +86,7 @@ fn fence_timeouts_and_host_event_unblocks_wait_events() {
 /// Events set and reset by commands (core and synchronization2), seen by the host.
 #[test]
 fn events_set_by_commands() {
-    let ctx = support::context();
+    let ctx = harness::context();
     let d = &ctx.device;
     let sync2 = ash::khr::synchronization2::Device::new(&ctx.instance, d);
     let pool = command_pool(&ctx);
@@ -134,7 +134,7 @@ fn events_set_by_commands() {
 /// waits (all/any, timeouts) for the value the queue signals. Submit and Submit2 both.
 #[test]
 fn timeline_semaphores_across_threads() {
-    let ctx = support::context();
+    let ctx = harness::context();
     let d = ctx.device.clone();
     let tl = ash::khr::timeline_semaphore::Device::new(&ctx.instance, &d);
     let sync2 = ash::khr::synchronization2::Device::new(&ctx.instance, &d);
@@ -204,7 +204,7 @@ fn timeline_semaphores_across_threads() {
 /// A binary semaphore orders two queues: queue 1 waits for what queue 0 signals.
 #[test]
 fn binary_semaphore_between_queues() {
-    let ctx = support::context();
+    let ctx = harness::context();
     let d = &ctx.device;
     // SAFETY: objects created here; destroyed at the end after the device is idle.
     unsafe {
@@ -267,7 +267,7 @@ struct ThreadObjects {
     mapped: Mapped,
 }
 
-fn thread_objects(ctx: &support::Context, n: usize) -> Vec<ThreadObjects> {
+fn thread_objects(ctx: &harness::Context, n: usize) -> Vec<ThreadObjects> {
     (0..n)
         .map(|_| {
             let pool = command_pool(ctx);
@@ -277,7 +277,7 @@ fn thread_objects(ctx: &support::Context, n: usize) -> Vec<ThreadObjects> {
         .collect()
 }
 
-fn destroy_thread_objects(ctx: &support::Context, objs: Vec<ThreadObjects>) {
+fn destroy_thread_objects(ctx: &harness::Context, objs: Vec<ThreadObjects>) {
     for o in objs {
         // SAFETY: the device is idle; each object is destroyed once.
         unsafe {
@@ -292,7 +292,7 @@ fn destroy_thread_objects(ctx: &support::Context, objs: Vec<ThreadObjects>) {
 /// Four threads, each submitting to its own queue, many times.
 #[test]
 fn many_threads_each_with_its_own_queue() {
-    let ctx = support::context();
+    let ctx = harness::context();
     let objs = thread_objects(&ctx, 4);
     let start = Arc::new(Barrier::new(4));
     std::thread::scope(|s| {
@@ -323,7 +323,7 @@ fn many_threads_each_with_its_own_queue() {
 /// Four threads sharing one queue under a Mutex (the application's external synchronisation).
 #[test]
 fn many_threads_one_queue_under_a_mutex() {
-    let ctx = support::context();
+    let ctx = harness::context();
     let objs = thread_objects(&ctx, 4);
     let queue = Arc::new(Mutex::new(ctx.queues[0]));
     std::thread::scope(|s| {
@@ -347,7 +347,7 @@ fn many_threads_one_queue_under_a_mutex() {
 /// vkQueueWaitIdle returns only after the queue's work is done (the work is held by an event).
 #[test]
 fn queue_wait_idle_waits_for_the_work() {
-    let ctx = support::context();
+    let ctx = harness::context();
     let d = &ctx.device;
     // SAFETY: objects created here; destroyed after the device is idle.
     unsafe {
@@ -381,7 +381,7 @@ fn queue_wait_idle_waits_for_the_work() {
 /// worker instead of hanging. Deliberately invalid usage, so without the validation layer.
 #[test]
 fn destroying_a_device_with_a_blocked_queue_does_not_hang() {
-    let ctx = support::Context::new(support::Options { validation: false, ..Default::default() });
+    let ctx = harness::Context::new(harness::Options { validation: false, ..Default::default() });
     let d = ctx.device.clone();
     // SAFETY: deliberately destroys a device with pending work (the driver must cope); the
     // context is then forgotten so it does not touch the destroyed device.

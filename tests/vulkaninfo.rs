@@ -1,10 +1,10 @@
 //! Debian's vulkaninfo (vulkan-tools) shows Arbor through the loader, cleanly.
-mod support;
+mod harness;
 
 use std::process::Command;
 
 fn run_vulkaninfo(args: &[&str]) -> (bool, String, String) {
-    let manifest = support::use_arbor_manifest();
+    let manifest = harness::use_arbor_manifest();
     let out = Command::new("vulkaninfo")
         .args(args)
         .env("VK_ICD_FILENAMES", &manifest)

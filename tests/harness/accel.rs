@@ -1,6 +1,5 @@
 //! Helpers for acceleration-structure API tests: buffers with device addresses, one-shot
 //! submissions, BLAS/TLAS builds of meshes, serialization read-back.
-#![allow(dead_code)]
 
 use ash::vk;
 
@@ -246,7 +245,7 @@ pub fn payload(serialized: &[u8]) -> &[u8] {
     &serialized[56 + 8 * n..]
 }
 
-// Helpers for the negative tests (tests/accel_vuid.rs): placing structures inside larger,
+// Helpers for the negative tests (tests/vuid_*.rs, through `super::vuid`): placing structures inside larger,
 // guarded buffers and comparing whole buffers before/after a command.
 impl<'c> Accel<'c> {
     /// Number of buffers created through this helper so far (valid indices for `buf`).
