@@ -10,7 +10,7 @@ use std::time::Duration;
 use ash::vk;
 use criterion::{criterion_group, criterion_main, Criterion, Throughput};
 
-#[path = "../tests/support/mod.rs"]
+#[path = "../tests/harness/mod.rs"]
 #[allow(dead_code)]
 mod support;
 

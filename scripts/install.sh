@@ -69,11 +69,9 @@ if [ "$uninstall" -eq 1 ]; then
 fi
 
 if [ "$build" -eq 1 ]; then
-  # The whole workspace, as scripts/test.sh builds it: `-p vulkan_arbor` alone does not compile
-  # while the library's ash dependency lacks the "debug" feature that another member enables, and
-  # building the same feature set as the tests keeps one libvulkan_arbor.so in target/release.
-  echo "Building the release driver: cargo build --release --workspace"
-  (cd "$root" && cargo build --release --workspace)
+  # Only the driver: applications need nothing else of the workspace.
+  echo "Building the release driver: cargo build --release -p vulkan_arbor"
+  (cd "$root" && cargo build --release -p vulkan_arbor)
 fi
 
 # CARGO_TARGET_DIR moves target/ as it does for cargo (relative to the checkout, as cargo reads it there).
