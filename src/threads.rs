@@ -1,13 +1,23 @@
-//! The one worker pool of the process. Builds run on it; deferred operations draw from it.
-//! Sized by `ARBOR_THREADS` (default: all cores).
+//! The one worker pool of the process and the thread contexts work runs in: Arbor's pool,
+//! a queue worker or application thread made the one worker of a private pool (small work
+//! stays there), or a deferred operation's pool, whose workers are the application threads
+//! that join it (how joiners run tasks: `runtime::deferred::DeferredOperation`).
+//!
+//! Sized by `ARBOR_THREADS` (default: all cores), read once. This module decides nothing about
+//! what runs where; callers say (`runtime::accel::build::Placement` for builds).
 use std::sync::OnceLock;
 
+/// The worker count: `ARBOR_THREADS` if set to a positive number, else all cores. Read on
+/// first use and kept, so the pool and every deferred operation agree on it.
 pub fn configured_threads() -> usize {
-    std::env::var("ARBOR_THREADS")
-        .ok()
-        .and_then(|s| s.trim().parse::<usize>().ok())
-        .filter(|&n| n > 0)
-        .unwrap_or_else(|| std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1))
+    static THREADS: OnceLock<usize> = OnceLock::new();
+    *THREADS.get_or_init(|| {
+        std::env::var("ARBOR_THREADS")
+            .ok()
+            .and_then(|s| s.trim().parse::<usize>().ok())
+            .filter(|&n| n > 0)
+            .unwrap_or_else(|| std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1))
+    })
 }
 
 /// The process-wide pool (created on first use).

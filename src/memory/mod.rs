@@ -14,6 +14,7 @@
 //! workers, exactly like GPU memory. Accesses are raw copies; the Vulkan synchronisation rules
 //! (the application's obligation) make them race-free. No `&mut [u8]` over device memory
 //! outlives the call that made it.
+pub mod region;
 pub mod view;
 
 use std::collections::BTreeMap;
