@@ -25,6 +25,7 @@ use crate::runtime::accel::{
 };
 use crate::runtime::command::CommandBuffer;
 use crate::runtime::deferred::DeferredOperation;
+use crate::runtime::query::QueryPool;
 
 pub fn commands() -> Vec<Implemented> {
     vec![
@@ -101,57 +102,17 @@ unsafe extern "system" fn create_acceleration_structure_khr(
         }
         // SAFETY: valid create info per the spec.
         let info = unsafe { &*p_info };
-        if !dev.features.acceleration_structure {
-            diag::vuid("VUID-vkCreateAccelerationStructureKHR-accelerationStructure-03611", CMD, "the accelerationStructure feature is not enabled");
-        }
-        let Some(buffer) = handle::get::<Buffer>(info.buffer.as_raw()) else {
-            diag::vuid("VUID-VkAccelerationStructureCreateInfoKHR-buffer-parameter", CMD, "buffer is not a valid VkBuffer");
-            return vk::Result::ERROR_INITIALIZATION_FAILED;
-        };
-        if info.offset % rt::STRUCTURE_ALIGNMENT != 0 {
-            diag::vuid("VUID-VkAccelerationStructureCreateInfoKHR-offset-03734", CMD, "offset must be a multiple of 256");
-        }
-        if info.offset.checked_add(info.size).is_none_or(|end| end > buffer.size) {
-            diag::vuid("VUID-VkAccelerationStructureCreateInfoKHR-offset-03616", CMD, "offset + size exceeds the buffer size");
-            return vk::Result::ERROR_INITIALIZATION_FAILED;
-        }
-        if !buffer.usage.contains(vk::BufferUsageFlags::ACCELERATION_STRUCTURE_STORAGE_KHR) {
-            diag::vuid(
-                "VUID-VkAccelerationStructureCreateInfoKHR-buffer-03614",
-                CMD,
-                "buffer lacks ACCELERATION_STRUCTURE_STORAGE_BIT_KHR usage",
-            );
-        }
-        let replay = info.create_flags.contains(vk::AccelerationStructureCreateFlagsKHR::DEVICE_ADDRESS_CAPTURE_REPLAY);
-        if replay && !dev.features.acceleration_structure_capture_replay {
-            diag::vuid(
-                "VUID-VkAccelerationStructureCreateInfoKHR-createFlags-03613",
-                CMD,
-                "DEVICE_ADDRESS_CAPTURE_REPLAY needs the accelerationStructureCaptureReplay feature",
-            );
-        }
-        if info.device_address != 0 {
-            if !replay {
-                diag::vuid(
-                    "VUID-VkAccelerationStructureCreateInfoKHR-deviceAddress-03612",
-                    CMD,
-                    "deviceAddress is not 0 but CAPTURE_REPLAY is not set",
-                );
-            }
-            // Addresses are buffer address + offset: a replayed address is honoured when the
-            // buffer was placed where it was at capture time.
-            if let Some(a) = buffer.device_address() {
-                if a + info.offset != info.device_address {
-                    return vk::Result::ERROR_INVALID_OPAQUE_CAPTURE_ADDRESS_KHR;
-                }
-            }
-        }
-        let s = AccelerationStructure {
-            buffer,
+        let lowered = rt::CreateInfo {
+            buffer: handle::get::<Buffer>(info.buffer.as_raw()),
             offset: info.offset,
             size: info.size,
-            create_type: info.ty,
+            ty: info.ty,
             create_flags: info.create_flags,
+            device_address: info.device_address,
+        };
+        let s = match AccelerationStructure::create(&dev, lowered) {
+            Ok(s) => s,
+            Err(e) => return e,
         };
         // SAFETY: checked non-null.
         unsafe { *p_as = vk::AccelerationStructureKHR::from_raw(handle::register(Arc::new(s))) };
@@ -622,21 +583,10 @@ unsafe extern "system" fn cmd_write_acceleration_structures_properties_khr(
     const CMD: &str = "vkCmdWriteAccelerationStructuresPropertiesKHR";
     guard(CMD, (), || {
         let Some(cb) = command_buffer_from(command_buffer) else { return };
-        let Some(pool) = handle::get::<crate::runtime::query::QueryPool>(query_pool.as_raw()) else {
-            diag::vuid(&format!("VUID-{CMD}-queryPool-parameter"), CMD, "not a valid query pool");
-            return;
-        };
-        if pool.query_type != query_type {
-            diag::vuid(&format!("VUID-{CMD}-queryPool-02493"), CMD, "queryPool was created with another queryType");
-            return;
-        }
-        if pool.check_range(first_query, count).is_err() {
-            diag::vuid(&format!("VUID-{CMD}-query-04880"), CMD, "firstQuery + accelerationStructureCount exceeds the pool");
-            return;
-        }
+        let pool = handle::get::<QueryPool>(query_pool.as_raw());
         // SAFETY: count handles (spec).
         let structures = unsafe { util::slice(p_structures, count) }.iter().map(|h| structure_from(*h)).collect();
-        cb.record_custom(Box::new(WritePropertiesCommand { structures, query_type, pool, first: first_query }));
+        WritePropertiesCommand::record(&cb, structures, query_type, pool, (first_query, count));
     })
 }
 

@@ -154,7 +154,7 @@ impl Queue {
         let device = self.device.clone();
         let thread = std::thread::Builder::new()
             .name(format!("arbor-queue-{}-{}", self.family, self.index))
-            // Small builds run on this thread itself (`threads::run_parallel`).
+            // Small builds run on this thread itself (`runtime::accel::build::Placement`).
             .spawn(move || crate::threads::run_as_inline_worker(move || worker_loop(rx, shared, device)))
             .ok()?;
         Some(Worker { tx, thread })

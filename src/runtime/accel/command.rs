@@ -14,7 +14,7 @@ use super::inputs::{DeviceInputs, HostInputs, StructureLookup};
 use super::{execute_builds, execute_copy, property, AccelerationStructure, BuildInfo, Copy};
 use crate::diag;
 use crate::memory::region::HostMemory;
-use crate::runtime::command::{Exec, ExecContext, ExecError};
+use crate::runtime::command::{CommandBuffer, Exec, ExecContext, ExecError};
 use crate::runtime::deferred::DeferredOperation;
 use crate::runtime::query::QueryPool;
 use crate::runtime::Device;
@@ -101,6 +101,33 @@ pub struct WritePropertiesCommand {
     pub query_type: vk::QueryType,
     pub pool: Arc<QueryPool>,
     pub first: u32,
+}
+
+impl WritePropertiesCommand {
+    /// Records the command into `cb` once the query pool's rules are checked for the `count`
+    /// queries from `first` (a violation is reported and nothing recorded).
+    pub fn record(
+        cb: &CommandBuffer,
+        structures: Vec<Option<Arc<AccelerationStructure>>>,
+        query_type: vk::QueryType,
+        pool: Option<Arc<QueryPool>>,
+        (first, count): (u32, u32),
+    ) {
+        const CMD: &str = "vkCmdWriteAccelerationStructuresPropertiesKHR";
+        let Some(pool) = pool else {
+            diag::vuid(&format!("VUID-{CMD}-queryPool-parameter"), CMD, "not a valid query pool");
+            return;
+        };
+        if pool.query_type != query_type {
+            diag::vuid(&format!("VUID-{CMD}-queryPool-02493"), CMD, "queryPool was created with another queryType");
+            return;
+        }
+        if pool.check_range(first, count).is_err() {
+            diag::vuid(&format!("VUID-{CMD}-query-04880"), CMD, "firstQuery + accelerationStructureCount exceeds the pool");
+            return;
+        }
+        cb.record_custom(Box::new(WritePropertiesCommand { structures, query_type, pool, first }));
+    }
 }
 
 impl Exec for WritePropertiesCommand {

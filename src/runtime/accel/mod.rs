@@ -21,7 +21,9 @@ use std::sync::Arc;
 use ash::vk;
 
 use crate::accel::{self, AsType, BuildFlags, GeometryShape, IndexType, VertexFormat};
+use crate::diag;
 use crate::memory::{AccessError, Buffer};
+use crate::runtime::Device;
 
 pub mod build;
 pub mod command;
@@ -51,7 +53,75 @@ pub struct AccelerationStructure {
     pub create_flags: vk::AccelerationStructureCreateFlagsKHR,
 }
 
+/// A `VkAccelerationStructureCreateInfoKHR`, lowered (the buffer handle resolved).
+pub struct CreateInfo {
+    pub buffer: Option<Arc<Buffer>>,
+    pub offset: u64,
+    pub size: u64,
+    pub ty: vk::AccelerationStructureTypeKHR,
+    pub create_flags: vk::AccelerationStructureCreateFlagsKHR,
+    pub device_address: u64,
+}
+
 impl AccelerationStructure {
+    /// vkCreateAccelerationStructureKHR: the view `info` describes, once the rules of the
+    /// create info are checked (violations reported; the fatal ones return the error code).
+    pub fn create(device: &Device, info: CreateInfo) -> Result<AccelerationStructure, vk::Result> {
+        const CMD: &str = "vkCreateAccelerationStructureKHR";
+        if !device.features.acceleration_structure {
+            diag::vuid("VUID-vkCreateAccelerationStructureKHR-accelerationStructure-03611", CMD, "the accelerationStructure feature is not enabled");
+        }
+        let Some(buffer) = info.buffer else {
+            diag::vuid("VUID-VkAccelerationStructureCreateInfoKHR-buffer-parameter", CMD, "buffer is not a valid VkBuffer");
+            return Err(vk::Result::ERROR_INITIALIZATION_FAILED);
+        };
+        if !info.offset.is_multiple_of(STRUCTURE_ALIGNMENT) {
+            diag::vuid("VUID-VkAccelerationStructureCreateInfoKHR-offset-03734", CMD, "offset must be a multiple of 256");
+        }
+        if info.offset.checked_add(info.size).is_none_or(|end| end > buffer.size) {
+            diag::vuid("VUID-VkAccelerationStructureCreateInfoKHR-offset-03616", CMD, "offset + size exceeds the buffer size");
+            return Err(vk::Result::ERROR_INITIALIZATION_FAILED);
+        }
+        if !buffer.usage.contains(vk::BufferUsageFlags::ACCELERATION_STRUCTURE_STORAGE_KHR) {
+            diag::vuid(
+                "VUID-VkAccelerationStructureCreateInfoKHR-buffer-03614",
+                CMD,
+                "buffer lacks ACCELERATION_STRUCTURE_STORAGE_BIT_KHR usage",
+            );
+        }
+        let replay = info.create_flags.contains(vk::AccelerationStructureCreateFlagsKHR::DEVICE_ADDRESS_CAPTURE_REPLAY);
+        if replay && !device.features.acceleration_structure_capture_replay {
+            diag::vuid(
+                "VUID-VkAccelerationStructureCreateInfoKHR-createFlags-03613",
+                CMD,
+                "DEVICE_ADDRESS_CAPTURE_REPLAY needs the accelerationStructureCaptureReplay feature",
+            );
+        }
+        if info.device_address != 0 {
+            if !replay {
+                diag::vuid(
+                    "VUID-VkAccelerationStructureCreateInfoKHR-deviceAddress-03612",
+                    CMD,
+                    "deviceAddress is not 0 but CAPTURE_REPLAY is not set",
+                );
+            }
+            // Addresses are buffer address + offset: a replayed address is honoured when the
+            // buffer was placed where it was at capture time.
+            if let Some(a) = buffer.device_address() {
+                if a + info.offset != info.device_address {
+                    return Err(vk::Result::ERROR_INVALID_OPAQUE_CAPTURE_ADDRESS_KHR);
+                }
+            }
+        }
+        Ok(AccelerationStructure {
+            buffer,
+            offset: info.offset,
+            size: info.size,
+            create_type: info.ty,
+            create_flags: info.create_flags,
+        })
+    }
+
     /// Device address: the buffer's address plus the offset (buffers are placed on 256-aligned
     /// addresses, so this is 256-aligned too).
     pub fn address(&self) -> Option<u64> {
