@@ -120,7 +120,7 @@ impl Region<'_> {
     /// Host bytes covered, as [start, end).
     fn span(&self) -> (usize, usize) {
         let start = self.ptr.as_ptr() as usize;
-        (start, start + self.len)
+        (start, start.saturating_add(self.len))
     }
 
     /// Writes the region alone, through a view that ends with `f` (a one-off write: a

@@ -11,7 +11,7 @@ use std::sync::Arc;
 use ash::vk;
 
 use super::inputs::{DeviceInputs, HostInputs, StructureLookup};
-use super::{execute_builds, execute_copy, property, AccelerationStructure, BuildInfo, Copy};
+use super::{execute_builds, execute_copy, property, AccelerationStructure, BuildInfo, Copy, DeviceLost};
 use crate::diag;
 use crate::memory::region::HostMemory;
 use crate::runtime::command::{CommandBuffer, Exec, ExecContext, ExecError};
@@ -164,17 +164,10 @@ pub enum Deferral {
 /// `host` and instance handles through `lookup`.
 pub fn build_on_host(device: &Arc<Device>, deferral: Deferral, host: HostMemory, lookup: StructureLookup, infos: Vec<BuildInfo>) -> vk::Result {
     const CMD: &str = "vkBuildAccelerationStructuresKHR";
-    let d = device.clone();
-    let work = Box::new(move || {
-        let inputs = HostInputs::new(host, &d.memory, lookup, CMD);
-        match execute_builds(&inputs, &infos) {
-            Ok(()) => vk::Result::SUCCESS,
-            Err(_) => vk::Result::ERROR_DEVICE_LOST,
-        }
-    });
-    // Run now, the calling thread becomes the one worker of a private pool first
-    // (`threads::run_here`), so that builds `build::Placement` keeps here run on it and no
-    // others; a large build goes to Arbor's pool from there, as from a queue worker.
+    let work = host_work(device, host, lookup, CMD, move |inputs| execute_builds(inputs, &infos));
+    // Run now, the calling thread first becomes the one worker of a private pool
+    // (`threads::run_here`): builds that `build::Placement` keeps here then run on this thread
+    // alone, and larger ones go to Arbor's pool from it, as from a queue worker.
     run_host(device, deferral, CMD, work, crate::threads::run_here)
 }
 
@@ -182,19 +175,31 @@ pub fn build_on_host(device: &Arc<Device>, deferral: Deferral, host: HostMemory,
 /// whose memory side is a host pointer read or written through `host`.
 pub fn copy_on_host(device: &Arc<Device>, deferral: Deferral, host: HostMemory, lookup: StructureLookup, op: Copy) -> vk::Result {
     let name = op.command(true);
-    let d = device.clone();
-    let work = Box::new(move || {
-        let inputs = HostInputs::new(host, &d.memory, lookup, name);
-        match execute_copy(&inputs, &op) {
-            Ok(()) => vk::Result::SUCCESS,
-            Err(_) => vk::Result::ERROR_DEVICE_LOST,
-        }
-    });
+    let work = host_work(device, host, lookup, name, move |inputs| execute_copy(inputs, &op));
     // Run now, a copy goes to Arbor's pool from the calling thread (`execute_copy`).
     run_host(device, deferral, name, work, |work| work())
 }
 
 type HostWork = Box<dyn FnOnce() -> vk::Result + Send>;
+
+/// A host command's work: `execute` over the command's host inputs, its result as the
+/// command's (VK_ERROR_DEVICE_LOST in strict mode when something was invalid).
+fn host_work(
+    device: &Arc<Device>,
+    host: HostMemory,
+    lookup: StructureLookup,
+    command: &'static str,
+    execute: impl FnOnce(&HostInputs) -> Result<(), DeviceLost> + Send + 'static,
+) -> HostWork {
+    let device = device.clone();
+    Box::new(move || {
+        let inputs = HostInputs::new(host, &device.memory, lookup, command);
+        match execute(&inputs) {
+            Ok(()) => vk::Result::SUCCESS,
+            Err(DeviceLost) => vk::Result::ERROR_DEVICE_LOST,
+        }
+    })
+}
 
 /// Run `work` under `deferral`: now through `now`, or on a deferred operation's joiners.
 fn run_host(device: &Device, deferral: Deferral, command: &str, work: HostWork, now: impl FnOnce(HostWork) -> vk::Result) -> vk::Result {

@@ -54,6 +54,12 @@ fn built(kind: CopyKind, command: &str, s: &Option<Arc<AccelerationStructure>>, 
     }
 }
 
+/// Whether the `len` bytes of device memory at `address` overlap structure `s` (never on the
+/// host, where the application keeps them apart).
+fn overlaps_structure(mem: &dyn InputMemory, address: u64, len: u64, s: &AccelerationStructure) -> bool {
+    !mem.is_host() && mem.memory_range(address, len).is_some_and(|r| overlaps(Some(r), s.memory_range(s.size)))
+}
+
 /// Execute one copy. Invalid copies are reported and skipped (a structure destination is
 /// marked invalid); Err(DeviceLost) in strict mode.
 pub fn execute_copy(mem: &dyn InputMemory, op: &Copy) -> Result<(), DeviceLost> {
@@ -140,13 +146,9 @@ fn serialize_to(mem: &dyn InputMemory, src: &Option<Arc<AccelerationStructure>>,
         diag::vuid(&format!("VUID-{cmd}-{v}"), cmd, &format!("dst address {dst:#x} is not aligned to {align}"));
         return false;
     }
-    if !mem.is_host() {
-        if let Some(r) = mem.memory_range(dst, size) {
-            if overlaps(Some(r), src.memory_range(src.size)) {
-                copy_violation(CopyKind::ToMemory, cmd, "dst-03561", "the destination memory overlaps the source structure");
-                return false;
-            }
-        }
+    if overlaps_structure(mem, dst, size, &src) {
+        copy_violation(CopyKind::ToMemory, cmd, "dst-03561", "the destination memory overlaps the source structure");
+        return false;
     }
     // The destination does not overlap the source (checked above on device; the application's
     // obligation on the host).
@@ -200,13 +202,9 @@ fn deserialize_from(mem: &dyn InputMemory, src: u64, dst: &Option<Arc<Accelerati
         mark_invalid(&dst);
         return false;
     }
-    if !mem.is_host() {
-        if let Some(r) = mem.memory_range(src, total) {
-            if overlaps(Some(r), dst.memory_range(dst.size)) {
-                copy_violation(CopyKind::FromMemory, cmd, "dst-07791", "the source memory overlaps the destination structure");
-                return false;
-            }
-        }
+    if overlaps_structure(mem, src, total, &dst) {
+        copy_violation(CopyKind::FromMemory, cmd, "dst-07791", "the source memory overlaps the destination structure");
+        return false;
     }
     // The source does not overlap the destination (checked above on device; the application's
     // obligation on the host).
