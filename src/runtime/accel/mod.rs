@@ -1,5 +1,6 @@
 //! Acceleration structures in the object model: the `VkAccelerationStructureKHR` view object
-//! and the owned (lowered) descriptions of builds that recorded commands keep until they run.
+//! (with the checks of its creation) and the owned (lowered) descriptions of builds that
+//! recorded commands keep until they run.
 //! The submodules execute them, with the valid-usage checks the driver can see, including those
 //! about data in device memory that no validation layer can check:
 //!
@@ -15,7 +16,9 @@
 //! device memory and is produced by `crate::accel`. Nothing about a structure's content is kept
 //! here (principle 1). This module sees no raw application pointer and contains no `unsafe`:
 //! mutable views of memory come from `crate::memory::region`, host addresses are read through
-//! the `HostMemory` the dispatch layer vouched for.
+//! the `HostMemory` the dispatch layer vouched for, and handle values are resolved through the
+//! lookup the dispatch layer passes (`inputs::StructureLookup`): the handle registry is not
+//! touched from here.
 use std::sync::Arc;
 
 use ash::vk;
