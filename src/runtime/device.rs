@@ -10,12 +10,12 @@ use super::PhysicalDevice;
 pub struct Device {
     pub physical: Arc<PhysicalDevice>,
     pub enabled_extensions: HashSet<String>,
-    /// Minor version of the API the device exposes (1.<minor>).
+    /// Minor version of the API the device exposes (`1.<minor>`).
     pub api_minor: u32,
     pub features: EnabledFeatures,
     /// The device-address space and allocations of this device.
     pub memory: Arc<AddressSpace>,
-    /// Queue handles (Dispatchable<Queue> pointers), by (family, index); set once at creation.
+    /// Queue handles (`Dispatchable<Queue>` pointers), by (family, index); set once at creation.
     pub queues: std::sync::OnceLock<Vec<(u32, u32, usize)>>,
     /// Monotonic origin of timestamps.
     pub epoch: std::time::Instant,

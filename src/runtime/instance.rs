@@ -6,7 +6,7 @@ use crate::dispatch::handle::DispatchTag;
 pub struct Instance {
     pub api_version: u32,
     pub enabled_extensions: Vec<String>,
-    /// Handle value of the physical device (a Dispatchable<PhysicalDevice>), freed with the instance.
+    /// Handle value of the physical device (a `Dispatchable<PhysicalDevice>`), freed with the instance.
     pub physical_device: usize,
 }
 
