@@ -614,7 +614,10 @@ unsafe extern "system" fn write_acceleration_structures_properties_khr(
             diag::vuid(&format!("VUID-{CMD}-queryType-03448"), CMD, "stride must be a multiple of 8");
             return vk::Result::ERROR_UNKNOWN;
         }
-        if (count as usize).checked_mul(stride).is_none_or(|n| n > data_size) || p_data.is_null() {
+        // The last value ends at (count - 1) * stride + 8, past count * stride when stride is 0.
+        let last_end = (count as usize).checked_sub(1).map_or(Some(0), |n| n.checked_mul(stride).and_then(|o| o.checked_add(8)));
+        let too_small = |end: Option<usize>| end.is_none_or(|n| n > data_size);
+        if too_small((count as usize).checked_mul(stride)) || too_small(last_end) || p_data.is_null() {
             diag::vuid(&format!("VUID-{CMD}-dataSize-03452"), CMD, "dataSize is smaller than accelerationStructureCount * stride");
             return vk::Result::ERROR_UNKNOWN;
         }
@@ -622,7 +625,8 @@ unsafe extern "system" fn write_acceleration_structures_properties_khr(
         let structures: Vec<_> = unsafe { util::slice(p_structures, count) }.iter().map(|h| structure_from(*h)).collect();
         for (i, v) in rt::properties(&structures, query_type, CMD).into_iter().enumerate() {
             if let Some(v) = v {
-                // SAFETY: i * stride + 8 <= dataSize checked above; unaligned-safe write.
+                // SAFETY: i * stride + 8 <= (count - 1) * stride + 8 <= dataSize, checked above;
+                // unaligned-safe write.
                 unsafe { (p_data as *mut u8).add(i * stride).cast::<u64>().write_unaligned(v) };
             }
         }
