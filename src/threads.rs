@@ -5,6 +5,7 @@
 //!
 //! Sized by `ARBOR_THREADS` (default: all cores), read once. This module decides nothing about
 //! what runs where; callers say (`runtime::accel::build::Placement` for builds).
+#![forbid(unsafe_code)]
 use std::sync::OnceLock;
 
 /// The worker count: `ARBOR_THREADS` if set to a positive number, else all cores. Read on

@@ -41,7 +41,6 @@ pub struct DeferredOperation {
     done: Condvar,
 }
 
-
 impl Default for DeferredOperation {
     fn default() -> Self {
         DeferredOperation { state: Mutex::new(State::Idle), done: Condvar::new() }

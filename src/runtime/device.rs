@@ -2,7 +2,6 @@
 use std::collections::HashSet;
 use std::sync::Arc;
 
-use crate::dispatch::handle::DispatchTag;
 use crate::memory::AddressSpace;
 
 use super::PhysicalDevice;
@@ -36,10 +35,6 @@ pub struct EnabledFeatures {
     pub acceleration_structure_capture_replay: bool,
     pub acceleration_structure_indirect_build: bool,
     pub acceleration_structure_host_commands: bool,
-}
-
-impl DispatchTag for Device {
-    const TAG: u64 = 0x4152_424f_5244_4556; // "ARBORDEV"
 }
 
 impl Device {

@@ -16,7 +16,6 @@ use super::command::{execute_recording, CommandBuffer, ExecContext, Flow, Submit
 use super::sync::{self, Deadline, Fence, Semaphore, SemaphoreKind, WaitOutcome};
 use super::Device;
 use crate::diag;
-use crate::dispatch::handle::DispatchTag;
 
 /// One batch of a submission, as the dispatch layer lowered it.
 pub struct BatchDesc {
@@ -72,10 +71,6 @@ pub struct Queue {
     pub index: u32,
     shared: Arc<Shared>,
     worker: Mutex<Option<Worker>>,
-}
-
-impl DispatchTag for Queue {
-    const TAG: u64 = 0x4152_424f_5251_5545; // "ARBORQUE"
 }
 
 impl Queue {

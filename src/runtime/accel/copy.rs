@@ -218,4 +218,3 @@ fn deserialize_from(mem: &dyn InputMemory, src: u64, dst: &Option<Arc<Accelerati
     });
     written.unwrap_or(false)
 }
-

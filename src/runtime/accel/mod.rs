@@ -273,4 +273,3 @@ fn overlaps(a: Option<(usize, u64, u64)>, b: Option<(usize, u64, u64)>) -> bool 
 fn mark_invalid(dst: &AccelerationStructure) {
     let _ = dst.buffer.with_slice_mut(dst.offset, dst.size.min(4096), accel::mark_invalid);
 }
-

@@ -46,7 +46,6 @@ pub fn property(s: Option<&AccelerationStructure>, query_type: vk::QueryType, co
     }
 }
 
-
 /// The properties of `structures`, in order: None (reported) for each invalid one.
 pub fn properties(structures: &[Option<Arc<AccelerationStructure>>], query_type: vk::QueryType, command: &str) -> Vec<Option<u64>> {
     structures.iter().enumerate().map(|(i, s)| property(s.as_deref(), query_type, command, i)).collect()

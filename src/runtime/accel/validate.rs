@@ -631,4 +631,3 @@ pub(super) fn update_vuid(what: &str) -> &'static str {
         _ => "pInfos-03768",
     }
 }
-

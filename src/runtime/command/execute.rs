@@ -265,4 +265,3 @@ pub fn execute_recording(recording: &Recording, ctx: &ExecContext<'_>) -> Flow {
     }
     Flow::Continue
 }
-

@@ -51,7 +51,6 @@ use ash::vk;
 use super::query::{QueryKind, QueryPool, RangeError, ReadFlags};
 use super::sync::Event;
 use crate::diag;
-use crate::dispatch::handle::DispatchTag;
 use crate::memory::Buffer;
 
 mod execute;
@@ -185,10 +184,6 @@ pub struct CommandBuffer {
     state: Mutex<CbState>,
     /// Submissions (or primaries in submissions) not yet completed that include this buffer.
     pending: AtomicU32,
-}
-
-impl DispatchTag for CommandBuffer {
-    const TAG: u64 = 0x4152_424f_5243_4d44; // "ARBORCMD"
 }
 
 /// A command buffer as a submission holds it.

@@ -251,4 +251,3 @@ pub fn acceleration_structure_descriptor(structure: Option<Arc<AccelerationStruc
     }
     Ok(Descriptor::AccelerationStructure { structure: Arc::downgrade(&s), handle })
 }
-
