@@ -613,6 +613,8 @@ fn check_instances(
 }
 
 /// The VUID of an update that does not match the source's last build, by what differs.
+/// The library names what differs only in text (`accel::BuildError::UpdateMismatch(&str)`), so
+/// this matches its wording; a typed reason from `accel` would make it a match on values.
 pub(super) fn update_vuid(what: &str) -> &'static str {
     match what {
         w if w.contains("ALLOW_UPDATE") => "pInfos-03667",
