@@ -1,13 +1,24 @@
-//! The one worker pool of the process. Builds run on it; deferred operations draw from it.
-//! Sized by `ARBOR_THREADS` (default: all cores).
+//! The one worker pool of the process and the thread contexts work runs in: Arbor's pool,
+//! a queue worker or application thread made the one worker of a private pool (small work
+//! stays there), or a deferred operation's pool, whose workers are the application threads
+//! that join it (how joiners run tasks: `runtime::deferred::DeferredOperation`).
+//!
+//! Sized by `ARBOR_THREADS` (default: all cores), read once. This module decides nothing about
+//! what runs where; callers say (`runtime::accel::build::Placement` for builds).
+#![forbid(unsafe_code)]
 use std::sync::OnceLock;
 
+/// The worker count: `ARBOR_THREADS` if set to a positive number, else all cores. Read on
+/// first use and kept, so the pool and every deferred operation agree on it.
 pub fn configured_threads() -> usize {
-    std::env::var("ARBOR_THREADS")
-        .ok()
-        .and_then(|s| s.trim().parse::<usize>().ok())
-        .filter(|&n| n > 0)
-        .unwrap_or_else(|| std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1))
+    static THREADS: OnceLock<usize> = OnceLock::new();
+    *THREADS.get_or_init(|| {
+        std::env::var("ARBOR_THREADS")
+            .ok()
+            .and_then(|s| s.trim().parse::<usize>().ok())
+            .filter(|&n| n > 0)
+            .unwrap_or_else(|| std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1))
+    })
 }
 
 /// The process-wide pool (created on first use).
@@ -75,12 +86,12 @@ pub fn run_as_inline_worker(f: impl FnOnce() + Send + 'static) {
     }
 }
 
-/// Runs small work `f` (`runs_inline`) on the calling application thread (a non-deferred host
-/// command) as the one worker of a private pool (`run_as_inline_worker`), so that its rayon
-/// calls stay here instead of waking Arbor's worker pool, as queue threads do with small
-/// builds. On a thread that already works for a rayon pool (an Arbor thread, or an
-/// application's own rayon worker) `f` just runs: its rayon calls go to that pool, as
-/// `run_parallel` would send them.
+/// Runs `f` on the calling application thread (a non-deferred host build) as the one worker of
+/// a private pool (`run_as_inline_worker`), so that the small work in it (`runs_inline`) keeps
+/// its rayon calls here instead of waking Arbor's worker pool, as queue threads do with small
+/// builds; large work goes to Arbor's pool from here (`run_parallel`). On a thread that already
+/// works for a rayon pool (an Arbor thread, or an application's own rayon worker) `f` just
+/// runs: its rayon calls go to that pool, as `run_parallel` would send them.
 pub fn run_here<R: Send + 'static>(f: impl FnOnce() -> R + Send + 'static) -> R {
     if INLINE.with(|c| c.get()) || rayon::current_thread_index().is_some() {
         return f();
@@ -97,9 +108,9 @@ pub fn run_here<R: Send + 'static>(f: impl FnOnce() -> R + Send + 'static) -> R 
 /// still run on the calling queue or application thread (`runs_inline`). Below it the hand-off
 /// to the pool and back (about a quarter of a millisecond on these virtual machines) costs
 /// more than the pool's threads save. With 2 threads that allows builds of up to 4,096
-/// primitives: the 3,674-triangle bunny was 7–10 % faster inline on the 2-vCPU box (session
-/// 5). With 16 threads it allows up to 512: the bunny builds 1.5–2.5× faster on the pool of
-/// the 16-core machine (session 6).
+/// primitives: the 3,674-triangle bunny was 7–10 % faster inline on the 2-vCPU box. With 16
+/// threads it allows up to 512: the bunny builds 1.5–2.5× faster on the pool of the 16-core
+/// machine (both recorded with commit ae1f3bb of 2026-11-22).
 pub const INLINE_WORK: u64 = 8192;
 
 /// Whether builds of `primitives` in all run on the calling thread (see `INLINE_WORK`).
@@ -112,9 +123,9 @@ fn inline_for(primitives: u64, threads: usize) -> bool {
 }
 
 /// Runs `f` where parallel work belongs: on the pool the calling thread already works for (a
-/// deferred operation's pool, whose workers are the application threads that joined it); on a
-/// queue worker's own thread when the work is small (`small`); otherwise on Arbor's worker pool
-/// (queue workers and non-deferred host commands).
+/// deferred operation's pool, whose workers are the application threads that joined it, see
+/// `runtime::deferred::DeferredOperation`); on the calling queue worker's or host command's own
+/// thread when the caller says the work is small (`small`); otherwise on Arbor's worker pool.
 pub fn run_parallel<R: Send>(small: bool, f: impl FnOnce() -> R + Send) -> R {
     if INLINE.with(|c| c.get()) {
         if small {

@@ -1,6 +1,9 @@
-//! VK_KHR_acceleration_structure, VK_KHR_deferred_host_operations and the query types of
+//! VK_KHR_acceleration_structure (with its host commands, which may defer) and the query types of
 //! VK_KHR_ray_tracing_maintenance1: entry points. Raw pointers are lowered here into owned
-//! descriptions (`runtime::accel::BuildInfo`) that commands keep until they execute.
+//! descriptions (`runtime::accel::BuildInfo`, `Copy`) that commands keep until they execute;
+//! host addresses of host commands are vouched for here (`memory::region::HostMemory`).
+//!
+//! Nothing here executes a command or decides where it runs: that is `runtime::accel`'s.
 use std::ffi::c_void;
 use std::sync::Arc;
 
@@ -13,15 +16,16 @@ use super::table::{imp, Implemented};
 use super::{guard, util};
 use crate::accel;
 use crate::diag;
-use crate::memory::view::DeviceMemoryView;
-use crate::memory::{AccessError, AddressSpace, Buffer};
+use crate::memory::region::HostMemory;
+use crate::memory::Buffer;
+use crate::runtime::accel::command::Deferral;
 use crate::runtime::accel::{
-    self as rt, AccelerationStructure, BuildInfo, DeviceInputs, GeometryDesc, GeometryInfo, InputError, InputMemory, RangeInfo,
-    Ranges,
+    self as rt, AccelerationStructure, BuildCommand, BuildInfo, BuildKind, CopyCommand, GeometryDesc, GeometryInfo, RangeInfo, Ranges,
+    WritePropertiesCommand,
 };
-use crate::runtime::command::{CommandBuffer, ExecContext, ExecError, Exec};
+use crate::runtime::command::CommandBuffer;
 use crate::runtime::deferred::DeferredOperation;
-use crate::runtime::Device;
+use crate::runtime::query::QueryPool;
 
 pub fn commands() -> Vec<Implemented> {
     vec![
@@ -41,16 +45,34 @@ pub fn commands() -> Vec<Implemented> {
         imp!(PFN_vkCopyMemoryToAccelerationStructureKHR => copy_memory_to_acceleration_structure_khr),
         imp!(PFN_vkCmdWriteAccelerationStructuresPropertiesKHR => cmd_write_acceleration_structures_properties_khr),
         imp!(PFN_vkWriteAccelerationStructuresPropertiesKHR => write_acceleration_structures_properties_khr),
-        imp!(PFN_vkCreateDeferredOperationKHR => create_deferred_operation_khr),
-        imp!(PFN_vkDestroyDeferredOperationKHR => destroy_deferred_operation_khr),
-        imp!(PFN_vkGetDeferredOperationMaxConcurrencyKHR => get_deferred_operation_max_concurrency_khr),
-        imp!(PFN_vkGetDeferredOperationResultKHR => get_deferred_operation_result_khr),
-        imp!(PFN_vkDeferredOperationJoinKHR => deferred_operation_join_khr),
     ]
 }
 
 pub fn structure_from(h: vk::AccelerationStructureKHR) -> Option<Arc<AccelerationStructure>> {
     handle::get::<AccelerationStructure>(h.as_raw())
+}
+
+/// The structure a handle value names (what host builds' instances reference).
+fn structure_from_raw(handle: u64) -> Option<Arc<AccelerationStructure>> {
+    handle::get::<AccelerationStructure>(handle)
+}
+
+/// A host command's `deferredOperation` argument.
+fn deferral_from(op: vk::DeferredOperationKHR) -> Deferral {
+    if op == vk::DeferredOperationKHR::null() {
+        return Deferral::Now;
+    }
+    handle::get::<DeferredOperation>(op.as_raw()).map_or(Deferral::Unknown, Deferral::On)
+}
+
+/// Vouches for the host addresses of a host command.
+fn host_memory() -> HostMemory {
+    // SAFETY: host addresses given to a host command are valid for the lengths the spec
+    // derives from its parameters, and untouched by the application, until the command (or its
+    // deferred operation) completes (VUID-vkBuildAccelerationStructuresKHR-pInfos-03725 and the
+    // other host-address rules): the application's obligation. The runtime drops the value
+    // when the command completes.
+    unsafe { HostMemory::new() }
 }
 
 fn command_buffer_from(h: vk::CommandBuffer) -> Option<Arc<CommandBuffer>> {
@@ -61,6 +83,11 @@ fn command_buffer_from(h: vk::CommandBuffer) -> Option<Arc<CommandBuffer>> {
 // ---------------------------------------------------------------------------------------------
 // Objects
 
+/// `vkCreateAccelerationStructureKHR`.
+///
+/// # Safety
+/// The command's valid-usage rules hold for its pointer and handle parameters (the caller's
+/// obligation under the Vulkan API contract).
 unsafe extern "system" fn create_acceleration_structure_khr(
     device: vk::Device,
     p_info: *const vk::AccelerationStructureCreateInfoKHR,
@@ -75,57 +102,17 @@ unsafe extern "system" fn create_acceleration_structure_khr(
         }
         // SAFETY: valid create info per the spec.
         let info = unsafe { &*p_info };
-        if !dev.features.acceleration_structure {
-            diag::vuid("VUID-vkCreateAccelerationStructureKHR-accelerationStructure-03611", CMD, "the accelerationStructure feature is not enabled");
-        }
-        let Some(buffer) = handle::get::<Buffer>(info.buffer.as_raw()) else {
-            diag::vuid("VUID-VkAccelerationStructureCreateInfoKHR-buffer-parameter", CMD, "buffer is not a valid VkBuffer");
-            return vk::Result::ERROR_INITIALIZATION_FAILED;
-        };
-        if info.offset % rt::STRUCTURE_ALIGNMENT != 0 {
-            diag::vuid("VUID-VkAccelerationStructureCreateInfoKHR-offset-03734", CMD, "offset must be a multiple of 256");
-        }
-        if info.offset.checked_add(info.size).is_none_or(|end| end > buffer.size) {
-            diag::vuid("VUID-VkAccelerationStructureCreateInfoKHR-offset-03616", CMD, "offset + size exceeds the buffer size");
-            return vk::Result::ERROR_INITIALIZATION_FAILED;
-        }
-        if !buffer.usage.contains(vk::BufferUsageFlags::ACCELERATION_STRUCTURE_STORAGE_KHR) {
-            diag::vuid(
-                "VUID-VkAccelerationStructureCreateInfoKHR-buffer-03614",
-                CMD,
-                "buffer lacks ACCELERATION_STRUCTURE_STORAGE_BIT_KHR usage",
-            );
-        }
-        let replay = info.create_flags.contains(vk::AccelerationStructureCreateFlagsKHR::DEVICE_ADDRESS_CAPTURE_REPLAY);
-        if replay && !dev.features.acceleration_structure_capture_replay {
-            diag::vuid(
-                "VUID-VkAccelerationStructureCreateInfoKHR-createFlags-03613",
-                CMD,
-                "DEVICE_ADDRESS_CAPTURE_REPLAY needs the accelerationStructureCaptureReplay feature",
-            );
-        }
-        if info.device_address != 0 {
-            if !replay {
-                diag::vuid(
-                    "VUID-VkAccelerationStructureCreateInfoKHR-deviceAddress-03612",
-                    CMD,
-                    "deviceAddress is not 0 but CAPTURE_REPLAY is not set",
-                );
-            }
-            // Addresses are buffer address + offset: a replayed address is honoured when the
-            // buffer was placed where it was at capture time.
-            if let Some(a) = buffer.device_address() {
-                if a + info.offset != info.device_address {
-                    return vk::Result::ERROR_INVALID_OPAQUE_CAPTURE_ADDRESS_KHR;
-                }
-            }
-        }
-        let s = AccelerationStructure {
-            buffer,
+        let lowered = rt::CreateInfo {
+            buffer: handle::get::<Buffer>(info.buffer.as_raw()),
             offset: info.offset,
             size: info.size,
-            create_type: info.ty,
+            ty: info.ty,
             create_flags: info.create_flags,
+            device_address: info.device_address,
+        };
+        let s = match AccelerationStructure::create(&dev, lowered) {
+            Ok(s) => s,
+            Err(e) => return e,
         };
         // SAFETY: checked non-null.
         unsafe { *p_as = vk::AccelerationStructureKHR::from_raw(handle::register(Arc::new(s))) };
@@ -133,6 +120,11 @@ unsafe extern "system" fn create_acceleration_structure_khr(
     })
 }
 
+/// `vkDestroyAccelerationStructureKHR`.
+///
+/// # Safety
+/// The command's valid-usage rules hold for its pointer and handle parameters (the caller's
+/// obligation under the Vulkan API contract).
 unsafe extern "system" fn destroy_acceleration_structure_khr(
     _device: vk::Device,
     h: vk::AccelerationStructureKHR,
@@ -149,6 +141,11 @@ unsafe extern "system" fn destroy_acceleration_structure_khr(
     })
 }
 
+/// `vkGetAccelerationStructureDeviceAddressKHR`.
+///
+/// # Safety
+/// The command's valid-usage rules hold for its pointer and handle parameters (the caller's
+/// obligation under the Vulkan API contract).
 unsafe extern "system" fn get_acceleration_structure_device_address_khr(
     _device: vk::Device,
     p_info: *const vk::AccelerationStructureDeviceAddressInfoKHR,
@@ -245,6 +242,11 @@ unsafe fn lower_info(info: &vk::AccelerationStructureBuildGeometryInfoKHR, range
     }
 }
 
+/// `vkGetAccelerationStructureBuildSizesKHR`.
+///
+/// # Safety
+/// The command's valid-usage rules hold for its pointer and handle parameters (the caller's
+/// obligation under the Vulkan API contract).
 unsafe extern "system" fn get_acceleration_structure_build_sizes_khr(
     _device: vk::Device,
     build_type: vk::AccelerationStructureBuildTypeKHR,
@@ -286,6 +288,11 @@ unsafe extern "system" fn get_acceleration_structure_build_sizes_khr(
     })
 }
 
+/// `vkGetDeviceAccelerationStructureCompatibilityKHR`.
+///
+/// # Safety
+/// The command's valid-usage rules hold for its pointer and handle parameters (the caller's
+/// obligation under the Vulkan API contract).
 unsafe extern "system" fn get_device_acceleration_structure_compatibility_khr(
     _device: vk::Device,
     p_version: *const vk::AccelerationStructureVersionInfoKHR,
@@ -296,7 +303,7 @@ unsafe extern "system" fn get_device_acceleration_structure_compatibility_khr(
             return;
         }
         // SAFETY: pVersionData points to 2*VK_UUID_SIZE bytes (spec).
-        let data: &[u8; 32] = unsafe { &*((*p_version).p_version_data as *const [u8; 32]) };
+        let data: &[u8; 32] = unsafe { &*(*p_version).p_version_data };
         let ok = accel::compatible(data, crate::DRIVER_UUID);
         // SAFETY: valid output pointer.
         unsafe {
@@ -312,32 +319,11 @@ unsafe extern "system" fn get_device_acceleration_structure_compatibility_khr(
 // ---------------------------------------------------------------------------------------------
 // Builds
 
-/// A recorded build command: executes through `runtime::accel::execute_builds` on the queue.
-struct BuildCommand {
-    name: &'static str,
-    infos: Vec<BuildInfo>,
-}
-
-impl Exec for BuildCommand {
-    fn name(&self) -> &'static str {
-        self.name
-    }
-    fn execute(&self, ctx: &ExecContext<'_>) -> Result<(), ExecError> {
-        if self.name == "vkCmdBuildAccelerationStructuresIndirectKHR" && !ctx.device.features.acceleration_structure_indirect_build {
-            diag::vuid(
-                "VUID-vkCmdBuildAccelerationStructuresIndirectKHR-accelerationStructureIndirectBuild-03650",
-                self.name,
-                "the accelerationStructureIndirectBuild feature is not enabled",
-            );
-        }
-        let inputs = DeviceInputs::new(ctx.memory(), self.name);
-        rt::execute_builds(&inputs, &self.infos).map_err(|_| ExecError::Invalid {
-            vuid: "strict",
-            message: "an acceleration-structure build broke a valid-usage rule (ARBOR_STRICT)".into(),
-        })
-    }
-}
-
+/// `vkCmdBuildAccelerationStructuresKHR`.
+///
+/// # Safety
+/// The command's valid-usage rules hold for its pointer and handle parameters (the caller's
+/// obligation under the Vulkan API contract).
 unsafe extern "system" fn cmd_build_acceleration_structures_khr(
     command_buffer: vk::CommandBuffer,
     info_count: u32,
@@ -347,20 +333,35 @@ unsafe extern "system" fn cmd_build_acceleration_structures_khr(
     const CMD: &str = "vkCmdBuildAccelerationStructuresKHR";
     guard(CMD, (), || {
         let Some(cb) = command_buffer_from(command_buffer) else { return };
-        // SAFETY: infoCount valid elements each (spec).
-        let infos = unsafe { util::slice(p_infos, info_count) };
-        let mut out = Vec::with_capacity(infos.len());
-        for (i, info) in infos.iter().enumerate() {
-            // SAFETY: ppBuildRangeInfos[i] points to geometryCount records (spec).
-            let ranges = unsafe {
-                let p = if pp_ranges.is_null() { std::ptr::null() } else { *pp_ranges.add(i) };
-                util::slice(p, info.geometry_count).iter().map(range_from_vk).collect()
-            };
-            // SAFETY: valid info.
-            out.push(unsafe { lower_info(info, Ranges::Direct(ranges)) });
-        }
-        cb.record_custom(Box::new(BuildCommand { name: CMD, infos: out }));
+        // SAFETY: the command's pInfos and ppBuildRangeInfos (spec).
+        let out = unsafe { lower_direct(p_infos, info_count, pp_ranges) };
+        cb.record_custom(Box::new(BuildCommand { kind: BuildKind::Direct, infos: out }));
     })
+}
+
+/// The build infos of a direct or host build with their range records.
+///
+/// # Safety
+/// `p_infos` holds `info_count` valid build-geometry infos, and `pp_ranges` (when not null) as
+/// many pointers to `geometryCount` range records each.
+unsafe fn lower_direct(
+    p_infos: *const vk::AccelerationStructureBuildGeometryInfoKHR,
+    info_count: u32,
+    pp_ranges: *const *const vk::AccelerationStructureBuildRangeInfoKHR,
+) -> Vec<BuildInfo> {
+    // SAFETY: infoCount elements (this function's contract).
+    let infos = unsafe { util::slice(p_infos, info_count) };
+    let mut out = Vec::with_capacity(infos.len());
+    for (i, info) in infos.iter().enumerate() {
+        // SAFETY: ppBuildRangeInfos[i] points to geometryCount records (this function's contract).
+        let ranges = unsafe {
+            let p = if pp_ranges.is_null() { std::ptr::null() } else { *pp_ranges.add(i) };
+            util::slice(p, info.geometry_count).iter().map(range_from_vk).collect()
+        };
+        // SAFETY: a valid info (this function's contract).
+        out.push(unsafe { lower_info(info, Ranges::Direct(ranges)) });
+    }
+    out
 }
 
 fn range_from_vk(r: &vk::AccelerationStructureBuildRangeInfoKHR) -> RangeInfo {
@@ -372,6 +373,11 @@ fn range_from_vk(r: &vk::AccelerationStructureBuildRangeInfoKHR) -> RangeInfo {
     }
 }
 
+/// `vkCmdBuildAccelerationStructuresIndirectKHR`.
+///
+/// # Safety
+/// The command's valid-usage rules hold for its pointer and handle parameters (the caller's
+/// obligation under the Vulkan API contract).
 unsafe extern "system" fn cmd_build_acceleration_structures_indirect_khr(
     command_buffer: vk::CommandBuffer,
     info_count: u32,
@@ -399,140 +405,15 @@ unsafe extern "system" fn cmd_build_acceleration_structures_indirect_khr(
             // SAFETY: valid info.
             out.push(unsafe { lower_info(info, ranges) });
         }
-        cb.record_custom(Box::new(BuildCommand { name: CMD, infos: out }));
+        cb.record_custom(Box::new(BuildCommand { kind: BuildKind::Indirect, infos: out }));
     })
 }
 
-/// Host-memory inputs for host commands: addresses are host pointers the application promises
-/// are valid while the command (or its deferred operation) runs; instance references are
-/// `VkAccelerationStructureKHR` handles, translated to device addresses so host and device
-/// builds produce the same bytes.
-struct HostInputs<'a> {
-    device_view: DeviceMemoryView<'a>,
-    command: &'static str,
-    /// Distinguishes this command's entries in the per-thread handle memo.
-    id: u64,
-}
-
-/// Handle → device address of the structures named by the instances of the host command
-/// running on this thread: its last few lookups, round robin. A TLAS names a handful of
-/// BLASes thousands of times, and each registry lookup takes the registry's read lock and
-/// an `Arc` of the structure, whose shared counters the worker threads would pass back and
-/// forth between cores. Entries count only for the command (`HostInputs::id`) that made
-/// them: the structures a host command names must stay alive until it completes (the
-/// application's obligation, as for its host addresses), so within one command a handle
-/// keeps its address; ids are never reused.
-#[derive(Clone, Copy)]
-struct HandleMemo {
-    entries: [(u64, u64, u64); 4],
-    next: usize,
-}
-
-thread_local! {
-    static HANDLE_MEMO: std::cell::Cell<HandleMemo> = const { std::cell::Cell::new(HandleMemo { entries: [(0, 0, 0); 4], next: 0 }) };
-}
-
-impl<'a> HostInputs<'a> {
-    /// # Safety
-    /// Every host address the build reads must be valid for the lengths the build derives from
-    /// its parameters (VUID-vkBuildAccelerationStructuresKHR-pInfos-03725 and the geometry
-    /// host-address rules): the application's obligation.
-    unsafe fn new(space: &'a AddressSpace, command: &'static str) -> Self {
-        static NEXT_ID: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(1);
-        let id = NEXT_ID.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
-        HostInputs { device_view: DeviceMemoryView::new(space), command, id }
-    }
-
-    /// The device address of the structure whose handle value is `handle`: Some(None) for a
-    /// structure without one, None when `handle` names no structure.
-    fn structure_address(&self, handle: u64) -> Option<Option<u64>> {
-        HANDLE_MEMO.with(|m| {
-            let mut memo = m.get();
-            if let Some(&(_, _, address)) = memo.entries.iter().find(|e| e.0 == self.id && e.1 == handle) {
-                return Some(Some(address));
-            }
-            let address = structure_from(vk::AccelerationStructureKHR::from_raw(handle))?.address();
-            if let Some(a) = address {
-                memo.entries[memo.next % 4] = (self.id, handle, a);
-                memo.next = (memo.next + 1) % 4;
-                m.set(memo);
-            }
-            Some(address)
-        })
-    }
-}
-
-impl accel::DeviceView for HostInputs<'_> {
-    fn bytes(&self, address: u64, len: u64) -> Option<&[u8]> {
-        if address == 0 {
-            return None;
-        }
-        // SAFETY: HostInputs::new's contract: host addresses given to a host command are valid.
-        Some(unsafe { std::slice::from_raw_parts(address as *const u8, len as usize) })
-    }
-    fn acceleration_structure(&self, reference: u64) -> Option<&[u8]> {
-        match self.structure_address(reference) {
-            Some(address) => self.device_view.acceleration_structure(address?),
-            None => self.device_view.acceleration_structure(reference),
-        }
-    }
-    fn translate_reference(&self, reference: u64) -> u64 {
-        self.structure_address(reference).flatten().unwrap_or(reference)
-    }
-}
-
-impl InputMemory for HostInputs<'_> {
-    fn input(&self, address: u64, len: u64, _usage: vk::BufferUsageFlags) -> Result<&[u8], InputError> {
-        accel::DeviceView::bytes(self, address, len).ok_or(InputError::Access(AccessError::Unmapped { address }))
-    }
-    unsafe fn scratch(&self, address: u64, len: u64) -> Result<&mut [u8], InputError> {
-        if address == 0 {
-            return Err(InputError::Access(AccessError::Unmapped { address }));
-        }
-        // SAFETY: the caller's contract and HostInputs::new's: valid, exclusive host scratch.
-        Ok(unsafe { std::slice::from_raw_parts_mut(address as *mut u8, len as usize) })
-    }
-    fn memory_range(&self, _address: u64, _len: u64) -> Option<(usize, u64, u64)> {
-        None
-    }
-    fn command(&self) -> &'static str {
-        self.command
-    }
-    fn is_host(&self) -> bool {
-        true
-    }
-}
-
-/// Run `work` now or under a deferred operation. `small` work run now stays on the calling
-/// thread (`threads::run_here`).
-fn run_host(
-    dev: &Arc<Device>,
-    deferred: vk::DeferredOperationKHR,
-    command: &str,
-    small: bool,
-    work: Box<dyn FnOnce() -> vk::Result + Send>,
-) -> vk::Result {
-    if !dev.features.acceleration_structure_host_commands {
-        diag::vuid(
-            &format!("VUID-{command}-accelerationStructureHostCommands-03581"),
-            command,
-            "the accelerationStructureHostCommands feature is not enabled",
-        );
-    }
-    if deferred == vk::DeferredOperationKHR::null() {
-        return if small { crate::threads::run_here(work) } else { work() };
-    }
-    let Some(op) = handle::get::<DeferredOperation>(deferred.as_raw()) else {
-        diag::vuid(&format!("VUID-{command}-deferredOperation-parameter"), command, "not a valid deferred operation");
-        return vk::Result::ERROR_UNKNOWN;
-    };
-    if op.is_pending() {
-        diag::vuid(&format!("VUID-{command}-deferredOperation-03678"), command, "the previous deferred operation is not complete");
-        return vk::Result::ERROR_UNKNOWN;
-    }
-    op.defer(crate::threads::configured_threads(), work)
-}
-
+/// `vkBuildAccelerationStructuresKHR`.
+///
+/// # Safety
+/// The command's valid-usage rules hold for its pointer and handle parameters (the caller's
+/// obligation under the Vulkan API contract).
 unsafe extern "system" fn build_acceleration_structures_khr(
     device: vk::Device,
     deferred: vk::DeferredOperationKHR,
@@ -543,62 +424,20 @@ unsafe extern "system" fn build_acceleration_structures_khr(
     const CMD: &str = "vkBuildAccelerationStructuresKHR";
     guard(CMD, vk::Result::ERROR_OUT_OF_HOST_MEMORY, || {
         let Some(dev) = device_from(device) else { return vk::Result::ERROR_INITIALIZATION_FAILED };
-        // SAFETY: infoCount elements (spec).
-        let infos = unsafe { util::slice(p_infos, info_count) };
-        let mut out = Vec::with_capacity(infos.len());
-        for (i, info) in infos.iter().enumerate() {
-            // SAFETY: ppBuildRangeInfos[i] points to geometryCount records (spec).
-            let ranges = unsafe {
-                let p = if pp_ranges.is_null() { std::ptr::null() } else { *pp_ranges.add(i) };
-                util::slice(p, info.geometry_count).iter().map(range_from_vk).collect()
-            };
-            // SAFETY: valid info.
-            out.push(unsafe { lower_info(info, Ranges::Direct(ranges)) });
-        }
-        // Small builds stay on this thread, as they stay on a queue thread
-        // (`threads::runs_inline`, runtime::accel::execute_builds).
-        let prims: u64 = out.iter().flat_map(|i| match &i.ranges { Ranges::Direct(r) => r.as_slice(), _ => &[] }).map(|r| r.primitive_count as u64).sum();
-        let small = out.iter().all(|i| i.mode != vk::BuildAccelerationStructureModeKHR::UPDATE) && crate::threads::runs_inline(prims);
-        let d = dev.clone();
-        run_host(
-            &dev,
-            deferred,
-            CMD,
-            small,
-            Box::new(move || {
-                // SAFETY: host addresses of a host build are valid until it completes (spec).
-                let inputs = unsafe { HostInputs::new(&d.memory, CMD) };
-                match rt::execute_builds(&inputs, &out) {
-                    Ok(()) => vk::Result::SUCCESS,
-                    Err(_) => vk::Result::ERROR_DEVICE_LOST,
-                }
-            }),
-        )
+        // SAFETY: the command's pInfos and ppBuildRangeInfos (spec).
+        let out = unsafe { lower_direct(p_infos, info_count, pp_ranges) };
+        rt::command::build_on_host(&dev, deferral_from(deferred), host_memory(), structure_from_raw, out)
     })
 }
 
 // ---------------------------------------------------------------------------------------------
 // Copies
 
-/// A recorded copy (structure ↔ structure, to memory, from memory by device address).
-struct CopyCommand {
-    name: &'static str,
-    op: rt::Copy,
-}
-
-impl Exec for CopyCommand {
-    fn name(&self) -> &'static str {
-        self.name
-    }
-    fn execute(&self, ctx: &ExecContext<'_>) -> Result<(), ExecError> {
-        let inputs = DeviceInputs::new(ctx.memory(), self.name);
-        rt::execute_copy(&inputs, &self.op).map_err(|_| ExecError::Invalid {
-            vuid: "strict",
-            message: "an acceleration-structure copy broke a valid-usage rule (ARBOR_STRICT)".into(),
-        })
-    }
-}
-
+/// `vkCmdCopyAccelerationStructureKHR`.
+///
+/// # Safety
+/// The command's valid-usage rules hold for its pointer and handle parameters (the caller's
+/// obligation under the Vulkan API contract).
 unsafe extern "system" fn cmd_copy_acceleration_structure_khr(command_buffer: vk::CommandBuffer, p_info: *const vk::CopyAccelerationStructureInfoKHR) {
     const CMD: &str = "vkCmdCopyAccelerationStructureKHR";
     guard(CMD, (), || {
@@ -609,10 +448,15 @@ unsafe extern "system" fn cmd_copy_acceleration_structure_khr(command_buffer: vk
         // SAFETY: valid info (spec).
         let i = unsafe { &*p_info };
         let op = rt::Copy::Structure { src: structure_from(i.src), dst: structure_from(i.dst), mode: i.mode };
-        cb.record_custom(Box::new(CopyCommand { name: CMD, op }));
+        cb.record_custom(Box::new(CopyCommand { op }));
     })
 }
 
+/// `vkCmdCopyAccelerationStructureToMemoryKHR`.
+///
+/// # Safety
+/// The command's valid-usage rules hold for its pointer and handle parameters (the caller's
+/// obligation under the Vulkan API contract).
 unsafe extern "system" fn cmd_copy_acceleration_structure_to_memory_khr(
     command_buffer: vk::CommandBuffer,
     p_info: *const vk::CopyAccelerationStructureToMemoryInfoKHR,
@@ -626,10 +470,15 @@ unsafe extern "system" fn cmd_copy_acceleration_structure_to_memory_khr(
         // SAFETY: valid info (spec); the union is read as a device address.
         let (src, dst_address, mode) = unsafe { ((*p_info).src, (*p_info).dst.device_address, (*p_info).mode) };
         let op = rt::Copy::ToMemory { src: structure_from(src), dst: dst_address, mode };
-        cb.record_custom(Box::new(CopyCommand { name: CMD, op }));
+        cb.record_custom(Box::new(CopyCommand { op }));
     })
 }
 
+/// `vkCmdCopyMemoryToAccelerationStructureKHR`.
+///
+/// # Safety
+/// The command's valid-usage rules hold for its pointer and handle parameters (the caller's
+/// obligation under the Vulkan API contract).
 unsafe extern "system" fn cmd_copy_memory_to_acceleration_structure_khr(
     command_buffer: vk::CommandBuffer,
     p_info: *const vk::CopyMemoryToAccelerationStructureInfoKHR,
@@ -643,29 +492,20 @@ unsafe extern "system" fn cmd_copy_memory_to_acceleration_structure_khr(
         // SAFETY: valid info (spec); the union is read as a device address.
         let (src_address, dst, mode) = unsafe { ((*p_info).src.device_address, (*p_info).dst, (*p_info).mode) };
         let op = rt::Copy::FromMemory { src: src_address, dst: structure_from(dst), mode };
-        cb.record_custom(Box::new(CopyCommand { name: CMD, op }));
+        cb.record_custom(Box::new(CopyCommand { op }));
     })
 }
 
-fn host_copy(device: vk::Device, deferred: vk::DeferredOperationKHR, name: &'static str, op: rt::Copy) -> vk::Result {
+fn host_copy(device: vk::Device, deferred: vk::DeferredOperationKHR, op: rt::Copy) -> vk::Result {
     let Some(dev) = device_from(device) else { return vk::Result::ERROR_INITIALIZATION_FAILED };
-    let d = dev.clone();
-    run_host(
-        &dev,
-        deferred,
-        name,
-        false,
-        Box::new(move || {
-            // SAFETY: host addresses of a host copy are valid until it completes (spec).
-            let inputs = unsafe { HostInputs::new(&d.memory, name) };
-            match rt::execute_copy(&inputs, &op) {
-                Ok(()) => vk::Result::SUCCESS,
-                Err(_) => vk::Result::ERROR_DEVICE_LOST,
-            }
-        }),
-    )
+    rt::command::copy_on_host(&dev, deferral_from(deferred), host_memory(), structure_from_raw, op)
 }
 
+/// `vkCopyAccelerationStructureKHR`.
+///
+/// # Safety
+/// The command's valid-usage rules hold for its pointer and handle parameters (the caller's
+/// obligation under the Vulkan API contract).
 unsafe extern "system" fn copy_acceleration_structure_khr(
     device: vk::Device,
     deferred: vk::DeferredOperationKHR,
@@ -678,10 +518,15 @@ unsafe extern "system" fn copy_acceleration_structure_khr(
         }
         // SAFETY: valid info (spec).
         let i = unsafe { &*p_info };
-        host_copy(device, deferred, CMD, rt::Copy::Structure { src: structure_from(i.src), dst: structure_from(i.dst), mode: i.mode })
+        host_copy(device, deferred, rt::Copy::Structure { src: structure_from(i.src), dst: structure_from(i.dst), mode: i.mode })
     })
 }
 
+/// `vkCopyAccelerationStructureToMemoryKHR`.
+///
+/// # Safety
+/// The command's valid-usage rules hold for its pointer and handle parameters (the caller's
+/// obligation under the Vulkan API contract).
 unsafe extern "system" fn copy_acceleration_structure_to_memory_khr(
     device: vk::Device,
     deferred: vk::DeferredOperationKHR,
@@ -694,10 +539,15 @@ unsafe extern "system" fn copy_acceleration_structure_to_memory_khr(
         }
         // SAFETY: valid info (spec); the union is read as a host pointer value.
         let (src, dst, mode) = unsafe { ((*p_info).src, (*p_info).dst.host_address as u64, (*p_info).mode) };
-        host_copy(device, deferred, CMD, rt::Copy::ToMemory { src: structure_from(src), dst, mode })
+        host_copy(device, deferred, rt::Copy::ToMemory { src: structure_from(src), dst, mode })
     })
 }
 
+/// `vkCopyMemoryToAccelerationStructureKHR`.
+///
+/// # Safety
+/// The command's valid-usage rules hold for its pointer and handle parameters (the caller's
+/// obligation under the Vulkan API contract).
 unsafe extern "system" fn copy_memory_to_acceleration_structure_khr(
     device: vk::Device,
     deferred: vk::DeferredOperationKHR,
@@ -710,41 +560,18 @@ unsafe extern "system" fn copy_memory_to_acceleration_structure_khr(
         }
         // SAFETY: valid info (spec); the union is read as a host pointer value.
         let (src, dst, mode) = unsafe { ((*p_info).src.host_address as u64, (*p_info).dst, (*p_info).mode) };
-        host_copy(device, deferred, CMD, rt::Copy::FromMemory { src, dst: structure_from(dst), mode })
+        host_copy(device, deferred, rt::Copy::FromMemory { src, dst: structure_from(dst), mode })
     })
 }
 
 // ---------------------------------------------------------------------------------------------
 // Properties
 
-/// Recorded vkCmdWriteAccelerationStructuresPropertiesKHR.
-struct WritePropertiesCommand {
-    structures: Vec<Option<Arc<AccelerationStructure>>>,
-    query_type: vk::QueryType,
-    pool: Arc<crate::runtime::query::QueryPool>,
-    first: u32,
-}
-
-impl Exec for WritePropertiesCommand {
-    fn name(&self) -> &'static str {
-        "vkCmdWriteAccelerationStructuresPropertiesKHR"
-    }
-    fn execute(&self, _ctx: &ExecContext<'_>) -> Result<(), ExecError> {
-        for (i, s) in self.structures.iter().enumerate() {
-            match rt::property(s.as_deref(), self.query_type, self.name(), i) {
-                Some(v) => {
-                    self.pool.write(self.first + i as u32, v);
-                }
-                None if diag::strict() => {
-                    return Err(ExecError::Invalid { vuid: "strict", message: "invalid property query (ARBOR_STRICT)".into() })
-                }
-                None => {}
-            }
-        }
-        Ok(())
-    }
-}
-
+/// `vkCmdWriteAccelerationStructuresPropertiesKHR`.
+///
+/// # Safety
+/// The command's valid-usage rules hold for its pointer and handle parameters (the caller's
+/// obligation under the Vulkan API contract).
 unsafe extern "system" fn cmd_write_acceleration_structures_properties_khr(
     command_buffer: vk::CommandBuffer,
     count: u32,
@@ -756,24 +583,18 @@ unsafe extern "system" fn cmd_write_acceleration_structures_properties_khr(
     const CMD: &str = "vkCmdWriteAccelerationStructuresPropertiesKHR";
     guard(CMD, (), || {
         let Some(cb) = command_buffer_from(command_buffer) else { return };
-        let Some(pool) = handle::get::<crate::runtime::query::QueryPool>(query_pool.as_raw()) else {
-            diag::vuid(&format!("VUID-{CMD}-queryPool-parameter"), CMD, "not a valid query pool");
-            return;
-        };
-        if pool.query_type != query_type {
-            diag::vuid(&format!("VUID-{CMD}-queryPool-02493"), CMD, "queryPool was created with another queryType");
-            return;
-        }
-        if pool.check_range(first_query, count).is_err() {
-            diag::vuid(&format!("VUID-{CMD}-query-04880"), CMD, "firstQuery + accelerationStructureCount exceeds the pool");
-            return;
-        }
+        let pool = handle::get::<QueryPool>(query_pool.as_raw());
         // SAFETY: count handles (spec).
         let structures = unsafe { util::slice(p_structures, count) }.iter().map(|h| structure_from(*h)).collect();
-        cb.record_custom(Box::new(WritePropertiesCommand { structures, query_type, pool, first: first_query }));
+        WritePropertiesCommand::record(&cb, structures, query_type, pool, (first_query, count));
     })
 }
 
+/// `vkWriteAccelerationStructuresPropertiesKHR`.
+///
+/// # Safety
+/// The command's valid-usage rules hold for its pointer and handle parameters (the caller's
+/// obligation under the Vulkan API contract).
 unsafe extern "system" fn write_acceleration_structures_properties_khr(
     device: vk::Device,
     count: u32,
@@ -789,89 +610,26 @@ unsafe extern "system" fn write_acceleration_structures_properties_khr(
         if !dev.features.acceleration_structure_host_commands {
             diag::vuid(&format!("VUID-{CMD}-accelerationStructureHostCommands-03585"), CMD, "host commands are not enabled");
         }
-        if stride % 8 != 0 {
+        if !stride.is_multiple_of(8) {
             diag::vuid(&format!("VUID-{CMD}-queryType-03448"), CMD, "stride must be a multiple of 8");
             return vk::Result::ERROR_UNKNOWN;
         }
-        if (count as usize).checked_mul(stride).is_none_or(|n| n > data_size) || p_data.is_null() {
+        // The last value ends at (count - 1) * stride + 8, past count * stride when stride is 0.
+        let last_end = (count as usize).checked_sub(1).map_or(Some(0), |n| n.checked_mul(stride).and_then(|o| o.checked_add(8)));
+        let too_small = |end: Option<usize>| end.is_none_or(|n| n > data_size);
+        if too_small((count as usize).checked_mul(stride)) || too_small(last_end) || p_data.is_null() {
             diag::vuid(&format!("VUID-{CMD}-dataSize-03452"), CMD, "dataSize is smaller than accelerationStructureCount * stride");
             return vk::Result::ERROR_UNKNOWN;
         }
         // SAFETY: count handles (spec).
-        let handles = unsafe { util::slice(p_structures, count) };
-        for (i, h) in handles.iter().enumerate() {
-            let s = structure_from(*h);
-            if let Some(v) = rt::property(s.as_deref(), query_type, CMD, i) {
-                // SAFETY: i * stride + 8 <= dataSize checked above; unaligned-safe write.
+        let structures: Vec<_> = unsafe { util::slice(p_structures, count) }.iter().map(|h| structure_from(*h)).collect();
+        for (i, v) in rt::properties(&structures, query_type, CMD).into_iter().enumerate() {
+            if let Some(v) = v {
+                // SAFETY: i * stride + 8 <= (count - 1) * stride + 8 <= dataSize, checked above;
+                // unaligned-safe write.
                 unsafe { (p_data as *mut u8).add(i * stride).cast::<u64>().write_unaligned(v) };
             }
         }
         vk::Result::SUCCESS
-    })
-}
-
-// ---------------------------------------------------------------------------------------------
-// Deferred operations
-
-unsafe extern "system" fn create_deferred_operation_khr(
-    _device: vk::Device,
-    _p_allocator: *const vk::AllocationCallbacks,
-    p_op: *mut vk::DeferredOperationKHR,
-) -> vk::Result {
-    guard("vkCreateDeferredOperationKHR", vk::Result::ERROR_OUT_OF_HOST_MEMORY, || {
-        if p_op.is_null() {
-            return vk::Result::ERROR_INITIALIZATION_FAILED;
-        }
-        // SAFETY: valid output pointer.
-        unsafe { *p_op = vk::DeferredOperationKHR::from_raw(handle::register(DeferredOperation::new())) };
-        vk::Result::SUCCESS
-    })
-}
-
-unsafe extern "system" fn destroy_deferred_operation_khr(
-    _device: vk::Device,
-    op: vk::DeferredOperationKHR,
-    _p_allocator: *const vk::AllocationCallbacks,
-) {
-    const CMD: &str = "vkDestroyDeferredOperationKHR";
-    guard(CMD, (), || {
-        if op == vk::DeferredOperationKHR::null() {
-            return;
-        }
-        match handle::get::<DeferredOperation>(op.as_raw()) {
-            Some(o) if o.is_pending() => {
-                diag::vuid(&format!("VUID-{CMD}-operation-03436"), CMD, "the operation is not complete; not destroyed");
-            }
-            Some(_) => {
-                handle::unregister::<DeferredOperation>(op.as_raw());
-            }
-            None => diag::vuid(&format!("VUID-{CMD}-operation-parameter"), CMD, "not a valid deferred operation"),
-        }
-    })
-}
-
-fn deferred_from(op: vk::DeferredOperationKHR, command: &str) -> Option<Arc<DeferredOperation>> {
-    let o = handle::get::<DeferredOperation>(op.as_raw());
-    if o.is_none() {
-        diag::vuid(&format!("VUID-{command}-operation-parameter"), command, "not a valid deferred operation");
-    }
-    o
-}
-
-unsafe extern "system" fn get_deferred_operation_max_concurrency_khr(_device: vk::Device, op: vk::DeferredOperationKHR) -> u32 {
-    guard("vkGetDeferredOperationMaxConcurrencyKHR", 0, || {
-        deferred_from(op, "vkGetDeferredOperationMaxConcurrencyKHR").map_or(0, |o| o.max_concurrency())
-    })
-}
-
-unsafe extern "system" fn get_deferred_operation_result_khr(_device: vk::Device, op: vk::DeferredOperationKHR) -> vk::Result {
-    guard("vkGetDeferredOperationResultKHR", vk::Result::ERROR_UNKNOWN, || {
-        deferred_from(op, "vkGetDeferredOperationResultKHR").map_or(vk::Result::ERROR_UNKNOWN, |o| o.result())
-    })
-}
-
-unsafe extern "system" fn deferred_operation_join_khr(_device: vk::Device, op: vk::DeferredOperationKHR) -> vk::Result {
-    guard("vkDeferredOperationJoinKHR", vk::Result::ERROR_UNKNOWN, || {
-        deferred_from(op, "vkDeferredOperationJoinKHR").map_or(vk::Result::ERROR_UNKNOWN, |o| o.join())
     })
 }

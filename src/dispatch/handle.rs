@@ -19,6 +19,28 @@ pub trait DispatchTag {
     const TAG: u64;
 }
 
+// The tags live here, with the handle representation they serve; the object model knows
+// nothing of handles.
+impl DispatchTag for crate::runtime::Instance {
+    const TAG: u64 = 0x4152_424f_5249_4e53; // "ARBORINS"
+}
+
+impl DispatchTag for crate::runtime::PhysicalDevice {
+    const TAG: u64 = 0x4152_424f_5250_4859; // "ARBORPHY"
+}
+
+impl DispatchTag for crate::runtime::Device {
+    const TAG: u64 = 0x4152_424f_5244_4556; // "ARBORDEV"
+}
+
+impl DispatchTag for crate::runtime::Queue {
+    const TAG: u64 = 0x4152_424f_5251_5545; // "ARBORQUE"
+}
+
+impl DispatchTag for crate::runtime::command::CommandBuffer {
+    const TAG: u64 = 0x4152_424f_5243_4d44; // "ARBORCMD"
+}
+
 /// Allocate a dispatchable object and return its handle value (a pointer).
 pub fn new_dispatchable<T: DispatchTag>(object: Arc<T>) -> *mut Dispatchable<T> {
     Box::into_raw(Box::new(Dispatchable { loader_data: crate::ICD_LOADER_MAGIC, tag: T::TAG, object }))

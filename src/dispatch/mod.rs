@@ -4,6 +4,7 @@
 //! No panic crosses this boundary: every entry point runs inside [`guard`].
 pub mod accel;
 pub mod command;
+pub mod deferred;
 pub mod descriptor;
 pub mod device;
 pub mod handle;
@@ -40,6 +41,7 @@ pub fn implemented() -> Vec<Implemented> {
     let mut v = Vec::new();
     v.extend(instance::commands());
     v.extend(accel::commands());
+    v.extend(deferred::commands());
     v.extend(physical_device::commands());
     v.extend(device::commands());
     v.extend(memory::commands());

@@ -13,12 +13,22 @@
 //! Concurrency: device memory is shared with the application (mapped pointers) and with queue
 //! workers, exactly like GPU memory. Accesses are raw copies; the Vulkan synchronisation rules
 //! (the application's obligation) make them race-free. No `&mut [u8]` over device memory
-//! outlives the call that made it.
+//! outlives the call that made it, except the writable regions a command claims for as long as
+//! it runs ([`region`], which holds the argument for them).
+//!
+//! Submodules: `backing` (the host bytes of an allocation), [`view`] (shared views and reads
+//! that follow device addresses), [`region`] (writable regions and application host memory).
+//! This module imports nothing from the rest of the driver: what the bytes mean (acceleration
+//! structures, commands) is for the layers above.
+mod backing;
+pub mod region;
 pub mod view;
+
+use backing::Backing;
+pub use backing::HUGE_MAPPING_MIN;
 
 use std::collections::BTreeMap;
 use std::fmt;
-use std::ptr::NonNull;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, OnceLock, RwLock, Weak};
 
@@ -82,102 +92,6 @@ impl fmt::Display for AccessError {
             }
             AccessError::Unbound => write!(f, "the buffer has no memory bound"),
             AccessError::Freed => write!(f, "the memory was freed"),
-        }
-    }
-}
-
-/// Host backing of one allocation.
-///
-/// Allocated through the allocator's zeroing path with 16-byte alignment (calloc: large blocks
-/// come straight from mmap, zero and uncommitted until touched, so a big allocation costs RAM
-/// only as it is used), over-sized by one page so that `ptr` can be page aligned: host pointers
-/// then have the alignment of the device addresses they back, up to 4096.
-///
-/// On Linux, allocations of at least [`HUGE_MAPPING_MIN`] are their own anonymous mapping
-/// (page aligned, zero, uncommitted until touched, as above) advised for transparent huge
-/// pages: a build's scratch and destination are tens of megabytes read and written in
-/// patterns the TLB follows badly with 4 KiB pages (dragon, 16 threads on the 16-core machine:
-/// builds through the API 1–5 % faster, docs/BENCHMARKS.md, session 11). Where the system does
-/// not grant huge pages the advice changes nothing.
-struct Backing {
-    /// Page-aligned start of the bytes.
-    ptr: NonNull<u8>,
-    /// What the allocator returned (the mapping's start for a mapped backing).
-    base: NonNull<u8>,
-    /// The allocator's layout, or None for a mapping of `mapped` bytes.
-    layout: Option<std::alloc::Layout>,
-    #[cfg_attr(not(all(target_os = "linux", any(target_arch = "x86_64", target_arch = "aarch64"))), allow(dead_code))]
-    mapped: usize,
-}
-
-/// Allocations from this size on get their own mapping advised for huge pages (Linux on
-/// x86-64 and AArch64).
-pub const HUGE_MAPPING_MIN: usize = 2 << 20;
-
-/// Linux's mmap/madvise constants as on x86-64 and AArch64 (some other architectures number
-/// them differently, so they keep the allocator path).
-#[cfg(all(target_os = "linux", any(target_arch = "x86_64", target_arch = "aarch64")))]
-mod sys {
-    use std::ffi::{c_int, c_long, c_void};
-    pub const PROT_READ: c_int = 1;
-    pub const PROT_WRITE: c_int = 2;
-    pub const MAP_PRIVATE: c_int = 2;
-    pub const MAP_ANONYMOUS: c_int = 0x20;
-    pub const MADV_HUGEPAGE: c_int = 14;
-    extern "C" {
-        pub fn mmap(addr: *mut c_void, len: usize, prot: c_int, flags: c_int, fd: c_int, off: c_long) -> *mut c_void;
-        pub fn munmap(addr: *mut c_void, len: usize) -> c_int;
-        pub fn madvise(addr: *mut c_void, len: usize, advice: c_int) -> c_int;
-    }
-}
-
-impl Backing {
-    /// Zeroed bytes for `size` (a multiple of [`ALLOCATION_ALIGNMENT`]); None when the host
-    /// allocator fails.
-    fn new(size: usize) -> Option<Backing> {
-        #[cfg(all(target_os = "linux", any(target_arch = "x86_64", target_arch = "aarch64")))]
-        if size >= HUGE_MAPPING_MIN {
-            // SAFETY: a fresh private anonymous mapping (no address hint, no file) touches no
-            // existing memory; the kernel returns it zeroed and page aligned, or MAP_FAILED.
-            let p = unsafe { sys::mmap(std::ptr::null_mut(), size, sys::PROT_READ | sys::PROT_WRITE, sys::MAP_PRIVATE | sys::MAP_ANONYMOUS, -1, 0) };
-            if p as isize != -1 {
-                // SAFETY: the range is exactly the mapping just made and owned here; the advice
-                // only changes how the kernel backs it (never its contents), and failure
-                // (huge pages disabled) leaves the mapping as it was.
-                unsafe { sys::madvise(p, size, sys::MADV_HUGEPAGE) };
-                let ptr = NonNull::new(p as *mut u8)?;
-                return Some(Backing { ptr, base: ptr, layout: None, mapped: size });
-            }
-        }
-        let layout = std::alloc::Layout::from_size_align(size.checked_add(ALLOCATION_ALIGNMENT as usize)?, 16).ok()?;
-        // SAFETY: layout has non-zero size.
-        let base = NonNull::new(unsafe { std::alloc::alloc_zeroed(layout) })?;
-        let pad = base.as_ptr().align_offset(ALLOCATION_ALIGNMENT as usize);
-        // SAFETY: pad < ALLOCATION_ALIGNMENT, so ptr..ptr+size lies inside the block.
-        let ptr = unsafe { NonNull::new_unchecked(base.as_ptr().add(pad)) };
-        Some(Backing { ptr, base, layout: Some(layout), mapped: 0 })
-    }
-}
-
-// SAFETY: the backing is plain bytes owned by the allocation; concurrent access follows the
-// Vulkan synchronisation rules (see the module docs).
-unsafe impl Send for Backing {}
-// SAFETY: as above.
-unsafe impl Sync for Backing {}
-
-impl Drop for Backing {
-    fn drop(&mut self) {
-        match self.layout {
-            // SAFETY: allocated with this layout in Backing::new.
-            Some(layout) => unsafe { std::alloc::dealloc(self.base.as_ptr(), layout) },
-            #[cfg(all(target_os = "linux", any(target_arch = "x86_64", target_arch = "aarch64")))]
-            // SAFETY: the mapping of `mapped` bytes made in Backing::new, unmapped once; no
-            // reference into it outlives the backing.
-            None => unsafe {
-                sys::munmap(self.base.as_ptr().cast(), self.mapped);
-            },
-            #[cfg(not(all(target_os = "linux", any(target_arch = "x86_64", target_arch = "aarch64"))))]
-            None => {}
         }
     }
 }
@@ -848,5 +762,14 @@ mod tests {
         // Freed addresses can be requested again.
         replay.free(&replayed);
         assert!(replay.allocate_with(8192, true, true, Some(captured.address)).is_ok());
+    }
+
+    #[test]
+    fn memory_imports_nothing_of_the_rest_of_the_driver() {
+        let sources = [include_str!("mod.rs"), include_str!("backing.rs"), include_str!("view.rs"), include_str!("region.rs")];
+        let crate_path = concat!("crate", "::");
+        for source in sources {
+            assert!(!source.contains(crate_path), "src/memory must not depend on the layers above it");
+        }
     }
 }

@@ -1,10 +1,12 @@
-//! Borrowed views of device memory for the acceleration-structure library: byte slices whose
-//! lifetime is tied to a pinned buffer, and the `accel::DeviceView` that TLAS builds and
-//! traversal use to follow device addresses.
+//! Borrowed, shared views of device memory: byte slices whose lifetime is tied to a pinned
+//! buffer, and [`DeviceMemoryView`], which follows device addresses (the runtime adapts it to
+//! the acceleration-structure library's `DeviceView`). Writable views are `region`'s.
+//!
+//! Like every module of `memory`, this one knows nothing of acceleration structures beyond the
+//! size of the prefix that identifies one ([`STRUCTURE_PROBE`]).
 use std::sync::{Arc, Mutex};
 
 use super::{AccessError, AddressSpace, Buffer};
-use crate::accel;
 
 impl Buffer {
     /// A shared view of `[offset, offset + len)` of this buffer, valid while the buffer is
@@ -18,22 +20,6 @@ impl Buffer {
         Ok(unsafe { std::slice::from_raw_parts(m.backing.ptr.as_ptr().add(o as usize), len as usize) })
     }
 
-    /// A mutable view of `[offset, offset + len)` of this buffer.
-    ///
-    /// # Safety
-    /// No other view (shared or mutable) of any byte of this range may exist while the returned
-    /// slice lives. Arbor's build and copy paths check that destination, scratch and source
-    /// regions do not overlap (the spec's aliasing VUIDs) before making views.
-    // A device-memory view is interior mutability by nature (memory shared with the queue and
-    // the application); exclusivity is this unsafe fn's contract, not the borrow of `self`.
-    #[allow(clippy::mut_from_ref)]
-    pub unsafe fn bytes_mut(&self, offset: u64, len: u64) -> Result<&mut [u8], AccessError> {
-        let (m, o) = self.locate(offset, len)?;
-        m.check(o, len)?;
-        // SAFETY: range checked; lifetime as in `bytes`; exclusivity is the caller's contract.
-        Ok(unsafe { std::slice::from_raw_parts_mut(m.backing.ptr.as_ptr().add(o as usize), len as usize) })
-    }
-
     /// Identity of the backing memory and the byte range of `[offset, offset + len)` within it,
     /// for overlap checks between regions.
     pub fn memory_range(&self, offset: u64, len: u64) -> Option<(usize, u64, u64)> {
@@ -45,9 +31,9 @@ impl Buffer {
 /// Smallest prefix of an acceleration structure that identifies it (the accel header).
 pub const STRUCTURE_PROBE: u64 = 16;
 
-/// `accel::DeviceView` over a device's address space: device addresses resolve to the live
-/// buffers containing them; every buffer a returned slice borrows from is pinned for the
-/// view's lifetime.
+/// Reads through a device's address space: device addresses resolve to the live buffers
+/// containing them; every buffer a returned slice borrows from is pinned for the view's
+/// lifetime.
 pub struct DeviceMemoryView<'a> {
     space: &'a AddressSpace,
     pins: Mutex<Vec<Arc<Buffer>>>,
@@ -74,13 +60,16 @@ impl<'a> DeviceMemoryView<'a> {
     }
 }
 
-impl accel::DeviceView for DeviceMemoryView<'_> {
-    fn bytes(&self, address: u64, len: u64) -> Option<&[u8]> {
+impl DeviceMemoryView<'_> {
+    /// The `len` bytes at device address `address`, inside one live buffer.
+    pub fn bytes(&self, address: u64, len: u64) -> Option<&[u8]> {
         let r = self.space.resolve(address, len).ok()?;
         self.pinned_slice(r.buffer, r.offset, len)
     }
 
-    fn acceleration_structure(&self, reference: u64) -> Option<&[u8]> {
+    /// The bytes from device address `reference` to the end of the buffer holding it (an
+    /// acceleration structure's extent as far as memory knows), looked up once per address.
+    pub fn structure(&self, reference: u64) -> Option<&[u8]> {
         if let Some(&(ptr, len)) = self.structures.lock().unwrap_or_else(|e| e.into_inner()).get(&reference) {
             // SAFETY: recorded below from a slice whose buffer is pinned for the view's lifetime.
             return Some(unsafe { std::slice::from_raw_parts(ptr as *const u8, len) });

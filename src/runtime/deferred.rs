@@ -1,18 +1,11 @@
-//! Deferred host operations (VK_KHR_deferred_host_operations) whose joining threads do the work.
+//! Deferred host operations (VK_KHR_deferred_host_operations): the operation object, whose
+//! joining threads do the work ([`DeferredOperation`] explains how).
 //!
-//! A deferred operation owns a rayon thread pool created without threads of its own: its N
-//! worker slots (`rayon::ThreadBuilder`s) are handed to the application threads that call
-//! `vkDeferredOperationJoinKHR`, which run rayon's worker loop themselves. The operation's work
-//! is one job spawned on that pool; its parallel parts (`rayon::join`, parallel iterators) are
-//! split into tasks that the joined threads steal from each other — the same scheduler (rayon)
-//! that runs every other build, so the structures built are byte-identical whatever the number of
-//! joiners. When the work finishes it drops the pool, every joined worker leaves its loop, and each
-//! joiner returns VK_SUCCESS. A join that finds no free slot returns VK_THREAD_DONE_KHR: nothing
-//! more can be handed to it, and the slots already taken guarantee progress.
+//! This module owns the scheduling of deferred work only; what the work is (a host build or
+//! copy) is `runtime::accel::command`'s, and the worker count is `threads`'.
 use std::sync::{Arc, Condvar, Mutex};
 
 use ash::vk;
-
 
 enum State {
     /// Created, or never used: complete with VK_SUCCESS.
@@ -21,11 +14,32 @@ enum State {
     Complete(vk::Result),
 }
 
+/// One `VkDeferredOperationKHR`, and how its work is scheduled.
+///
+/// [`defer`](Self::defer) builds a rayon thread pool without threads of its own: its N worker
+/// slots (`rayon::ThreadBuilder`s, N = `threads::configured_threads()`) wait in the operation,
+/// and the work is spawned on that pool as one job. Each application thread that calls
+/// `vkDeferredOperationJoinKHR` ([`join`](Self::join)) takes a slot (the first joiner slot 0)
+/// and runs rayon's worker loop itself: one joiner picks up the job, and the job's parallel
+/// parts (`rayon::join`, parallel iterators; `threads::run_parallel` keeps them on the pool the
+/// calling thread works for, whatever `runtime::accel::build::Placement` says) are split into
+/// tasks the joined threads steal from each other. So deferred work runs only on joining
+/// threads, on the same scheduler and with the same task decomposition as every other build:
+/// the structures are byte-identical whatever the number of joiners, and with no joiner nothing
+/// runs (the application must join). When the job finishes it records its result and drops the
+/// pool; every joined worker then leaves its loop once idle, waits until the result is
+/// recorded and returns VK_SUCCESS, and unclaimed slots are dropped. A join that finds no free
+/// slot returns VK_THREAD_DONE_KHR: nothing more can be handed to it, and the slots already
+/// taken guarantee progress. [`max_concurrency`](Self::max_concurrency) is the number of free
+/// slots. Where no pool can be made, `defer` runs the work at once and returns
+/// VK_OPERATION_NOT_DEFERRED_KHR.
+///
+/// `threads::run_as_inline_worker` uses the same slot hand-over to make a queue worker the one
+/// worker of a private pool.
 pub struct DeferredOperation {
     state: Mutex<State>,
     done: Condvar,
 }
-
 
 impl Default for DeferredOperation {
     fn default() -> Self {

@@ -2,7 +2,6 @@
 use std::collections::HashSet;
 use std::sync::Arc;
 
-use crate::dispatch::handle::DispatchTag;
 use crate::memory::AddressSpace;
 
 use super::PhysicalDevice;
@@ -10,12 +9,12 @@ use super::PhysicalDevice;
 pub struct Device {
     pub physical: Arc<PhysicalDevice>,
     pub enabled_extensions: HashSet<String>,
-    /// Minor version of the API the device exposes (1.<minor>).
+    /// Minor version of the API the device exposes (`1.<minor>`).
     pub api_minor: u32,
     pub features: EnabledFeatures,
     /// The device-address space and allocations of this device.
     pub memory: Arc<AddressSpace>,
-    /// Queue handles (Dispatchable<Queue> pointers), by (family, index); set once at creation.
+    /// Queue handles (`Dispatchable<Queue>` pointers), by (family, index); set once at creation.
     pub queues: std::sync::OnceLock<Vec<(u32, u32, usize)>>,
     /// Monotonic origin of timestamps.
     pub epoch: std::time::Instant,
@@ -36,10 +35,6 @@ pub struct EnabledFeatures {
     pub acceleration_structure_capture_replay: bool,
     pub acceleration_structure_indirect_build: bool,
     pub acceleration_structure_host_commands: bool,
-}
-
-impl DispatchTag for Device {
-    const TAG: u64 = 0x4152_424f_5244_4556; // "ARBORDEV"
 }
 
 impl Device {

@@ -1,27 +1,17 @@
 //! Instance and the one physical device.
 use std::sync::Arc;
 
-use crate::dispatch::handle::DispatchTag;
-
 pub struct Instance {
     pub api_version: u32,
     pub enabled_extensions: Vec<String>,
-    /// Handle value of the physical device (a Dispatchable<PhysicalDevice>), freed with the instance.
+    /// Handle value of the physical device (a `Dispatchable<PhysicalDevice>`), freed with the instance.
     pub physical_device: usize,
-}
-
-impl DispatchTag for Instance {
-    const TAG: u64 = 0x4152_424f_5249_4e53; // "ARBORINS"
 }
 
 /// What the machine offers; derived once per instance.
 pub struct PhysicalDevice {
     /// Size of the one memory heap: a share of the machine's RAM.
     pub heap_size: u64,
-}
-
-impl DispatchTag for PhysicalDevice {
-    const TAG: u64 = 0x4152_424f_5250_4859; // "ARBORPHY"
 }
 
 impl PhysicalDevice {

@@ -1,4 +1,8 @@
-//! The object model: plain Rust types with Arc-shared state. No raw application pointers here.
+//! The object model: plain Rust types with Arc-shared state, the queues that execute recorded
+//! commands, and the acceleration-structure commands (`accel`). No raw application pointers
+//! and no `unsafe` here, and nothing of the dispatch layer: handles, their type tags and the
+//! handle registry are `dispatch`'s, and memory views are `memory`'s.
+#![forbid(unsafe_code)]
 pub mod accel;
 pub mod command;
 pub mod descriptor;

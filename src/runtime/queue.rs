@@ -16,7 +16,6 @@ use super::command::{execute_recording, CommandBuffer, ExecContext, Flow, Submit
 use super::sync::{self, Deadline, Fence, Semaphore, SemaphoreKind, WaitOutcome};
 use super::Device;
 use crate::diag;
-use crate::dispatch::handle::DispatchTag;
 
 /// One batch of a submission, as the dispatch layer lowered it.
 pub struct BatchDesc {
@@ -72,10 +71,6 @@ pub struct Queue {
     pub index: u32,
     shared: Arc<Shared>,
     worker: Mutex<Option<Worker>>,
-}
-
-impl DispatchTag for Queue {
-    const TAG: u64 = 0x4152_424f_5251_5545; // "ARBORQUE"
 }
 
 impl Queue {
@@ -154,7 +149,7 @@ impl Queue {
         let device = self.device.clone();
         let thread = std::thread::Builder::new()
             .name(format!("arbor-queue-{}-{}", self.family, self.index))
-            // Small builds run on this thread itself (`threads::run_parallel`).
+            // Small builds run on this thread itself (`runtime::accel::build::Placement`).
             .spawn(move || crate::threads::run_as_inline_worker(move || worker_loop(rx, shared, device)))
             .ok()?;
         Some(Worker { tx, thread })
