@@ -1,5 +1,5 @@
 //! Metrics (SAH, counts, sizes) and structural validation of a built structure.
-use super::builder::{self, Aabb};
+use super::geometry::{sanitize, triangle_bounds, Aabb};
 use super::layout::{self, Parsed, CHILD_INTERNAL};
 use glam::Vec3;
 
@@ -79,9 +79,9 @@ fn prim_box(p: &Parsed, s: u32) -> Option<Aabb> {
     let d = p.prim(s)?;
     let g = p.record(s).and_then(|r| p.geometry(r.geometry))?;
     let (lo, hi) = if g.kind == layout::KIND_AABBS {
-        builder::sanitize([d[0], d[1], d[2]], [d[3], d[4], d[5]])
+        sanitize([d[0], d[1], d[2]], [d[3], d[4], d[5]])
     } else {
-        builder::triangle_bounds(&[Vec3::new(d[0], d[1], d[2]), Vec3::new(d[3], d[4], d[5]), Vec3::new(d[6], d[7], d[8])])
+        triangle_bounds(&[Vec3::new(d[0], d[1], d[2]), Vec3::new(d[3], d[4], d[5]), Vec3::new(d[6], d[7], d[8])])
     };
     Some(Aabb { lo, hi })
 }

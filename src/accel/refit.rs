@@ -1,7 +1,11 @@
 //! Update (refit): same topology, new vertex/AABB positions or instance definitions. Checks the
 //! update rules visible here, rewrites primitive data, then recomputes node boxes bottom-up,
 //! subtree by subtree in parallel (preorder layout: each subtree is a contiguous node range).
-use super::builder::{self, carve, encode_node_v, geometry_record, make_ref, triangle_bounds, Aabb};
+use super::encode::instances::sort_distinct;
+use super::encode::quantize::encode_node_v;
+use super::geometry::{instance_bounds_of, sanitize, triangle_box, triangle_bounds, Aabb, BlasBoundsMemo};
+use super::layout::carve;
+use super::primitive::{geometry_record, make_ref, total_primitives, FastTris};
 use super::input::read_instance;
 use super::layout::{self, InstanceRecord, Parsed, CHILD_INTERNAL, NODE_SIZE, PRIM_SIZE};
 use super::{AsType, BuildDesc, BuildError, BuildFlags, BuildReport, DeviceView, GeometryData};
@@ -70,7 +74,7 @@ fn check(desc: &BuildDesc, p: &Parsed, view: &dyn DeviceView) -> Result<(), Buil
 
 fn prim_bounds(d: &[f32; 9], kind: u32) -> ([f32; 3], [f32; 3]) {
     if kind == layout::KIND_AABBS {
-        builder::sanitize([d[0], d[1], d[2]], [d[3], d[4], d[5]])
+        sanitize([d[0], d[1], d[2]], [d[3], d[4], d[5]])
     } else {
         triangle_bounds(&[Vec3::new(d[0], d[1], d[2]), Vec3::new(d[3], d[4], d[5]), Vec3::new(d[6], d[7], d[8])])
     }
@@ -89,7 +93,7 @@ pub fn update(desc: &BuildDesc, view: &dyn DeviceView, src: Option<&[u8]>, dst: 
         check(desc, &p, view)?;
         p.raw
     };
-    let total = builder::total_primitives(desc)?;
+    let total = total_primitives(desc)?;
     let is_tlas = raw.ty == AsType::TopLevel as u32;
     let need = layout::update_scratch_size(if is_tlas { AsType::TopLevel } else { AsType::BottomLevel }, total);
     if (scratch.len() as u64) < need {
@@ -113,7 +117,7 @@ pub fn update(desc: &BuildDesc, view: &dyn DeviceView, src: Option<&[u8]>, dst: 
         let records = &tail[..n * layout::RECORD_SIZE];
         // Plain f32 triangles without a transform are read directly (`FastTris`); anything
         // else, and every error, through `read_triangle`.
-        let fast: Vec<Option<builder::FastTris>> = desc.geometries.iter().map(builder::FastTris::of).collect();
+        let fast: Vec<Option<FastTris>> = desc.geometries.iter().map(FastTris::of).collect();
         prims
             .par_chunks_mut(1024 * PRIM_SIZE)
             .zip(records.par_chunks(1024 * layout::RECORD_SIZE))
@@ -185,7 +189,7 @@ pub fn update(desc: &BuildDesc, view: &dyn DeviceView, src: Option<&[u8]>, dst: 
         h.bounds = [root.lo[0], root.lo[1], root.lo[2], root.hi[0], root.hi[1], root.hi[2]];
     }
     layout::write_header(dst, &h);
-    Ok(BuildReport { used_size: raw.used_size, node_count: raw.node_count, leaf_count: raw.leaf_count, primitive_count: raw.primitive_count })
+    Ok(BuildReport { used_size: raw.used_size, node_count: raw.node_count, leaf_count: raw.leaf_count, primitive_count: raw.primitive_count, clusters: None, top_planned: super::TopPlanned::No, forked_buckets: 0 })
 }
 
 /// Primitives whose input reads the refit's primitive pass issues together (see there).
@@ -305,7 +309,7 @@ fn leaf_bounds_of(p: &Parsed, leaves: &Leaves, first: u32, count: u32) -> Result
         for t in bytes.chunks_exact(PRIM_SIZE) {
             let Some((t, _)) = t.split_first_chunk::<36>() else { continue };
             let f = |i: usize| f32::from_le_bytes([t[4 * i], t[4 * i + 1], t[4 * i + 2], t[4 * i + 3]]);
-            let (l, h) = builder::triangle_box(Vec3A::new(f(0), f(1), f(2)), Vec3A::new(f(3), f(4), f(5)), Vec3A::new(f(6), f(7), f(8)));
+            let (l, h) = triangle_box(Vec3A::new(f(0), f(1), f(2)), Vec3A::new(f(3), f(4), f(5)), Vec3A::new(f(6), f(7), f(8)));
             lo = lo.min(l);
             hi = hi.max(h);
         }
@@ -376,7 +380,7 @@ fn refit_instances(desc: &BuildDesc, view: &dyn DeviceView, raw: &layout::RawHea
             .map_err(|e| e.1)?;
     }
     let keys = &mut keys[..n];
-    let distinct = super::builder::sort_distinct(keys);
+    let distinct = sort_distinct(keys);
     let keys = &keys[..distinct];
     let table = raw.blas_table_offset as usize;
     for i in 0..raw.blas_table_capacity as usize {
@@ -394,11 +398,11 @@ fn refit_instances(desc: &BuildDesc, view: &dyn DeviceView, raw: &layout::RawHea
         .zip(boxes.get_mut(..n).ok_or(BuildError::InvalidSource("instances"))?.par_chunks_mut(CH))
         .enumerate()
         .map(|(ci, (out, bx))| {
-            let mut memo = builder::BlasBoundsMemo::new();
+            let mut memo = BlasBoundsMemo::new();
             for (k, (o, bo)) in out.chunks_exact_mut(layout::INSTANCE_RECORD_SIZE).zip(bx.iter_mut()).enumerate() {
                 let i = ci * CH + k;
                 let inst = read(head, i).map_err(|e| (i, e))?;
-                let (lo, hi) = builder::instance_bounds_of(&inst.transform, memo.get(inst.reference, view));
+                let (lo, hi) = instance_bounds_of(&inst.transform, memo.get(inst.reference, view));
                 *bo = [lo[0], lo[1], lo[2], hi[0], hi[1], hi[2]];
                 let r = read_rec(head, i).ok_or((i, BuildError::InvalidSource("record")))?;
                 let mut rec = InstanceRecord::zeroed();

@@ -70,11 +70,16 @@ pub fn try_build(ty: AsType, flags: u32, geoms: &[Geometry], view: &dyn DeviceVi
 }
 
 pub fn build_ok(ty: AsType, flags: u32, geoms: &[Geometry], view: &dyn DeviceView) -> Vec<u8> {
+    build_ok_report(ty, flags, geoms, view).0
+}
+
+/// `build_ok` with the build's report.
+pub fn build_ok_report(ty: AsType, flags: u32, geoms: &[Geometry], view: &dyn DeviceView) -> (Vec<u8>, BuildReport) {
     let (r, dst) = try_build(ty, flags, geoms, view);
     let r = r.expect("build");
     assert_eq!(header(&dst).unwrap().used_size, r.used_size);
     validate(&dst).expect("validate");
-    dst
+    (dst, r)
 }
 
 fn random_soup(rng: &mut Rng, n: usize, scale: f32, size: f32) -> Vec<Vec3> {
@@ -267,14 +272,14 @@ fn random_soup_matches_brute_force() {
 
 /// Builds `geoms` with `flags` on a pool of each thread count: the used bytes of each build
 /// and what `inspect` (on the pool, right after the build) says of it.
-fn builds_on<T: Send>(threads: &[usize], flags: u32, geoms: &[Geometry], inspect: impl Fn(&[u8]) -> T + Sync) -> Vec<(Vec<u8>, T)> {
+fn builds_on<T: Send>(threads: &[usize], flags: u32, geoms: &[Geometry], inspect: impl Fn(&[u8], &BuildReport) -> T + Sync) -> Vec<(Vec<u8>, T)> {
     threads
         .iter()
         .map(|&t| {
             let pool = rayon::ThreadPoolBuilder::new().num_threads(t).build().unwrap();
             pool.install(|| {
-                let blas = build_ok(AsType::BottomLevel, flags, geoms, &NoDevice);
-                let seen = inspect(&blas);
+                let (blas, report) = build_ok_report(AsType::BottomLevel, flags, geoms, &NoDevice);
+                let seen = inspect(&blas, &report);
                 let used = header(&blas).unwrap().used_size as usize;
                 (blas[..used].to_vec(), seen)
             })
@@ -289,12 +294,12 @@ fn determinism_across_thread_counts() {
     let vb = f32_bytes(&v);
     let g = tri_geom(&vb, v.len() as u32, &[], 40_000, 0);
     for &flags in &[BuildFlags::PREFER_FAST_BUILD, 0, BuildFlags::PREFER_FAST_TRACE] {
-        let out = builds_on(&[1, 2, 8], flags, &[g], |_| ());
+        let out = builds_on(&[1, 2, 8], flags, &[g], |_, _| ());
         assert!(out.windows(2).all(|w| w[0].0 == w[1].0), "flags {flags}");
     }
 }
 
-/// The two-phase build of a large tree (`builder::build_tree`: the top split by tasks that
+/// The two-phase build of a large tree (`build::schedule::build_tree`: the top split by tasks that
 /// spawn tasks, then every subtree below it as a task of its own, then the top's sums) gives
 /// the bytes of the one-thread recursion, on a real mesh: over clusters (FAST_BUILD, the
 /// default tier) and over triangles (FAST_TRACE with ALLOW_UPDATE), on 1, 3 and 16 threads.
@@ -305,12 +310,12 @@ fn real_mesh_builds_are_the_same_on_any_thread_count() {
     let ntri = mesh.triangle_count() as u32;
     let g = tri_geom(&vb, mesh.vertex_count() as u32, &ib, ntri, GeometryFlags::OPAQUE);
     for flags in [BuildFlags::PREFER_FAST_BUILD, 0, BuildFlags::PREFER_FAST_TRACE | BuildFlags::ALLOW_UPDATE] {
-        let out = builds_on(&[1, 3, 16], flags, &[g], |blas| {
+        let out = builds_on(&[1, 3, 16], flags, &[g], |blas, report| {
             validate(blas).unwrap();
-            builder::LAST_BUILD_PAIRS.with(|c| c.get()).unwrap_or(ntri as usize)
+            report.clusters.map_or(ntri as usize, |c| c as usize)
         });
         for &(_, refs) in &out {
-            assert!(refs > 4 * builder::PAR_BIN_CUTOFF, "flags {flags:#x}: {refs} references, a top of fewer than three levels on 16 threads");
+            assert!(refs > 4 * params::SAMPLE_FROM, "flags {flags:#x}: {refs} references, a top of fewer than three levels on 16 threads");
         }
         assert!(out.windows(2).all(|w| w[0].0 == w[1].0), "flags {flags:#x}");
     }
@@ -342,7 +347,7 @@ fn multi_geometry_builds_with_drops_are_the_same_on_any_thread_count() {
     let (i0, i1, i2) = (u32_bytes(&idx[..3 * a]), u32_bytes(&idx[3 * a..3 * b]), u32_bytes(&idx[3 * b..]));
     let geoms = [tri_geom(&vb, nv, &i0, a as u32, GeometryFlags::OPAQUE), tri_geom(&vb, nv, &i1, (b - a) as u32, 0), tri_geom(&vb, nv, &i2, (ntri - b) as u32, GeometryFlags::OPAQUE)];
     for flags in [BuildFlags::PREFER_FAST_BUILD, 0, BuildFlags::PREFER_FAST_TRACE] {
-        let out = builds_on(&[1, 2, 7, 16], flags, &geoms, |blas| {
+        let out = builds_on(&[1, 2, 7, 16], flags, &geoms, |blas, _| {
             validate(blas).unwrap();
             header(blas).unwrap().primitive_count as usize
         });
@@ -354,7 +359,7 @@ fn multi_geometry_builds_with_drops_are_the_same_on_any_thread_count() {
 }
 
 /// A large build whose references all share one centroid: the sample of the planned top
-/// (`builder::top`) cannot split, so the build takes the compaction ingest skipped and the
+/// (`build::plan`) cannot split, so the build takes the compaction ingest skipped and the
 /// recursion's median splits. 70,000 copies of one triangle, every tenth degenerate (so the
 /// chunks keep partial prefixes), in every tier: a valid structure with every triangle that
 /// was not dropped, the same bytes on 1 and 4 threads.
@@ -367,7 +372,7 @@ fn builds_whose_sample_cannot_split_still_hold_every_primitive() {
     let ib = u32_bytes(&idx);
     let g = tri_geom(&vb, 3, &ib, ntri as u32, GeometryFlags::OPAQUE);
     for flags in [BuildFlags::PREFER_FAST_BUILD, 0, BuildFlags::PREFER_FAST_TRACE] {
-        let out = builds_on(&[1, 4], flags, &[g], |blas| {
+        let out = builds_on(&[1, 4], flags, &[g], |blas, _| {
             validate(blas).unwrap();
             header(blas).unwrap().primitive_count as usize
         });
@@ -396,12 +401,12 @@ fn planned_builds_whose_bucket_splits_further_are_the_same_on_any_thread_count()
     let ib = u32_bytes(&(0..3 * n as u32).collect::<Vec<u32>>());
     let g = tri_geom(&vb, v.len() as u32, &ib, n as u32, GeometryFlags::OPAQUE);
     for flags in [BuildFlags::PREFER_FAST_BUILD, 0, BuildFlags::PREFER_FAST_TRACE] {
-        let out = builds_on(&[1, 4, 16], flags, &[g], |blas| {
+        let out = builds_on(&[1, 4, 16], flags, &[g], |blas, report| {
             validate(blas).unwrap();
-            (header(blas).unwrap().primitive_count as usize, builder::LAST_BUILD_PLAN.with(|c| c.get()), builder::LAST_BUILD_SPLIT_BUCKETS.with(|c| c.get()))
+            (header(blas).unwrap().primitive_count as usize, report.top_planned, report.forked_buckets)
         });
         for (i, (_, (prims, planned, later))) in out.iter().enumerate() {
-            assert_eq!((*prims, *planned), (n, 1), "flags {flags:#x}");
+            assert_eq!((*prims, *planned), (n, TopPlanned::FromInput), "flags {flags:#x}");
             assert_eq!(*later > 0, i > 0, "flags {flags:#x}: {later} buckets split further on {} threads", [1, 4, 16][i]);
         }
         assert!(out.windows(2).all(|w| w[0].0 == w[1].0), "flags {flags:#x}");
@@ -451,17 +456,17 @@ fn large_builds_with_extreme_coordinates_hold_every_primitive() {
     // Without indices the top is planned from the references after ingest, with them from
     // the input beside ingest.
     let ib = u32_bytes(&(0..3 * ntri as u32).collect::<Vec<u32>>());
-    for (idx, from) in [(&[][..], 2u8), (&ib[..], 1)] {
+    for (idx, from) in [(&[][..], TopPlanned::FromReferences), (&ib[..], TopPlanned::FromInput)] {
         let g = tri_geom(&vb, v.len() as u32, idx, ntri as u32, GeometryFlags::OPAQUE);
         for flags in [BuildFlags::PREFER_FAST_BUILD, 0, BuildFlags::PREFER_FAST_TRACE] {
-            let out = builds_on(&[1, 4], flags, &[g], |blas| {
+            let out = builds_on(&[1, 4], flags, &[g], |blas, report| {
                 validate(blas).unwrap();
-                (header(blas).unwrap().primitive_count as usize, builder::LAST_BUILD_PLAN.with(|c| c.get()))
+                (header(blas).unwrap().primitive_count as usize, report.top_planned)
             });
             for &(_, (prims, planned)) in &out {
                 assert_eq!(prims, ntri, "flags {flags:#x}");
                 // FAST_BUILD bins the widest axis only, the infinite one here: no plan.
-                let want = if flags == BuildFlags::PREFER_FAST_BUILD { 0 } else { from };
+                let want = if flags == BuildFlags::PREFER_FAST_BUILD { TopPlanned::No } else { from };
                 assert_eq!(planned, want, "flags {flags:#x}: where the top was planned");
             }
             assert!(out.windows(2).all(|w| w[0].0 == w[1].0), "flags {flags:#x}");
@@ -911,100 +916,10 @@ fn aabb_blas_matches_brute_force() {
     }
 }
 
-/// The mesh the ignored timing entries use: ARBOR_MESH, else `default` under the crate.
-fn timing_mesh(default: &str) -> arbor_scene::Mesh {
-    let path = std::env::var("ARBOR_MESH").unwrap_or_else(|_| format!("{}/{default}", env!("CARGO_MANIFEST_DIR")));
-    arbor_scene::load(&path).expect("mesh")
-}
-
 /// Destination and scratch for building `g` (`n` primitives) with `flags`, from the size query.
 fn blas_buffers(g: &Geometry, n: u32, flags: BuildFlags) -> (Vec<u8>, Vec<u8>) {
     let sz = build_sizes(AsType::BottomLevel, flags, &[shape_of(g)], &[n]);
     (vec![0u8; sz.acceleration_structure_size as usize], vec![0u8; sz.build_scratch_size as usize])
-}
-
-/// Dragon timing (not a test of correctness; run explicitly):
-/// `cargo test --release --lib accel::tests::dragon_timing -- --ignored --nocapture`
-#[test]
-#[ignore]
-fn dragon_timing() {
-    let mesh = timing_mesh("data/dragon_vrip.ply.gz");
-    let vb = mesh.vertex_bytes();
-    let ib = mesh.index_bytes();
-    let ntri = mesh.triangle_count() as u32;
-    let nv = mesh.vertex_count() as u32;
-    let g = tri_geom(&vb, nv, &ib, ntri, GeometryFlags::OPAQUE);
-    let reps: usize = std::env::var("ARBOR_REPS").ok().and_then(|s| s.parse().ok()).unwrap_or(5);
-    let only = std::env::var("ARBOR_TIER").ok();
-    let thread_list: Vec<usize> = std::env::var("ARBOR_THREADS").ok().map(|s| s.split(',').filter_map(|x| x.parse().ok()).collect()).unwrap_or(vec![1, 2]);
-    for (name, flags) in [("FAST_BUILD", BuildFlags::PREFER_FAST_BUILD), ("default", 0), ("FAST_TRACE", BuildFlags::PREFER_FAST_TRACE)] {
-        if only.as_deref().is_some_and(|o| o != name) {
-            continue;
-        }
-        let (mut dst, mut scratch) = blas_buffers(&g, ntri, BuildFlags(flags));
-        for &threads in &thread_list {
-            let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
-            let desc = BuildDesc { ty: AsType::BottomLevel, flags: BuildFlags(flags), geometries: &[g] };
-            let mut times = Vec::new();
-            let mut ph = [0f64; 4];
-            // Process CPU time (utime + stime, clock ticks of 10 ms) next to wall time: on a
-            // shared 2-core machine wall time includes waiting for the CPU.
-            let cpu = || -> f64 {
-                let s = std::fs::read_to_string("/proc/self/stat").unwrap_or_default();
-                let f: Vec<&str> = s.rsplit(')').next().unwrap_or("").split_whitespace().collect();
-                let t = |i: usize| f.get(i).and_then(|x| x.parse::<f64>().ok()).unwrap_or(0.0);
-                (t(11) + t(12)) * 10.0
-            };
-            let c0 = cpu();
-            for _ in 0..reps {
-                let t = std::time::Instant::now();
-                let (_, p) = pool.install(|| build_timed(&desc, &NoDevice, &mut dst, &mut scratch)).unwrap();
-                times.push(t.elapsed().as_secs_f64() * 1e3);
-                for (a, b) in ph.iter_mut().zip([p.ingest_ms, p.sah_ms, p.leaf_data_ms, p.nodes_ms]) {
-                    *a += b / reps as f64;
-                }
-            }
-            let cpu_ms = (cpu() - c0) / reps as f64;
-            times.sort_by(|a, b| a.total_cmp(b));
-            let m = metrics(&dst).unwrap();
-            println!(
-                "{name:10} threads {threads}: wall min {:.1} ms median {:.1} ms, CPU {cpu_ms:.0} ms/build | SAH {:.2} wide {:.2} | {:.1} B/tri | nodes {} leaves {} depth {}",
-                times[0], times[times.len() / 2], m.sah_cost, m.wide_sah_cost, m.bytes_per_primitive * m.node_count.max(1) as f32 / m.node_count.max(1) as f32 * header(&dst).unwrap().primitive_count as f32 / ntri as f32, m.node_count, m.leaf_count, m.max_depth
-            );
-            println!("{:10} phases (mean ms): ingest {:.2} tree {:.2} leaf data {:.2} nodes {:.2}", "", ph[0], ph[1], ph[2], ph[3]);
-        }
-    }
-}
-
-/// Traversal timing for profiling (not a test of correctness; run explicitly): a FAST_TRACE build
-/// of ARBOR_MESH (default the full dragon), then ARBOR_RAYS primary rays (a square image, the
-/// camera of benches/accel_trace.rs) traced ARBOR_REPS times with `closest_hit`.
-/// `cargo test --release --lib accel::tests::trace_timing -- --ignored --nocapture`
-#[test]
-#[ignore]
-fn trace_timing() {
-    let mesh = timing_mesh("data/dragon_vrip.ply.gz");
-    let (vb, ib) = (mesh.vertex_bytes(), mesh.index_bytes());
-    let ntri = mesh.triangle_count() as u32;
-    let g = tri_geom(&vb, mesh.vertex_count() as u32, &ib, ntri, GeometryFlags::OPAQUE);
-    let flags = BuildFlags(BuildFlags::PREFER_FAST_TRACE);
-    let (mut dst, mut scratch) = blas_buffers(&g, ntri, flags);
-    build(&BuildDesc { ty: AsType::BottomLevel, flags, geometries: &[g] }, &NoDevice, &mut dst, &mut scratch).unwrap();
-    let side = (std::env::var("ARBOR_RAYS").ok().and_then(|s| s.parse::<f64>().ok()).unwrap_or(65536.0)).sqrt() as usize;
-    let rays = arbor_scene::primary_rays(mesh.bounds(), side, side);
-    let reps: usize = std::env::var("ARBOR_REPS").ok().and_then(|s| s.parse().ok()).unwrap_or(5);
-    let mut best = f64::MAX;
-    let mut sum = 0f64;
-    for _ in 0..reps {
-        let t = std::time::Instant::now();
-        sum = 0.0;
-        for r in &rays {
-            let ray = Ray { origin: r.origin, direction: r.direction, tmin: 0.0, tmax: f32::INFINITY };
-            sum += closest_hit(&dst, &NoDevice, ray, RayFlags(0), 0xFF).map_or(0.0, |h| h.t as f64);
-        }
-        best = best.min(t.elapsed().as_secs_f64() * 1e3);
-    }
-    println!("primary rays {}: min {best:.2} ms ({:.2} Mrays/s), sum of t {sum:.6e}", side * side, (side * side) as f64 / best / 1e3);
 }
 
 #[test]
@@ -1397,90 +1312,6 @@ fn tlas_refit_is_deterministic_and_returns_to_the_build() {
     }
 }
 
-/// Where a small build's time goes around the builder: the same bunny build timed inside an
-/// N-thread pool's `install` from a foreign thread (what a queue thread did before
-/// `threads::run_parallel`), and on a thread that is itself a one-thread pool's worker (as
-/// queue threads now are, `threads::run_as_inline_worker`: no hand-off; here through
-/// `use_current_thread`, which makes the test thread a worker for good). Ignored; run by hand: `ARBOR_MESH=... ARBOR_REPS=... cargo test --release --lib small_build_handoff -- --ignored --nocapture`.
-#[test]
-#[ignore]
-fn small_build_handoff() {
-    let mesh = timing_mesh("data/bunny.ply");
-    let (vb, ib) = (mesh.vertex_bytes(), mesh.index_bytes());
-    let ntri = mesh.triangle_count() as u32;
-    let g = tri_geom(&vb, mesh.vertex_count() as u32, &ib, ntri, GeometryFlags::OPAQUE);
-    let flags = BuildFlags(BuildFlags::PREFER_FAST_BUILD);
-    let (mut dst, mut scratch) = blas_buffers(&g, ntri, flags);
-    let desc = BuildDesc { ty: AsType::BottomLevel, flags, geometries: &[g] };
-    let reps: usize = std::env::var("ARBOR_REPS").ok().and_then(|s| s.parse().ok()).unwrap_or(200);
-    let stats = |v: &mut Vec<f64>| {
-        v.sort_by(|a, b| a.total_cmp(b));
-        (v[0], v[v.len() / 2])
-    };
-    for threads in [1usize, 16] {
-        let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
-        let mut t = Vec::new();
-        for _ in 0..reps {
-            let s = std::time::Instant::now();
-            pool.install(|| build(&desc, &NoDevice, &mut dst, &mut scratch)).unwrap();
-            t.push(s.elapsed().as_secs_f64() * 1e3);
-        }
-        let (min, med) = stats(&mut t);
-        println!("install into a {threads}-thread pool: min {min:.3} ms median {med:.3} ms");
-    }
-    let here = rayon::ThreadPoolBuilder::new().num_threads(1).use_current_thread().build().unwrap();
-    let mut t = Vec::new();
-    here.install(|| {
-        for _ in 0..reps {
-            let s = std::time::Instant::now();
-            build(&desc, &NoDevice, &mut dst, &mut scratch).unwrap();
-            t.push(s.elapsed().as_secs_f64() * 1e3);
-        }
-    });
-    let (min, med) = stats(&mut t);
-    println!("on this thread (use_current_thread): min {min:.3} ms median {med:.3} ms");
-}
-
-/// Time of `encode_node_v` alone: 200,000 random nodes of four children, each encoded and
-/// copied into an output array as the builder and the refit do. Ignored; run by hand with
-/// `--ignored --nocapture` (ARBOR_REPS rounds).
-#[test]
-#[ignore]
-fn encode_timing() {
-    use glam::Vec3A;
-    let mut rng = Rng::new(7);
-    let n = 200_000;
-    let mut inputs = Vec::with_capacity(n);
-    for _ in 0..n {
-        let c = rng.v3(100.0);
-        let mut clo = [Vec3A::ZERO; 4];
-        let mut chi = [Vec3A::ZERO; 4];
-        let (mut lo, mut hi) = (Vec3A::INFINITY, Vec3A::NEG_INFINITY);
-        for k in 0..4 {
-            let p = Vec3A::from(c + rng.v3(1.0));
-            let q = p + Vec3A::from(rng.v3(0.5).abs());
-            clo[k] = p;
-            chi[k] = q;
-            lo = lo.min(p);
-            hi = hi.max(q);
-        }
-        let cnt = 2 + (rng.next_u32() % 3) as usize;
-        inputs.push((builder::Aabb { lo: lo.to_array(), hi: hi.to_array() }, clo, chi, cnt));
-    }
-    let mut out = vec![0u8; n * layout::NODE_SIZE];
-    let reps: usize = std::env::var("ARBOR_REPS").ok().and_then(|s| s.parse().ok()).unwrap_or(5);
-    for _ in 0..reps {
-        let t = std::time::Instant::now();
-        for ((b, clo, chi, cnt), o) in inputs.iter().zip(out.chunks_exact_mut(layout::NODE_SIZE)) {
-            let wn = builder::encode_node_v(b, clo, chi, *cnt, &[1, 2, 3, 4], &[1, 1, 1, 1]);
-            o.copy_from_slice(bytemuck::bytes_of(&wn));
-        }
-        let ns = t.elapsed().as_secs_f64() * 1e9 / n as f64;
-        let h = out.iter().fold(0u64, |h, &x| (h ^ x as u64).wrapping_mul(0x100_0000_01b3));
-        println!("encode_node_v: {ns:.1} ns per node (output hash {h:016x})");
-    }
-}
-
 /// Binary SAH (Σ inner A + Σ leaf A·n, half areas, unnormalised) of a greedy top-down builder
 /// with an exact sweep over every sorted centroid order on three axes, C_T = C_I = 1, leaves of
 /// at most 8: the classic reference the binned tiers approximate. Independent of the builder
@@ -1609,8 +1440,8 @@ fn paired_builds_match_brute_force_and_are_deterministic() {
         v[60 * side + 40].z = f32::INFINITY;
         let (vb, b0, b1) = (f32_bytes(&v), u32_bytes(&i0), u32_bytes(&i1));
         let geoms = [tri_geom(&vb, v.len() as u32, &b0, (i0.len() / 3) as u32, GeometryFlags::OPAQUE), tri_geom(&vb, v.len() as u32, &b1, (i1.len() / 3) as u32, 0)];
-        let blas = build_ok(AsType::BottomLevel, flags, &geoms, &NoDevice);
-        let pairs = builder::LAST_BUILD_PAIRS.with(|c| c.get()).expect("the grid builds over pairs");
+        let (blas, report) = build_ok_report(AsType::BottomLevel, flags, &geoms, &NoDevice);
+        let pairs = report.clusters.expect("the grid builds over pairs") as usize;
         let prims = header(&blas).unwrap().primitive_count as usize;
         assert_eq!(prims, (i0.len() + i1.len()) / 3 - 1);
         assert!(pairs * 10 < prims * 6, "{pairs} pairs of {prims}");
@@ -1688,8 +1519,8 @@ fn paired_builds_match_brute_force_and_are_deterministic() {
         let (vb, b0, b1) = (f32_bytes(&v), u32_bytes(&i0), u32_bytes(&i1));
         let empty = tri_geom(&vb, v.len() as u32, &b0, 0, 0);
         let geoms = [tri_geom(&vb, v.len() as u32, &b0, (i0.len() / 3) as u32, 0), empty, tri_geom(&vb, v.len() as u32, &b1, (i1.len() / 3) as u32, 0)];
-        let blas = build_ok(AsType::BottomLevel, BuildFlags::PREFER_FAST_BUILD, &geoms, &NoDevice);
-        assert!(builder::LAST_BUILD_PAIRS.with(|c| c.get()).is_some());
+        let (blas, report) = build_ok_report(AsType::BottomLevel, BuildFlags::PREFER_FAST_BUILD, &geoms, &NoDevice);
+        assert!(report.clusters.is_some());
         let mut seen = [0usize; 3];
         for (g, idx) in [(0u32, &i0), (2, &i1)] {
             for (p, t) in idx.chunks_exact(3).enumerate().filter(|(_, t)| t[0] != t[1]).step_by(97) {
@@ -1709,11 +1540,11 @@ fn paired_builds_match_brute_force_and_are_deterministic() {
     let (v, i0, _) = paired_grid(40, 0.0);
     let (vb, b0) = (f32_bytes(&v), u32_bytes(&i0));
     let g = tri_geom(&vb, v.len() as u32, &b0, (i0.len() / 3) as u32, 0);
-    build_ok(AsType::BottomLevel, BuildFlags::PREFER_FAST_BUILD, &[g], &NoDevice);
-    assert_eq!(builder::LAST_BUILD_PAIRS.with(|c| c.get()), None);
+    let (_, report) = build_ok_report(AsType::BottomLevel, BuildFlags::PREFER_FAST_BUILD, &[g], &NoDevice);
+    assert_eq!(report.clusters, None);
     let (v, i0, _) = paired_grid(cells, 0.0);
     let (vb, b0) = (f32_bytes(&v), u32_bytes(&i0));
     let g = tri_geom(&vb, v.len() as u32, &b0, (i0.len() / 3) as u32, 0);
-    build_ok(AsType::BottomLevel, BuildFlags::PREFER_FAST_TRACE, &[g], &NoDevice);
-    assert_eq!(builder::LAST_BUILD_PAIRS.with(|c| c.get()), None);
+    let (_, report) = build_ok_report(AsType::BottomLevel, BuildFlags::PREFER_FAST_TRACE, &[g], &NoDevice);
+    assert_eq!(report.clusters, None);
 }
