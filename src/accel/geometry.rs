@@ -221,7 +221,7 @@ impl BlasBoundsMemo {
 }
 
 #[inline]
-pub fn half_area_v(lo: Vec3A, hi: Vec3A) -> f32 {
+pub fn half_area_vec(lo: Vec3A, hi: Vec3A) -> f32 {
     // (xy + yz) + zx, the same sum as `Aabb::half_area`, as one multiply and a lane sum.
     let d = (hi - lo).max(Vec3A::ZERO);
     (d * d.yzx()).element_sum()
@@ -261,13 +261,13 @@ pub fn triangle_box(a: Vec3A, b: Vec3A, c: Vec3A) -> (Vec3A, Vec3A) {
 /// Five vector operations, where glam's SSE2 floor takes about eight; replaces saturating
 /// float-to-int conversions, with no unsafe intrinsics.
 #[inline(always)]
-pub fn trunc_i32x4(v: Vec3A) -> [i32; 4] {
-    trunc_i32x4_4(Vec4::from((v, 0.0)))
+pub fn trunc_lanes3(v: Vec3A) -> [i32; 4] {
+    trunc_lanes(Vec4::from((v, 0.0)))
 }
 
-/// `trunc_i32x4` for four lanes.
+/// `trunc_lanes3` for four lanes.
 #[inline(always)]
-pub fn trunc_i32x4_4(v: Vec4) -> [i32; 4] {
+pub fn trunc_lanes(v: Vec4) -> [i32; 4] {
     const MAGIC: f32 = 8_388_608.0;
     let y = v + Vec4::splat(MAGIC);
     let up = (y - Vec4::splat(MAGIC)).cmpgt(v);
@@ -278,7 +278,7 @@ pub fn trunc_i32x4_4(v: Vec4) -> [i32; 4] {
 /// floor(v) lane-wise for v in [0, 2^22): v + 2^23 - 2^23 rounds v to an integer exactly, and
 /// one comes off where that rounded up (four vector operations).
 #[inline(always)]
-pub fn floor_pos(v: Vec4) -> Vec4 {
+pub fn floor_lanes(v: Vec4) -> Vec4 {
     const MAGIC: f32 = 8_388_608.0;
     let r = (v + Vec4::splat(MAGIC)) - Vec4::splat(MAGIC);
     r - Vec4::select(r.cmpgt(v), Vec4::ONE, Vec4::ZERO)

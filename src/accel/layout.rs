@@ -210,7 +210,7 @@ pub const STAGE_SIZE: usize = 40;
 pub fn build_scratch_size(n: u64) -> u64 {
     // Primitive references, then up to 2n binary nodes (slot scheme: a subtree over k
     // primitives owns 2k-1 consecutive slots), then n + 1 words for the primitives per
-    // reference of paired builds, each region aligned.
+    // reference of clustered builds, each region aligned.
     SCRATCH_SLACK
         .saturating_add(n.saturating_mul(PRIMREF_SIZE))
         .saturating_add(SCRATCH_SLACK)

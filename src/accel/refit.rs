@@ -2,7 +2,7 @@
 //! update rules visible here, rewrites primitive data, then recomputes node boxes bottom-up,
 //! subtree by subtree in parallel (preorder layout: each subtree is a contiguous node range).
 use super::encode::instances::sort_distinct;
-use super::encode::quantize::encode_node_v;
+use super::encode::quantize::quantize_node;
 use super::geometry::{instance_bounds_of, sanitize, triangle_box, triangle_bounds, Aabb, BlasBoundsMemo};
 use super::layout::carve;
 use super::primitive::{geometry_record, make_ref, total_primitives, FastTris};
@@ -112,55 +112,7 @@ pub fn update(desc: &BuildDesc, view: &dyn DeviceView, src: Option<&[u8]>, dst: 
         refit_instances(desc, view, &raw, dst, keys, boxes)?;
         inst_boxes = boxes;
     } else {
-        let (head, tail) = dst.split_at_mut(raw.records_offset as usize);
-        let prims = &mut head[raw.prims_offset as usize..raw.prims_offset as usize + n * PRIM_SIZE];
-        let records = &tail[..n * layout::RECORD_SIZE];
-        // Plain f32 triangles without a transform are read directly (`FastTris`); anything
-        // else, and every error, through `read_triangle`.
-        let fast: Vec<Option<FastTris>> = desc.geometries.iter().map(FastTris::of).collect();
-        prims
-            .par_chunks_mut(1024 * PRIM_SIZE)
-            .zip(records.par_chunks(1024 * layout::RECORD_SIZE))
-            .map(|(pd, rd)| {
-                // In leaf order the reads jump around the input, and each triangle's index load
-                // and then its vertex loads miss. A batch loads every record's indices first,
-                // then the vertices, so a batch's misses overlap instead of each vertex load
-                // waiting for its own index.
-                for (rbatch, dbatch) in rd.chunks(REFIT_BATCH * layout::RECORD_SIZE).zip(pd.chunks_mut(REFIT_BATCH * PRIM_SIZE)) {
-                    let mut idx: [Option<[u32; 3]>; REFIT_BATCH] = [None; REFIT_BATCH];
-                    for (rb, ix) in rbatch.chunks_exact(layout::RECORD_SIZE).zip(idx.iter_mut()) {
-                        let rec: layout::PrimRecord = bytemuck::pod_read_unaligned(rb);
-                        *ix = fast.get(rec.geometry as usize).and_then(|f| f.as_ref()).and_then(|f| f.indices(rec.primitive));
-                    }
-                    for ((rb, ix), d) in rbatch.chunks_exact(layout::RECORD_SIZE).zip(idx).zip(dbatch.chunks_exact_mut(PRIM_SIZE)) {
-                        let rec: layout::PrimRecord = bytemuck::pod_read_unaligned(rb);
-                        let g = desc.geometries.get(rec.geometry as usize).ok_or(BuildError::InvalidSource("record"))?;
-                        let mut data = [0f32; 9];
-                        let fast_tri = ix.and_then(|ix| fast.get(rec.geometry as usize).and_then(|f| f.as_ref()).and_then(|f| f.positions(ix)));
-                        if let Some([a, b, c]) = fast_tri {
-                            if a.x.is_nan() || b.x.is_nan() || c.x.is_nan() {
-                                return Err(mismatch("an active primitive became inactive"));
-                            }
-                            data = [a.x, a.y, a.z, b.x, b.y, b.z, c.x, c.y, c.z];
-                        } else {
-                            match g.data {
-                                GeometryData::Triangles { .. } => {
-                                    let v = super::input::read_triangle(rec.geometry, g, rec.primitive)?.ok_or(mismatch("an active primitive became inactive"))?;
-                                    data = [v[0].x, v[0].y, v[0].z, v[1].x, v[1].y, v[1].z, v[2].x, v[2].y, v[2].z];
-                                }
-                                GeometryData::Aabbs { .. } => {
-                                    let b = super::input::read_aabb(rec.geometry, g, rec.primitive)?.ok_or(mismatch("an active primitive became inactive"))?;
-                                    data[..6].copy_from_slice(&b);
-                                }
-                                GeometryData::Instances { .. } => return Err(BuildError::WrongGeometryType { geometry: rec.geometry }),
-                            }
-                        }
-                        d.copy_from_slice(bytemuck::bytes_of(&data));
-                    }
-                }
-                Ok(())
-            })
-            .reduce(|| Ok(()), |a, b| a.and(b))?;
+        refit_primitives(desc, &raw, dst)?;
     }
 
     let raw = layout::parse(dst).map(|p| p.raw).ok_or(BuildError::InvalidSource("structure"))?;
@@ -190,6 +142,61 @@ pub fn update(desc: &BuildDesc, view: &dyn DeviceView, src: Option<&[u8]>, dst: 
     }
     layout::write_header(dst, &h);
     Ok(BuildReport { used_size: raw.used_size, node_count: raw.node_count, leaf_count: raw.leaf_count, primitive_count: raw.primitive_count, clusters: None, top_planned: super::TopPlanned::No, forked_buckets: 0 })
+}
+
+/// BLAS: rewrites every stored primitive's data from the new input, in leaf order; every
+/// stored primitive must still be storable.
+fn refit_primitives(desc: &BuildDesc, raw: &layout::RawHeader, dst: &mut [u8]) -> Result<(), BuildError> {
+    let n = raw.primitive_count as usize;
+    let (head, tail) = dst.split_at_mut(raw.records_offset as usize);
+    let prims = &mut head[raw.prims_offset as usize..raw.prims_offset as usize + n * PRIM_SIZE];
+    let records = &tail[..n * layout::RECORD_SIZE];
+    // Plain f32 triangles without a transform are read directly (`FastTris`); anything
+    // else, and every error, through `read_triangle`.
+    let fast: Vec<Option<FastTris>> = desc.geometries.iter().map(FastTris::of).collect();
+    prims
+        .par_chunks_mut(1024 * PRIM_SIZE)
+        .zip(records.par_chunks(1024 * layout::RECORD_SIZE))
+        .map(|(pd, rd)| {
+            // In leaf order the reads jump around the input, and each triangle's index load
+            // and then its vertex loads miss. A batch loads every record's indices first,
+            // then the vertices, so a batch's misses overlap instead of each vertex load
+            // waiting for its own index.
+            for (rbatch, dbatch) in rd.chunks(REFIT_BATCH * layout::RECORD_SIZE).zip(pd.chunks_mut(REFIT_BATCH * PRIM_SIZE)) {
+                let mut idx: [Option<[u32; 3]>; REFIT_BATCH] = [None; REFIT_BATCH];
+                for (rb, ix) in rbatch.chunks_exact(layout::RECORD_SIZE).zip(idx.iter_mut()) {
+                    let rec: layout::PrimRecord = bytemuck::pod_read_unaligned(rb);
+                    *ix = fast.get(rec.geometry as usize).and_then(|f| f.as_ref()).and_then(|f| f.indices(rec.primitive));
+                }
+                for ((rb, ix), d) in rbatch.chunks_exact(layout::RECORD_SIZE).zip(idx).zip(dbatch.chunks_exact_mut(PRIM_SIZE)) {
+                    let rec: layout::PrimRecord = bytemuck::pod_read_unaligned(rb);
+                    let g = desc.geometries.get(rec.geometry as usize).ok_or(BuildError::InvalidSource("record"))?;
+                    let mut data = [0f32; 9];
+                    let fast_tri = ix.and_then(|ix| fast.get(rec.geometry as usize).and_then(|f| f.as_ref()).and_then(|f| f.positions(ix)));
+                    if let Some([a, b, c]) = fast_tri {
+                        if a.x.is_nan() || b.x.is_nan() || c.x.is_nan() {
+                            return Err(mismatch("an active primitive became inactive"));
+                        }
+                        data = [a.x, a.y, a.z, b.x, b.y, b.z, c.x, c.y, c.z];
+                    } else {
+                        match g.data {
+                            GeometryData::Triangles { .. } => {
+                                let v = super::input::read_triangle(rec.geometry, g, rec.primitive)?.ok_or(mismatch("an active primitive became inactive"))?;
+                                data = [v[0].x, v[0].y, v[0].z, v[1].x, v[1].y, v[1].z, v[2].x, v[2].y, v[2].z];
+                            }
+                            GeometryData::Aabbs { .. } => {
+                                let b = super::input::read_aabb(rec.geometry, g, rec.primitive)?.ok_or(mismatch("an active primitive became inactive"))?;
+                                data[..6].copy_from_slice(&b);
+                            }
+                            GeometryData::Instances { .. } => return Err(BuildError::WrongGeometryType { geometry: rec.geometry }),
+                        }
+                    }
+                    d.copy_from_slice(bytemuck::bytes_of(&data));
+                }
+            }
+            Ok(())
+        })
+        .reduce(|| Ok(()), |a, b| a.and(b))
 }
 
 /// Primitives whose input reads the refit's primitive pass issues together (see there).
@@ -278,7 +285,7 @@ fn refit_subtree(p: &Parsed, leaves: &Leaves, nodes: &mut [u8], base: usize) -> 
     for c in cnt..4 {
         (clo[c], chi[c]) = (Vec3A::from(nb.lo), Vec3A::from(nb.lo));
     }
-    let wn = encode_node_v(&nb, &clo, &chi, cnt, &node.child[..cnt], &node.kind[..cnt]);
+    let wn = quantize_node(&nb, &clo, &chi, cnt, &node.child[..cnt], &node.kind[..cnt]);
     me.copy_from_slice(bytemuck::bytes_of(&wn));
     Ok(nb)
 }

@@ -3,7 +3,7 @@
 //! the split test shared by binning and partition (`Splitter`).
 //!
 //! Owns: bins and the split choice of binned nodes. Must not touch: where references move.
-use crate::accel::geometry::{half_area_v, ref_hi, ref_lo, to_aabb, trunc_i32x4, trunc_i32x4_4, Aabb, PrimRef};
+use crate::accel::geometry::{half_area_vec, ref_hi, ref_lo, to_aabb, trunc_lanes3, trunc_lanes, Aabb, PrimRef};
 use crate::accel::params::{BuildParams, MAX_BINS, ONE_BIN_SET_BELOW, ONE_BIN_SET_BELOW_3_AXES, REFS_PER_BIN};
 use glam::{UVec3, Vec3A, Vec4};
 use rayon::prelude::*;
@@ -64,7 +64,7 @@ impl Binning {
         let c = ref_lo(r) * 0.5 + ref_hi(r) * 0.5;
         // Clamped in float first (max(NaN, 0) = 0 on SSE, like `as u32`), then an exact
         // conversion: the same bins as `(x as u32).min(kmax)`, without per-lane saturation.
-        let t = trunc_i32x4(((c - self.cmin) * self.scale).max(Vec3A::ZERO).min(self.kmax_f));
+        let t = trunc_lanes3(((c - self.cmin) * self.scale).max(Vec3A::ZERO).min(self.kmax_f));
         UVec3::new(t[0] as u32, t[1] as u32, t[2] as u32)
     }
     /// The split test of axis `a` at bin limit `limit` with its scalars hoisted.
@@ -155,13 +155,13 @@ pub fn bin_refs_axis(refs: &[PrimRef], bn: &Binning, bins: &mut Bins) {
     let mut cnt2 = [0u32; MAX_BINS];
     // Four bin indices per vector conversion: the same centroid, offset and scale
     // operations per lane as `bin` (so the same bins), clamped in float and truncated
-    // exactly (`trunc_i32x4`), instead of four saturating scalar conversions.
+    // exactly (`trunc_lanes3`), instead of four saturating scalar conversions.
     let (cmin4, scale4, kmax4) = (Vec4::splat(cmin), Vec4::splat(scale), Vec4::splat(kmax as f32));
     let ctr = |r: &PrimRef| r.lo[a] * 0.5 + r.hi[a] * 0.5;
     let mut quads = refs.chunks_exact(4);
     for q in &mut quads {
         let pos = (Vec4::new(ctr(&q[0]), ctr(&q[1]), ctr(&q[2]), ctr(&q[3])) - cmin4) * scale4;
-        let t = trunc_i32x4_4(pos.max(Vec4::ZERO).min(kmax4));
+        let t = trunc_lanes(pos.max(Vec4::ZERO).min(kmax4));
         let b = t.map(|x| x as usize & (MAX_BINS - 1));
         // Even references into the node's bins, odd ones into the second set.
         add_to_bin(blo, bhi, bcnt, b[0], &q[0]);
@@ -268,7 +268,7 @@ pub fn sweep_bins(bins: &Bins, k: usize, scale: &[f32; 3]) -> Option<(usize, usi
             lo = lo.min(bins.lo[a][b]);
             hi = hi.max(bins.hi[a][b]);
             cnt += bins.count[a][b];
-            l_area[b] = half_area_v(lo, hi);
+            l_area[b] = half_area_vec(lo, hi);
             l_count[b] = cnt;
         }
         let mut lo = Vec3A::INFINITY;
@@ -284,7 +284,7 @@ pub fn sweep_bins(bins: &Bins, k: usize, scale: &[f32; 3]) -> Option<(usize, usi
             hi = hi.max(bins.hi[a][b + 1]);
             rcount += bins.count[a][b + 1];
             let lcount = l_count[b];
-            let cost = l_area[b] * lcount as f32 + half_area_v(lo, hi) * rcount as f32;
+            let cost = l_area[b] * lcount as f32 + half_area_vec(lo, hi) * rcount as f32;
             let cost = if lcount == 0 || rcount == 0 { f32::NAN } else { cost };
             let take = cost <= ab_cost;
             ab_cost = if take { cost } else { ab_cost };

@@ -1,7 +1,7 @@
 //! Clusters of neighbouring primitives, for every tier: neighbours in input order (global IDs
 //! that follow each other) whose union is tight become one reference of up to `max_cluster`
-//! primitives, and the binned builder runs over these clusters (dragon fast-build: about
-//! 590,000 references instead of 871,306, the same SAH). Ingest clusters each chunk while it
+//! primitives, and the binned builder runs over these clusters (about two thirds as
+//! many references for the same SAH on a scanned mesh). Ingest clusters each chunk while it
 //! is in cache (`cluster_in_place`), after a sample of the input said it pays
 //! (`worth_clustering`). A cluster reference keeps the first primitive's global ID in
 //! `PrimRef::prim` and its primitive count in `PrimRef::geom`; a cluster always ends in one
@@ -10,7 +10,7 @@
 //!
 //! Owns: forming clusters. Must not touch: the tree, the output. Deterministic: clusters
 //! never cross an ingest chunk, whose bounds depend on the input only.
-use crate::accel::geometry::{half_area_v, ref_hi, ref_lo, PrimRef};
+use crate::accel::geometry::{half_area_vec, ref_hi, ref_lo, PrimRef};
 use crate::accel::params::{CLUSTER_SAMPLE, CLUSTER_WORTH};
 use crate::accel::primitive::geometry_of;
 use glam::Vec3A;
@@ -21,24 +21,24 @@ use rayon::prelude::*;
 #[inline(always)]
 fn tight(a: &PrimRef, b: &PrimRef, tau: f32) -> bool {
     let (alo, ahi, blo, bhi) = (ref_lo(a), ref_hi(a), ref_lo(b), ref_hi(b));
-    half_area_v(alo.min(blo), ahi.max(bhi)) <= tau * (half_area_v(alo, ahi) + half_area_v(blo, bhi))
+    half_area_vec(alo.min(blo), ahi.max(bhi)) <= tau * (half_area_vec(alo, ahi) + half_area_vec(blo, bhi))
 }
 
-/// Pairs one ingest chunk in place: references in input order, dropped ones marked by
+/// Clusters one ingest chunk in place: references in input order, dropped ones marked by
 /// `geom == dropped`. A reference takes the next one when both are kept, their global IDs
 /// follow, they are `tight`, and the cluster stays within `cluster` primitives with its union
 /// within `tau` times the sum of the members' half areas. The neighbour tests of a block run
 /// first, independently (the walk's next step depends on them; testing inside it serialised
-/// the loads). The pairs replace the chunk's start (pair w is written after the references it
-/// reads, all at w or later) and the rest of the chunk is marked dropped. A pair: the union
+/// the loads). The clusters replace the chunk's start (cluster w is written after the references it
+/// reads, all at w or later) and the rest of the chunk is marked dropped. A cluster: the union
 /// box, `prim` = the first primitive's global ID, `geom` = how many (their IDs follow).
 /// Returns how many there are and their centroid box.
 pub fn cluster_in_place(c: &mut [PrimRef], tau: f32, cluster: u32, dropped: u32) -> (usize, Vec3A, Vec3A) {
     const BLOCK: usize = 256;
     let n = c.len();
     // Each reference's half area once per block (the flags and the walk read it up to four
-    // times): the same values `tight` computes, so the same pairs.
-    let area_of = |r: &PrimRef| half_area_v(ref_lo(r), ref_hi(r));
+    // times): the same values `tight` computes, so the same clusters.
+    let area_of = |r: &PrimRef| half_area_vec(ref_lo(r), ref_hi(r));
     let mut areas = [0f32; BLOCK + 1];
     let mut flags = [false; BLOCK];
     let (mut w, mut i, mut base) = (0usize, 0usize, 0usize);
@@ -54,7 +54,7 @@ pub fn cluster_in_place(c: &mut [PrimRef], tau: f32, cluster: u32, dropped: u32)
         let linked = |c: &[PrimRef], areas: &[f32; BLOCK + 1], j: usize| {
             c.get(j + 1).is_some_and(|b| {
                 let a = &c[j];
-                a.geom != dropped && b.geom != dropped && b.prim == a.prim.wrapping_add(1) && half_area_v(ref_lo(a).min(ref_lo(b)), ref_hi(a).max(ref_hi(b))) <= tau * (area(c, areas, j) + area(c, areas, j + 1))
+                a.geom != dropped && b.geom != dropped && b.prim == a.prim.wrapping_add(1) && half_area_vec(ref_lo(a).min(ref_lo(b)), ref_hi(a).max(ref_hi(b))) <= tau * (area(c, areas, j) + area(c, areas, j + 1))
             })
         };
         for (j, f) in (base..end).zip(flags.iter_mut()) {
@@ -77,7 +77,7 @@ pub fn cluster_in_place(c: &mut [PrimRef], tau: f32, cluster: u32, dropped: u32)
                 let (blo, bhi) = (ref_lo(b), ref_hi(b));
                 let (ulo, uhi) = (lo.min(blo), hi.max(bhi));
                 // A pair is exactly the flag's test (`tight`); larger clusters test their union.
-                if count > 1 && half_area_v(ulo, uhi) > tau * bsum {
+                if count > 1 && half_area_vec(ulo, uhi) > tau * bsum {
                     break;
                 }
                 (lo, hi, sum) = (ulo, uhi, bsum);
@@ -101,13 +101,13 @@ pub fn cluster_in_place(c: &mut [PrimRef], tau: f32, cluster: u32, dropped: u32)
     (w, clo, chi)
 }
 
-/// Whether pairing is likely to pay for these geometries (`firsts` as for `geometry_of`): at
-/// least one in CLUSTER_WORTH of CLUSTER_SAMPLE neighbours, evenly spaced over the global primitive IDs,
-/// is `tight` (`boxes(g, p)` gives primitive p of geometry g's box, None for a dropped or
-/// unreadable one). A random soup pairs almost nothing and would pay the pass for nothing.
-/// The sample is read in parallel (counts, so the same answer for any thread count): through
-/// the driver's checked reads a neighbour costs about 0.2 µs on this box, 0.4 ms for the whole
-/// sample on one thread, which would otherwise be a serial step in front of every paired build.
+/// Whether clustering is likely to pay for these geometries (`firsts` as for `geometry_of`):
+/// at least one in CLUSTER_WORTH of CLUSTER_SAMPLE neighbours, evenly spaced over the global
+/// primitive IDs, is `tight` (`boxes(g, p)` gives primitive p of geometry g's box, None for a
+/// dropped or unreadable one). A random soup clusters almost nothing and would pay the pass
+/// for nothing. The sample is read in parallel (counts, so the same answer for any thread
+/// count): through the driver's checked reads it would otherwise be a serial step in front of
+/// every clustered build.
 pub fn worth_clustering(firsts: &[u32], tau: f32, boxes: impl Fn(u32, u32) -> Option<PrimRef> + Sync) -> bool {
     let total = firsts.last().copied().unwrap_or(0);
     let step = (total / CLUSTER_SAMPLE).max(1);

@@ -152,21 +152,11 @@ impl ChunkReader<'_, '_> {
                 ft.prefetch(p.saturating_add(PREFETCH_AHEAD as u32));
                 // Plain f32 triangles: everything stored straight from registers.
                 match ft.bounds(p, allow_update) {
-                    Some(Some((lo, hi, [a, b, c]))) => {
+                    Some(Some((lo, hi, v))) => {
                         cs.add(lo, hi);
                         let id = if st.is_some() { (gbase + ci * chunk_len + k) as u32 } else { p };
-                        let f: &mut [[f32; 4]; 2] = bytemuck::cast_mut(slot);
-                        f[0] = Vec4::from((lo, f32::from_bits(gi32))).to_array();
-                        f[1] = Vec4::from((hi, f32::from_bits(id))).to_array();
-                        if let Some(d) = st.as_deref_mut().and_then(|st| st.get_mut(k * STAGE_SIZE..)).and_then(|x| x.first_chunk_mut::<STAGE_SIZE>()) {
-                            // Overlapping 16-byte stores of the three vertices (9 floats),
-                            // then the primitive index over c's fourth lane.
-                            let v = |x: Vec3A| bytemuck::cast::<[f32; 4], [u8; 16]>(Vec4::from((x, 0.0)).to_array());
-                            d[0..16].copy_from_slice(&v(a));
-                            d[12..28].copy_from_slice(&v(b));
-                            d[24..40].copy_from_slice(&v(c));
-                            d[36..40].copy_from_slice(&p.to_le_bytes());
-                        }
+                        let record = st.as_deref_mut().and_then(|st| st.get_mut(k * STAGE_SIZE..)).and_then(|x| x.first_chunk_mut::<STAGE_SIZE>());
+                        store_triangle(slot, record, (gi32, id, p), (lo, hi), v);
                         continue;
                     }
                     Some(None) => {
@@ -230,6 +220,25 @@ impl ChunkReader<'_, '_> {
     }
 }
 
+/// Stores a plain f32 triangle straight from registers: its reference (box, geometry `ids.0`,
+/// `prim` = `ids.1`) and, when staged, its record (the nine vertex floats and its index
+/// `ids.2` in the geometry).
+#[inline(always)]
+fn store_triangle(slot: &mut PrimRef, record: Option<&mut [u8; STAGE_SIZE]>, ids: (u32, u32, u32), (lo, hi): (Vec3A, Vec3A), [a, b, c]: [Vec3A; 3]) {
+    let f: &mut [[f32; 4]; 2] = bytemuck::cast_mut(slot);
+    f[0] = Vec4::from((lo, f32::from_bits(ids.0))).to_array();
+    f[1] = Vec4::from((hi, f32::from_bits(ids.1))).to_array();
+    if let Some(d) = record {
+        // Overlapping 16-byte stores of the three vertices (9 floats), then the primitive
+        // index over c's fourth lane.
+        let v = |x: Vec3A| bytemuck::cast::<[f32; 4], [u8; 16]>(Vec4::from((x, 0.0)).to_array());
+        d[0..16].copy_from_slice(&v(a));
+        d[12..28].copy_from_slice(&v(b));
+        d[24..40].copy_from_slice(&v(c));
+        d[36..40].copy_from_slice(&ids.2.to_le_bytes());
+    }
+}
+
 /// Deterministic first error: the one with the lowest (geometry, chunk) position wins.
 /// Also sums the dropped counts of successful chunks.
 fn first_err(a: Result<ChunkSum, (u64, BuildError)>, b: Result<ChunkSum, (u64, BuildError)>) -> Result<ChunkSum, (u64, BuildError)> {
@@ -242,10 +251,10 @@ fn first_err(a: Result<ChunkSum, (u64, BuildError)>, b: Result<ChunkSum, (u64, B
 
 /// What ingest reports per chunk: references dropped, and the box and centroid box of those
 /// kept, so that the root's boxes need no second pass over the references (the same
-/// arithmetic as `bounds_of`; min/max do not depend on order).
+/// arithmetic as a pass over the references would use; min/max do not depend on order).
 #[derive(Clone, Copy)]
 struct ChunkSum {
-    /// Reference slots freed (dropped primitives, and the second primitives of pairs).
+    /// Reference slots freed (dropped primitives, and the later members of clusters).
     dropped: usize,
     /// Primitives dropped.
     lost: usize,

@@ -128,7 +128,7 @@ pub fn part_scatter(src: &[PrimRef], chunk: usize, nchunks: usize, stats: &[Part
     let (mut lrest, mut rrest) = (lout, rout);
     let mut outs: [(&mut [PrimRef], &mut [PrimRef]); PARTITION_CHUNKS] = std::array::from_fn(|_| (&mut [][..], &mut [][..]));
     for (k, o) in outs.iter_mut().enumerate().take(nchunks) {
-        let len = c_len(n, chunk, k);
+        let len = chunk_len_at(n, chunk, k);
         let l = stats[k].left;
         let (lcut, rcut) = (l.min(lrest.len()), (len - l).min(rrest.len()));
         let (lo_part, lr) = std::mem::take(&mut lrest).split_at_mut(lcut);
@@ -202,7 +202,7 @@ pub fn par_partition_from_nodes(refs: &mut [PrimRef], nodes: &[BinNode], one_pas
 }
 
 /// The stable partition of `par_partition_to_nodes` / `_from_nodes` in one sequential pass
-/// (for nodes that have the thread to themselves, `Ctx::one_pass`), where the left count is
+/// (for nodes that have the thread to themselves, `BuildContext::one_pass`), where the left count is
 /// not known in advance (sampled nodes): lefts ascending from the
 /// start of `dst`, rights descending from its last whole reference, then the rights reversed
 /// into place from byte `rbase(left count)`. The same order, count and boxes as `part_stats`
@@ -264,7 +264,7 @@ pub fn partition_one_pass(src: &[PrimRef], dst: &mut [u8], rbase: impl Fn(usize)
 }
 
 #[inline]
-pub fn c_len(n: usize, chunk: usize, k: usize) -> usize {
+pub fn chunk_len_at(n: usize, chunk: usize, k: usize) -> usize {
     n.saturating_sub(k * chunk).min(chunk)
 }
 

@@ -1,9 +1,8 @@
 //! The planned top of large BLAS trees, decided on one sample (`plan_from_input`, `plan`).
 //!
 //! Without it the first levels of a large tree each move every reference: a counting pass and
-//! a scatter per level (dragon: four to five levels above the subtrees that threads build on
-//! their own, 2.3–2.8 ms of a 16-thread FAST_BUILD build). Here ingest leaves its chunks
-//! uncompacted; the splits of those levels are chosen on an evenly strided sample (`grow`, the
+//! a scatter per level (docs/TUNING.md). Here ingest leaves its chunks
+//! uncompacted; the splits of those levels are chosen on an evenly strided sample (`grow_plan`, the
 //! binned SAH of `build_rec` on the sample): of the input triangles, on one thread beside
 //! ingest, when every geometry holds plain f32 triangles, else of the references after
 //! ingest; one pass gives every
@@ -26,7 +25,7 @@ use super::bins::{bin_count, bin_in_chunks, bin_refs, node_binning, sweep_bins, 
 use super::ingest::ingest_chunk;
 use super::partition::{part_scatter, part_stats, partition_seq, PRIMREF_BYTES};
 use super::subtree::Subtree;
-use crate::accel::geometry::{ref_hi, ref_lo, to_aabb, trunc_i32x4, Aabb, PrimRef};
+use crate::accel::geometry::{ref_hi, ref_lo, to_aabb, trunc_lanes3, Aabb, PrimRef};
 use crate::accel::params::{BuildParams, PLAN_BIN_CHUNK, PLAN_GRID, PLAN_INPUT_SAMPLE, PLAN_LEVELS, PLAN_MIN, PLAN_MIN_SAMPLE_DIV, PLAN_PAR_PARTITION, PLAN_ROOT_SAMPLE, PLAN_SCATTER_GROUPS, PLAN_SPLIT_MIN, PRE_BYTES_PER_PRIM};
 use crate::accel::primitive::FastTris;
 use crate::accel::tree::BinNode;
@@ -213,7 +212,7 @@ impl TopPlan {
     #[inline(always)]
     #[allow(clippy::neg_cmp_op_on_partial_ord)]
     fn bucket_of(&self, c: Vec3A) -> usize {
-        let q = trunc_i32x4(((c - self.gmin) * self.ginv).max(Vec3A::ZERO).min(Vec3A::splat((PLAN_GRID - 1) as f32)));
+        let q = trunc_lanes3(((c - self.gmin) * self.ginv).max(Vec3A::ZERO).min(Vec3A::splat((PLAN_GRID - 1) as f32)));
         let mut idx = 0usize;
         for a in 0..3 {
             let cell = self.line[a][q[a] as usize & (PLAN_GRID - 1)];
@@ -369,10 +368,9 @@ pub fn plan(desc: &BuildDesc, p: &BuildParams, refs: &[PrimRef], kept: &[u32], b
 /// Plans the top, as `plan` does, from an evenly strided sample of PLAN_INPUT_SAMPLE input
 /// primitives instead of the references, on the calling thread alone, so that it runs beside
 /// ingest (`build` joins the two): every geometry holds plain f32 triangles (`FastTris`, read
-/// directly, the sample's index bytes and vertices prefetched ahead: about 30 ns per triangle,
-/// 0.5 ms for the sample, and `grow_plan` 0.3–0.8 ms, dragon, this box). Not in parallel blocks: a
+/// directly, the sample's index bytes and vertices prefetched ahead). Not in parallel blocks: a
 /// thread of the plan waiting for its blocks took ingest chunks meanwhile, and the plan ended
-/// after ingest (16-thread FAST_TRACE ingest phase 1.7 → 2.3 ms). The root's bins span the
+/// after ingest (docs/TUNING.md). The root's bins span the
 /// sample's centroid box. FAST_BUILD's clusters are made by ingest later, so its sample is of
 /// triangles: the plan only chooses the buckets, and any choice gives a valid top (their counts
 /// and boxes come from the references themselves). The sample goes to `room`, whose rest is

@@ -35,14 +35,10 @@ pub type Built = (usize, (f64, u32));
 /// Why not recursion all the way down: a thread waiting inside a top node's parallel
 /// partition or sampled binning (`rayon::join`) steals whatever task is queued, and once
 /// subtrees exist that is often a whole subtree, milliseconds of work; the top node's
-/// partition, and with it the next subtrees, waits until that is done. Timed on the 16-core
-/// machine (dragon, 16 threads), the subtrees started in waves, each when the last had ended,
-/// with 5–12 of the 16 threads at work. In the first phase only top-node work is queued; in
-/// the second every thread has subtrees to take and nothing waits on a fork but the joins
-/// that sum a subtree. Dragon, 16 threads, interleaved rounds of 30 builds (medians): with
-/// the top cut at 16,384 references, FAST_BUILD 16.6–18.9 → 15.1–17.1 ms, FAST_TRACE
-/// 34.3–36.0 → 30.5–31.6 ms; cut where nodes stop forking (this), against that, FAST_BUILD
-/// 19.1–19.3 → 17.6–20.0, FAST_TRACE 35.8–37.6 → 32.9–35.9 on a slower instance.
+/// partition, and with it the next subtrees, waits until that is done: the subtrees started
+/// in waves, each when the last had ended, with a third of the threads idle. In the first
+/// phase only top-node work is queued; in the second every thread has subtrees to take and
+/// nothing waits on a fork but the joins that sum a subtree (figures in docs/TUNING.md).
 pub fn build_tree(ctx: &BuildContext, refs: &mut [PrimRef], nodes: &mut [BinNode], pre_area: &mut [u8], root: Root) -> (f64, u32) {
     let Root { bounds, bin_box, in_nodes } = root;
     let top = ctx.threads > 1 && ctx.top(refs.len());

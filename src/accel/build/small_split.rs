@@ -3,7 +3,7 @@
 //! network (`small_sweep`). Deterministic: ties go to the lowest position, axis and mask.
 //!
 //! Owns: the split choice of small nodes. Must not touch: node slots.
-use crate::accel::geometry::{half_area_v, ref_hi, ref_lo, PrimRef};
+use crate::accel::geometry::{half_area_vec, ref_hi, ref_lo, PrimRef};
 use crate::accel::params::MAX_SMALL;
 use bytemuck::Zeroable;
 use glam::{Vec3A, Vec4};
@@ -40,7 +40,7 @@ fn small_sweep<const S: usize>(order: &[u8; MAX_SMALL], lo: &[Vec3A; MAX_SMALL],
         let o = order[i] as usize & (MAX_SMALL - 1);
         l = l.min(lo[o]);
         h = h.max(hi[o]);
-        l_area[i] = half_area_v(l, h);
+        l_area[i] = half_area_vec(l, h);
         acc += w[o];
         l_w[i] = acc;
     }
@@ -52,7 +52,7 @@ fn small_sweep<const S: usize>(order: &[u8; MAX_SMALL], lo: &[Vec3A; MAX_SMALL],
         l = l.min(lo[o]);
         h = h.max(hi[o]);
         let left = l_w[i];
-        let cost = l_area[i] * left + half_area_v(l, h) * (nf - left);
+        let cost = l_area[i] * left + half_area_vec(l, h) * (nf - left);
         let cost = if i + 1 < n { cost } else { f32::NAN };
         let take = cost <= best_cost;
         best_cost = if take { cost } else { best_cost };
@@ -96,7 +96,7 @@ fn enum_split<const N: usize, const H: usize>(refs: &mut [PrimRef], w_ref: &[f32
     let (mut best, mut mask) = (f32::INFINITY, 0usize);
     for m in 1..H {
         let r = full ^ m;
-        let c = half_area_v(lo[m], hi[m]) * w[m] + half_area_v(lo[r].min(last_lo), hi[r].max(last_hi)) * (w[r] + last_w);
+        let c = half_area_vec(lo[m], hi[m]) * w[m] + half_area_vec(lo[r].min(last_lo), hi[r].max(last_hi)) * (w[r] + last_w);
         // The first cost that is not NaN is taken even when infinite (huge sanitised boxes), as
         // the sweeps do; after it only a lower one.
         let take = c < best || (mask == 0 && c <= best);
@@ -138,12 +138,11 @@ pub fn small_split(refs: &mut [PrimRef], axes: (usize, usize), weighted: bool) -
     if n == 2 {
         // Both orders give the same split and cost; keep the input order (what the sweep
         // picks on a tie).
-        return Some((1, half_area_v(ref_lo(&refs[0]), ref_hi(&refs[0])) * w[0] + half_area_v(ref_lo(&refs[1]), ref_hi(&refs[1])) * w[1]));
+        return Some((1, half_area_vec(ref_lo(&refs[0]), ref_hi(&refs[0])) * w[0] + half_area_vec(ref_lo(&refs[1]), ref_hi(&refs[1])) * w[1]));
     }
     // Three to five references: every bipartition (`enum_split`), which finds a split at least
-    // as cheap as the sweeps, in less time than sorting on three axes (dragon FAST_TRACE 2–3 %
-    // faster, the same SAH to 0.01). One axis sorts faster from five references on, and four
-    // cost the same either way: FAST_BUILD enumerates three and four (SAH 54.98 -> 54.70).
+    // as cheap as the sweeps in less time than sorting on three axes; on one axis sorting is
+    // faster from five references on (docs/TUNING.md).
     let enum_max = if axes.1 - axes.0 == 1 { 4 } else { 5 };
     match n {
         3 => return enum_split::<3, 4>(refs, &w),
@@ -174,9 +173,8 @@ pub fn small_split(refs: &mut [PrimRef], axes: (usize, usize), weighted: bool) -
         }
         sort_network(&mut v, &NET8);
         let order: [u8; MAX_SMALL] = std::array::from_fn(|i| v[i] as u8);
-        // n - 1 steps: the split positions there are (fewer steps than 7 save 16 % of a
-        // three-axis split of six references, 27 % of a one-axis split of five). Three and
-        // four references never get here (`enum_split` above).
+        // n - 1 steps: the split positions there are (a fixed 7 cost small nodes dearly).
+        // Three and four references never get here (`enum_split` above).
         let axis_best = match n {
             5 => small_sweep::<4>(&order, &lo, &hi, &w, n),
             6 => small_sweep::<5>(&order, &lo, &hi, &w, n),

@@ -5,7 +5,7 @@
 //!
 //! Owns: the node decisions and the node slots of one subtree. Must not touch: the top-level
 //! scheduling (`schedule`), the stored format beyond pre-emitting cut roots.
-use super::bins::{bin_count, bin_in_chunks, bin_one, bin_refs, node_binning, sweep_bins, Bins};
+use super::bins::{bin_count, bin_in_chunks, bin_one, bin_refs, node_binning, sweep_bins, Binning, Bins, Splitter};
 use super::partition::{par_partition_from_nodes, par_partition_to_nodes, partition_out, partition_seq, restore, PRIMREF_BYTES};
 use super::small_split::small_split;
 use crate::accel::encode::nodes::{emit_seq, wide_count};
@@ -186,6 +186,29 @@ fn decide_small(ctx: &BuildContext, t: &mut Subtree<'_>) -> Decision {
 /// `t.refs` or still in the node slots (`t.in_nodes`).
 fn decide_binned(ctx: &BuildContext, t: &mut Subtree<'_>, bins: &mut Bins) -> Option<Decision> {
     let (n, p) = (t.refs.len(), &ctx.params);
+    let (bn, scale, k) = bin_node(ctx, t, bins)?;
+    let (a, b, lbox, rbox, cost) = sweep_bins(bins, k, &scale)?;
+    // SAH termination: a leaf costs A·n, a split A·C_T + children.
+    let area = t.bounds.half_area();
+    if n as u32 <= p.max_leaf && area * n as f32 <= area * p.traversal_cost + cost {
+        if t.in_nodes {
+            restore(t.refs, t.nodes);
+            t.in_nodes = false;
+        }
+        return Some(Decision::Leaf(ctx.prims_of(t.refs)));
+    }
+    let sp = bn.splitter(a, (b + 1) as f32);
+    // Left count from the bins (exact: binning and the split test share their arithmetic),
+    // except for sampled nodes, which take the parallel partition.
+    let nl_bins = bins.count[a][..=b.min(MAX_BINS - 1)].iter().map(|&c| c as usize).sum::<usize>();
+    partition_node(ctx, t, &sp, nl_bins, (lbox, rbox))
+}
+
+/// Fills `bins` for node `t` (a strided sample for the largest nodes, in parallel chunks at
+/// the top of the tree): its binning, per-axis scales and bin count; None when every binned
+/// axis is flat.
+fn bin_node(ctx: &BuildContext, t: &Subtree<'_>, bins: &mut Bins) -> Option<(Binning, [f32; 3], usize)> {
+    let (n, p) = (t.refs.len(), &ctx.params);
     let k = bin_count(p, n);
     let (bn, scale) = node_binning(p, &t.bin_box, k, n)?;
     let axes = bn.axes;
@@ -215,20 +238,14 @@ fn decide_binned(ctx: &BuildContext, t: &mut Subtree<'_>, bins: &mut Bins) -> Op
     } else {
         bin_refs(src, &bn, bins);
     }
-    let (a, b, lbox, rbox, cost) = sweep_bins(bins, k, &scale)?;
-    // SAH termination: a leaf costs A·n, a split A·C_T + children.
-    let area = t.bounds.half_area();
-    if n as u32 <= p.max_leaf && area * n as f32 <= area * p.traversal_cost + cost {
-        if t.in_nodes {
-            restore(t.refs, t.nodes);
-            t.in_nodes = false;
-        }
-        return Some(Decision::Leaf(ctx.prims_of(t.refs)));
-    }
-    let sp = bn.splitter(a, (b + 1) as f32);
-    // Left count from the bins (exact: binning and the split test share their arithmetic),
-    // except for sampled nodes, which take the parallel partition.
-    let nl_bins = bins.count[a][..=b.min(MAX_BINS - 1)].iter().map(|&c| c as usize).sum::<usize>();
+    Some((bn, scale, k))
+}
+
+/// Partitions node `t` by `sp` (`nl_bins` lefts by the bins, the sides' boxes from them) with
+/// the partition that suits its size and where its references are; None when everything ends
+/// on one side.
+fn partition_node(ctx: &BuildContext, t: &mut Subtree<'_>, sp: &Splitter, nl_bins: usize, (lbox, rbox): (Aabb, Aabb)) -> Option<Decision> {
+    let n = t.refs.len();
     let split = |mid: usize, left: Aabb, right: Aabb, in_nodes: bool| (mid > 0 && mid < n).then_some(Decision::Split(Split { mid, left, right, in_nodes }));
     if t.in_nodes {
         // Scatter from this node's slots straight into `refs` (no copy back); with everything
@@ -241,7 +258,7 @@ fn decide_binned(ctx: &BuildContext, t: &mut Subtree<'_>, bins: &mut Bins) -> Op
                 None => restore(t.refs, t.nodes),
             }
         } else {
-            let out = node_refs(t.nodes, n).and_then(|src| partition_out(src, bytemuck::cast_slice_mut(t.refs), nl_bins, PRIMREF_BYTES * nl_bins, &sp));
+            let out = node_refs(t.nodes, n).and_then(|src| partition_out(src, bytemuck::cast_slice_mut(t.refs), nl_bins, PRIMREF_BYTES * nl_bins, sp));
             match out {
                 Some(i) if i > 0 && i < n => return split(i, lbox, rbox, false),
                 _ => restore(t.refs, t.nodes),
@@ -261,14 +278,14 @@ fn decide_binned(ctx: &BuildContext, t: &mut Subtree<'_>, bins: &mut Bins) -> Op
         // if it fails (in-place partition below).
         let rbase = (2 * nl_bins - 1) * std::mem::size_of::<BinNode>();
         if let Some(rest) = t.nodes.get_mut(1..) {
-            if let Some(i) = partition_out(t.refs, bytemuck::cast_slice_mut(rest), nl_bins, rbase, &sp) {
+            if let Some(i) = partition_out(t.refs, bytemuck::cast_slice_mut(rest), nl_bins, rbase, sp) {
                 if i > 0 && i < n {
                     return split(i, lbox, rbox, true);
                 }
             }
         }
     }
-    let i = partition_seq(t.refs, &sp);
+    let i = partition_seq(t.refs, sp);
     // Bins of a sampled node do not bound every reference: exact boxes then.
     let (lbox, rbox) = if n >= SAMPLE_FROM && i > 0 && i < n { (box_of(&t.refs[..i]), box_of(&t.refs[i..])) } else { (lbox, rbox) };
     split(i, lbox, rbox, false)

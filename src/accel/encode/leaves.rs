@@ -118,7 +118,7 @@ pub fn cluster_prefix(refs: &[PrimRef], p: &mut [u32]) {
     *last = run;
 }
 
-/// Leaf-order primitive data and records for paired references: reference i's primitives go
+/// Leaf-order primitive data and records for cluster references: reference i's primitives go
 /// to positions p[i] (and p[i] + 1) of `prims` / `records`, read from the staging area at their
 /// global IDs; `firsts` maps IDs to geometries. Two passes: the IDs into the records in leaf
 /// order (split at the prefix, in parallel), then one independent read of the stage per
@@ -163,8 +163,8 @@ fn ids_in_leaf_order(refs: &[PrimRef], p: &[u32], records: &mut [u8]) {
         return;
     }
     // Each reference writes MAX_CLUSTER IDs from its first slot on, without a branch on its
-    // size; the next reference overwrites the ones past its own. (A loop of the reference's
-    // own length mispredicted on every cluster: 2.6 ms of a one-thread dragon build.)
+    // size; the next reference overwrites the ones past its own (a loop of the reference's
+    // own length mispredicted on every cluster).
     let mut pos = 0usize;
     for r in refs {
         for k in 0..MAX_CLUSTER as usize {

@@ -4,7 +4,7 @@
 //!
 //! Owns: node emission and the leaf spans of clustered builds. Must not touch: how the binary
 //! tree was built, primitive data.
-use super::quantize::encode_node_v;
+use super::quantize::quantize_node;
 use crate::accel::geometry::to_aabb;
 use crate::accel::layout::{WideNode, CHILD_INTERNAL, NODE_SIZE};
 use crate::accel::params::{PAR_EMIT_CUTOFF, PRE_BYTES_PER_PRIM};
@@ -21,7 +21,7 @@ pub fn pre_block(nd: &BinNode, pre_len: usize) -> Option<std::ops::Range<usize>>
 }
 
 /// Copies a pre-emitted block (local indices) to wide index `base`; returns its leaf children.
-/// With `map` (paired builds) leaf children are turned from references into primitives
+/// With `map` (clustered builds) leaf children are turned from references into primitives
 /// (`leaf_span`), which the block was encoded without.
 pub fn copy_block(src: &[u8], out: &mut [u8], base: u32, map: Option<&[u32]>) -> u32 {
     let mut leaves = 0;
@@ -47,7 +47,7 @@ pub fn copy_block(src: &[u8], out: &mut [u8], base: u32, map: Option<&[u32]>) ->
 }
 
 /// A leaf's first primitive and primitive count from its first reference and reference count:
-/// the same numbers unpaired, through the prefix `map` of primitives per reference when paired.
+/// the same numbers unclustered, through the prefix `map` of primitives per reference when clustered.
 #[inline]
 pub fn leaf_span(start: u32, count: u32, map: Option<&[u32]>) -> (u32, u32) {
     match map {
@@ -75,7 +75,7 @@ pub fn run_emit(tasks: &mut [EmitTask<'_>], map: Option<&[u32]>) -> u32 {
                 let _ = emit_seq(n, 0, out, me, &mut cursor, &mut l, map);
                 l
             }
-            Some((n, me, out, pre, false)) => emit_wide(n, me, out, pre, map),
+            Some((n, me, out, pre_emitted, false)) => emit_wide(n, me, out, pre_emitted, map),
             None => 0,
         },
         len => {
@@ -123,7 +123,7 @@ pub fn wide_node(nodes: &[BinNode], i: usize, map: Option<&[u32]>, mut internal:
     for k in cnt..4 {
         (clo[k], chi[k]) = (nlo, nlo);
     }
-    Some((encode_node_v(&to_aabb(nlo, nhi), &clo, &chi, cnt, &child, &kind), leaves))
+    Some((quantize_node(&to_aabb(nlo, nhi), &clo, &chi, cnt, &child, &kind), leaves))
 }
 
 /// Emits the wide subtree of binary node `i` (inside a cut subtree: no cut roots below it) in
@@ -158,9 +158,9 @@ pub fn wide_count(nodes: &[BinNode], i: usize) -> u32 {
 /// Emits the wide node made from the binary subtree rooted at `nodes[0]` as node `me` into
 /// `out[..64]` and its descendants (preorder) after it; returns the number of leaf children.
 /// Child indices follow from subtree sizes, never from timing: same bytes for any thread count.
-/// With `pre`, cut-root children whose blocks were pre-emitted are copied from there (the
+/// With `pre_emitted`, cut-root children whose blocks were pre-emitted are copied from there (the
 /// same bytes the recursion would write).
-pub fn emit_wide(nodes: &[BinNode], me: u32, out: &mut [u8], pre: Option<&[u8]>, map: Option<&[u32]>) -> u32 {
+pub fn emit_wide(nodes: &[BinNode], me: u32, out: &mut [u8], pre_emitted: Option<&[u8]>, map: Option<&[u32]>) -> u32 {
     let mut next = me + 1;
     let mut pending: [(usize, u32, u32, bool); 4] = [(0, 0, 0, false); 4];
     let mut np = 0;
@@ -186,8 +186,8 @@ pub fn emit_wide(nodes: &[BinNode], me: u32, out: &mut [u8], pre: Option<&[u8]>,
         if is_cut_root {
             // Inner nodes of a cut subtree carry no sizes: its block is copied, or encoded
             // here sequentially into its exact range.
-            if let (Some(pre), Some(nd)) = (pre, nodes.get(rel)) {
-                if let Some(src) = pre_block(nd, pre.len()).and_then(|r| pre.get(r)) {
+            if let (Some(pre_emitted), Some(nd)) = (pre_emitted, nodes.get(rel)) {
+                if let Some(src) = pre_block(nd, pre_emitted.len()).and_then(|r| pre_emitted.get(r)) {
                     if src.len() == mine.len() {
                         leaves += copy_block(src, mine, idx, map);
                         continue;
@@ -197,11 +197,11 @@ pub fn emit_wide(nodes: &[BinNode], me: u32, out: &mut [u8], pre: Option<&[u8]>,
             // Without a usable block (builds that stage nothing, such as every TLAS, have no
             // pre-emission area) it is a task like the others, so that sibling cut roots are
             // encoded in parallel.
-            tasks[nt] = nodes.get(rel..).map(|n| (n, idx, mine, pre, true));
+            tasks[nt] = nodes.get(rel..).map(|n| (n, idx, mine, pre_emitted, true));
             nt += 1;
             continue;
         }
-        tasks[nt] = nodes.get(rel..).map(|n| (n, idx, mine, pre, false));
+        tasks[nt] = nodes.get(rel..).map(|n| (n, idx, mine, pre_emitted, false));
         nt += 1;
     }
     leaves + run_emit(&mut tasks[..nt], map)

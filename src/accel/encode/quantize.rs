@@ -2,7 +2,7 @@
 //! the emission and by refit.
 //!
 //! Owns: the quantisation arithmetic. Must not touch: which children a node has.
-use crate::accel::geometry::{floor_pos, Aabb};
+use crate::accel::geometry::{floor_lanes, Aabb};
 use crate::accel::layout::WideNode;
 use bytemuck::Zeroable;
 use glam::{Vec3A, Vec4};
@@ -13,7 +13,7 @@ use glam::{Vec3A, Vec4};
 /// four values come from one transpose in registers, where gathering them through a stack
 /// array stalled on store-to-load forwarding.
 #[inline]
-pub fn encode_node_v(node_box: &Aabb, clo: &[Vec3A; 4], chi: &[Vec3A; 4], cnt: usize, child: &[u32], kind: &[u8]) -> WideNode {
+pub fn quantize_node(node_box: &Aabb, clo: &[Vec3A; 4], chi: &[Vec3A; 4], cnt: usize, child: &[u32], kind: &[u8]) -> WideNode {
     let cnt = cnt.min(4);
     let col = |v: Vec3A| Vec4::from((v, 0.0));
     let tlo = glam::Mat4::from_cols(col(clo[0]), col(clo[1]), col(clo[2]), col(clo[3])).transpose();
@@ -23,42 +23,20 @@ pub fn encode_node_v(node_box: &Aabb, clo: &[Vec3A; 4], chi: &[Vec3A; 4], cnt: u
     for a in 0..3 {
         let lo = node_box.lo[a];
         let hi = node_box.hi[a];
-        let ext = (hi - lo).max(0.0);
-        // Smallest power of two s with lo + 255*s >= hi, found from the extent then verified.
-        let mut e: u32 = if ext > 0.0 && ext.is_finite() {
-            ((ext * (1.0 / 255.0)).to_bits() >> 23 & 0xff).max(1)
-        } else if ext > 0.0 {
-            254
-        } else {
-            1
-        };
-        // Usually `e` already fits or the next one does: two explicit steps before the general
-        // loop, which the compiler otherwise turned into a 16-wide search with a serial
-        // byte-by-byte reduction (a third of the node's encoding time).
-        let short = |e: u32| e < 254 && lo + 255.0 * f32::from_bits(e << 23) < hi;
-        if short(e) {
-            e += 1;
-            if short(e) {
-                e += 1;
-                while short(e) {
-                    e += 1;
-                }
-            }
-        }
+        let e = frame_exponent(lo, hi);
         n.exp[a] = e as u8;
         let s = f32::from_bits(e << 23);
         let inv_s = 1.0 / s; // exact: s is a power of two
-        let dec = |q: u32| lo + q as f32 * s;
         // Four children at once: truncated guesses (clamped in float first: the same values as
         // the scalar `(x as u32).min(255)` for x > 0, else 0), checked with the decode
-        // arithmetic lane-wise (same IEEE operations as `dec`); lanes that need a step (rare)
-        // take the scalar path below.
+        // arithmetic lane-wise (the same IEEE operations as `quantize_scalar`); lanes that
+        // need a step (rare) take the scalar path below.
         let (blo, bhi) = (tlo.col(a), thi.col(a));
         let (lov, sv, top) = (Vec4::splat(lo), Vec4::splat(s), Vec4::splat(255.0));
         // floor of values clamped to [0, 255] is the truncation `as u32` would give, already
         // as a float (no conversions until the final byte extraction).
-        let qlf = floor_pos(((blo - lov) * inv_s).max(Vec4::ZERO).min(top));
-        let q0 = floor_pos(((bhi - lov) * inv_s).max(Vec4::ZERO).min(top));
+        let qlf = floor_lanes(((blo - lov) * inv_s).max(Vec4::ZERO).min(top));
+        let q0 = floor_lanes(((bhi - lov) * inv_s).max(Vec4::ZERO).min(top));
         let bad_l = (lov + qlf * sv).cmpgt(blo) & qlf.cmpgt(Vec4::ZERO);
         // The scalar search steps qh up from the truncated guess to the first value whose
         // decode reaches b.hi: usually the guess itself or the next one.
@@ -78,21 +56,7 @@ pub fn encode_node_v(node_box: &Aabb, clo: &[Vec3A; 4], chi: &[Vec3A; 4], cnt: u
             continue;
         }
         for c in 0..cnt {
-            // Guesses by truncation, then made exact and outward with the decode arithmetic
-            // (usually zero or one step).
-            let (bl, bh) = (clo[c][a], chi[c][a]);
-            let x = (bl - lo) * inv_s;
-            let mut ql = if x > 0.0 { (x as u32).min(255) } else { 0 };
-            while ql > 0 && dec(ql) > bl {
-                ql -= 1;
-            }
-            let y = (bh - lo) * inv_s;
-            let mut qh = if y > 0.0 { (y as u32).min(255) } else { 0 };
-            while qh < 255 && dec(qh) < bh {
-                qh += 1;
-            }
-            n.qlo[a][c] = ql as u8;
-            n.qhi[a][c] = qh as u8;
+            (n.qlo[a][c], n.qhi[a][c]) = quantize_scalar(lo, s, inv_s, clo[c][a], chi[c][a]);
         }
     }
     n.child_count = cnt as u8;
@@ -101,4 +65,50 @@ pub fn encode_node_v(node_box: &Aabb, clo: &[Vec3A; 4], chi: &[Vec3A; 4], cnt: u
         n.kind[c] = kind.get(c).copied().unwrap_or(0);
     }
     n
+}
+
+/// The frame exponent of one axis: the smallest power of two s = 2^(e-127) with
+/// lo + 255·s >= hi, found from the extent, then verified.
+#[inline(always)]
+fn frame_exponent(lo: f32, hi: f32) -> u32 {
+    let ext = (hi - lo).max(0.0);
+    let mut e: u32 = if ext > 0.0 && ext.is_finite() {
+        ((ext * (1.0 / 255.0)).to_bits() >> 23 & 0xff).max(1)
+    } else if ext > 0.0 {
+        254
+    } else {
+        1
+    };
+    // Usually `e` already fits or the next one does: two explicit steps before the general
+    // loop, which the compiler otherwise turned into a 16-wide search with a serial
+    // byte-by-byte reduction (a third of the node's encoding time).
+    let short = |e: u32| e < 254 && lo + 255.0 * f32::from_bits(e << 23) < hi;
+    if short(e) {
+        e += 1;
+        if short(e) {
+            e += 1;
+            while short(e) {
+                e += 1;
+            }
+        }
+    }
+    e
+}
+
+/// One child's bounds on one axis quantised outward in the frame (lo, s): guesses by
+/// truncation, then made exact with the decode arithmetic (usually zero or one step).
+#[inline(always)]
+fn quantize_scalar(lo: f32, s: f32, inv_s: f32, bl: f32, bh: f32) -> (u8, u8) {
+    let dec = |q: u32| lo + q as f32 * s;
+    let x = (bl - lo) * inv_s;
+    let mut ql = if x > 0.0 { (x as u32).min(255) } else { 0 };
+    while ql > 0 && dec(ql) > bl {
+        ql -= 1;
+    }
+    let y = (bh - lo) * inv_s;
+    let mut qh = if y > 0.0 { (y as u32).min(255) } else { 0 };
+    while qh < 255 && dec(qh) < bh {
+        qh += 1;
+    }
+    (ql as u8, qh as u8)
 }

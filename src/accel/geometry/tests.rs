@@ -1,7 +1,7 @@
 use super::*;
 use crate::accel::testing::xorshift;
 
-/// The mantissa truncation equals `as i32` and `floor_pos` equals `floor` on [0, 2^22):
+/// The mantissa truncation equals `as i32` and `floor_lanes` equals `floor` on [0, 2^22):
 /// every integer boundary of the bin and quantisation ranges and its float neighbours,
 /// halves (round-to-even ties), and a sweep.
 #[test]
@@ -15,9 +15,9 @@ fn vector_truncation_is_exact() {
     for q in xs.chunks(4) {
         let mut v = [0f32; 4];
         v[..q.len()].copy_from_slice(q);
-        let got = trunc_i32x4_4(Vec4::from_array(v));
-        let got3 = trunc_i32x4(Vec3A::new(v[0], v[1], v[2]));
-        let fl = floor_pos(Vec4::from_array(v)).to_array();
+        let got = trunc_lanes(Vec4::from_array(v));
+        let got3 = trunc_lanes3(Vec3A::new(v[0], v[1], v[2]));
+        let fl = floor_lanes(Vec4::from_array(v)).to_array();
         for k in 0..4 {
             assert_eq!(got[k], v[k] as i32, "{}", v[k]);
             assert_eq!(fl[k].to_bits(), v[k].floor().to_bits(), "{}", v[k]);
