@@ -245,6 +245,7 @@ pub fn box_of(refs: &[PrimRef]) -> Aabb {
 /// sanitising path. A max of the |v| would not do: maxps drops a NaN operand, which would hide
 /// a NaN y or z from the huge box.
 #[inline(always)]
+#[allow(clippy::eq_op)] // v - v is the finiteness test, not a zero.
 pub fn triangle_box(a: Vec3A, b: Vec3A, c: Vec3A) -> (Vec3A, Vec3A) {
     if ((a - a) + (b - b) + (c - c)).cmpeq(Vec3A::ZERO).all() {
         return (a.min(b).min(c), a.max(b).max(c));

@@ -54,10 +54,9 @@ pub fn make_ref_data(gi: u32, g: &Geometry, p: u32, view: &dyn DeviceView, allow
             } else {
                 // Repeated indices may always be dropped: an update cannot change indices.
                 let idx = input::triangle_indices(gi, g, p)?;
-                if idx[0] == idx[1] || idx[1] == idx[2] || idx[0] == idx[2] {
-                    if !matches!(g.data, GeometryData::Triangles { index_type: IndexType::None, .. }) {
-                        return Ok(None);
-                    }
+                let repeated = idx[0] == idx[1] || idx[1] == idx[2] || idx[0] == idx[2];
+                if repeated && !matches!(g.data, GeometryData::Triangles { index_type: IndexType::None, .. }) {
+                    return Ok(None);
                 }
             }
             data = [v[0].x, v[0].y, v[0].z, v[1].x, v[1].y, v[1].z, v[2].x, v[2].y, v[2].z];
@@ -194,11 +193,7 @@ impl<'a> FastTris<'a> {
 
 pub fn check_types(desc: &BuildDesc) -> Result<(), BuildError> {
     for (gi, g) in desc.geometries.iter().enumerate() {
-        let ok = match (desc.ty, &g.data) {
-            (AsType::TopLevel, GeometryData::Instances { .. }) => true,
-            (AsType::BottomLevel, GeometryData::Triangles { .. } | GeometryData::Aabbs { .. }) => true,
-            _ => false,
-        };
+        let ok = matches!((desc.ty, &g.data), (AsType::TopLevel, GeometryData::Instances { .. }) | (AsType::BottomLevel, GeometryData::Triangles { .. } | GeometryData::Aabbs { .. }));
         if !ok {
             return Err(BuildError::WrongGeometryType { geometry: gi as u32 });
         }

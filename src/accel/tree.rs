@@ -61,7 +61,7 @@ pub fn wide_children(nodes: &[BinNode], i: usize) -> ([usize; 4], usize, u8) {
             if let Some(nd) = nodes.get(c) {
                 if nd.left_count != 0 && !cut[k] {
                     let a = Aabb { lo: nd.lo, hi: nd.hi }.half_area();
-                    if best.map_or(true, |b| a > b.1) {
+                    if best.is_none_or(|b| a > b.1) {
                         best = Some((k, a));
                     }
                 }

@@ -291,7 +291,7 @@ pub fn sweep_bins(bins: &Bins, k: usize, scale: &[f32; 3]) -> Option<(usize, usi
             ab_bin = if take { b } else { ab_bin };
         }
         if let Some((b, cost)) = (ab_bin != usize::MAX).then_some((ab_bin, ab_cost)) {
-            if best.map_or(true, |x| cost < x.2) {
+            if best.is_none_or(|x| cost < x.2) {
                 best = Some((a, b, cost));
             }
         }

@@ -119,7 +119,7 @@ pub fn worth_clustering(firsts: &[u32], tau: f32, boxes: impl Fn(u32, u32) -> Op
             // Neighbours within one geometry.
             let g = geometry_of(id, firsts);
             let first = firsts.get(g as usize).copied().unwrap_or(0);
-            if !firsts.get(g as usize + 1).is_some_and(|&end| id + 1 < end) {
+            if firsts.get(g as usize + 1).is_none_or(|&end| id + 1 >= end) {
                 return (0u32, 0u32);
             }
             match (boxes(g, id - first), boxes(g, id - first + 1)) {

@@ -240,7 +240,7 @@ fn build_subtrees(desc: &BuildDesc, ctx: &BuildContext, plan: Option<TopPlan>, i
         let ids = bytemuck::cast_slice_mut::<u32, u8>(rest).get_mut(..work.refs.len())?;
         plan::classify_chunks(pl, desc, work.refs, kept, cells, ids);
         let s = plan::bucket_sums(pl, cells).filter(|s| s.total() == built)?;
-        plan::scatter(pl, &s, desc, work.refs, kept, cells, ids, &mut work.nodes[..2 * built - 1])?;
+        plan::scatter(pl, &s, desc, work.refs, plan::Classified { kept, cells, ids }, &mut work.nodes[..2 * built - 1])?;
         Some(s)
     });
     match (plan.as_ref(), planned) {

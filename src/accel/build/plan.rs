@@ -132,6 +132,7 @@ fn first_where(holds: impl Fn(f32) -> bool, below: bool) -> f32 {
 /// The smallest finite c whose centroid test `sp.left` fails (-inf when it fails for every
 /// finite c, +inf when it holds for every one): the test is c < t for every finite c, since
 /// (c - cmin)·scale rounds monotonically for scale > 0.
+#[allow(clippy::neg_cmp_op_on_partial_ord)] // the negation of the split test itself, NaN included.
 fn threshold(sp: &Splitter) -> f32 {
     first_where(|c| !((c - sp.cmin) * sp.scale < sp.limit), false)
 }
@@ -268,14 +269,24 @@ impl TopPlan {
     }
 }
 
-/// The planned top below a node whose sample is `sample` (`step` references per sample):
-/// splits as `build_rec` chooses them over the sample's bins, while the sample keeps at least
-/// `min_sample` references and the node about PLAN_SPLIT_MIN references. Returns the nodes
-/// (this one first, indices relative to it) and the bucket count, buckets numbered left to
-/// right. Depends on the sample alone (`par`: whether large samples bin, partition and
-/// split their children in parallel, or everything runs on the calling thread).
-#[allow(clippy::too_many_arguments)]
-fn grow_plan(p: &BuildParams, sample: &mut [PrimRef], scratch: &mut [PrimRef], cb: Aabb, step: usize, level: usize, min_sample: usize, par: bool) -> (Vec<TopNode>, u32) {
+/// How a plan's sample stands for the references: each sample is `step` references; a top
+/// node splits while its sample holds at least `min_sample`; `parallel`: whether large samples
+/// bin, partition and split their children in parallel, or everything runs on the calling
+/// thread (the plan is the same either way).
+#[derive(Clone, Copy)]
+struct Sampling {
+    step: usize,
+    min_sample: usize,
+    parallel: bool,
+}
+
+/// The planned top below a node at `level` whose sample is `sample`: splits as `build_rec`
+/// chooses them over the sample's bins, while the sample keeps at least `min_sample`
+/// references and the node about PLAN_SPLIT_MIN references. Returns the nodes (this one
+/// first, indices relative to it) and the bucket count, buckets numbered left to right.
+/// Depends on the sample alone.
+fn grow_plan(p: &BuildParams, sample: &mut [PrimRef], scratch: &mut [PrimRef], cb: Aabb, level: usize, sampling: Sampling) -> (Vec<TopNode>, u32) {
+    let Sampling { step, min_sample, parallel: par } = sampling;
     let s = sample.len();
     let est = s.saturating_mul(step);
     let bucket = || (vec![TopNode { split: None, kids: [0; 2], bucket: 0 }], 1);
@@ -313,9 +324,9 @@ fn grow_plan(p: &BuildParams, sample: &mut [PrimRef], scratch: &mut [PrimRef], c
         return bucket();
     }
     let ((mut l, lb), (r, rb)) = if par && s >= 1024 {
-        rayon::join(|| grow_plan(p, ls, lt, lbox, step, level + 1, min_sample, par), || grow_plan(p, rs, rt, rbox, step, level + 1, min_sample, par))
+        rayon::join(|| grow_plan(p, ls, lt, lbox, level + 1, sampling), || grow_plan(p, rs, rt, rbox, level + 1, sampling))
     } else {
-        (grow_plan(p, ls, lt, lbox, step, level + 1, min_sample, par), grow_plan(p, rs, rt, rbox, step, level + 1, min_sample, par))
+        (grow_plan(p, ls, lt, lbox, level + 1, sampling), grow_plan(p, rs, rt, rbox, level + 1, sampling))
     };
     let off = 1 + l.len() as u32;
     let mut tree = Vec::with_capacity(1 + l.len() + r.len());
@@ -362,7 +373,7 @@ pub fn plan(desc: &BuildDesc, p: &BuildParams, refs: &[PrimRef], kept: &[u32], b
             }
         }
     });
-    plan_on(p, sample, scratch, cb, step, p.sample_target / PLAN_MIN_SAMPLE_DIV, true)
+    plan_on(p, sample, scratch, cb, Sampling { step, min_sample: p.sample_target / PLAN_MIN_SAMPLE_DIV, parallel: true })
 }
 
 /// Plans the top, as `plan` does, from an evenly strided sample of PLAN_INPUT_SAMPLE input
@@ -416,13 +427,13 @@ pub fn plan_from_input(desc: &BuildDesc, p: &BuildParams, total: usize, room: &m
             }
         }
     }
-    plan_on(p, &mut sample[..n], scratch, to_aabb(clo, chi), step, PLAN_INPUT_SAMPLE / (PLAN_ROOT_SAMPLE * PLAN_MIN_SAMPLE_DIV), false)
+    plan_on(p, &mut sample[..n], scratch, to_aabb(clo, chi), Sampling { step, min_sample: PLAN_INPUT_SAMPLE / (PLAN_ROOT_SAMPLE * PLAN_MIN_SAMPLE_DIV), parallel: false })
 }
 
 /// The planned top grown from `sample` (`grow_plan`, root bins over `cb`), when it has 2 to
 /// BUCKETS buckets.
-fn plan_on(p: &BuildParams, sample: &mut [PrimRef], scratch: &mut [PrimRef], cb: Aabb, step: usize, min_sample: usize, par: bool) -> Option<TopPlan> {
-    let (tree, buckets) = grow_plan(p, sample, scratch, cb, step, 0, min_sample, par);
+fn plan_on(p: &BuildParams, sample: &mut [PrimRef], scratch: &mut [PrimRef], cb: Aabb, sampling: Sampling) -> Option<TopPlan> {
+    let (tree, buckets) = grow_plan(p, sample, scratch, cb, 0, sampling);
     let buckets = buckets as usize;
     (2..=BUCKETS).contains(&buckets).then(|| TopPlan::new(tree, buckets, &cb))
 }
@@ -533,16 +544,26 @@ fn bucket_slots(plan: &TopPlan, s: &PlanSums, i: usize, slot: usize, first: usiz
     }
 }
 
+/// What `classify_chunks` found: each ingest chunk's kept count and bucket cells, and each
+/// reference's bucket (at its slot).
+#[derive(Clone, Copy)]
+pub struct Classified<'a> {
+    pub kept: &'a [u32],
+    pub cells: &'a [BucketCell],
+    pub ids: &'a [u8],
+}
+
 /// Moves every kept reference from its ingest chunk into its bucket: bucket b's references in
 /// chunk order from the start of its node slots (`bucket_slots`), so each bucket's subtree finds
 /// them there (`build_rec`'s `in_nodes`). Chunk groups work in parallel, each on its own
 /// disjoint ranges. None, with nothing written, when a range does not fit `nodes`.
-pub fn scatter(plan: &TopPlan, s: &PlanSums, desc: &BuildDesc, refs: &[PrimRef], kept: &[u32], cells: &[BucketCell], ids: &[u8], nodes: &mut [BinNode]) -> Option<()> {
+pub fn scatter(plan: &TopPlan, s: &PlanSums, desc: &BuildDesc, refs: &[PrimRef], classified: Classified<'_>, nodes: &mut [BinNode]) -> Option<()> {
+    let Classified { kept, cells, ids } = classified;
     let nb = plan.buckets;
     let mut at = [(0usize, 0usize); BUCKETS];
     bucket_slots(plan, s, 0, 0, 0, &mut at);
     let nch = kept.len();
-    let groups = nch.min(PLAN_SCATTER_GROUPS).max(1);
+    let groups = nch.clamp(1, PLAN_SCATTER_GROUPS);
     let bounds_of = |g: usize| (g * nch / groups, (g + 1) * nch / groups);
     // References per (group, bucket).
     let mut gcount = vec![0usize; groups * nb];

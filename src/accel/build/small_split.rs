@@ -184,7 +184,7 @@ pub fn small_split(refs: &mut [PrimRef], axes: (usize, usize), weighted: bool) -
         // Ties across axes keep the earlier axis; within an axis the sweep keeps the lowest
         // position.
         if let Some((mid, cost)) = axis_best {
-            if best.map_or(true, |b| cost < b.2) {
+            if best.is_none_or(|b| cost < b.2) {
                 best = Some((a, mid, cost));
                 best_order = order;
             }

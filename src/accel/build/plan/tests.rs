@@ -79,7 +79,7 @@ fn classification_is_the_walk_down_the_split_tests() {
         let step = 8;
         let mut sample: Vec<PrimRef> = refs.iter().step_by(step).copied().collect();
         let mut scratch = vec![PrimRef::zeroed(); sample.len()];
-        let (tree, buckets) = grow_plan(&p, &mut sample, &mut scratch, cb, step, 0, p.sample_target / PLAN_MIN_SAMPLE_DIV, true);
+        let (tree, buckets) = grow_plan(&p, &mut sample, &mut scratch, cb, 0, Sampling { step, min_sample: p.sample_target / PLAN_MIN_SAMPLE_DIV, parallel: true });
         assert!(buckets >= 8, "case {case}: {buckets} buckets");
         let plan = TopPlan::new(tree, buckets as usize, &cb);
         // References on every threshold, just below it, and outside the root box.
