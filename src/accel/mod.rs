@@ -4,7 +4,14 @@
 //! collapsed BVH4 with conservatively quantised child boxes → the bytes of the structure; refit;
 //! copy/compact/serialize; traversal per the Vulkan ray traversal rules; metrics and validation.
 //! Must not touch: device memory resolution (the driver passes slices and a `DeviceView`),
-//! diagnostics, anything Vulkan-handle shaped. The public contract is `docs/ACCEL_API.md`.
+//! diagnostics, anything Vulkan-handle shaped, any other module of the driver (checked by
+//! tests/layering.rs). The public contract is `docs/ACCEL_API.md`.
+//!
+//! Modules: `build` (the pipeline and its stages), `encode` (the bytes of nodes, leaves and
+//! instances), `params` (every tuning number; evidence in docs/TUNING.md), `geometry` (boxes,
+//! references, bounds), `primitive` (reading primitives from geometry), `tree` (the binary
+//! tree in scratch and its collapse rule), `layout` (the stored format), `input` (decoding
+//! vertices, indices, instances), `refit`, `copy`, `traverse`, `metrics`.
 #![forbid(unsafe_code)]
 
 mod build;
