@@ -102,6 +102,9 @@ pub const CLUSTER_SAMPLE: u32 = 1024;
 /// Clustering pays when at least one in this many sampled neighbours is tight.
 pub const CLUSTER_WORTH: u32 = 8;
 
+/// References per block of `cluster_in_place` (its areas and neighbour tests on the stack).
+pub const CLUSTER_BLOCK: usize = 256;
+
 // Ingest.
 /// Primitives per ingest chunk (triangles, AABBs).
 pub const INGEST_CHUNK: usize = 4096;
@@ -109,6 +112,13 @@ pub const INGEST_CHUNK: usize = 4096;
 pub const INGEST_CHUNK_INSTANCES: usize = 256;
 /// Prefetch distance (in primitives or records) of ingest's vertex reads and the leaf-data gathers.
 pub const PREFETCH_AHEAD: usize = 32;
+
+/// Leaf-order records per parallel task of the leaf-data passes.
+pub const LEAF_DATA_CHUNK: usize = 4096;
+/// References per parallel task of the cluster prefix and the cluster IDs in leaf order.
+pub const PREFIX_CHUNK: usize = 1 << 14;
+/// Instances per parallel task of the TLAS instance records.
+pub const INSTANCE_CHUNK: usize = 1024;
 
 // The planned top of large BLAS builds (`build::plan`).
 /// BLAS builds with at least this many primitives plan their top (scratch permitting).
@@ -125,6 +135,12 @@ pub const PLAN_SPLIT_MIN: usize = SAMPLE_FROM / 2;
 pub const PLAN_INPUT_SAMPLE: usize = 1 << 14;
 /// Samples from which a top node's sample partitions in parallel.
 pub const PLAN_PAR_PARTITION: usize = 8192;
+/// Samples from which a top node splits its two children in parallel.
+pub const PLAN_PAR_SPLIT: usize = 1024;
+/// Sample positions per parallel task gathering a plan's sample from the references.
+pub const PLAN_SAMPLE_BLOCK: usize = 1024;
+/// How far ahead (in samples) a plan from the input prefetches index bytes (vertices half as far).
+pub const PLAN_INPUT_PREFETCH: usize = 16;
 /// Samples per parallel binning task of a top node.
 pub const PLAN_BIN_CHUNK: usize = 2048;
 /// Chunk groups of the scatter into buckets (fixed, whatever the thread count).
@@ -140,3 +156,13 @@ pub const PRE_BYTES_PER_PRIM: usize = 24;
 /// Wide subtrees of at least this many nodes emit their children in parallel.
 pub const PAR_EMIT_CUTOFF: u32 = 1024;
 const _: () = assert!(SAMPLE_FROM as u64 > EMIT_CUT as u64);
+
+// Refit (`refit`).
+/// Primitives whose input reads the refit's primitive pass issues together.
+pub const REFIT_BATCH: usize = 32;
+/// Leaf-order primitives per parallel task of the refit's primitive pass.
+pub const REFIT_CHUNK: usize = 1024;
+/// Instances per parallel task of a TLAS refit.
+pub const REFIT_INSTANCE_CHUNK: usize = 256;
+/// Subtrees of at least this many nodes refit their children in parallel.
+pub const PAR_REFIT_NODES: usize = 256;

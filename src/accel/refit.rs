@@ -5,6 +5,7 @@ use super::encode::instances::sort_distinct;
 use super::encode::quantize::quantize_node;
 use super::geometry::{instance_bounds_of, sanitize, triangle_box, triangle_bounds, Aabb, BlasBoundsMemo};
 use super::layout::carve;
+use super::params::{PAR_REFIT_NODES, REFIT_BATCH, REFIT_CHUNK, REFIT_INSTANCE_CHUNK};
 use super::primitive::{geometry_record, make_ref, total_primitives, FastTris};
 use super::input::read_instance;
 use super::layout::{self, InstanceRecord, Parsed, CHILD_INTERNAL, NODE_SIZE, PRIM_SIZE};
@@ -155,8 +156,8 @@ fn refit_primitives(desc: &BuildDesc, raw: &layout::RawHeader, dst: &mut [u8]) -
     // else, and every error, through `read_triangle`.
     let fast: Vec<Option<FastTris>> = desc.geometries.iter().map(FastTris::of).collect();
     prims
-        .par_chunks_mut(1024 * PRIM_SIZE)
-        .zip(records.par_chunks(1024 * layout::RECORD_SIZE))
+        .par_chunks_mut(REFIT_CHUNK * PRIM_SIZE)
+        .zip(records.par_chunks(REFIT_CHUNK * layout::RECORD_SIZE))
         .map(|(pd, rd)| {
             // In leaf order the reads jump around the input, and each triangle's index load
             // and then its vertex loads miss. A batch loads every record's indices first,
@@ -199,11 +200,6 @@ fn refit_primitives(desc: &BuildDesc, raw: &layout::RawHeader, dst: &mut [u8]) -
         .reduce(|| Ok(()), |a, b| a.and(b))
 }
 
-/// Primitives whose input reads the refit's primitive pass issues together (see there).
-const REFIT_BATCH: usize = 32;
-
-/// Subtrees of at least this many nodes refit their children in parallel.
-const PAR_REFIT_NODES: usize = 256;
 
 /// What the leaves of a refit read: the BLAS leaf kind when it is the same for all geometries,
 /// and for a TLAS the instances' new boxes, in slot order (computed with the instance records).
@@ -398,16 +394,15 @@ fn refit_instances(desc: &BuildDesc, view: &dyn DeviceView, raw: &layout::RawHea
     }
     let (head, tail) = dst.split_at_mut(raw.instances_offset as usize);
     let head: &[u8] = head;
-    const CH: usize = 256;
     tail.get_mut(..n * layout::INSTANCE_RECORD_SIZE)
         .ok_or(BuildError::InvalidSource("instances"))?
-        .par_chunks_mut(CH * layout::INSTANCE_RECORD_SIZE)
-        .zip(boxes.get_mut(..n).ok_or(BuildError::InvalidSource("instances"))?.par_chunks_mut(CH))
+        .par_chunks_mut(REFIT_INSTANCE_CHUNK * layout::INSTANCE_RECORD_SIZE)
+        .zip(boxes.get_mut(..n).ok_or(BuildError::InvalidSource("instances"))?.par_chunks_mut(REFIT_INSTANCE_CHUNK))
         .enumerate()
         .map(|(ci, (out, bx))| {
             let mut memo = BlasBoundsMemo::new();
             for (k, (o, bo)) in out.chunks_exact_mut(layout::INSTANCE_RECORD_SIZE).zip(bx.iter_mut()).enumerate() {
-                let i = ci * CH + k;
+                let i = ci * REFIT_INSTANCE_CHUNK + k;
                 let inst = read(head, i).map_err(|e| (i, e))?;
                 let (lo, hi) = instance_bounds_of(&inst.transform, memo.get(inst.reference, view));
                 *bo = [lo[0], lo[1], lo[2], hi[0], hi[1], hi[2]];

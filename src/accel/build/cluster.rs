@@ -11,7 +11,7 @@
 //! Owns: forming clusters. Must not touch: the tree, the output. Deterministic: clusters
 //! never cross an ingest chunk, whose bounds depend on the input only.
 use crate::accel::geometry::{half_area_vec, ref_hi, ref_lo, PrimRef};
-use crate::accel::params::{CLUSTER_SAMPLE, CLUSTER_WORTH};
+use crate::accel::params::{CLUSTER_BLOCK, CLUSTER_SAMPLE, CLUSTER_WORTH};
 use crate::accel::primitive::geometry_of;
 use glam::Vec3A;
 use rayon::prelude::*;
@@ -34,24 +34,23 @@ fn tight(a: &PrimRef, b: &PrimRef, tau: f32) -> bool {
 /// box, `prim` = the first primitive's global ID, `geom` = how many (their IDs follow).
 /// Returns how many there are and their centroid box.
 pub fn cluster_in_place(c: &mut [PrimRef], tau: f32, cluster: u32, dropped: u32) -> (usize, Vec3A, Vec3A) {
-    const BLOCK: usize = 256;
     let n = c.len();
     // Each reference's half area once per block (the flags and the walk read it up to four
     // times): the same values `tight` computes, so the same clusters.
     let area_of = |r: &PrimRef| half_area_vec(ref_lo(r), ref_hi(r));
-    let mut areas = [0f32; BLOCK + 1];
-    let mut flags = [false; BLOCK];
+    let mut areas = [0f32; CLUSTER_BLOCK + 1];
+    let mut flags = [false; CLUSTER_BLOCK];
     let (mut w, mut i, mut base) = (0usize, 0usize, 0usize);
     let (mut clo, mut chi) = (Vec3A::INFINITY, Vec3A::NEG_INFINITY);
     while base < n {
-        let end = (base + BLOCK).min(n);
+        let end = (base + CLUSTER_BLOCK).min(n);
         for (k, a) in (base..(end + 1).min(n)).zip(areas.iter_mut()) {
             *a = area_of(&c[k]);
         }
         // Reference j's area: cached in this block (through `end`), else computed (the walk
         // may run past the block; nothing there is written yet).
-        let area = |c: &[PrimRef], areas: &[f32; BLOCK + 1], j: usize| if j >= base && j <= end { areas[(j - base).min(BLOCK)] } else { area_of(&c[j]) };
-        let linked = |c: &[PrimRef], areas: &[f32; BLOCK + 1], j: usize| {
+        let area = |c: &[PrimRef], areas: &[f32; CLUSTER_BLOCK + 1], j: usize| if j >= base && j <= end { areas[(j - base).min(CLUSTER_BLOCK)] } else { area_of(&c[j]) };
+        let linked = |c: &[PrimRef], areas: &[f32; CLUSTER_BLOCK + 1], j: usize| {
             c.get(j + 1).is_some_and(|b| {
                 let a = &c[j];
                 a.geom != dropped && b.geom != dropped && b.prim == a.prim.wrapping_add(1) && half_area_vec(ref_lo(a).min(ref_lo(b)), ref_hi(a).max(ref_hi(b))) <= tau * (area(c, areas, j) + area(c, areas, j + 1))
@@ -71,7 +70,7 @@ pub fn cluster_in_place(c: &mut [PrimRef], tau: f32, cluster: u32, dropped: u32)
             let mut count = 1u32;
             let mut j = i;
             // Flags beyond this block are computed on the fly (nothing there is written yet).
-            while count < cluster && if j < end { flags[(j - base) & (BLOCK - 1)] } else { linked(c, &areas, j) } {
+            while count < cluster && if j < end { flags[(j - base) & (CLUSTER_BLOCK - 1)] } else { linked(c, &areas, j) } {
                 let bsum = sum + area(c, &areas, j + 1);
                 let b = &c[j + 1];
                 let (blo, bhi) = (ref_lo(b), ref_hi(b));

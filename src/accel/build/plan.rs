@@ -26,7 +26,7 @@ use super::ingest::ingest_chunk;
 use super::partition::{part_scatter, part_stats, partition_seq, PRIMREF_BYTES};
 use super::subtree::Subtree;
 use crate::accel::geometry::{ref_hi, ref_lo, to_aabb, trunc_lanes3, Aabb, PrimRef};
-use crate::accel::params::{BuildParams, PLAN_BIN_CHUNK, PLAN_GRID, PLAN_INPUT_SAMPLE, PLAN_LEVELS, PLAN_MIN, PLAN_MIN_SAMPLE_DIV, PLAN_PAR_PARTITION, PLAN_ROOT_SAMPLE, PLAN_SCATTER_GROUPS, PLAN_SPLIT_MIN, PRE_BYTES_PER_PRIM};
+use crate::accel::params::{BuildParams, PLAN_BIN_CHUNK, PLAN_GRID, PLAN_INPUT_SAMPLE, PLAN_LEVELS, PLAN_MIN, PLAN_MIN_SAMPLE_DIV, PLAN_INPUT_PREFETCH, PLAN_PAR_PARTITION, PLAN_PAR_SPLIT, PLAN_ROOT_SAMPLE, PLAN_SAMPLE_BLOCK, PLAN_SCATTER_GROUPS, PLAN_SPLIT_MIN, PRE_BYTES_PER_PRIM};
 use crate::accel::primitive::FastTris;
 use crate::accel::tree::BinNode;
 use crate::accel::{AsType, BuildDesc, BuildFlags};
@@ -323,7 +323,7 @@ fn grow_plan(p: &BuildParams, sample: &mut [PrimRef], scratch: &mut [PrimRef], c
     if i == 0 || i == s {
         return bucket();
     }
-    let ((mut l, lb), (r, rb)) = if par && s >= 1024 {
+    let ((mut l, lb), (r, rb)) = if par && s >= PLAN_PAR_SPLIT {
         rayon::join(|| grow_plan(p, ls, lt, lbox, level + 1, sampling), || grow_plan(p, rs, rt, rbox, level + 1, sampling))
     } else {
         (grow_plan(p, ls, lt, lbox, level + 1, sampling), grow_plan(p, rs, rt, rbox, level + 1, sampling))
@@ -353,14 +353,13 @@ pub fn plan(desc: &BuildDesc, p: &BuildParams, refs: &[PrimRef], kept: &[u32], b
     }
     // In blocks of sample positions, each walking the chunks from the start (no per-chunk
     // table on the heap).
-    const BLOCK: usize = 1024;
     let count = built.div_ceil(step);
     let (sample, scratch) = room.split_at_mut_checked(count)?;
-    sample.par_chunks_mut(BLOCK).enumerate().for_each(|(blk, out)| {
+    sample.par_chunks_mut(PLAN_SAMPLE_BLOCK).enumerate().for_each(|(blk, out)| {
         let mut chunks = chunk_layout(desc).zip(kept).map(|((first, len), &k)| (first, (k as usize).min(len)));
         let (mut cur, mut before) = (chunks.next(), 0usize);
         for (j, d) in out.iter_mut().enumerate() {
-            let pos = (blk * BLOCK + j) * step;
+            let pos = (blk * PLAN_SAMPLE_BLOCK + j) * step;
             while let Some((_, k)) = cur {
                 if pos < before + k {
                     break;
@@ -396,7 +395,6 @@ pub fn plan_from_input(desc: &BuildDesc, p: &BuildParams, total: usize, room: &m
     let (sample, scratch) = room.split_at_mut_checked(total.div_ceil(step))?;
     // The index bytes of the sample this many ahead are prefetched, and the vertices of the
     // sample half as far ahead (their indices are in cache by then).
-    const AHEAD: usize = 16;
     // Kept triangles (not the dropped ones) in order from the front, and their centroid box.
     let (mut n, mut clo, mut chi) = (0usize, Vec3A::INFINITY, Vec3A::NEG_INFINITY);
     // The geometry of the current sample: its index, first global ID and reader.
@@ -412,10 +410,10 @@ pub fn plan_from_input(desc: &BuildDesc, p: &BuildParams, total: usize, room: &m
         let Some(ft) = fast.as_ref() else { break };
         let end = gbase + desc.geometries.get(gi).map_or(0, |g| g.primitive_count as usize);
         let ahead = |k: usize| Some(id + k * step).filter(|&x| x < end).map(|x| (x - gbase) as u32);
-        if let Some(q) = ahead(AHEAD) {
+        if let Some(q) = ahead(PLAN_INPUT_PREFETCH) {
             ft.prefetch_indices(q);
         }
-        if let Some(q) = ahead(AHEAD / 2) {
+        if let Some(q) = ahead(PLAN_INPUT_PREFETCH / 2) {
             ft.prefetch(q);
         }
         if let Some(Some((lo, hi, _))) = ft.bounds((id - gbase) as u32, allow_update) {

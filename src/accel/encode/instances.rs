@@ -5,6 +5,7 @@
 use crate::accel::geometry::PrimRef;
 use crate::accel::input::{self, read_instance};
 use crate::accel::layout::{self, InstanceRecord, PrimRecord, RECORD_SIZE};
+use crate::accel::params::INSTANCE_CHUNK;
 use crate::accel::{BuildDesc, DeviceView};
 use bytemuck::Zeroable;
 use rayon::prelude::*;
@@ -42,11 +43,10 @@ pub fn write_instances(desc: &BuildDesc, view: &dyn DeviceView, refs: &[PrimRef]
     if let Some(rest) = table.get_mut(distinct * 8..) {
         rest.fill(0);
     }
-    const CH: usize = 1024;
     instances
-        .par_chunks_mut(CH * layout::INSTANCE_RECORD_SIZE)
-        .zip(records.par_chunks_mut(CH * RECORD_SIZE))
-        .zip(refs.par_chunks(CH))
+        .par_chunks_mut(INSTANCE_CHUNK * layout::INSTANCE_RECORD_SIZE)
+        .zip(records.par_chunks_mut(INSTANCE_CHUNK * RECORD_SIZE))
+        .zip(refs.par_chunks(INSTANCE_CHUNK))
         .for_each(|((id, rd), rs)| {
             for (k, r) in rs.iter().enumerate() {
                 let mut rec = InstanceRecord::zeroed();

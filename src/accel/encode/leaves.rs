@@ -7,7 +7,7 @@
 use crate::accel::geometry::PrimRef;
 use crate::accel::input::{read_aabb, read_triangle};
 use crate::accel::layout::{PrimRecord, PRIM_SIZE, RECORD_SIZE, STAGE_SIZE};
-use crate::accel::params::{MAX_CLUSTER, PREFETCH_AHEAD};
+use crate::accel::params::{LEAF_DATA_CHUNK, MAX_CLUSTER, PREFETCH_AHEAD, PREFIX_CHUNK};
 use crate::accel::primitive::geometry_of;
 use crate::accel::{BuildDesc, GeometryData};
 use rayon::prelude::*;
@@ -23,11 +23,10 @@ fn prefetch_stage(stage: &[u8], id: u32) {
 /// Leaf-order primitive data and records from the staging area; restores `PrimRef::prim` to
 /// the index within the geometry.
 pub fn gather_leaf_data(refs: &mut [PrimRef], stage: &[u8], prims: &mut [u8], records: &mut [u8]) {
-    const CH: usize = 4096;
     prims
-        .par_chunks_mut(CH * PRIM_SIZE)
-        .zip(records.par_chunks_mut(CH * RECORD_SIZE))
-        .zip(refs.par_chunks_mut(CH))
+        .par_chunks_mut(LEAF_DATA_CHUNK * PRIM_SIZE)
+        .zip(records.par_chunks_mut(LEAF_DATA_CHUNK * RECORD_SIZE))
+        .zip(refs.par_chunks_mut(LEAF_DATA_CHUNK))
         .for_each(|((pd, rd), rs)| {
             for r in rs.iter().take(PREFETCH_AHEAD) {
                 prefetch_stage(stage, r.prim);
@@ -52,11 +51,10 @@ pub fn gather_leaf_data(refs: &mut [PrimRef], stage: &[u8], prims: &mut [u8], re
 
 /// Writes primitive data and records (BLAS) for stored slots in parallel; slot order = leaf order.
 pub fn write_leaf_data(desc: &BuildDesc, refs: &[PrimRef], prims: &mut [u8], records: &mut [u8]) {
-    const CH: usize = 4096;
     prims
-        .par_chunks_mut(CH * PRIM_SIZE)
-        .zip(records.par_chunks_mut(CH * RECORD_SIZE))
-        .zip(refs.par_chunks(CH))
+        .par_chunks_mut(LEAF_DATA_CHUNK * PRIM_SIZE)
+        .zip(records.par_chunks_mut(LEAF_DATA_CHUNK * RECORD_SIZE))
+        .zip(refs.par_chunks(LEAF_DATA_CHUNK))
         .for_each(|((pd, rd), rs)| {
             for (k, r) in rs.iter().enumerate() {
                 let mut data = [0f32; 9];
@@ -90,12 +88,11 @@ pub fn write_leaf_data(desc: &BuildDesc, refs: &[PrimRef], prims: &mut [u8], rec
 /// `p[i]` = primitives before reference i of `refs` (leaf order); `p[refs.len()]` = all of them.
 /// `p` must hold refs.len() + 1 entries.
 pub fn cluster_prefix(refs: &[PrimRef], p: &mut [u32]) {
-    const CH: usize = 1 << 14;
     let n = refs.len();
     let Some((last, p)) = p.get_mut(..=n).and_then(|p| p.split_last_mut()) else { return };
     // Local exclusive prefixes per chunk (at most 256 chunks), then each chunk's offset added.
     let mut totals = [0u32; 256];
-    let chunk = n.div_ceil(256).max(CH);
+    let chunk = n.div_ceil(256).max(PREFIX_CHUNK);
     p.par_chunks_mut(chunk).zip(refs.par_chunks(chunk)).zip(totals.par_iter_mut()).for_each(|((pc, rc), t)| {
         let mut s = 0u32;
         for (d, r) in pc.iter_mut().zip(rc) {
@@ -127,8 +124,7 @@ pub fn cluster_prefix(refs: &[PrimRef], p: &mut [u32]) {
 /// twice as long).
 pub fn gather_clusters(refs: &[PrimRef], p: &[u32], stage: &[u8], prims: &mut [u8], records: &mut [u8], firsts: &[u32]) {
     ids_in_leaf_order(refs, p, records);
-    const CH: usize = 4096;
-    prims.par_chunks_mut(CH * PRIM_SIZE).zip(records.par_chunks_mut(CH * RECORD_SIZE)).for_each(|(pd, rd)| {
+    prims.par_chunks_mut(LEAF_DATA_CHUNK * PRIM_SIZE).zip(records.par_chunks_mut(LEAF_DATA_CHUNK * RECORD_SIZE)).for_each(|(pd, rd)| {
         let id_at = |rd: &[u8], k: usize| rd.get(k * RECORD_SIZE..k * RECORD_SIZE + 4).map(|a| u32::from_le_bytes([a[0], a[1], a[2], a[3]]));
         for k in 0..PREFETCH_AHEAD {
             if let Some(id) = id_at(rd, k) {
@@ -154,8 +150,7 @@ pub fn gather_clusters(refs: &[PrimRef], p: &[u32], stage: &[u8], prims: &mut [u
 /// Writes each primitive's global ID into the first word of its record slot (leaf order).
 /// Nothing outside `records` is written (each split half gets exactly its own slots).
 fn ids_in_leaf_order(refs: &[PrimRef], p: &[u32], records: &mut [u8]) {
-    const CH: usize = 1 << 14;
-    if refs.len() > CH && p.len() > refs.len() {
+    if refs.len() > PREFIX_CHUNK && p.len() > refs.len() {
         let mid = refs.len() / 2;
         let cut = p[mid].saturating_sub(p[0]) as usize * RECORD_SIZE;
         let (ra, rb) = records.split_at_mut(cut.min(records.len()));
