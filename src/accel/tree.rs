@@ -21,7 +21,9 @@ pub struct BinNode {
     pub count: u32,
     /// 0 = leaf, else primitives in the left child.
     pub left_count: u32,
-    pub reserved: u32,
+    /// Wide nodes of this node's wide subtree, for internal nodes above the cut and cut roots
+    /// (emission hands out output ranges from it); 0 inside cut subtrees.
+    pub wide_nodes: u32,
 }
 const _: () = assert!(std::mem::size_of::<BinNode>() == layout::BINNODE_SIZE as usize);
 
@@ -82,23 +84,23 @@ pub fn wide_children(nodes: &[BinNode], i: usize) -> ([usize; 4], usize, u8) {
 
 /// The wide-subtree size of the node at `nodes[0]` above the cut roots (see `finish_split`):
 /// one wide node plus its internal children's sizes.
-pub fn wide_reserved(nodes: &[BinNode]) -> u32 {
+pub fn wide_size_above_cut(nodes: &[BinNode]) -> u32 {
     let (ch, cnt, _) = wide_children(nodes, 0);
     let mut w = 1u32;
     for &c in &ch[..cnt] {
         if let Some(nd) = nodes.get(c) {
             if nd.left_count != 0 {
-                w = w.saturating_add(nd.reserved);
+                w = w.saturating_add(nd.wide_nodes);
             }
         }
     }
     w
 }
 
-/// Wide nodes of a subtree in preorder; `W` of an internal binary node is in `reserved`.
+/// Wide nodes of a subtree in preorder; an internal binary node above the cut keeps it in `wide_nodes`.
 pub fn wide_size(nodes: &[BinNode]) -> u32 {
     match nodes.first() {
-        Some(n) if n.left_count != 0 => n.reserved,
+        Some(n) if n.left_count != 0 => n.wide_nodes,
         Some(_) => 1,
         None => 0,
     }

@@ -634,7 +634,7 @@ pub fn tasks<'a>(plan: &TopPlan, s: &PlanSums, i: usize, at: Subtree<'a>, out: &
     }
     let Subtree { refs, nodes, pre_area, start, slot, depth, .. } = at;
     if let Some(node) = nodes.get_mut(0) {
-        *node = BinNode { lo: bx.lo, start, hi: bx.hi, count: n as u32, left_count: mid as u32, reserved: 0 };
+        *node = BinNode { lo: bx.lo, start, hi: bx.hi, count: n as u32, left_count: mid as u32, wide_nodes: 0 };
     }
     let (lrefs, rrefs) = refs.split_at_mut(mid.min(refs.len()));
     let rest = nodes.get_mut(1..).unwrap_or(&mut []);

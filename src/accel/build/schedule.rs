@@ -7,7 +7,7 @@
 use super::bins::Bins;
 use super::subtree::{build_rec, BuildContext, Subtree};
 use crate::accel::geometry::{Aabb, PrimRef};
-use crate::accel::tree::{bin_children, wide_reserved, BinNode};
+use crate::accel::tree::{bin_children, wide_size_above_cut, BinNode};
 use rayon::prelude::*;
 use std::sync::Mutex;
 
@@ -111,8 +111,8 @@ pub fn top_results(nodes: &mut [BinNode], i: usize, done: &[Built]) -> (f64, u32
     let Some((l, r)) = bin_children(nodes, i) else { return (0.0, 0) };
     let (a, b) = (top_results(nodes, l, done), top_results(nodes, r, done));
     let Some(sub) = nodes.get_mut(i..).filter(|s| !s.is_empty()) else { return (0.0, 0) };
-    let w = wide_reserved(sub);
-    sub[0].reserved = w;
+    let w = wide_size_above_cut(sub);
+    sub[0].wide_nodes = w;
     let area = Aabb { lo: sub[0].lo, hi: sub[0].hi }.half_area() as f64;
     (area + a.0 + b.0, 1 + a.1.max(b.1))
 }

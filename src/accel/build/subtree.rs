@@ -11,7 +11,7 @@ use super::small_split::small_split;
 use crate::accel::encode::nodes::{emit_seq, wide_count};
 use crate::accel::geometry::{box_of, centroid, Aabb, PrimRef};
 use crate::accel::params::{BuildParams, BIN_CHUNK, EMIT_CUT, MAX_BINS, MAX_SAH_DEPTH, MAX_SMALL, PAR_PARTITION_FROM, PRE_BYTES_PER_PRIM, SAMPLE_CHUNK, SAMPLE_FROM};
-use crate::accel::tree::{is_cut, node_refs, wide_reserved, BinNode};
+use crate::accel::tree::{is_cut, node_refs, wide_size_above_cut, BinNode};
 
 /// What every node of one build shares.
 pub struct BuildContext {
@@ -108,7 +108,7 @@ pub fn build_rec<'a>(ctx: &BuildContext, mut t: Subtree<'a>, bins: &mut Bins, si
         Decision::Leaf(prims) => {
             let area = t.bounds.half_area();
             if let Some(slot) = t.nodes.get_mut(0) {
-                *slot = BinNode { lo: t.bounds.lo, start: t.start, hi: t.bounds.hi, count: t.refs.len() as u32, left_count: 0, reserved: 0 };
+                *slot = BinNode { lo: t.bounds.lo, start: t.start, hi: t.bounds.hi, count: t.refs.len() as u32, left_count: 0, wide_nodes: 0 };
             }
             (area as f64 * prims as f64, 1u32)
         }
@@ -297,7 +297,7 @@ fn finish_split<'a>(ctx: &BuildContext, t: Subtree<'a>, split: Split, bins: &mut
     let Subtree { refs, nodes, start, bounds, depth, pre_area, parent_count, slot, .. } = t;
     let n = refs.len();
     if let Some(node) = nodes.get_mut(0) {
-        *node = BinNode { lo: bounds.lo, start, hi: bounds.hi, count: n as u32, left_count: split.mid as u32, reserved: 0 };
+        *node = BinNode { lo: bounds.lo, start, hi: bounds.hi, count: n as u32, left_count: split.mid as u32, wide_nodes: 0 };
     }
     let kids = Children { split, start, depth: depth + 1, parent_count: n as u32 };
     if let Some(sink) = sink {
@@ -316,13 +316,13 @@ fn finish_split<'a>(ctx: &BuildContext, t: Subtree<'a>, split: Split, bins: &mut
     } else {
         (build_rec(ctx, l, bins, None), build_rec(ctx, r, bins, None))
     };
-    // Wide-subtree size if this node becomes a BVH4 node (kept in `reserved`), needed above
+    // Wide-subtree size if this node becomes a BVH4 node (kept in `wide_nodes`), needed above
     // the cut roots only: emission hands disjoint output ranges to threads from it. A cut
     // root's wide subtree is encoded now, while its binary nodes are in cache, sequentially
     // into its own range of the pre-emission area (the final pass copies the block into
     // place); its size is what that wrote, or a count when it did not fit.
     let w = if me > EMIT_CUT {
-        wide_reserved(nodes)
+        wide_size_above_cut(nodes)
     } else if is_cut(parent_count, me) {
         let (mut cursor, mut leaves) = (0u32, 0u32);
         match emit_seq(nodes, 0, pre_area, 0, &mut cursor, &mut leaves, None) {
@@ -333,7 +333,7 @@ fn finish_split<'a>(ctx: &BuildContext, t: Subtree<'a>, split: Split, bins: &mut
         0
     };
     if let Some(slot) = nodes.get_mut(0) {
-        slot.reserved = w;
+        slot.wide_nodes = w;
     }
     (area + a.0 + b.0, 1 + a.1.max(b.1))
 }

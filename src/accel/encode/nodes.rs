@@ -16,7 +16,7 @@ use glam::Vec3A;
 pub fn pre_block(nd: &BinNode, pre_len: usize) -> Option<std::ops::Range<usize>> {
     let lo = PRE_BYTES_PER_PRIM.checked_mul(nd.start as usize)?;
     let hi = PRE_BYTES_PER_PRIM.checked_mul(nd.start as usize + nd.count as usize)?.min(pre_len);
-    let len = nd.reserved as usize * NODE_SIZE;
+    let len = nd.wide_nodes as usize * NODE_SIZE;
     (nd.left_count != 0 && lo.checked_add(len)? <= hi).then_some(lo..lo + len)
 }
 
@@ -60,26 +60,36 @@ pub fn leaf_span(start: u32, count: u32, map: Option<&[u32]>) -> (u32, u32) {
     }
 }
 
+/// One pending subtree emission.
+struct EmitTask<'a> {
+    /// The binary subtree (the slice starts at its root).
+    nodes: &'a [BinNode],
+    /// Its root's wide node index.
+    index: u32,
+    /// Exactly its output range.
+    out: &'a mut [u8],
+    pre_emitted: Option<&'a [u8]>,
+    /// A cut root, encoded sequentially (`emit_seq`: its inner nodes carry no sizes) rather
+    /// than by `emit_wide`.
+    cut_root: bool,
+}
 
-/// One pending subtree emission: binary subtree (slice rooted at its node), its wide index,
-/// exactly its output range, the pre-emission area, and whether it is a cut root to encode
-/// sequentially (`emit_seq`: its inner nodes carry no sizes) rather than by `emit_wide`.
-type EmitTask<'a> = Option<(&'a [BinNode], u32, &'a mut [u8], Option<&'a [u8]>, bool)>;
-
-pub fn run_emit(tasks: &mut [EmitTask<'_>], map: Option<&[u32]>) -> u32 {
+/// Emits `tasks` (halves in parallel while they hold at least PAR_EMIT_CUTOFF wide nodes);
+/// returns their leaf children.
+fn run_emit(tasks: &mut [Option<EmitTask<'_>>], map: Option<&[u32]>) -> u32 {
     match tasks.len() {
         0 => 0,
         1 => match tasks[0].take() {
-            Some((n, me, out, _, true)) => {
+            Some(EmitTask { nodes, index, out, cut_root: true, .. }) => {
                 let (mut cursor, mut l) = (0u32, 0u32);
-                let _ = emit_seq(n, 0, out, me, &mut cursor, &mut l, map);
+                let _ = emit_seq(nodes, 0, out, index, &mut cursor, &mut l, map);
                 l
             }
-            Some((n, me, out, pre_emitted, false)) => emit_wide(n, me, out, pre_emitted, map),
+            Some(EmitTask { nodes, index, out, pre_emitted, cut_root: false }) => emit_wide(nodes, index, out, pre_emitted, map),
             None => 0,
         },
         len => {
-            let size: u32 = tasks.iter().map(|t| t.as_ref().map_or(0, |t| wide_size(t.0))).sum();
+            let size: u32 = tasks.iter().map(|t| t.as_ref().map_or(0, |t| wide_size(t.nodes))).sum();
             let (a, b) = tasks.split_at_mut(len / 2);
             if size >= PAR_EMIT_CUTOFF {
                 let (x, y) = rayon::join(|| run_emit(a, map), || run_emit(b, map));
@@ -166,9 +176,9 @@ pub fn emit_wide(nodes: &[BinNode], me: u32, out: &mut [u8], pre_emitted: Option
     let mut np = 0;
     let Some((wn, mut leaves)) = wide_node(nodes, 0, map, |slot, nd, is_cut_root| {
         let idx = next;
-        pending[np] = (slot, idx, nd.reserved, is_cut_root);
+        pending[np] = (slot, idx, nd.wide_nodes, is_cut_root);
         np += 1;
-        next = next.saturating_add(nd.reserved);
+        next = next.saturating_add(nd.wide_nodes);
         Some(idx)
     }) else {
         return 0;
@@ -177,7 +187,7 @@ pub fn emit_wide(nodes: &[BinNode], me: u32, out: &mut [u8], pre_emitted: Option
     if head.len() == NODE_SIZE {
         head.copy_from_slice(bytemuck::bytes_of(&wn));
     }
-    let mut tasks: [EmitTask<'_>; 4] = [None, None, None, None];
+    let mut tasks: [Option<EmitTask<'_>>; 4] = [None, None, None, None];
     let mut nt = 0;
     for &(rel, idx, w, is_cut_root) in &pending[..np] {
         let len = (w as usize * NODE_SIZE).min(rest.len());
@@ -197,11 +207,11 @@ pub fn emit_wide(nodes: &[BinNode], me: u32, out: &mut [u8], pre_emitted: Option
             // Without a usable block (builds that stage nothing, such as every TLAS, have no
             // pre-emission area) it is a task like the others, so that sibling cut roots are
             // encoded in parallel.
-            tasks[nt] = nodes.get(rel..).map(|n| (n, idx, mine, pre_emitted, true));
+            tasks[nt] = nodes.get(rel..).map(|n| EmitTask { nodes: n, index: idx, out: mine, pre_emitted, cut_root: true });
             nt += 1;
             continue;
         }
-        tasks[nt] = nodes.get(rel..).map(|n| (n, idx, mine, pre_emitted, false));
+        tasks[nt] = nodes.get(rel..).map(|n| EmitTask { nodes: n, index: idx, out: mine, pre_emitted, cut_root: false });
         nt += 1;
     }
     leaves + run_emit(&mut tasks[..nt], map)
