@@ -17,7 +17,7 @@ pub enum CopyError {
 const SER_HEADER: u64 = 56;
 
 /// Copies of at least twice this many bytes are split into chunks of it across the current
-/// rayon pool: one core of the 16-core machine copies a dragon-sized structure (50 MB) at
+/// rayon pool: one core copies a dragon-sized structure (50 MB) at
 /// about 10 GB/s, sixteen at about 100.
 pub const PAR_COPY_CHUNK: usize = 1 << 20;
 

@@ -203,11 +203,14 @@ pub fn max_nodes(n: u64) -> u64 {
 pub const SCRATCH_SLACK: u64 = 64;
 pub const PRIMREF_SIZE: u64 = 32;
 pub const BINNODE_SIZE: u64 = 40;
+/// Bytes of a build's staging record: the primitive data the format stores (PRIM_SIZE) and
+/// the primitive's index in its geometry, at the global ID in the unused node area of dst.
+pub const STAGE_SIZE: usize = 40;
 
 pub fn build_scratch_size(n: u64) -> u64 {
     // Primitive references, then up to 2n binary nodes (slot scheme: a subtree over k
     // primitives owns 2k-1 consecutive slots), then n + 1 words for the primitives per
-    // reference of paired builds, each region aligned.
+    // reference of clustered builds, each region aligned.
     SCRATCH_SLACK
         .saturating_add(n.saturating_mul(PRIMREF_SIZE))
         .saturating_add(SCRATCH_SLACK)
@@ -360,3 +363,20 @@ pub fn header(bytes: &[u8]) -> Option<Header> {
         sah_cost: r.sah_cost,
     })
 }
+
+/// Splits an aligned array of `count` T off the front of scratch bytes (no unsafe: skip to an
+/// aligned offset, then let bytemuck check alignment and size).
+pub fn carve<T: Pod>(bytes: &mut [u8], count: usize) -> Option<(&mut [T], &mut [u8])> {
+    let align = std::mem::align_of::<T>().max(16);
+    let addr = bytes.as_ptr() as usize;
+    let skip = (align - addr % align) % align;
+    let size = count.checked_mul(std::mem::size_of::<T>())?;
+    let end = skip.checked_add(size)?;
+    if end > bytes.len() {
+        return None;
+    }
+    let (head, rest) = bytes.split_at_mut(end);
+    let arr: &mut [T] = bytemuck::try_cast_slice_mut(&mut head[skip..]).ok()?;
+    Some((arr, rest))
+}
+

@@ -1,5 +1,5 @@
 //! Metrics (SAH, counts, sizes) and structural validation of a built structure.
-use super::builder::{self, Aabb};
+use super::geometry::{sanitize, triangle_bounds, Aabb};
 use super::layout::{self, Parsed, CHILD_INTERNAL};
 use glam::Vec3;
 
@@ -79,9 +79,9 @@ fn prim_box(p: &Parsed, s: u32) -> Option<Aabb> {
     let d = p.prim(s)?;
     let g = p.record(s).and_then(|r| p.geometry(r.geometry))?;
     let (lo, hi) = if g.kind == layout::KIND_AABBS {
-        builder::sanitize([d[0], d[1], d[2]], [d[3], d[4], d[5]])
+        sanitize([d[0], d[1], d[2]], [d[3], d[4], d[5]])
     } else {
-        builder::triangle_bounds(&[Vec3::new(d[0], d[1], d[2]), Vec3::new(d[3], d[4], d[5]), Vec3::new(d[6], d[7], d[8])])
+        triangle_bounds(&[Vec3::new(d[0], d[1], d[2]), Vec3::new(d[3], d[4], d[5]), Vec3::new(d[6], d[7], d[8])])
     };
     Some(Aabb { lo, hi })
 }
@@ -136,32 +136,9 @@ pub fn validate(structure: &[u8]) -> Result<(), String> {
                     stack.push((node.child[c], clip(&path, &cb)));
                 }
                 k => {
+                    let leaf_box = clip(&path, &cb);
                     for s in node.child[c]..node.child[c].saturating_add(k as u32) {
-                        let e = seen.get_mut(s as usize).ok_or(format!("node {i}: leaf slot {s} out of range"))?;
-                        if *e {
-                            return Err(format!("primitive slot {s} in two leaves"));
-                        }
-                        *e = true;
-                        if let Some(pb) = prim_box(&p, s) {
-                            let lb = clip(&path, &cb);
-                            if !contains(&lb, &pb) {
-                                return Err(format!("node {i}: primitive {s} box {pb:?} outside its leaf/ancestor boxes {lb:?}"));
-                            }
-                            if !contains(&root, &pb) {
-                                return Err(format!("primitive {s} outside the header bounds"));
-                            }
-                        }
-                        let rec = p.record(s).ok_or("record")?;
-                        let g = p.geometry(rec.geometry).ok_or(format!("record {s}: geometry {} out of range", rec.geometry))?;
-                        if rec.primitive >= g.primitive_count {
-                            return Err(format!("record {s}: primitive {} out of range", rec.primitive));
-                        }
-                        if p.is_tlas() {
-                            let inst = p.instance(s).ok_or("instance")?;
-                            if inst.blas_index >= r.blas_reference_count {
-                                return Err(format!("instance {s}: BLAS index {} out of range", inst.blas_index));
-                            }
-                        }
+                        check_leaf_slot(&p, s, &mut seen, (&leaf_box, &root), i)?;
                     }
                 }
             }
@@ -172,6 +149,37 @@ pub fn validate(structure: &[u8]) -> Result<(), String> {
     }
     if let Some(s) = node_seen.iter().position(|x| !x) {
         return Err(format!("node {s} unreachable"));
+    }
+    Ok(())
+}
+
+/// Checks primitive slot `s` of a leaf of node `i`: in no other leaf, its box inside the leaf's
+/// path box and the header bounds (`boxes`), its record and (TLAS) instance in range.
+fn check_leaf_slot(p: &Parsed, s: u32, seen: &mut [bool], (leaf_box, root): (&Aabb, &Aabb), i: u32) -> Result<(), String> {
+    let r = p.raw;
+    let e = seen.get_mut(s as usize).ok_or(format!("node {i}: leaf slot {s} out of range"))?;
+    if *e {
+        return Err(format!("primitive slot {s} in two leaves"));
+    }
+    *e = true;
+    if let Some(pb) = prim_box(p, s) {
+        if !contains(leaf_box, &pb) {
+            return Err(format!("node {i}: primitive {s} box {pb:?} outside its leaf/ancestor boxes {leaf_box:?}"));
+        }
+        if !contains(root, &pb) {
+            return Err(format!("primitive {s} outside the header bounds"));
+        }
+    }
+    let rec = p.record(s).ok_or("record")?;
+    let g = p.geometry(rec.geometry).ok_or(format!("record {s}: geometry {} out of range", rec.geometry))?;
+    if rec.primitive >= g.primitive_count {
+        return Err(format!("record {s}: primitive {} out of range", rec.primitive));
+    }
+    if p.is_tlas() {
+        let inst = p.instance(s).ok_or("instance")?;
+        if inst.blas_index >= r.blas_reference_count {
+            return Err(format!("instance {s}: BLAS index {} out of range", inst.blas_index));
+        }
     }
     Ok(())
 }

@@ -4,18 +4,31 @@
 //! collapsed BVH4 with conservatively quantised child boxes → the bytes of the structure; refit;
 //! copy/compact/serialize; traversal per the Vulkan ray traversal rules; metrics and validation.
 //! Must not touch: device memory resolution (the driver passes slices and a `DeviceView`),
-//! diagnostics, anything Vulkan-handle shaped. The public contract is `docs/ACCEL_API.md`.
+//! diagnostics, anything Vulkan-handle shaped, any other module of the driver (checked by
+//! tests/layering.rs). The public contract is `docs/ACCEL_API.md`.
+//!
+//! Modules: `build` (the pipeline and its stages), `encode` (the bytes of nodes, leaves and
+//! instances), `params` (every tuning number; evidence in docs/TUNING.md), `geometry` (boxes,
+//! references, bounds), `primitive` (reading primitives from geometry), `tree` (the binary
+//! tree in scratch and its collapse rule), `layout` (the stored format), `input` (decoding
+//! vertices, indices, instances), `refit`, `copy`, `traverse`, `metrics`.
 #![forbid(unsafe_code)]
 
-mod builder;
+mod build;
 mod copy;
+mod encode;
+mod geometry;
 mod input;
 mod layout;
 mod metrics;
-mod pairs;
+mod params;
+mod primitive;
 mod refit;
 mod traverse;
+mod tree;
 
+#[cfg(test)]
+mod testing;
 #[cfg(test)]
 mod tests;
 
@@ -332,6 +345,26 @@ pub struct BuildReport {
     pub leaf_count: u32,
     /// Primitives (or instances) stored, i.e. active ones.
     pub primitive_count: u32,
+    /// Cluster references the tree was built over, when the build clustered neighbouring
+    /// primitives (None: one reference per primitive, and for updates).
+    pub clusters: Option<u32>,
+    /// Where the top of the tree was planned (large BLAS builds).
+    pub top_planned: TopPlanned,
+    /// Buckets of a planned top too large for one thread, which split further in parallel.
+    pub forked_buckets: u32,
+}
+
+/// Where a build planned the top levels of its tree from one sample (a diagnostic: the bytes
+/// of the structure never depend on it beyond the tree the plan chose).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum TopPlanned {
+    /// No plan: the tree was built from its root (small builds, TLAS, updates).
+    #[default]
+    No,
+    /// From a sample of the input triangles, beside ingest.
+    FromInput,
+    /// From a sample of the references after ingest.
+    FromReferences,
 }
 
 /// Where a build's time went (wall clock of the calling thread, milliseconds): reading the
@@ -361,7 +394,7 @@ pub fn build(desc: &BuildDesc, view: &dyn DeviceView, dst: &mut [u8], scratch: &
 
 /// `build`, also saying where the time went (`BuildPhases`).
 pub fn build_timed(desc: &BuildDesc, view: &dyn DeviceView, dst: &mut [u8], scratch: &mut [u8]) -> Result<(BuildReport, BuildPhases), BuildError> {
-    let result = builder::build(desc, view, dst, scratch);
+    let result = build::build(desc, view, dst, scratch);
     if result.is_err() {
         mark_invalid(dst);
     }

@@ -1,7 +1,12 @@
 //! Update (refit): same topology, new vertex/AABB positions or instance definitions. Checks the
 //! update rules visible here, rewrites primitive data, then recomputes node boxes bottom-up,
 //! subtree by subtree in parallel (preorder layout: each subtree is a contiguous node range).
-use super::builder::{self, carve, encode_node_v, geometry_record, make_ref, triangle_bounds, Aabb};
+use super::encode::instances::sort_distinct;
+use super::encode::quantize::quantize_node;
+use super::geometry::{instance_bounds_of, sanitize, triangle_box, triangle_bounds, Aabb, BlasBoundsMemo};
+use super::layout::carve;
+use super::params::{PAR_REFIT_NODES, REFIT_BATCH, REFIT_CHUNK, REFIT_INSTANCE_CHUNK};
+use super::primitive::{geometry_record, make_ref, total_primitives, FastTris};
 use super::input::read_instance;
 use super::layout::{self, InstanceRecord, Parsed, CHILD_INTERNAL, NODE_SIZE, PRIM_SIZE};
 use super::{AsType, BuildDesc, BuildError, BuildFlags, BuildReport, DeviceView, GeometryData};
@@ -70,7 +75,7 @@ fn check(desc: &BuildDesc, p: &Parsed, view: &dyn DeviceView) -> Result<(), Buil
 
 fn prim_bounds(d: &[f32; 9], kind: u32) -> ([f32; 3], [f32; 3]) {
     if kind == layout::KIND_AABBS {
-        builder::sanitize([d[0], d[1], d[2]], [d[3], d[4], d[5]])
+        sanitize([d[0], d[1], d[2]], [d[3], d[4], d[5]])
     } else {
         triangle_bounds(&[Vec3::new(d[0], d[1], d[2]), Vec3::new(d[3], d[4], d[5]), Vec3::new(d[6], d[7], d[8])])
     }
@@ -89,7 +94,7 @@ pub fn update(desc: &BuildDesc, view: &dyn DeviceView, src: Option<&[u8]>, dst: 
         check(desc, &p, view)?;
         p.raw
     };
-    let total = builder::total_primitives(desc)?;
+    let total = total_primitives(desc)?;
     let is_tlas = raw.ty == AsType::TopLevel as u32;
     let need = layout::update_scratch_size(if is_tlas { AsType::TopLevel } else { AsType::BottomLevel }, total);
     if (scratch.len() as u64) < need {
@@ -108,55 +113,7 @@ pub fn update(desc: &BuildDesc, view: &dyn DeviceView, src: Option<&[u8]>, dst: 
         refit_instances(desc, view, &raw, dst, keys, boxes)?;
         inst_boxes = boxes;
     } else {
-        let (head, tail) = dst.split_at_mut(raw.records_offset as usize);
-        let prims = &mut head[raw.prims_offset as usize..raw.prims_offset as usize + n * PRIM_SIZE];
-        let records = &tail[..n * layout::RECORD_SIZE];
-        // Plain f32 triangles without a transform are read directly (`FastTris`); anything
-        // else, and every error, through `read_triangle`.
-        let fast: Vec<Option<builder::FastTris>> = desc.geometries.iter().map(builder::FastTris::of).collect();
-        prims
-            .par_chunks_mut(1024 * PRIM_SIZE)
-            .zip(records.par_chunks(1024 * layout::RECORD_SIZE))
-            .map(|(pd, rd)| {
-                // In leaf order the reads jump around the input, and each triangle's index load
-                // and then its vertex loads miss. A batch loads every record's indices first,
-                // then the vertices, so a batch's misses overlap instead of each vertex load
-                // waiting for its own index.
-                for (rbatch, dbatch) in rd.chunks(REFIT_BATCH * layout::RECORD_SIZE).zip(pd.chunks_mut(REFIT_BATCH * PRIM_SIZE)) {
-                    let mut idx: [Option<[u32; 3]>; REFIT_BATCH] = [None; REFIT_BATCH];
-                    for (rb, ix) in rbatch.chunks_exact(layout::RECORD_SIZE).zip(idx.iter_mut()) {
-                        let rec: layout::PrimRecord = bytemuck::pod_read_unaligned(rb);
-                        *ix = fast.get(rec.geometry as usize).and_then(|f| f.as_ref()).and_then(|f| f.indices(rec.primitive));
-                    }
-                    for ((rb, ix), d) in rbatch.chunks_exact(layout::RECORD_SIZE).zip(idx).zip(dbatch.chunks_exact_mut(PRIM_SIZE)) {
-                        let rec: layout::PrimRecord = bytemuck::pod_read_unaligned(rb);
-                        let g = desc.geometries.get(rec.geometry as usize).ok_or(BuildError::InvalidSource("record"))?;
-                        let mut data = [0f32; 9];
-                        let fast_tri = ix.and_then(|ix| fast.get(rec.geometry as usize).and_then(|f| f.as_ref()).and_then(|f| f.positions(ix)));
-                        if let Some([a, b, c]) = fast_tri {
-                            if a.x.is_nan() || b.x.is_nan() || c.x.is_nan() {
-                                return Err(mismatch("an active primitive became inactive"));
-                            }
-                            data = [a.x, a.y, a.z, b.x, b.y, b.z, c.x, c.y, c.z];
-                        } else {
-                            match g.data {
-                                GeometryData::Triangles { .. } => {
-                                    let v = super::input::read_triangle(rec.geometry, g, rec.primitive)?.ok_or(mismatch("an active primitive became inactive"))?;
-                                    data = [v[0].x, v[0].y, v[0].z, v[1].x, v[1].y, v[1].z, v[2].x, v[2].y, v[2].z];
-                                }
-                                GeometryData::Aabbs { .. } => {
-                                    let b = super::input::read_aabb(rec.geometry, g, rec.primitive)?.ok_or(mismatch("an active primitive became inactive"))?;
-                                    data[..6].copy_from_slice(&b);
-                                }
-                                GeometryData::Instances { .. } => return Err(BuildError::WrongGeometryType { geometry: rec.geometry }),
-                            }
-                        }
-                        d.copy_from_slice(bytemuck::bytes_of(&data));
-                    }
-                }
-                Ok(())
-            })
-            .reduce(|| Ok(()), |a, b| a.and(b))?;
+        refit_primitives(desc, &raw, dst)?;
     }
 
     let raw = layout::parse(dst).map(|p| p.raw).ok_or(BuildError::InvalidSource("structure"))?;
@@ -185,14 +142,64 @@ pub fn update(desc: &BuildDesc, view: &dyn DeviceView, src: Option<&[u8]>, dst: 
         h.bounds = [root.lo[0], root.lo[1], root.lo[2], root.hi[0], root.hi[1], root.hi[2]];
     }
     layout::write_header(dst, &h);
-    Ok(BuildReport { used_size: raw.used_size, node_count: raw.node_count, leaf_count: raw.leaf_count, primitive_count: raw.primitive_count })
+    Ok(BuildReport { used_size: raw.used_size, node_count: raw.node_count, leaf_count: raw.leaf_count, primitive_count: raw.primitive_count, clusters: None, top_planned: super::TopPlanned::No, forked_buckets: 0 })
 }
 
-/// Primitives whose input reads the refit's primitive pass issues together (see there).
-const REFIT_BATCH: usize = 32;
+/// BLAS: rewrites every stored primitive's data from the new input, in leaf order; every
+/// stored primitive must still be storable.
+fn refit_primitives(desc: &BuildDesc, raw: &layout::RawHeader, dst: &mut [u8]) -> Result<(), BuildError> {
+    let n = raw.primitive_count as usize;
+    let (head, tail) = dst.split_at_mut(raw.records_offset as usize);
+    let prims = &mut head[raw.prims_offset as usize..raw.prims_offset as usize + n * PRIM_SIZE];
+    let records = &tail[..n * layout::RECORD_SIZE];
+    // Plain f32 triangles without a transform are read directly (`FastTris`); anything
+    // else, and every error, through `read_triangle`.
+    let fast: Vec<Option<FastTris>> = desc.geometries.iter().map(FastTris::of).collect();
+    prims
+        .par_chunks_mut(REFIT_CHUNK * PRIM_SIZE)
+        .zip(records.par_chunks(REFIT_CHUNK * layout::RECORD_SIZE))
+        .map(|(pd, rd)| {
+            // In leaf order the reads jump around the input, and each triangle's index load
+            // and then its vertex loads miss. A batch loads every record's indices first,
+            // then the vertices, so a batch's misses overlap instead of each vertex load
+            // waiting for its own index.
+            for (rbatch, dbatch) in rd.chunks(REFIT_BATCH * layout::RECORD_SIZE).zip(pd.chunks_mut(REFIT_BATCH * PRIM_SIZE)) {
+                let mut idx: [Option<[u32; 3]>; REFIT_BATCH] = [None; REFIT_BATCH];
+                for (rb, ix) in rbatch.chunks_exact(layout::RECORD_SIZE).zip(idx.iter_mut()) {
+                    let rec: layout::PrimRecord = bytemuck::pod_read_unaligned(rb);
+                    *ix = fast.get(rec.geometry as usize).and_then(|f| f.as_ref()).and_then(|f| f.indices(rec.primitive));
+                }
+                for ((rb, ix), d) in rbatch.chunks_exact(layout::RECORD_SIZE).zip(idx).zip(dbatch.chunks_exact_mut(PRIM_SIZE)) {
+                    let rec: layout::PrimRecord = bytemuck::pod_read_unaligned(rb);
+                    let g = desc.geometries.get(rec.geometry as usize).ok_or(BuildError::InvalidSource("record"))?;
+                    let mut data = [0f32; 9];
+                    let fast_tri = ix.and_then(|ix| fast.get(rec.geometry as usize).and_then(|f| f.as_ref()).and_then(|f| f.positions(ix)));
+                    if let Some([a, b, c]) = fast_tri {
+                        if a.x.is_nan() || b.x.is_nan() || c.x.is_nan() {
+                            return Err(mismatch("an active primitive became inactive"));
+                        }
+                        data = [a.x, a.y, a.z, b.x, b.y, b.z, c.x, c.y, c.z];
+                    } else {
+                        match g.data {
+                            GeometryData::Triangles { .. } => {
+                                let v = super::input::read_triangle(rec.geometry, g, rec.primitive)?.ok_or(mismatch("an active primitive became inactive"))?;
+                                data = [v[0].x, v[0].y, v[0].z, v[1].x, v[1].y, v[1].z, v[2].x, v[2].y, v[2].z];
+                            }
+                            GeometryData::Aabbs { .. } => {
+                                let b = super::input::read_aabb(rec.geometry, g, rec.primitive)?.ok_or(mismatch("an active primitive became inactive"))?;
+                                data[..6].copy_from_slice(&b);
+                            }
+                            GeometryData::Instances { .. } => return Err(BuildError::WrongGeometryType { geometry: rec.geometry }),
+                        }
+                    }
+                    d.copy_from_slice(bytemuck::bytes_of(&data));
+                }
+            }
+            Ok(())
+        })
+        .reduce(|| Ok(()), |a, b| a.and(b))
+}
 
-/// Subtrees of at least this many nodes refit their children in parallel.
-const PAR_REFIT_NODES: usize = 256;
 
 /// What the leaves of a refit read: the BLAS leaf kind when it is the same for all geometries,
 /// and for a TLAS the instances' new boxes, in slot order (computed with the instance records).
@@ -274,7 +281,7 @@ fn refit_subtree(p: &Parsed, leaves: &Leaves, nodes: &mut [u8], base: usize) -> 
     for c in cnt..4 {
         (clo[c], chi[c]) = (Vec3A::from(nb.lo), Vec3A::from(nb.lo));
     }
-    let wn = encode_node_v(&nb, &clo, &chi, cnt, &node.child[..cnt], &node.kind[..cnt]);
+    let wn = quantize_node(&nb, &clo, &chi, cnt, &node.child[..cnt], &node.kind[..cnt]);
     me.copy_from_slice(bytemuck::bytes_of(&wn));
     Ok(nb)
 }
@@ -305,7 +312,7 @@ fn leaf_bounds_of(p: &Parsed, leaves: &Leaves, first: u32, count: u32) -> Result
         for t in bytes.chunks_exact(PRIM_SIZE) {
             let Some((t, _)) = t.split_first_chunk::<36>() else { continue };
             let f = |i: usize| f32::from_le_bytes([t[4 * i], t[4 * i + 1], t[4 * i + 2], t[4 * i + 3]]);
-            let (l, h) = builder::triangle_box(Vec3A::new(f(0), f(1), f(2)), Vec3A::new(f(3), f(4), f(5)), Vec3A::new(f(6), f(7), f(8)));
+            let (l, h) = triangle_box(Vec3A::new(f(0), f(1), f(2)), Vec3A::new(f(3), f(4), f(5)), Vec3A::new(f(6), f(7), f(8)));
             lo = lo.min(l);
             hi = hi.max(h);
         }
@@ -376,7 +383,7 @@ fn refit_instances(desc: &BuildDesc, view: &dyn DeviceView, raw: &layout::RawHea
             .map_err(|e| e.1)?;
     }
     let keys = &mut keys[..n];
-    let distinct = super::builder::sort_distinct(keys);
+    let distinct = sort_distinct(keys);
     let keys = &keys[..distinct];
     let table = raw.blas_table_offset as usize;
     for i in 0..raw.blas_table_capacity as usize {
@@ -387,18 +394,17 @@ fn refit_instances(desc: &BuildDesc, view: &dyn DeviceView, raw: &layout::RawHea
     }
     let (head, tail) = dst.split_at_mut(raw.instances_offset as usize);
     let head: &[u8] = head;
-    const CH: usize = 256;
     tail.get_mut(..n * layout::INSTANCE_RECORD_SIZE)
         .ok_or(BuildError::InvalidSource("instances"))?
-        .par_chunks_mut(CH * layout::INSTANCE_RECORD_SIZE)
-        .zip(boxes.get_mut(..n).ok_or(BuildError::InvalidSource("instances"))?.par_chunks_mut(CH))
+        .par_chunks_mut(REFIT_INSTANCE_CHUNK * layout::INSTANCE_RECORD_SIZE)
+        .zip(boxes.get_mut(..n).ok_or(BuildError::InvalidSource("instances"))?.par_chunks_mut(REFIT_INSTANCE_CHUNK))
         .enumerate()
         .map(|(ci, (out, bx))| {
-            let mut memo = builder::BlasBoundsMemo::new();
+            let mut memo = BlasBoundsMemo::new();
             for (k, (o, bo)) in out.chunks_exact_mut(layout::INSTANCE_RECORD_SIZE).zip(bx.iter_mut()).enumerate() {
-                let i = ci * CH + k;
+                let i = ci * REFIT_INSTANCE_CHUNK + k;
                 let inst = read(head, i).map_err(|e| (i, e))?;
-                let (lo, hi) = builder::instance_bounds_of(&inst.transform, memo.get(inst.reference, view));
+                let (lo, hi) = instance_bounds_of(&inst.transform, memo.get(inst.reference, view));
                 *bo = [lo[0], lo[1], lo[2], hi[0], hi[1], hi[2]];
                 let r = read_rec(head, i).ok_or((i, BuildError::InvalidSource("record")))?;
                 let mut rec = InstanceRecord::zeroed();

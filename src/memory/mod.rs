@@ -34,22 +34,6 @@ use std::sync::{Arc, Mutex, OnceLock, RwLock, Weak};
 
 use ash::vk;
 
-/// Hints the processor to bring the cache line holding `bytes[at]` closer (a read is coming).
-/// Does nothing when `at` is out of range or off x86-64. For gathers that read in an order the
-/// hardware prefetchers cannot follow (the leaf-data pass of `accel` reads its staging area in
-/// leaf order).
-#[inline(always)]
-pub fn prefetch_read(bytes: &[u8], at: usize) {
-    #[cfg(target_arch = "x86_64")]
-    if let Some(b) = bytes.get(at) {
-        // SAFETY: SSE is part of the x86-64 baseline, so the instruction exists; a prefetch
-        // never faults and has no architectural effect, and the address is inside `bytes`.
-        unsafe { core::arch::x86_64::_mm_prefetch::<{ core::arch::x86_64::_MM_HINT_T0 }>(b as *const u8 as *const i8) };
-    }
-    #[cfg(not(target_arch = "x86_64"))]
-    let _ = (bytes, at);
-}
-
 /// Alignment of every allocation's host backing and of its device address.
 pub const ALLOCATION_ALIGNMENT: u64 = 4096;
 /// Gap left unmapped between two allocations' device-address ranges (catches overruns).

@@ -1,9 +1,8 @@
-//! The top of large BLAS trees, decided on one sample (`plan_from_input`, `plan`).
+//! The planned top of large BLAS trees, decided on one sample (`plan_from_input`, `plan`).
 //!
 //! Without it the first levels of a large tree each move every reference: a counting pass and
-//! a scatter per level (dragon: four to five levels above the subtrees that threads build on
-//! their own, 2.3–2.8 ms of a 16-thread FAST_BUILD build). Here ingest leaves its chunks
-//! uncompacted; the splits of those levels are chosen on an evenly strided sample (`grow`, the
+//! a scatter per level (docs/TUNING.md). Here ingest leaves its chunks
+//! uncompacted; the splits of those levels are chosen on an evenly strided sample (`grow_plan`, the
 //! binned SAH of `build_rec` on the sample): of the input triangles, on one thread beside
 //! ingest, when every geometry holds plain f32 triangles, else of the references after
 //! ingest; one pass gives every
@@ -19,43 +18,24 @@
 //! build plans depends on its type and size alone. Host memory: the sample lives in the
 //! unused node slots, the per-chunk cells and bucket bytes in scratch; the heap holds only
 //! tables of a fixed size (the axes' grids, the rank table, the tree, the scatter's ranges).
-use super::*;
+//!
+//! Owns: the plan, the bucket classification and the scatter into buckets. Must not touch:
+//! the subtrees below the buckets.
+use super::bins::{bin_count, bin_in_chunks, bin_refs, node_binning, sweep_bins, Bins, Splitter};
+use super::ingest::ingest_chunk;
+use super::partition::{part_scatter, part_stats, partition_seq, PRIMREF_BYTES};
+use super::subtree::Subtree;
+use crate::accel::geometry::{ref_hi, ref_lo, to_aabb, trunc_lanes3, Aabb, PrimRef};
+use crate::accel::params::{BuildParams, PLAN_BIN_CHUNK, PLAN_GRID, PLAN_INPUT_SAMPLE, PLAN_LEVELS, PLAN_MIN, PLAN_MIN_SAMPLE_DIV, PLAN_INPUT_PREFETCH, PLAN_PAR_PARTITION, PLAN_PAR_SPLIT, PLAN_ROOT_SAMPLE, PLAN_SAMPLE_BLOCK, PLAN_SCATTER_GROUPS, PLAN_SPLIT_MIN, PRE_BYTES_PER_PRIM};
+use crate::accel::primitive::FastTris;
+use crate::accel::tree::BinNode;
+use crate::accel::{AsType, BuildDesc, BuildFlags};
+use bytemuck::{Pod, Zeroable};
+use glam::Vec3A;
+use rayon::prelude::*;
 
-/// BLAS builds with at least this many primitives plan their top (scratch permitting).
-pub(super) const TOP_MIN: usize = 4 * PAR_BIN_CUTOFF;
-/// Levels of the planned top at most: at most 64 buckets, one byte per reference names one.
-const LEVELS: usize = 6;
-const BUCKETS: usize = 1 << LEVELS;
-/// Chunk groups of the scatter (fixed, whatever the thread count).
-const GROUPS: usize = 64;
-/// The root's sample is this many times the tier's `sample_target`; a top node is split while
-/// its share of the sample holds at least `sample_target / MIN_SAMPLE_DIV` references (a
-/// 32nd of the root's) and it is estimated to hold at least SPLIT_MIN. Dragon, one thread:
-/// FAST_BUILD 16,384 samples, SAH 54.77 (54.70 with a sample per top node); the default tier
-/// 32,768, 49.15 (49.14); FAST_TRACE 32,768, 48.96 (48.87; that per-node sampling gave 48.82
-/// to 48.99 for sample sizes from 6,000 to 10,000: the top's SAH is the draw of a sample).
-/// Smaller buckets fit a core's cache better: 16 threads on the 16-core machine, three
-/// interleaved rounds, FAST_BUILD medians 12.6 / 12.0 / 10.8 ms with 24 buckets (nodes split
-/// down to 32,768 references and 512 samples), 11.0 / 11.0 / 11.4 with 60; the default tier
-/// 20.4 / 21.7 / 21.5 against 20.3 / 20.5 / 21.3. FAST_TRACE, four rounds, the old top against
-/// this: 27.2 / 28.2 / 27.5 / 28.7 against 24.8 / 25.9 / 24.7 / 24.6. A sample twice as large
-/// cost as much planning (0.5 ms) as it saved.
-const ROOT_SAMPLE: usize = 4;
-const MIN_SAMPLE_DIV: usize = 8;
-const SPLIT_MIN: usize = PAR_BIN_CUTOFF / 2;
-/// The sample of a plan from the input (`plan_from_input`), every tier. Sequential beside
-/// ingest, a plan has to end before ingest does: dragon, 16 threads on the 16-core machine
-/// (four interleaved rounds, ingest phase with the plan): FAST_TRACE 2.95 / 2.52 / 2.70 / 2.81
-/// ms when planned after ingest from 32,768 references in parallel, 2.33 / 2.15 / 2.42 / 2.36
-/// with 16,384 input triangles beside it, 4.19 / 3.81 / 3.70 / 3.83 with 32,768; FAST_BUILD
-/// 3.41 / 3.32 / 3.64 / 3.75 against 3.57 / 3.20 / 3.24 / 3.30. SAH: FAST_BUILD 54.77 → 54.52,
-/// the default tier 49.15 → 49.21, FAST_TRACE 48.96 → 49.00 (the draw of the sample, as above;
-/// 8,192: 54.56, 49.18, 49.09; 32,768: 54.65, 49.17, 48.96).
-const INPUT_SAMPLE: usize = 1 << 14;
-/// Samples from which a top node's sample partitions in parallel.
-const PAR_SAMPLE_PARTITION: usize = 8192;
-/// Samples per parallel binning task of a top node.
-const SAMPLE_BIN_CHUNK: usize = 2048;
+/// Buckets of a plan at most: one byte per reference names one.
+const BUCKETS: usize = 1 << PLAN_LEVELS;
 
 /// A node of the planned top: an inner node's split test and children, or a bucket.
 #[derive(Clone, Copy)]
@@ -68,14 +48,14 @@ struct TopNode {
 /// Per chunk and bucket: the count and box of the chunk's references in the bucket (scratch).
 #[repr(C)]
 #[derive(Clone, Copy, Pod, Zeroable)]
-pub(super) struct BucketCell {
+pub struct BucketCell {
     lo: [f32; 3],
     count: u32,
     hi: [f32; 3],
     pad: u32,
 }
 /// Scratch words per bucket cell.
-pub(super) const CELL_WORDS: usize = std::mem::size_of::<BucketCell>() / 4;
+pub const CELL_WORDS: usize = std::mem::size_of::<BucketCell>() / 4;
 
 /// The planned top. Each split test `Splitter::left` (c < limit after (c - cmin)·scale, on
 /// the centroid c = lo·0.5 + hi·0.5 of one axis) is monotonic in c, so it is the comparison
@@ -83,18 +63,18 @@ pub(super) const CELL_WORDS: usize = std::mem::size_of::<BucketCell>() / 4;
 /// < … cut the line into intervals; a centroid's rank on the axis, the number of thresholds
 /// it is not below, decides every test on that axis (c < T_i exactly when the rank is at
 /// most i), so the three ranks name the bucket through one table. A rank comes from a fine
-/// grid of the axis (`LINE` cells): every threshold in a lower cell counts, the one in the
+/// grid of the axis (`PLAN_GRID` cells): every threshold in a lower cell counts, the one in the
 /// centroid's own cell is compared, and none in a higher cell does (the cell of a value is
 /// monotonic in it); a cell with two or more thresholds counts them one by one.
-pub(super) struct TopPlan {
+pub struct TopPlan {
     tree: Vec<TopNode>,
-    pub(super) buckets: usize,
+    pub buckets: usize,
     /// Per axis: the distinct thresholds of its tests, in order.
     th: [Vec<f32>; 3],
-    /// The axes' grids over the root's centroid box: LINE cells per axis, axis by axis.
+    /// The axes' grids over the root's centroid box: PLAN_GRID cells per axis, axis by axis.
     gmin: Vec3A,
     ginv: Vec3A,
-    line: Box<[[LineCell; LINE]; 3]>,
+    line: Box<[[LineCell; PLAN_GRID]; 3]>,
     /// Bucket per rank triple, at rx + stride[1]·ry + stride[2]·rz.
     stride: [usize; 3],
     table: Box<[u8; TABLE]>,
@@ -110,8 +90,6 @@ struct LineCell {
 }
 const MANY: u16 = u16::MAX;
 
-/// Cells of an axis' grid.
-const LINE: usize = 1024;
 /// Rank triples at most: the product of (thresholds + 1) over the axes, for at most
 /// BUCKETS - 1 thresholds in all, is at most 22³.
 const TABLE: usize = 1 << 14;
@@ -121,7 +99,7 @@ const _: () = assert!(22 * 22 * 22 <= TABLE && BUCKETS - 1 <= 63);
 /// `TopPlan::ranks` compute it: truncation of the clamped scaled offset (monotonic in `c`).
 #[inline(always)]
 fn line_coord(c: f32, gmin: f32, ginv: f32) -> usize {
-    ((c - gmin) * ginv).max(0.0).min((LINE - 1) as f32) as usize
+    ((c - gmin) * ginv).max(0.0).min((PLAN_GRID - 1) as f32) as usize
 }
 
 /// The smallest finite c for which the monotonic `holds` is true (-inf when `below`, or when
@@ -154,6 +132,7 @@ fn first_where(holds: impl Fn(f32) -> bool, below: bool) -> f32 {
 /// The smallest finite c whose centroid test `sp.left` fails (-inf when it fails for every
 /// finite c, +inf when it holds for every one): the test is c < t for every finite c, since
 /// (c - cmin)·scale rounds monotonically for scale > 0.
+#[allow(clippy::neg_cmp_op_on_partial_ord)] // the negation of the split test itself, NaN included.
 fn threshold(sp: &Splitter) -> f32 {
     first_where(|c| !((c - sp.cmin) * sp.scale < sp.limit), false)
 }
@@ -169,12 +148,12 @@ impl TopPlan {
             t.dedup_by(|x, y| x.total_cmp(y).is_eq());
         }
         let ext = Vec3A::from(cb.hi) - Vec3A::from(cb.lo);
-        let ginv = Vec3A::select(ext.cmpgt(Vec3A::ZERO), Vec3A::splat(LINE as f32) / ext, Vec3A::ZERO);
+        let ginv = Vec3A::select(ext.cmpgt(Vec3A::ZERO), Vec3A::splat(PLAN_GRID as f32) / ext, Vec3A::ZERO);
         let ginv = Vec3A::select(ginv.is_finite_mask(), ginv, Vec3A::ZERO);
         let gmin = Vec3A::from(cb.lo);
-        let mut line = Box::new([[LineCell { t: 0.0, base: 0, one: 0 }; LINE]; 3]);
+        let mut line = Box::new([[LineCell { t: 0.0, base: 0, one: 0 }; PLAN_GRID]; 3]);
         for (a, cells) in line.iter_mut().enumerate() {
-            let mut here = [0u16; LINE];
+            let mut here = [0u16; PLAN_GRID];
             for &t in &th[a] {
                 here[line_coord(t, gmin[a], ginv[a])] += 1;
             }
@@ -234,10 +213,10 @@ impl TopPlan {
     #[inline(always)]
     #[allow(clippy::neg_cmp_op_on_partial_ord)]
     fn bucket_of(&self, c: Vec3A) -> usize {
-        let q = trunc_i32x4(((c - self.gmin) * self.ginv).max(Vec3A::ZERO).min(Vec3A::splat((LINE - 1) as f32)));
+        let q = trunc_lanes3(((c - self.gmin) * self.ginv).max(Vec3A::ZERO).min(Vec3A::splat((PLAN_GRID - 1) as f32)));
         let mut idx = 0usize;
         for a in 0..3 {
-            let cell = self.line[a][q[a] as usize & (LINE - 1)];
+            let cell = self.line[a][q[a] as usize & (PLAN_GRID - 1)];
             let rank = if cell.base != MANY { cell.base as usize + (!(c[a] < cell.t) as usize & cell.one as usize) } else { self.rank(a, c[a]) };
             idx += rank * self.stride[a];
         }
@@ -290,24 +269,34 @@ impl TopPlan {
     }
 }
 
-/// The planned top below a node whose sample is `sample` (`step` references per sample):
-/// splits as `build_rec` chooses them over the sample's bins, while the sample keeps at least
-/// `min_sample` references and the node about SPLIT_MIN references. Returns the nodes
-/// (this one first, indices relative to it) and the bucket count, buckets numbered left to
-/// right. Depends on the sample alone (`par`: whether large samples bin, partition and
-/// split their children in parallel, or everything runs on the calling thread).
-#[allow(clippy::too_many_arguments)]
-fn grow(p: &BuildParams, sample: &mut [PrimRef], scratch: &mut [PrimRef], cb: Aabb, step: usize, level: usize, min_sample: usize, par: bool) -> (Vec<TopNode>, u32) {
+/// How a plan's sample stands for the references: each sample is `step` references; a top
+/// node splits while its sample holds at least `min_sample`; `parallel`: whether large samples
+/// bin, partition and split their children in parallel, or everything runs on the calling
+/// thread (the plan is the same either way).
+#[derive(Clone, Copy)]
+struct Sampling {
+    step: usize,
+    min_sample: usize,
+    parallel: bool,
+}
+
+/// The planned top below a node at `level` whose sample is `sample`: splits as `build_rec`
+/// chooses them over the sample's bins, while the sample keeps at least `min_sample`
+/// references and the node about PLAN_SPLIT_MIN references. Returns the nodes (this one
+/// first, indices relative to it) and the bucket count, buckets numbered left to right.
+/// Depends on the sample alone.
+fn grow_plan(p: &BuildParams, sample: &mut [PrimRef], scratch: &mut [PrimRef], cb: Aabb, level: usize, sampling: Sampling) -> (Vec<TopNode>, u32) {
+    let Sampling { step, min_sample, parallel: par } = sampling;
     let s = sample.len();
     let est = s.saturating_mul(step);
     let bucket = || (vec![TopNode { split: None, kids: [0; 2], bucket: 0 }], 1);
-    if level >= LEVELS || s < min_sample.max(2) || est < SPLIT_MIN {
+    if level >= PLAN_LEVELS || s < min_sample.max(2) || est < PLAN_SPLIT_MIN {
         return bucket();
     }
     let k = bin_count(p, est);
     let Some((bn, scale)) = node_binning(p, &cb, k, est) else { return bucket() };
-    let bins = if par && s >= 2 * SAMPLE_BIN_CHUNK {
-        bin_in_chunks(sample, SAMPLE_BIN_CHUNK, k, bn.axes, |c, b| bin_refs(c, &bn, b))
+    let bins = if par && s >= 2 * PLAN_BIN_CHUNK {
+        bin_in_chunks(sample, PLAN_BIN_CHUNK, k, bn.axes, |c, b| bin_refs(c, &bn, b))
     } else {
         let mut b = Bins::new();
         bin_refs(sample, &bn, &mut b);
@@ -319,7 +308,7 @@ fn grow(p: &BuildParams, sample: &mut [PrimRef], scratch: &mut [PrimRef], cb: Aa
     // holds the children's samples and lends them `sample` as their scratch; small ones in
     // place. The tree never depends on a sample's order (bins are sums, minima and maxima).
     let is_left = |r: &PrimRef| sp.left(r);
-    let (i, (ls, lt), (rs, rt)) = if par && s >= PAR_SAMPLE_PARTITION && scratch.len() >= s {
+    let (i, (ls, lt), (rs, rt)) = if par && s >= PLAN_PAR_PARTITION && scratch.len() >= s {
         let (chunk, nchunks, stats, nl, _, _) = part_stats(sample, &is_left);
         let (lout, rout) = scratch[..s].split_at_mut(nl);
         part_scatter(sample, chunk, nchunks, &stats, lout, rout, &is_left);
@@ -334,10 +323,10 @@ fn grow(p: &BuildParams, sample: &mut [PrimRef], scratch: &mut [PrimRef], cb: Aa
     if i == 0 || i == s {
         return bucket();
     }
-    let ((mut l, lb), (r, rb)) = if par && s >= 1024 {
-        rayon::join(|| grow(p, ls, lt, lbox, step, level + 1, min_sample, par), || grow(p, rs, rt, rbox, step, level + 1, min_sample, par))
+    let ((mut l, lb), (r, rb)) = if par && s >= PLAN_PAR_SPLIT {
+        rayon::join(|| grow_plan(p, ls, lt, lbox, level + 1, sampling), || grow_plan(p, rs, rt, rbox, level + 1, sampling))
     } else {
-        (grow(p, ls, lt, lbox, step, level + 1, min_sample, par), grow(p, rs, rt, rbox, step, level + 1, min_sample, par))
+        (grow_plan(p, ls, lt, lbox, level + 1, sampling), grow_plan(p, rs, rt, rbox, level + 1, sampling))
     };
     let off = 1 + l.len() as u32;
     let mut tree = Vec::with_capacity(1 + l.len() + r.len());
@@ -356,22 +345,21 @@ fn grow(p: &BuildParams, sample: &mut [PrimRef], scratch: &mut [PrimRef], cb: Aa
 /// `cb` (the references' centroid box). The sample is gathered into `room` (scratch that is
 /// free until the scatter), whose rest is the partitions' second buffer. None when the sample
 /// does not split or `room` is too small.
-pub(super) fn plan(desc: &BuildDesc, p: &BuildParams, refs: &[PrimRef], kept: &[u32], built: usize, cb: Aabb, room: &mut [PrimRef]) -> Option<TopPlan> {
-    let target = p.sample_target.max(1) * ROOT_SAMPLE;
+pub fn plan(desc: &BuildDesc, p: &BuildParams, refs: &[PrimRef], kept: &[u32], built: usize, cb: Aabb, room: &mut [PrimRef]) -> Option<TopPlan> {
+    let target = p.sample_target.max(1) * PLAN_ROOT_SAMPLE;
     let step = (built / target).max(1);
     if kept.iter().map(|&k| k as usize).sum::<usize>() != built {
         return None;
     }
     // In blocks of sample positions, each walking the chunks from the start (no per-chunk
     // table on the heap).
-    const BLOCK: usize = 1024;
     let count = built.div_ceil(step);
     let (sample, scratch) = room.split_at_mut_checked(count)?;
-    sample.par_chunks_mut(BLOCK).enumerate().for_each(|(blk, out)| {
+    sample.par_chunks_mut(PLAN_SAMPLE_BLOCK).enumerate().for_each(|(blk, out)| {
         let mut chunks = chunk_layout(desc).zip(kept).map(|((first, len), &k)| (first, (k as usize).min(len)));
         let (mut cur, mut before) = (chunks.next(), 0usize);
         for (j, d) in out.iter_mut().enumerate() {
-            let pos = (blk * BLOCK + j) * step;
+            let pos = (blk * PLAN_SAMPLE_BLOCK + j) * step;
             while let Some((_, k)) = cur {
                 if pos < before + k {
                     break;
@@ -384,31 +372,29 @@ pub(super) fn plan(desc: &BuildDesc, p: &BuildParams, refs: &[PrimRef], kept: &[
             }
         }
     });
-    plan_on(p, sample, scratch, cb, step, p.sample_target / MIN_SAMPLE_DIV, true)
+    plan_on(p, sample, scratch, cb, Sampling { step, min_sample: p.sample_target / PLAN_MIN_SAMPLE_DIV, parallel: true })
 }
 
-/// Plans the top, as `plan` does, from an evenly strided sample of INPUT_SAMPLE input
+/// Plans the top, as `plan` does, from an evenly strided sample of PLAN_INPUT_SAMPLE input
 /// primitives instead of the references, on the calling thread alone, so that it runs beside
 /// ingest (`build` joins the two): every geometry holds plain f32 triangles (`FastTris`, read
-/// directly, the sample's index bytes and vertices prefetched ahead: about 30 ns per triangle,
-/// 0.5 ms for the sample, and `grow` 0.3–0.8 ms, dragon, this box). Not in parallel blocks: a
+/// directly, the sample's index bytes and vertices prefetched ahead). Not in parallel blocks: a
 /// thread of the plan waiting for its blocks took ingest chunks meanwhile, and the plan ended
-/// after ingest (16-thread FAST_TRACE ingest phase 1.7 → 2.3 ms). The root's bins span the
+/// after ingest (docs/TUNING.md). The root's bins span the
 /// sample's centroid box. FAST_BUILD's clusters are made by ingest later, so its sample is of
 /// triangles: the plan only chooses the buckets, and any choice gives a valid top (their counts
 /// and boxes come from the references themselves). The sample goes to `room`, whose rest is
 /// the partitions' second buffer. None when a geometry is not plain, the sample does not
 /// split or `room` is too small.
-pub(super) fn plan_from_input(desc: &BuildDesc, p: &BuildParams, total: usize, room: &mut [PrimRef]) -> Option<TopPlan> {
+pub fn plan_from_input(desc: &BuildDesc, p: &BuildParams, total: usize, room: &mut [PrimRef]) -> Option<TopPlan> {
     if !desc.geometries.iter().all(|g| FastTris::of(g).is_some()) {
         return None;
     }
     let allow_update = desc.flags.contains(BuildFlags::ALLOW_UPDATE);
-    let step = (total / INPUT_SAMPLE).max(1);
+    let step = (total / PLAN_INPUT_SAMPLE).max(1);
     let (sample, scratch) = room.split_at_mut_checked(total.div_ceil(step))?;
     // The index bytes of the sample this many ahead are prefetched, and the vertices of the
     // sample half as far ahead (their indices are in cache by then).
-    const AHEAD: usize = 16;
     // Kept triangles (not the dropped ones) in order from the front, and their centroid box.
     let (mut n, mut clo, mut chi) = (0usize, Vec3A::INFINITY, Vec3A::NEG_INFINITY);
     // The geometry of the current sample: its index, first global ID and reader.
@@ -424,10 +410,10 @@ pub(super) fn plan_from_input(desc: &BuildDesc, p: &BuildParams, total: usize, r
         let Some(ft) = fast.as_ref() else { break };
         let end = gbase + desc.geometries.get(gi).map_or(0, |g| g.primitive_count as usize);
         let ahead = |k: usize| Some(id + k * step).filter(|&x| x < end).map(|x| (x - gbase) as u32);
-        if let Some(q) = ahead(AHEAD) {
-            crate::memory::prefetch_read(ft.indices, q as usize * if ft.u16_indices { 6 } else { 12 });
+        if let Some(q) = ahead(PLAN_INPUT_PREFETCH) {
+            ft.prefetch_indices(q);
         }
-        if let Some(q) = ahead(AHEAD / 2) {
+        if let Some(q) = ahead(PLAN_INPUT_PREFETCH / 2) {
             ft.prefetch(q);
         }
         if let Some(Some((lo, hi, _))) = ft.bounds((id - gbase) as u32, allow_update) {
@@ -439,23 +425,23 @@ pub(super) fn plan_from_input(desc: &BuildDesc, p: &BuildParams, total: usize, r
             }
         }
     }
-    plan_on(p, &mut sample[..n], scratch, to_aabb(clo, chi), step, INPUT_SAMPLE / (ROOT_SAMPLE * MIN_SAMPLE_DIV), false)
+    plan_on(p, &mut sample[..n], scratch, to_aabb(clo, chi), Sampling { step, min_sample: PLAN_INPUT_SAMPLE / (PLAN_ROOT_SAMPLE * PLAN_MIN_SAMPLE_DIV), parallel: false })
 }
 
-/// The planned top grown from `sample` (`grow`, root bins over `cb`), when it has 2 to
+/// The planned top grown from `sample` (`grow_plan`, root bins over `cb`), when it has 2 to
 /// BUCKETS buckets.
-fn plan_on(p: &BuildParams, sample: &mut [PrimRef], scratch: &mut [PrimRef], cb: Aabb, step: usize, min_sample: usize, par: bool) -> Option<TopPlan> {
-    let (tree, buckets) = grow(p, sample, scratch, cb, step, 0, min_sample, par);
+fn plan_on(p: &BuildParams, sample: &mut [PrimRef], scratch: &mut [PrimRef], cb: Aabb, sampling: Sampling) -> Option<TopPlan> {
+    let (tree, buckets) = grow_plan(p, sample, scratch, cb, 0, sampling);
     let buckets = buckets as usize;
     (2..=BUCKETS).contains(&buckets).then(|| TopPlan::new(tree, buckets, &cb))
 }
 
 /// Whether a build of `total` primitives in `chunks` ingest chunks plans its top: a BLAS
-/// build of at least TOP_MIN primitives whose `prefix` scratch (`words` u32) holds the
+/// build of at least PLAN_MIN primitives whose `prefix` scratch (`words` u32) holds the
 /// per-chunk kept counts, the bucket cells of any plan and one byte per reference slot.
-pub(super) fn wanted(desc: &BuildDesc, total: usize, chunks: usize, words: usize) -> bool {
+pub fn should_plan(desc: &BuildDesc, total: usize, chunks: usize, words: usize) -> bool {
     let need = chunks.saturating_mul(1 + BUCKETS * CELL_WORDS).saturating_add(total.div_ceil(4));
-    desc.ty != AsType::TopLevel && total >= TOP_MIN && need <= words
+    desc.ty != AsType::TopLevel && total >= PLAN_MIN && need <= words
 }
 
 /// Ingest chunks of `desc` in order: (first reference slot, slots).
@@ -472,7 +458,7 @@ fn chunk_layout<'d>(desc: &'d BuildDesc<'d>) -> impl Iterator<Item = (usize, usi
 
 /// Gives every kept reference (the prefix `kept[c]` of each ingest chunk c) its bucket in
 /// `ids` (at its slot) and fills each chunk's bucket cells, in parallel over chunks.
-pub(super) fn classify_chunks(plan: &TopPlan, desc: &BuildDesc, refs: &[PrimRef], kept: &[u32], cells: &mut [BucketCell], ids: &mut [u8]) {
+pub fn classify_chunks(plan: &TopPlan, desc: &BuildDesc, refs: &[PrimRef], kept: &[u32], cells: &mut [BucketCell], ids: &mut [u8]) {
     let nb = plan.buckets;
     // Geometry by geometry (chunks of one length), each chunk a task.
     let (mut base, mut first_chunk) = (0usize, 0usize);
@@ -491,12 +477,12 @@ pub(super) fn classify_chunks(plan: &TopPlan, desc: &BuildDesc, refs: &[PrimRef]
 }
 
 /// Exact reference counts and boxes of every planned top node (sums over its buckets' cells).
-pub(super) struct TopSums {
+pub struct PlanSums {
     count: Vec<usize>,
     boxes: Vec<Aabb>,
 }
 
-pub(super) fn sums(plan: &TopPlan, cells: &[BucketCell]) -> Option<TopSums> {
+pub fn bucket_sums(plan: &TopPlan, cells: &[BucketCell]) -> Option<PlanSums> {
     let nb = plan.buckets;
     let (mut bcount, mut blo, mut bhi) = ([0usize; BUCKETS], [Vec3A::INFINITY; BUCKETS], [Vec3A::NEG_INFINITY; BUCKETS]);
     for chunk in cells.chunks_exact(nb) {
@@ -525,11 +511,11 @@ pub(super) fn sums(plan: &TopPlan, cells: &[BucketCell]) -> Option<TopSums> {
         }
     }
     let boxes = lo.iter().zip(&hi).map(|(&l, &h)| to_aabb(l, h)).collect();
-    Some(TopSums { count, boxes })
+    Some(PlanSums { count, boxes })
 }
 
-impl TopSums {
-    pub(super) fn total(&self) -> usize {
+impl PlanSums {
+    pub fn total(&self) -> usize {
         self.count.first().copied().unwrap_or(0)
     }
 }
@@ -537,7 +523,7 @@ impl TopSums {
 /// Each bucket's (node slot, first reference): the buckets' subtrees laid out as
 /// `finish_split` lays out children (left child at r + 1, right child at r + 2·left count);
 /// an inner node with an empty side is replaced by its other child.
-fn places(plan: &TopPlan, s: &TopSums, i: usize, slot: usize, first: usize, out: &mut [(usize, usize); BUCKETS]) {
+fn bucket_slots(plan: &TopPlan, s: &PlanSums, i: usize, slot: usize, first: usize, out: &mut [(usize, usize); BUCKETS]) {
     let Some(nd) = plan.tree.get(i) else { return };
     match nd.split {
         None => out[nd.bucket as usize & (BUCKETS - 1)] = (slot, first),
@@ -545,27 +531,37 @@ fn places(plan: &TopPlan, s: &TopSums, i: usize, slot: usize, first: usize, out:
             let [l, r] = nd.kids.map(|x| x as usize);
             let (nl, nr) = (s.count[l], s.count[r]);
             if nl == 0 {
-                places(plan, s, r, slot, first, out);
+                bucket_slots(plan, s, r, slot, first, out);
             } else if nr == 0 {
-                places(plan, s, l, slot, first, out);
+                bucket_slots(plan, s, l, slot, first, out);
             } else {
-                places(plan, s, l, slot + 1, first, out);
-                places(plan, s, r, slot + 2 * nl, first + nl, out);
+                bucket_slots(plan, s, l, slot + 1, first, out);
+                bucket_slots(plan, s, r, slot + 2 * nl, first + nl, out);
             }
         }
     }
 }
 
+/// What `classify_chunks` found: each ingest chunk's kept count and bucket cells, and each
+/// reference's bucket (at its slot).
+#[derive(Clone, Copy)]
+pub struct Classified<'a> {
+    pub kept: &'a [u32],
+    pub cells: &'a [BucketCell],
+    pub ids: &'a [u8],
+}
+
 /// Moves every kept reference from its ingest chunk into its bucket: bucket b's references in
-/// chunk order from the start of its node slots (`places`), so each bucket's subtree finds
+/// chunk order from the start of its node slots (`bucket_slots`), so each bucket's subtree finds
 /// them there (`build_rec`'s `in_nodes`). Chunk groups work in parallel, each on its own
 /// disjoint ranges. None, with nothing written, when a range does not fit `nodes`.
-pub(super) fn scatter(plan: &TopPlan, s: &TopSums, desc: &BuildDesc, refs: &[PrimRef], kept: &[u32], cells: &[BucketCell], ids: &[u8], nodes: &mut [BinNode]) -> Option<()> {
+pub fn scatter(plan: &TopPlan, s: &PlanSums, desc: &BuildDesc, refs: &[PrimRef], classified: Classified<'_>, nodes: &mut [BinNode]) -> Option<()> {
+    let Classified { kept, cells, ids } = classified;
     let nb = plan.buckets;
     let mut at = [(0usize, 0usize); BUCKETS];
-    places(plan, s, 0, 0, 0, &mut at);
+    bucket_slots(plan, s, 0, 0, 0, &mut at);
     let nch = kept.len();
-    let groups = nch.min(GROUPS).max(1);
+    let groups = nch.clamp(1, PLAN_SCATTER_GROUPS);
     let bounds_of = |g: usize| (g * nch / groups, (g + 1) * nch / groups);
     // References per (group, bucket).
     let mut gcount = vec![0usize; groups * nb];
@@ -618,263 +614,41 @@ pub(super) fn scatter(plan: &TopPlan, s: &TopSums, desc: &BuildDesc, refs: &[Pri
     Some(())
 }
 
-/// Writes the planned top's nodes and returns one task per non-empty bucket (its subtree,
-/// references at the start of its node slots).
-#[allow(clippy::too_many_arguments)]
-pub(super) fn tasks<'a>(plan: &TopPlan, s: &TopSums, i: usize, refs: &'a mut [PrimRef], nodes: &'a mut [BinNode], pre: &'a mut [u8], start: u32, idx: usize, depth: u32, parent_count: u32, out: &mut Vec<Task<'a>>) {
+/// Writes the planned top's nodes below plan node `i` and returns one task per non-empty
+/// bucket (its subtree, references at the start of its node slots). `at` is the position of
+/// node `i` in the tree (its references, node slots, pre-emission range, first reference,
+/// slot, depth and parent's size); its boxes and `in_nodes` are set here.
+pub fn tasks<'a>(plan: &TopPlan, s: &PlanSums, i: usize, at: Subtree<'a>, out: &mut Vec<Subtree<'a>>) {
     let (Some(nd), Some(&n), Some(&bx)) = (plan.tree.get(i), s.count.get(i), s.boxes.get(i)) else { return };
     if n == 0 {
         return;
     }
     let Some(_) = nd.split else {
-        out.push(Task { refs, nodes, start, bounds: bx, cb: bx, depth, in_nodes: true, pre, parent_count, idx });
+        out.push(Subtree { bounds: bx, bin_box: bx, in_nodes: true, ..at });
         return;
     };
     let [l, r] = nd.kids.map(|x| x as usize);
     let mid = s.count.get(l).copied().unwrap_or(0);
     if mid == 0 || mid >= n {
-        return tasks(plan, s, if mid == 0 { r } else { l }, refs, nodes, pre, start, idx, depth, parent_count, out);
+        return tasks(plan, s, if mid == 0 { r } else { l }, at, out);
     }
-    if let Some(slot) = nodes.get_mut(0) {
-        *slot = BinNode { lo: bx.lo, start, hi: bx.hi, count: n as u32, left_count: mid as u32, reserved: 0 };
+    let Subtree { refs, nodes, pre_area, start, slot, depth, .. } = at;
+    if let Some(node) = nodes.get_mut(0) {
+        *node = BinNode { lo: bx.lo, start, hi: bx.hi, count: n as u32, left_count: mid as u32, wide_nodes: 0 };
     }
     let (lrefs, rrefs) = refs.split_at_mut(mid.min(refs.len()));
     let rest = nodes.get_mut(1..).unwrap_or(&mut []);
     let (lnodes, rnodes) = rest.split_at_mut((2 * mid - 1).min(rest.len()));
-    let (lpre, rpre) = pre.split_at_mut((PRE_BYTES_PER_PRIM * mid).min(pre.len()));
-    tasks(plan, s, l, lrefs, lnodes, lpre, start, idx + 1, depth + 1, n as u32, out);
-    tasks(plan, s, r, rrefs, rnodes, rpre, start + mid as u32, idx + 2 * mid, depth + 1, n as u32, out);
+    let (lpre, rpre) = pre_area.split_at_mut((PRE_BYTES_PER_PRIM * mid).min(pre_area.len()));
+    let child = |refs, nodes, pre_area, start, slot| Subtree { refs, nodes, start, bounds: bx, bin_box: bx, depth: depth + 1, in_nodes: true, pre_area, parent_count: n as u32, slot };
+    tasks(plan, s, l, child(lrefs, lnodes, lpre, start, slot + 1), out);
+    tasks(plan, s, r, child(rrefs, rnodes, rpre, start + mid as u32, slot + 2 * mid), out);
 }
 
 /// Ingest chunks of `desc` (one `kept` count each).
-pub(super) fn chunk_count(desc: &BuildDesc) -> usize {
+pub fn chunk_count(desc: &BuildDesc) -> usize {
     chunk_layout(desc).count()
 }
 
 #[cfg(test)]
-mod tests {
-    use super::*;
-    use crate::accel::builder::pass_timing::unit_floats as floats;
-
-    fn next_up(f: f32) -> f32 {
-        if f >= 0.0 { f32::from_bits(f.to_bits() + 1) } else { f32::from_bits(f.to_bits() - 1) }
-    }
-    fn next_down(f: f32) -> f32 {
-        if f > 0.0 { f32::from_bits(f.to_bits() - 1) } else if f == 0.0 { -f32::from_bits(1) } else { f32::from_bits(f.to_bits() + 1) }
-    }
-
-    /// Values around `at` on scales from `span` down to single floats.
-    fn probes_sorted(f: &mut impl FnMut() -> f32, at: f32, span: f32) -> Vec<f32> {
-        let mut v = vec![-f32::MAX, f32::MAX, 0.0, at];
-        for _ in 0..40 {
-            let x = at + (f() - 0.5) * 2.0 * span;
-            v.extend([x, next_up(x), next_down(x)]);
-        }
-        v
-    }
-
-    /// The threshold of a split test is exact: c < t gives the test's own answer for values
-    /// at, next to and far from t, for offsets and scales of every sign and size; and a grid
-    /// cell's first value is exact the same way.
-    #[test]
-    fn thresholds_are_the_split_tests() {
-        let mut f = floats(0x9e37_79b9_7f4a_7c15);
-        for case in 0..2000 {
-            let cmin = (f() - 0.5) * [1e-3, 1.0, 1e4, 3e7][case % 4];
-            let scale = [1e-6, 0.37, 32.0, 1e6][(case / 4) % 4] * (0.5 + f());
-            let limit = 1.0 + (f() * 31.0).floor();
-            let sp = Splitter { a: case % 3, cmin, scale, limit };
-            let t = threshold(&sp);
-            let left = |c: f32| (c - sp.cmin) * sp.scale < sp.limit;
-            let mut probes = vec![-f32::MAX, f32::MAX, 0.0, -0.0, cmin, cmin + limit / scale];
-            if t.is_finite() {
-                probes.extend([t, next_up(t), next_down(t), next_down(next_down(t))]);
-            }
-            probes.extend((0..20).map(|_| cmin + (f() - 0.2) * 2.0 * limit / scale));
-            for c in probes {
-                assert_eq!(c < t, left(c), "case {case}: c {c} threshold {t} ({sp_a} {cmin} {scale} {limit})", sp_a = sp.a);
-            }
-            // An axis' grid cell is monotonic in the value (what the ranks rely on).
-            let (gmin, ginv) = (cmin, scale * LINE as f32 / 32.0);
-            let mut vals: Vec<f32> = probes_sorted(&mut f, cmin, limit / scale);
-            vals.sort_by(f32::total_cmp);
-            for w in vals.windows(2) {
-                assert!(line_coord(w[0], gmin, ginv) <= line_coord(w[1], gmin, ginv), "case {case}: {} {}", w[0], w[1]);
-            }
-        }
-    }
-
-    /// The classification (previous bucket's box, grid, walk) gives every reference the bucket
-    /// the split tests of the planned tree give it, and each bucket's exact count and box:
-    /// clustered references in input order, references with their centroid on a threshold and
-    /// next to it, and references outside the sample's box.
-    #[test]
-    fn classification_is_the_walk_down_the_split_tests() {
-        let mut f = floats(0x2545_f491_4f6c_dd1d);
-        for (case, flags) in [BuildFlags::PREFER_FAST_BUILD, 0, BuildFlags::PREFER_FAST_TRACE].into_iter().enumerate() {
-            let p = BuildParams::from_flags(BuildFlags(flags));
-            // Points along a random walk (input order is coherent), boxes around them.
-            let mut at = Vec3A::ZERO;
-            let mut refs: Vec<PrimRef> = (0..200_000u32)
-                .map(|i| {
-                    at += Vec3A::new(f() - 0.5, f() - 0.5, (f() - 0.5) * 0.3) * 0.05;
-                    if i % 5000 == 0 {
-                        at = Vec3A::new(f(), f(), f()) * 20.0;
-                    }
-                    let e = Vec3A::new(f(), f(), f()) * 0.02;
-                    PrimRef { lo: (at - e).to_array(), geom: 0, hi: (at + e).to_array(), prim: i }
-                })
-                .collect();
-            let mut cb = Aabb::EMPTY;
-            for r in &refs {
-                cb.grow_point(&centroid(r));
-            }
-            let step = 8;
-            let mut sample: Vec<PrimRef> = refs.iter().step_by(step).copied().collect();
-            let mut scratch = vec![PrimRef::zeroed(); sample.len()];
-            let (tree, buckets) = grow(&p, &mut sample, &mut scratch, cb, step, 0, p.sample_target / MIN_SAMPLE_DIV, true);
-            assert!(buckets >= 8, "case {case}: {buckets} buckets");
-            let plan = TopPlan::new(tree, buckets as usize, &cb);
-            // References on every threshold, just below it, and outside the root box.
-            for nd in &plan.tree {
-                if let Some(sp) = nd.split {
-                    let t = threshold(&sp);
-                    for c in [t, next_down(t), next_up(t)] {
-                        let mut x = [f() * 20.0, f() * 20.0, f() * 20.0];
-                        x[sp.a] = c;
-                        refs.push(PrimRef { lo: x, geom: 0, hi: x, prim: 0 });
-                    }
-                }
-            }
-            refs.push(PrimRef { lo: [-1e6; 3], geom: 0, hi: [-1e6; 3], prim: 0 });
-            refs.push(PrimRef { lo: [1e6; 3], geom: 0, hi: [1e6; 3], prim: 0 });
-            check_against_walk(&plan, &refs, &format!("case {case}"));
-        }
-    }
-
-    /// `plan.classify` gives every reference of `refs` the bucket of the walk down the split
-    /// tests, and every bucket its exact count and box.
-    fn check_against_walk(plan: &TopPlan, refs: &[PrimRef], what: &str) {
-        let walk = |r: &PrimRef| {
-            let mut i = 0usize;
-            loop {
-                let nd = plan.tree[i];
-                match nd.split {
-                    Some(sp) => i = nd.kids[!sp.left(r) as usize] as usize,
-                    None => return nd.bucket as usize,
-                }
-            }
-        };
-        let mut ids = vec![0u8; refs.len()];
-        let mut cells = vec![BucketCell::zeroed(); plan.buckets];
-        plan.classify(refs, &mut ids, &mut cells);
-        let mut want = vec![(0u32, Aabb::EMPTY); plan.buckets];
-        for (r, &id) in refs.iter().zip(&ids) {
-            let b = walk(r);
-            assert_eq!(id as usize, b, "{what}: reference {r:?}");
-            want[b].0 += 1;
-            want[b].1.grow(&r.lo, &r.hi);
-        }
-        for (c, (k, bx)) in cells.iter().zip(&want) {
-            assert_eq!(c.count, *k, "{what}");
-            if *k > 0 {
-                assert_eq!((c.lo, c.hi), (bx.lo, bx.hi), "{what}");
-            }
-        }
-    }
-
-    /// Thresholds closer than one cell of an axis' grid (three in one cell, the slow count)
-    /// still classify exactly, at, next to and between them.
-    #[test]
-    fn thresholds_sharing_a_grid_cell_classify_exactly() {
-        let x = |a: usize, t: f32| Some(Splitter { a, cmin: 0.0, scale: 1.0, limit: t });
-        let node = |split, kids: [u32; 2], bucket| TopNode { split, kids, bucket };
-        let tree = vec![
-            node(x(0, 0.5005), [1, 6], 0),
-            node(x(0, 0.5), [2, 3], 0),
-            node(None, [0; 2], 0),
-            node(x(0, 0.5003), [4, 5], 0),
-            node(None, [0; 2], 1),
-            node(None, [0; 2], 2),
-            node(x(1, 0.3), [7, 8], 0),
-            node(None, [0; 2], 3),
-            node(None, [0; 2], 4),
-        ];
-        let cb = Aabb { lo: [0.0; 3], hi: [1.0; 3] };
-        let plan = TopPlan::new(tree, 5, &cb);
-        let cell = |t: f32| line_coord(t, plan.gmin[0], plan.ginv[0]);
-        assert!(cell(0.5) == cell(0.5005) && plan.line[0][cell(0.5)].base == MANY, "the three thresholds share a cell");
-        let mut f = floats(0x1234_5678_9abc_def1);
-        let mut refs = Vec::new();
-        for t in [0.5f32, 0.5003, 0.5005, 0.3] {
-            for c in [t, next_up(t), next_down(t), t + 1e-4, t - 1e-4] {
-                for axis in 0..2 {
-                    let mut p = [f(), f(), f()];
-                    p[axis] = c;
-                    refs.push(PrimRef { lo: p, geom: 0, hi: p, prim: 0 });
-                }
-            }
-        }
-        refs.extend((0..2000).map(|_| {
-            let p = [0.499 + f() * 0.002, f(), f()];
-            PrimRef { lo: p, geom: 0, hi: p, prim: 0 }
-        }));
-        check_against_walk(&plan, &refs, "close thresholds");
-    }
-
-    /// Classification timing on one thread (not a test of correctness; run explicitly):
-    /// `ARBOR_MESH=data/dragon_vrip.ply.gz cargo test --release --lib classify_timing --
-    /// --ignored --nocapture`: the dragon's references (FAST_BUILD's clusters, FAST_TRACE's
-    /// triangles) classified in ingest chunks 30 times, and a hash of the bucket ids (equal
-    /// for classifications that agree).
-    #[test]
-    #[ignore]
-    fn classify_timing() {
-        let path = std::env::var("ARBOR_MESH").unwrap_or_else(|_| "data/dragon_vrip.ply.gz".into());
-        let mesh = arbor_scene::load(&path).expect("mesh");
-        let tris: Vec<PrimRef> = (0..mesh.triangle_count())
-            .map(|i| {
-                let t = mesh.triangle(i);
-                let (lo, hi) = triangle_box(Vec3A::from(t[0]), Vec3A::from(t[1]), Vec3A::from(t[2]));
-                PrimRef { lo: lo.to_array(), geom: 0, hi: hi.to_array(), prim: i as u32 }
-            })
-            .collect();
-        for (name, flags) in [("FAST_BUILD", BuildFlags::PREFER_FAST_BUILD), ("FAST_TRACE", BuildFlags::PREFER_FAST_TRACE)] {
-            let p = BuildParams::from_flags(BuildFlags(flags));
-            let mut refs = tris.clone();
-            if p.pair_tau > 0.0 {
-                let mut out = Vec::new();
-                for c in refs.chunks_mut(4096) {
-                    let (w, ..) = crate::accel::pairs::pair_in_place(c, p.pair_tau, p.cluster, u32::MAX);
-                    out.extend_from_slice(&c[..w]);
-                }
-                refs = out;
-            }
-            let mut cb = Aabb::EMPTY;
-            for r in &refs {
-                cb.grow_point(&centroid(r));
-            }
-            let target = p.sample_target * ROOT_SAMPLE;
-            let step = (refs.len() / target).max(1);
-            let mut sample: Vec<PrimRef> = refs.iter().step_by(step).copied().collect();
-            let mut scratch = vec![PrimRef::zeroed(); sample.len()];
-            let (tree, buckets) = grow(&p, &mut sample, &mut scratch, cb, step, 0, p.sample_target / MIN_SAMPLE_DIV, true);
-            let t0 = std::time::Instant::now();
-            let plan = TopPlan::new(tree, buckets as usize, &cb);
-            let tnew = t0.elapsed();
-            let mut ids = vec![0u8; refs.len()];
-            let mut cells = vec![BucketCell::zeroed(); buckets as usize * refs.len().div_ceil(4096)];
-            let mut times = Vec::new();
-            for _ in 0..30 {
-                let t0 = std::time::Instant::now();
-                for ((r, d), c) in refs.chunks(4096).zip(ids.chunks_mut(4096)).zip(cells.chunks_mut(buckets as usize)) {
-                    plan.classify(r, d, c);
-                }
-                times.push(t0.elapsed().as_secs_f64() * 1e3);
-            }
-            times.sort_by(f64::total_cmp);
-            let h = ids.iter().fold(0u64, |h, &x| h.wrapping_mul(31).wrapping_add(x as u64));
-            println!("{name}: {} refs {buckets} buckets new {:.3} ms classify min {:.2} med {:.2} ms hash {h:x}", refs.len(), tnew.as_secs_f64() * 1e3, times[0], times[15]);
-        }
-    }
-}
+mod tests;
