@@ -33,6 +33,8 @@ mod lower_ops;
 mod memory;
 mod parse;
 mod specialize;
+#[cfg(test)]
+mod tests;
 
 use std::sync::Arc;
 
