@@ -154,3 +154,109 @@ fn control_flow_calls_and_composites() {
         }
     }
 }
+
+fn close(got: f32, want: f32) -> bool {
+    got == want || (got - want).abs() <= 1e-4 * want.abs().max(1.0) || (got.is_nan() && want.is_nan())
+}
+
+fn msb(v: u32) -> u32 {
+    if v == 0 { u32::MAX } else { 31 - v.leading_zeros() }
+}
+
+/// Reference for math.comp: (exact 32-bit results, approximate ones by slot, 64-bit results).
+fn math_reference(i: u32, x: f32, y: f32, u: u32) -> ([u32; 32], Vec<(usize, f32)>, [u64; 4]) {
+    let s = u as i32;
+    let mut o = [0u32; 32];
+    let fb = f32::to_bits;
+    o[0] = fb(x.abs().sqrt());
+    o[1] = fb(x.floor() + y.ceil() * 2.0);
+    o[2] = fb(x - x.floor());
+    o[3] = fb(x.clamp(-1.0, 1.0) + x.min(y) - x.max(y));
+    o[4] = fb(x.mul_add(y, 0.5));
+    o[6] = fb(x.trunc() + y.round() + (x * 3.0).round_ties_even());
+    let approx = vec![
+        (5, x * 0.75 + y * 0.25 + if x < 0.0 { 0.0 } else { 1.0 } + if y > 0.0 { 1.0 } else if y < 0.0 { -1.0 } else { 0.0 }),
+        (7, x - 1.5 * (x / 1.5).floor() + y.abs()),
+        (8, (x * 0.1).exp() + (y.abs() + 1.0).ln()),
+        (9, x.sin() * y.cos() + y.atan2(x) + (x.abs() + 1.0).powf(1.5)),
+        (10, {
+            let p = [x, y * 0.5, 1.0];
+            let q = [y, 1.0, x];
+            let len = |v: [f32; 3]| (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt();
+            len(p) + (p[0] * q[0] + p[1] * q[1] + p[2] * q[2]) + len([p[0] - q[0], p[1] - q[1], p[2] - q[2]])
+        }),
+        (11, {
+            let p = [x, y * 0.5, 1.0];
+            let q = [y, 1.0, x];
+            let l = (p[0] * p[0] + p[1] * p[1] + p[2] * p[2]).sqrt();
+            let n = [p[0] / l, p[1] / l, p[2] / l];
+            let c = [p[1] * q[2] - p[2] * q[1], p[2] * q[0] - p[0] * q[2], p[0] * q[1] - p[1] * q[0]];
+            let d = n[0] * q[0] + n[1] * q[1] + n[2] * q[2];
+            let r = [q[0] - 2.0 * d * n[0], q[2] - 2.0 * d * n[2]];
+            n[0] + n[1] * 2.0 + c[0] * 3.0 + c[1] + c[2] * 0.5 + r[0] + r[1]
+        }),
+        (12, {
+            let t = ((x + 1.0) / 3.0).clamp(0.0, 1.0);
+            t * t * (3.0 - 2.0 * t) + 1.0 / (y.abs() + 1.0).sqrt()
+        }),
+    ];
+    let smsb = if s < 0 { msb(!s as u32) } else { msb(s as u32) };
+    let lsb = if u == 0 { u32::MAX } else { u.trailing_zeros() };
+    o[13] = lsb.wrapping_add(msb(u).wrapping_mul(100)).wrapping_add(smsb.wrapping_mul(10000));
+    o[14] = u.count_ones().wrapping_add(u.reverse_bits());
+    o[15] = ((u >> 3) & 0x1FF).wrapping_add((((s >> 5) << 25) >> 25) as u32);
+    let mask = ((1u32 << 13) - 1) << 4;
+    o[16] = (u & !mask) | ((0x1234 << 4) & mask);
+    let prod = u as u64 * 0x9E37_79B9;
+    o[17] = (prod >> 32) as u32 ^ prod as u32;
+    let (sum, carry) = u.overflowing_add(0xF000_0000);
+    o[18] = sum.wrapping_add(carry as u32);
+    o[19] = (s.min(-5).wrapping_add(s.max(7)).wrapping_add(s.clamp(-100, 100)) as u32)
+        .wrapping_add(u.min(77))
+        .wrapping_add(u.clamp(5, 9));
+    o[20] = (s.wrapping_abs().wrapping_add(s.signum()) as u32).wrapping_add(u % 7).wrapping_add(u / 13);
+    o[21] = ((s >> 3) as u32) ^ (u << 5) ^ !u;
+    o[22] = ((x * 100.0) as i32 as u32).wrapping_add((y.abs() * 10.0) as u32);
+    o[23] = fb(s as f32 + u as f32);
+    o[24] = (x < y) as u32 + (x >= y) as u32 * 2 + ((x / 0.0).is_nan() as u32) * 4 + ((y / 0.0).is_infinite() as u32) * 8;
+    let big = (u as u64).wrapping_mul(0x1_0000_0001).wrapping_add(i as u64);
+    let sb = s as i64 * -3;
+    let d = x as f64 * y as f64 + 1.0 / 3.0;
+    let w = [
+        big ^ (big >> 17) ^ (big << 9),
+        (sb / 7 + sb.rem_euclid(5)) as u64,
+        (d + d.abs().sqrt()).to_bits(),
+        ((d * 1000.0) as i64 as u64).wrapping_add((big >> 32) as u32 as u64),
+    ];
+    (o, approx, w)
+}
+
+#[test]
+fn glsl_std450_conversions_bits_and_64bit() {
+    let n = 64;
+    let r = inputs(3 * n, 11);
+    let mut v = Vec::new();
+    for i in 0..n {
+        let x = (r[3 * i] % 20000) as f32 / 1000.0 - 10.0;
+        let y = (r[3 * i + 1] % 20000) as f32 / 1000.0 - 10.0;
+        let z = if i % 9 == 0 { 0 } else { r[3 * i + 2] };
+        v.extend([x.to_bits(), y.to_bits(), z, 0]);
+    }
+    for (what, words) in compile("math.comp") {
+        let out = run(&words, &[bytes_u32(&v), vec![0; n * 128], vec![0; n * 32]], &[], [4, 1, 1]);
+        let o = u32s(&out[1]);
+        let w: Vec<u64> = out[2].chunks(8).map(|c| u64::from_le_bytes(c.try_into().unwrap())).collect();
+        for i in 0..n {
+            let (x, y, u) = (f32::from_bits(v[4 * i]), f32::from_bits(v[4 * i + 1]), v[4 * i + 2]);
+            let (exact, approx, wide) = math_reference(i as u32, x, y, u);
+            for k in (0..25).filter(|k| !approx.iter().any(|a| a.0 == *k)) {
+                assert_eq!(o[32 * i + k], exact[k], "{what}: invocation {i} slot {k} (x={x}, y={y}, u={u:#x})");
+            }
+            for &(k, want) in &approx {
+                let got = f32::from_bits(o[32 * i + k]);
+                assert!(close(got, want), "{what}: invocation {i} slot {k}: {got} vs {want} (x={x}, y={y})");
+            }
+            assert_eq!(&w[4 * i..4 * i + 4], &wide, "{what}: 64-bit results of invocation {i}");
+        }
+    }
+}
