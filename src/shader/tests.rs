@@ -260,3 +260,180 @@ fn glsl_std450_conversions_bits_and_64bit() {
         }
     }
 }
+
+#[test]
+fn shared_memory_barriers_and_atomics() {
+    let (groups, n) = (3usize, 192usize);
+    let v: Vec<u32> = inputs(n, 3);
+    let global_init = bytes_u32(&[0, 0, u32::MAX, 0, 0, i32::MAX as u32]);
+    for (what, words) in compile("shared.comp") {
+        let out = run(&words, &[bytes_u32(&v), vec![0; n * 4], vec![0; groups * 12], global_init.clone()], &[], [3, 1, 1]);
+        let (rev, sums, glob) = (u32s(&out[1]), u32s(&out[2]), u32s(&out[3]));
+        for g in 0..n {
+            assert_eq!(rev[g], v[g / 64 * 64 + 63 - g % 64], "{what}: reversed[{g}]");
+        }
+        for w in 0..groups {
+            let part = &v[w * 64..w * 64 + 64];
+            let sum = part.iter().fold(0u32, |a, &x| a.wrapping_add(x));
+            let low = part.iter().fold(0u32, |a, &x| a.wrapping_add(x & 0xFF));
+            let bits = part.iter().fold(0u32, |a, &x| a | 1 << (x % 32));
+            assert_eq!(&sums[3 * w..3 * w + 3], &[sum, low, bits], "{what}: workgroup {w}");
+        }
+        assert_eq!(glob[0], v.iter().fold(0u32, |a, &x| a.wrapping_add(x & 0xFFF)), "{what}: total");
+        assert_eq!(glob[1], *v.iter().max().unwrap(), "{what}: max");
+        assert_eq!(glob[2], *v.iter().min().unwrap(), "{what}: min");
+        assert_eq!(glob[3], v.iter().fold(0, |a, &x| a | (x & 0xF0F0)), "{what}: or");
+        // Racy by design: some invocation won the compare-exchange.
+        assert!((1..=n as u32).contains(&glob[4]), "{what}: compare-exchange winner {}", glob[4]);
+        assert_eq!(glob[5] as i32, v.iter().map(|&x| x as i32).min().unwrap(), "{what}: signed min");
+    }
+}
+
+fn push_ubo_reference(i: u32, k: u32, flag: bool, wgx: u32, push: (u32, f32), ubo: &[u32]) -> (u32, f32) {
+    let f = |w: usize| f32::from_bits(ubo[w]);
+    let t = ubo[4 + 4 * (i as usize % 4)];
+    let (c0, c1) = ((f(20), f(21)), (f(24), f(25)));
+    let mv = (c0.0 * i as f32 + c1.0, c0.1 * i as f32 + c1.1);
+    let fv = f(1) * i as f32 + push.1 + mv.0 + mv.1 * 0.5;
+    let u = i * push.0 + t * (k * 2 + 1) + if flag { 1000 } else { 0 } + wgx * 100_000;
+    (u, fv)
+}
+
+#[test]
+fn push_constants_uniform_buffer_and_specialization() {
+    let count = 50u32;
+    let mut ubo = vec![0u32; 28];
+    for (k, x) in ubo.iter_mut().enumerate() {
+        *x = match k {
+            0..=3 => (k as f32 * 0.75 + 0.5).to_bits(),
+            20..=27 => (k as f32 * 0.125 - 2.0).to_bits(),
+            _ => 3 * k as u32 + 1,
+        };
+    }
+    let push: Vec<u8> = [5u32, 1.5f32.to_bits(), count].iter().flat_map(|x| x.to_le_bytes()).collect();
+    let cases: [(Vec<(u32, Vec<u8>)>, u32, bool, u32); 2] = [
+        (vec![], 3, false, 1),
+        (vec![(0, 5u32.to_le_bytes().to_vec()), (1, 1u32.to_le_bytes().to_vec()), (2, 16u32.to_le_bytes().to_vec())], 5, true, 16),
+    ];
+    for (what, words) in compile("push_ubo_spec.comp") {
+        for (spec, k, flag, wgx) in &cases {
+            let p = pipeline(&words, spec);
+            assert_eq!(p.local_size, [*wgx, 1, 1], "{what}");
+            assert_eq!(p.push_constant_size, 12, "{what}");
+            let groups = count.div_ceil(*wgx) + 1; // one extra group exercises the early return
+            let out = run_spec(&words, spec, &[bytes_u32(&ubo), vec![0; 8 * 64]], &push, [groups, 1, 1]);
+            let o = u32s(&out[1]);
+            for i in 0..count {
+                let (u, f) = push_ubo_reference(i, *k, *flag, *wgx, (5, 1.5), &ubo);
+                assert_eq!(o[2 * i as usize], u, "{what} spec {spec:?}: o[{i}]");
+                assert!(close(f32::from_bits(o[2 * i as usize + 1]), f), "{what} spec {spec:?}: f[{i}]");
+            }
+            assert!(o[2 * count as usize..].iter().all(|&x| x == 0), "{what}: writes past count");
+        }
+    }
+}
+
+/// Memory for bda.comp: (memory, vals, table, out_words, raw) buffer indices.
+fn bda_memory(n: u32) -> (HostMemory, Vec<f32>, [usize; 4]) {
+    let mut mem = HostMemory::new();
+    let vals: Vec<f32> = (0..2 * n).map(|k| k as f32 * 0.5 - 3.0).collect();
+    let mut vb = bytes_u32(&[2.5f32.to_bits(), 0]);
+    vb.extend(vals.iter().flat_map(|x| x.to_le_bytes()));
+    let vi = mem.add_buffer(&vb);
+    let mut tb = mem.device_address(vi).to_le_bytes().to_vec();
+    tb.extend(bytes_u32(&[n, 0]));
+    let ti = mem.add_buffer(&tb);
+    let oi = mem.add_buffer(&vec![0; 64 * 4]);
+    let ri = mem.add_buffer(&vec![0; 64 * 8]);
+    (mem, vals, [vi, ti, oi, ri])
+}
+
+#[test]
+fn buffer_device_address() {
+    let n = 40u32;
+    for (what, words) in compile("bda.comp") {
+        let p = pipeline(&words, &[]);
+        let (mem, vals, [vi, ti, oi, ri]) = bda_memory(n);
+        let push: Vec<u8> = [mem.device_address(ti), mem.device_address(oi), mem.device_address(ri)]
+            .iter()
+            .flat_map(|a| a.to_le_bytes())
+            .collect();
+        let report = dispatch(&p, &mem, &push, [2, 1, 1], [0; 3], &Watchdog::default());
+        assert!(report.is_clean(), "{what}: {report:?}");
+        let (o, raw) = (u32s(&mem.bytes(oi)), u32s(&mem.bytes(ri)));
+        let va = mem.device_address(vi);
+        for i in 0..64usize {
+            let live = (i as u32) < n;
+            let want = if live { (vals[2 * i] * 2.5 + vals[2 * i + 1]).to_bits() } else { 0 };
+            assert_eq!(raw[2 * i], want, "{what}: raw[{i}]");
+            assert_eq!(raw[2 * i + 1], if live { 7 * i as u32 } else { 0 }, "{what}: raw[{i}]+1");
+            assert_eq!(o[i], if live { (va & 0xFFFF) as u32 + i as u32 } else { 0 }, "{what}: out[{i}]");
+        }
+    }
+}
+
+fn subgroup_reference(x: &[u32]) -> Vec<[u32; 16]> {
+    let lanes = LANES;
+    let mut out = vec![[0u32; 16]; x.len()];
+    for s in (0..x.len()).step_by(lanes) {
+        let g = &x[s..s + lanes];
+        let ballot = (0..lanes).filter(|&l| g[l] & 1 == 1).fold(0u32, |a, l| a | 1 << l);
+        let sum = g.iter().fold(0u32, |a, &v| a.wrapping_add(v));
+        let then: Vec<usize> = (0..lanes).filter(|&l| g[l] % 3 == 0).collect();
+        let then_ballot = then.iter().fold(0u32, |a, &l| a | 1 << l);
+        let then_sum = then.iter().fold(0u32, |a, &l| a.wrapping_add(g[l]));
+        let others: Vec<usize> = (0..lanes).filter(|&l| g[l] % 3 != 0).collect();
+        let prod = others.iter().fold(1u32, |a, &l| a.wrapping_mul(g[l] % 4 + 1));
+        let fsum = g.iter().fold(0f32, |a, &v| a + v as f32 * 0.5);
+        for l in 0..lanes {
+            let below = (1u32 << l) - 1;
+            let o = &mut out[s + l];
+            o[0] = lanes as u32 * 1000 + l as u32 * 10 + (l == 0) as u32;
+            o[1] = g.iter().all(|&v| v > 5) as u32 + 2 * g.iter().any(|&v| v > 90) as u32
+                + 4 * g.iter().all(|&v| v / 1000 == g[0] / 1000) as u32;
+            o[2] = g[3].wrapping_add(g[0] * 2);
+            o[3] = ballot;
+            o[4] = ballot.count_ones() + 100 * (ballot & ((2 << l) - 1)).count_ones() + 10000 * (ballot & below).count_ones();
+            let (lsb, msb) = if ballot == 0 { (u32::MAX, u32::MAX) } else { (ballot.trailing_zeros(), 31 - ballot.leading_zeros()) };
+            o[5] = lsb.wrapping_add(msb.wrapping_mul(100)).wrapping_add(if ballot & 4 != 0 { 10000 } else { 0 });
+            o[6] = sum;
+            o[7] = g.iter().min().unwrap() + g.iter().max().unwrap() * 3;
+            o[8] = g.iter().fold(!0u32, |a, &v| a & (v | 0x100)) ^ g.iter().fold(0, |a, &v| a | v) ^ g.iter().fold(0, |a, &v| a ^ v);
+            o[9] = g[..=l].iter().fold(0u32, |a, &v| a.wrapping_add(v));
+            o[10] = g[..l].iter().fold(0u32, |a, &v| a.wrapping_add(v));
+            o[11] = fsum.to_bits();
+            if g[l] % 3 == 0 {
+                o[12] = then_sum + (then[0] == l) as u32;
+                o[13] = then_ballot;
+            } else {
+                o[12] = prod;
+                o[13] = others.iter().filter(|&&k| k < l).count() as u32;
+            }
+            o[14] = (g.iter().map(|&v| v as i32 - 50).min().unwrap()) as u32;
+            o[15] = (1 << l) | (below << 8);
+        }
+    }
+    out
+}
+
+#[test]
+fn subgroup_basic_vote_ballot_arithmetic() {
+    let n = 64usize;
+    let x: Vec<u32> = inputs(n, 5)
+        .into_iter()
+        .enumerate()
+        .map(|(g, r)| match g / LANES {
+            1 => 2000 + r % 100,
+            2 => 10 + r % 80,
+            _ => r % 100,
+        })
+        .collect();
+    let want = subgroup_reference(&x);
+    for (what, words) in compile("subgroup.comp") {
+        let out = run(&words, &[bytes_u32(&x), vec![0; n * 64]], &[], [2, 1, 1]);
+        let o = u32s(&out[1]);
+        for g in 0..n {
+            assert_eq!(&o[16 * g..16 * g + 16], &want[g], "{what}: invocation {g} (x = {:?})", &x[g / LANES * LANES..][..LANES]);
+        }
+    }
+}
