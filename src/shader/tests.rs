@@ -437,3 +437,135 @@ fn subgroup_basic_vote_ballot_arithmetic() {
         }
     }
 }
+
+/// The word at `offset` must be the instruction the error names.
+fn opcode_at(words: &[u32], offset: usize) -> u32 {
+    words[offset] & 0xFFFF
+}
+
+#[test]
+fn unsupported_modules_fail_at_parse_naming_what_and_where() {
+    for (what, words) in compile("int8.comp") {
+        match Module::parse(&words) {
+            Err(ShaderError::UnsupportedCapability { capability, offset }) => {
+                assert!(capability.contains("Int8"), "{what}: {capability}");
+                assert_eq!(opcode_at(&words, offset), spirv::Op::Capability as u32, "{what}");
+            }
+            other => panic!("{what}: expected an unsupported capability, got {other:?}"),
+        }
+    }
+    for (what, words) in compile("image.comp") {
+        match Module::parse(&words) {
+            Err(ShaderError::UnsupportedOpcode { opcode, offset }) => {
+                assert_eq!(opcode, "OpTypeImage", "{what}");
+                assert_eq!(opcode_at(&words, offset), spirv::Op::TypeImage as u32, "{what}");
+            }
+            other => panic!("{what}: expected an unsupported opcode, got {other:?}"),
+        }
+    }
+    // Ray queries are the next layer; until then the capability is refused by name.
+    for (what, words) in compile("rq_closest.comp") {
+        let err = Module::parse(&words).unwrap_err();
+        assert!(err.to_string().contains("RayQueryKHR"), "{what}: {err}");
+    }
+    let garbage = [0x0723_0203u32, 0x0001_0500, 0, 10, 0, 0x0005_0000];
+    assert!(matches!(Module::parse(&garbage), Err(ShaderError::Malformed { .. })));
+    assert!(matches!(Module::parse(&[1, 2, 3]), Err(ShaderError::Malformed { offset: 0, .. })));
+    let words = &compile("arith.comp")[0].1;
+    let module = Module::parse(words).unwrap();
+    assert!(matches!(Pipeline::compute(&module, "nope", &[]), Err(ShaderError::NoEntryPoint { .. })));
+}
+
+#[test]
+fn out_of_bounds_and_unbound_accesses_are_contained_and_reported() {
+    for (what, words) in compile("oob.comp") {
+        let p = pipeline(&words, &[]);
+        let mut mem = HostMemory::new();
+        let input = mem.add_buffer(&bytes_u32(&(0..24).collect::<Vec<u32>>()));
+        let out = mem.add_buffer(&[0; 24 * 4]);
+        mem.bind(0, 0, input);
+        mem.bind(0, 1, out);
+        // Invocations 0..16 at shift 10: indices 10..26, of which 24 and 25 are past both buffers.
+        let push = 10u32.to_le_bytes();
+        let report = dispatch(&p, &mem, &push, [1, 1, 1], [0; 3], &Watchdog::default());
+        assert_eq!(report.fault_count, 4, "{what}: {report:?}");
+        let f = report.faults[0];
+        assert_eq!((f.kind, f.space, f.at, f.write), (FaultKind::OutOfBounds, FaultSpace::Binding { set: 0, binding: 0 }, 96, false), "{what}");
+        assert_eq!(f.invocation, 14, "{what}");
+        assert!(report.faults.iter().any(|f| f.write && f.space == FaultSpace::Binding { set: 0, binding: 1 }), "{what}");
+        let o = u32s(&mem.bytes(out));
+        for (i, &x) in o.iter().enumerate() {
+            assert_eq!(x, if i >= 10 { i as u32 + 1 } else { 0 }, "{what}: o[{i}]");
+        }
+        // Nothing bound at binding 1: every store is an Unbound fault, loads still work.
+        let mut mem = HostMemory::new();
+        let input = mem.add_buffer(&bytes_u32(&[0; 16]));
+        mem.bind(0, 0, input);
+        let report = dispatch(&p, &mem, &0u32.to_le_bytes(), [1, 1, 1], [0; 3], &Watchdog::default());
+        assert_eq!(report.fault_count, 16, "{what}");
+        assert_eq!(report.faults[0].kind, FaultKind::Unbound, "{what}");
+    }
+    for (what, words) in compile("bda.comp") {
+        let p = pipeline(&words, &[]);
+        let (mem, _, [_, ti, oi, _]) = bda_memory(8);
+        let bad = 0xDEAD_0000u64;
+        let push: Vec<u8> = [mem.device_address(ti), mem.device_address(oi), bad].iter().flat_map(|a| a.to_le_bytes()).collect();
+        let report = dispatch(&p, &mem, &push, [1, 1, 1], [0; 3], &Watchdog::default());
+        assert_eq!(report.fault_count, 16, "{what}: two unmapped stores for each of 8 invocations");
+        assert_eq!((report.faults[0].kind, report.faults[0].at), (FaultKind::Unmapped, bad), "{what}");
+        let va = mem.device_address(0) & 0xFFFF;
+        let want: Vec<u32> = (0..8).map(|i| va as u32 + i).collect();
+        assert_eq!(&u32s(&mem.bytes(oi))[..8], &want[..], "{what}: good stores still land");
+    }
+}
+
+#[test]
+fn watchdog_stops_a_shader_that_does_not_terminate() {
+    use std::sync::atomic::AtomicBool;
+    use std::sync::Arc;
+    for (what, words) in compile("spin.comp") {
+        let p = pipeline(&words, &[]);
+        let mut mem = HostMemory::new();
+        let b = mem.add_buffer(&[0; 8]);
+        mem.bind(0, 0, b);
+        let budget = Watchdog { step_budget: Some(100_000), ..Watchdog::default() };
+        let report = dispatch(&p, &mem, &[], [4, 1, 1], [0; 3], &budget);
+        assert_eq!(report.stopped, Some(Stop::StepBudget), "{what}");
+        let deadline = Watchdog { deadline: Some(std::time::Instant::now() + std::time::Duration::from_millis(50)), ..Watchdog::default() };
+        assert_eq!(dispatch(&p, &mem, &[], [2, 1, 1], [0; 3], &deadline).stopped, Some(Stop::Deadline), "{what}");
+        let cancel = Watchdog { cancel: Some(Arc::new(AtomicBool::new(true))), ..Watchdog::default() };
+        assert_eq!(dispatch(&p, &mem, &[], [2, 1, 1], [0; 3], &cancel).stopped, Some(Stop::Cancelled), "{what}");
+        // With the magic value in place the same shader terminates.
+        let mut mem = HostMemory::new();
+        let b = mem.add_buffer(&bytes_u32(&[12345, 0]));
+        mem.bind(0, 0, b);
+        assert!(dispatch(&p, &mem, &[], [2, 1, 1], [0; 3], &budget).is_clean(), "{what}");
+    }
+}
+
+#[test]
+fn results_do_not_depend_on_thread_count_or_dispatch_base() {
+    let n = 96;
+    let input: Vec<u32> = inputs(n, 9).into_iter().map(|x| x % 5000).collect();
+    let (_, words) = &compile("control.comp")[1];
+    let p = pipeline(words, &[]);
+    let run_on = |threads: usize, base: u32| {
+        let mut mem = HostMemory::new();
+        let i = mem.add_buffer(&bytes_u32(&input));
+        let o = mem.add_buffer(&vec![0; n * 16]);
+        mem.bind(0, 0, i);
+        mem.bind(0, 1, o);
+        let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
+        // Two dispatches split at `base` cover the same workgroups as one.
+        pool.install(|| {
+            assert!(dispatch(&p, &mem, &[], [base, 1, 1], [0; 3], &Watchdog::default()).is_clean());
+            assert!(dispatch(&p, &mem, &[], [3 - base, 1, 1], [base, 0, 0], &Watchdog::default()).is_clean());
+        });
+        mem.bytes(o)
+    };
+    let one = run_on(1, 0);
+    assert!(one.iter().any(|&b| b != 0));
+    assert_eq!(run_on(4, 0), one);
+    assert_eq!(run_on(3, 1), one);
+    assert_eq!(run_on(2, 2), one);
+}
