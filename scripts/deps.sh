@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
-# Installs what Arbor's tests and tools need on Debian/Ubuntu: the Vulkan loader, vulkaninfo and
-# the Khronos validation layer, and glslang + SPIRV-Tools (the shader tests compile GLSL at test time). As root it uses apt-get; otherwise it says what to install.
+# Installs what Arbor's tests and tools need on Debian/Ubuntu: the Vulkan loader, vulkaninfo,
+# the Khronos validation layer, and glslang + SPIRV-Tools (the shader tests compile GLSL at test
+# time). As root it uses apt-get; otherwise it says what to install.
 set -euo pipefail
 need=()
 ldconfig -p 2>/dev/null | grep -q 'libvulkan.so.1 ' || need+=(libvulkan1)
