@@ -53,11 +53,13 @@ fn fun(ty: Sc, a: u64, op: impl Fn(f64) -> f64) -> u64 {
     from_f(ty, op(f(ty, a)))
 }
 
+#[inline(always)]
 fn shift_amount(ty: Sc, b: u64) -> Option<u32> {
     let s = b as u32;
     (s < ty.bits()).then_some(s)
 }
 
+#[inline(always)]
 pub fn bin(op: BinOp, ty: Sc, a: u64, b: u64) -> u64 {
     use BinOp::*;
     let bits = ty.bits();
@@ -121,6 +123,7 @@ pub fn bin(op: BinOp, ty: Sc, a: u64, b: u64) -> u64 {
 }
 
 /// True for ops whose result is a Bool whatever the operand type.
+#[inline(always)]
 pub fn op_is_compare(op: BinOp) -> bool {
     use BinOp::*;
     matches!(
@@ -131,6 +134,7 @@ pub fn op_is_compare(op: BinOp) -> bool {
     )
 }
 
+#[inline(always)]
 fn fbin_op(op: BinOp, ty: Sc, a: u64, b: u64) -> u64 {
     use BinOp::*;
     let (x, y) = (f(ty, a), f(ty, b));
@@ -166,6 +170,7 @@ fn fbin_op(op: BinOp, ty: Sc, a: u64, b: u64) -> u64 {
     }
 }
 
+#[inline(always)]
 pub fn un(op: UnOp, ty: Sc, from: Sc, a: u64) -> u64 {
     use UnOp::*;
     let r = match op {

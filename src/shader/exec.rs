@@ -16,7 +16,7 @@ use std::time::Instant;
 use rayon::prelude::*;
 
 use super::alu;
-use super::ir::{builtin_offset as bo, BallotOp, BinOp, Block, Op, Program, Sc, SgOp, Term};
+use super::ir::{builtin_offset as bo, BallotOp, BinOp, Block, Op, Program, Sc, SgOp, Term, UnOp};
 use super::memory::{Fault, Memory, Region};
 use super::{Pipeline, LANES};
 
@@ -356,7 +356,7 @@ fn exec_op(ctx: &Ctx, group: &mut Group, wg: &mut Wg, op: &Op, mask: u32) {
         }
         Op::Un { op, ty, from, dst, a } => {
             let a = regs[a as usize];
-            lanes(regs, dst, mask, |l| alu::un(op, ty, from, a[l]));
+            exec_un(regs, op, ty, from, dst, mask, &a);
         }
         Op::Tri { op, ty, dst, a, b, c } => {
             let (a, b, c) = (regs[a as usize], regs[b as usize], regs[c as usize]);
@@ -412,22 +412,42 @@ fn exec_op(ctx: &Ctx, group: &mut Group, wg: &mut Wg, op: &Op, mask: u32) {
     }
 }
 
-/// The hot arithmetic gets its own loops so the compiler can vectorise them; the rest goes
-/// through the shared scalar semantics.
+/// Expands to a match whose arms call `alu` with constant op and type, so each arm's lane
+/// loop is specialised (and can vectorise) instead of dispatching per lane.
+macro_rules! specialised {
+    (($op:ident, $ty:ident): $Op:ident, [$(($o:ident, $t:ident)),* $(,)?], $body:expr) => {
+        match ($op, $ty) {
+            $( ($Op::$o, Sc::$t) => {
+                let ($op, $ty) = ($Op::$o, Sc::$t);
+                $body
+            } )*
+            _ => $body,
+        }
+    };
+}
+
+/// Binary ops: the common (op, type) pairs get their own loops.
 fn exec_bin(regs: &mut [Regs], op: BinOp, ty: Sc, dst: u32, mask: u32, a: &Regs, b: &Regs) {
-    let f32v = |x: u64| f32::from_bits(x as u32);
-    match (op, ty) {
-        (BinOp::IAdd, Sc::I32) => lanes(regs, dst, mask, |l| (a[l] as u32).wrapping_add(b[l] as u32) as u64),
-        (BinOp::ISub, Sc::I32) => lanes(regs, dst, mask, |l| (a[l] as u32).wrapping_sub(b[l] as u32) as u64),
-        (BinOp::IMul, Sc::I32) => lanes(regs, dst, mask, |l| (a[l] as u32).wrapping_mul(b[l] as u32) as u64),
-        (BinOp::FAdd, Sc::F32) => lanes(regs, dst, mask, |l| (f32v(a[l]) + f32v(b[l])).to_bits() as u64),
-        (BinOp::FSub, Sc::F32) => lanes(regs, dst, mask, |l| (f32v(a[l]) - f32v(b[l])).to_bits() as u64),
-        (BinOp::FMul, Sc::F32) => lanes(regs, dst, mask, |l| (f32v(a[l]) * f32v(b[l])).to_bits() as u64),
-        (BinOp::ULt, Sc::I32) => lanes(regs, dst, mask, |l| ((a[l] as u32) < (b[l] as u32)) as u64),
-        (BinOp::SLt, Sc::I32) => lanes(regs, dst, mask, |l| ((a[l] as i32) < (b[l] as i32)) as u64),
-        (BinOp::IEq, _) => lanes(regs, dst, mask, |l| (a[l] == b[l]) as u64),
-        _ => lanes(regs, dst, mask, |l| alu::bin(op, ty, a[l], b[l])),
-    }
+    specialised!((op, ty): BinOp, [
+        (IAdd, I32), (ISub, I32), (IMul, I32), (UDiv, I32), (UMod, I32), (Shl, I32), (ShrL, I32),
+        (ShrA, I32), (And, I32), (Or, I32), (Xor, I32), (IEq, I32), (INe, I32), (ULt, I32),
+        (ULe, I32), (UGt, I32), (UGe, I32), (SLt, I32), (SLe, I32), (SGt, I32), (SGe, I32),
+        (IAdd, I64), (ISub, I64), (IMul, I64), (Shl, I64), (ShrL, I64), (And, I64), (Or, I64),
+        (Xor, I64), (FAdd, F32), (FSub, F32), (FMul, F32), (FDiv, F32), (FOrdLt, F32),
+        (FOrdLe, F32), (FOrdGt, F32), (FOrdGe, F32), (FOrdEq, F32), (FMin, F32), (FMax, F32),
+        (FAdd, F64), (FSub, F64), (FMul, F64), (FDiv, F64), (LAnd, Bool), (LOr, Bool),
+        (LEq, Bool), (LNe, Bool),
+    ], lanes(regs, dst, mask, |l| alu::bin(op, ty, a[l], b[l])))
+}
+
+/// Unary ops: conversions and the common float functions get their own loops.
+fn exec_un(regs: &mut [Regs], op: UnOp, ty: Sc, from: Sc, dst: u32, mask: u32, a: &Regs) {
+    specialised!((op, ty): UnOp, [
+        (ConvertUToF, F32), (ConvertSToF, F32), (ConvertFToU, I32), (ConvertFToS, I32),
+        (Bitcast, I32), (Bitcast, F32), (UConvert, I32), (UConvert, I64), (SConvert, I64),
+        (FNeg, F32), (SNeg, I32), (Not, I32), (LNot, Bool), (FAbs, F32), (Floor, F32),
+        (Sqrt, F32), (InverseSqrt, F32), (Fract, F32),
+    ], lanes(regs, dst, mask, |l| alu::un(op, ty, from, a[l])))
 }
 
 /// The identity of a scan's operation (the exclusive scan's first value).

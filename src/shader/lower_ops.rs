@@ -175,6 +175,14 @@ impl Lowerer<'_> {
             self.define(id, Val::Regs(dst));
             return Ok(());
         }
+        self.lower_composite(inst)
+    }
+
+    /// Composite construction and access: register lists rearranged, plus selects.
+    fn lower_composite(&mut self, inst: &Instruction) -> Result<(), ShaderError> {
+        let id = inst.result_id.unwrap_or(0);
+        let rty = inst.result_type.unwrap_or(0);
+        let op = inst.class.opcode;
         let v = match op {
             Op::CopyObject | Op::CopyLogical => self.val(id_op(inst, 0)?)?,
             Op::Undef => Val::Regs({
