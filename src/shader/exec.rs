@@ -394,7 +394,7 @@ fn exec_op(ctx: &Ctx, group: &mut Group, wg: &mut Wg, op: &Op, mask: u32) {
             }
         }
         Op::BallotOp { op, dst, ballot, b } => {
-            let (w, b) = (regs[ballot[0] as usize][0..LANES].to_vec(), regs[b as usize]);
+            let (w, b) = (regs[ballot[0] as usize], regs[b as usize]);
             let all = (1u64 << LANES) - 1;
             lanes(regs, dst, mask, |l| {
                 let bits = w[l] & all;

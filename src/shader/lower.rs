@@ -202,6 +202,11 @@ impl<'a> Lowerer<'a> {
         }
     }
 
+    /// The one register of scalar value `id`.
+    pub fn reg1(&mut self, id: u32) -> Result<Reg, ShaderError> {
+        self.regs(id)?.first().copied().ok_or_else(|| self.m.malformed(id, "expected a scalar value"))
+    }
+
     /// `id` as a pointer: logical pointers directly, physical ones from their address register.
     pub fn ptr(&mut self, id: u32, ty_of_id: Option<u32>) -> Result<Ptr, ShaderError> {
         match self.val(id)? {
@@ -209,7 +214,7 @@ impl<'a> Lowerer<'a> {
             Val::Regs(r) => {
                 let ty = ty_of_id.ok_or_else(|| self.m.malformed(id, "pointer of unknown type"))?;
                 match self.m.ty(ty)? {
-                    Type::Pointer { class: StorageClass::PhysicalStorageBuffer, pointee } => {
+                    Type::Pointer { class: StorageClass::PhysicalStorageBuffer, pointee } if r.len() == 1 => {
                         Ok(Ptr { space: Space::Physical, addr: r[0], pointee: *pointee, matrix_stride: None })
                     }
                     _ => Err(self.m.malformed(id, "not a pointer")),
@@ -397,7 +402,7 @@ impl<'a> Lowerer<'a> {
         }
         let ty = self.type_of(index).ok_or_else(|| self.m.malformed(index, "index of unknown type"))?;
         let index_ty = self.l.scalar(ty)?;
-        let reg = self.regs(index)?[0];
+        let reg = self.reg1(index)?;
         let dst = self.reg();
         self.emit(IrOp::Index { dst, base: addr, index: reg, index_ty, stride });
         Ok(dst)
@@ -543,12 +548,12 @@ impl Lowerer<'_> {
         Ok(match inst.class.opcode {
             Op::Branch => Term::Jump(id_op(inst, 0)?),
             Op::BranchConditional => {
-                let cond = self.regs(id_op(inst, 0)?)?[0];
+                let cond = self.reg1(id_op(inst, 0)?)?;
                 Term::Cond { cond, t: id_op(inst, 1)?, f: id_op(inst, 2)? }
             }
             Op::Switch => {
                 let sel_id = id_op(inst, 0)?;
-                let sel = self.regs(sel_id)?[0];
+                let sel = self.reg1(sel_id)?;
                 // Operands: selector, default, then (literal, label) pairs; rspirv decodes a
                 // 64-bit selector's literals as one operand each.
                 let mut cases = Vec::new();

@@ -164,6 +164,9 @@ impl Lowerer<'_> {
             let a_sc = self.sc_of(a_id)?;
             let a = self.regs(a_id)?;
             let b = if inst.operands.len() > 1 { Some(self.regs_splat(id_op(inst, 1)?, a.len())?) } else { None };
+            if a.len() != out.len() || a_sc.len() != a.len() || b.as_ref().is_some_and(|b| b.len() != a.len()) {
+                return Err(self.m.malformed(id, "operand and result component counts differ"));
+            }
             let mut dst = Vec::with_capacity(out.len());
             for i in 0..out.len() {
                 dst.push(match (kind, &b) {
@@ -225,7 +228,7 @@ impl Lowerer<'_> {
                 let v = self.regs(id_op(inst, 0)?)?;
                 let idx_id = id_op(inst, 1)?;
                 let idx_sc = self.sc_of(idx_id)?[0];
-                let idx = self.regs(idx_id)?[0];
+                let idx = self.reg1(idx_id)?;
                 let mut acc = v[0];
                 for (k, &c) in v.iter().enumerate().skip(1) {
                     let kr = self.konst(k as u64);
@@ -236,10 +239,10 @@ impl Lowerer<'_> {
             }
             Op::VectorInsertDynamic => {
                 let v = self.regs(id_op(inst, 0)?)?;
-                let obj = self.regs(id_op(inst, 1)?)?[0];
+                let obj = self.reg1(id_op(inst, 1)?)?;
                 let idx_id = id_op(inst, 2)?;
                 let idx_sc = self.sc_of(idx_id)?[0];
-                let idx = self.regs(idx_id)?[0];
+                let idx = self.reg1(idx_id)?;
                 let mut out = Vec::new();
                 for (k, &c) in v.iter().enumerate() {
                     let kr = self.konst(k as u64);
@@ -283,7 +286,7 @@ impl Lowerer<'_> {
             }
             Op::VectorTimesScalar | Op::MatrixTimesScalar => {
                 let a = self.regs(id_op(inst, 0)?)?;
-                let s = self.regs(id_op(inst, 1)?)?[0];
+                let s = self.reg1(id_op(inst, 1)?)?;
                 let ty = self.sc_of(id_op(inst, 1)?)?[0];
                 a.iter().map(|&c| self.bin(BinOp::FMul, ty, c, s)).collect()
             }
@@ -306,7 +309,7 @@ impl Lowerer<'_> {
                 let sc = self.l.components(rty)?;
                 let base = self.regs(id_op(inst, 0)?)?;
                 let ins = self.regs(id_op(inst, 1)?)?;
-                let (offset, count) = (self.regs(id_op(inst, 2)?)?[0], self.regs(id_op(inst, 3)?)?[0]);
+                let (offset, count) = (self.reg1(id_op(inst, 2)?)?, self.reg1(id_op(inst, 3)?)?);
                 let mut out = Vec::new();
                 for i in 0..base.len() {
                     let dst = self.reg();
@@ -318,7 +321,7 @@ impl Lowerer<'_> {
             Op::BitFieldSExtract | Op::BitFieldUExtract => {
                 let sc = self.l.components(rty)?;
                 let base = self.regs(id_op(inst, 0)?)?;
-                let (offset, count) = (self.regs(id_op(inst, 1)?)?[0], self.regs(id_op(inst, 2)?)?[0]);
+                let (offset, count) = (self.reg1(id_op(inst, 1)?)?, self.reg1(id_op(inst, 2)?)?);
                 let top = if op == Op::BitFieldSExtract { TriOp::BitFieldSExtract } else { TriOp::BitFieldUExtract };
                 let mut out = Vec::new();
                 for i in 0..base.len() {
@@ -384,6 +387,15 @@ impl Lowerer<'_> {
         let a_sc = self.sc_of(*args.first().ok_or_else(|| self.m.malformed(id, "no operands"))?)?;
         let ty = a_sc[0];
         let regs: Vec<Vec<Reg>> = args.iter().map(|&a| self.regs_splat(a, a_sc.len())).collect::<Result<_, _>>()?;
+        let arity = match (glsl_alu(n), n) {
+            (Some(GlslOp::U(_)), _) | (None, 66 | 69) => 1,
+            (Some(GlslOp::B(_)), _) | (None, 67 | 68 | 71) => 2,
+            _ => 3,
+        };
+        let width = if matches!(n, 66 | 67) { a_sc.len() } else { out.len() };
+        if regs.len() < arity || regs.iter().any(|r| r.len() != a_sc.len()) || a_sc.len() != width || (n == 68 && width != 3) {
+            return Err(self.m.malformed(id, "GLSL.std.450 operand count or shape"));
+        }
         if let Some(g) = glsl_alu(n) {
             let mut dst = Vec::new();
             for i in 0..out.len() {
@@ -487,8 +499,8 @@ impl Lowerer<'_> {
             let ty = self.l.scalar(rty)?;
             let (a, b) = match op {
                 Op::AtomicIIncrement | Op::AtomicIDecrement => (self.konst(1), 0),
-                Op::AtomicCompareExchange => (self.regs(id_op(inst, 4)?)?[0], self.regs(id_op(inst, 5)?)?[0]),
-                _ => (self.regs(id_op(inst, 3)?)?[0], 0),
+                Op::AtomicCompareExchange => (self.reg1(id_op(inst, 4)?)?, self.reg1(id_op(inst, 5)?)?),
+                _ => (self.reg1(id_op(inst, 3)?)?, 0),
             };
             let dst = self.reg();
             self.emit(IrOp::Atomic { op: aop, ty, space: p.space, dst, addr: p.addr, a, b });
@@ -523,7 +535,7 @@ impl Lowerer<'_> {
         };
         let v: Vec<Reg> = if let Some(sg) = sg {
             let a = if inst.operands.len() > 1 { self.regs(operand(1)?)? } else { vec![0; out.len()] };
-            let b = if inst.operands.len() > 2 { self.regs(operand(2)?)?[0] } else { 0 };
+            let b = if inst.operands.len() > 2 { self.reg1(operand(2)?)? } else { 0 };
             (0..out.len())
                 .map(|i| {
                     let dst = self.reg();
@@ -546,7 +558,7 @@ impl Lowerer<'_> {
                     vec![acc]
                 }
                 Op::GroupNonUniformBallot => {
-                    let a = self.regs(operand(1)?)?[0];
+                    let a = self.reg1(operand(1)?)?;
                     let dst = [self.reg(), self.reg(), self.reg(), self.reg()];
                     self.emit(IrOp::Ballot { dst, a });
                     dst.to_vec()
@@ -585,7 +597,7 @@ impl Lowerer<'_> {
             return Err(self.m.malformed(id, "ballot is not a uvec4"));
         }
         let b = match b_k {
-            Some(k) => self.regs(id_op(inst, k)?)?[0],
+            Some(k) => self.reg1(id_op(inst, k)?)?,
             None => 0,
         };
         let dst = self.reg();

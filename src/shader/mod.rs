@@ -109,7 +109,11 @@ impl Pipeline {
             .ok_or_else(|| ShaderError::NoEntryPoint { name: entry_point.into() })?;
         let consts = specialize::Constants::new(module, specialization)?;
         let local_size = consts.local_size(module, entry)?;
-        let lowered = lower::lower(module, &consts, entry)?;
+        // Backstop: lowering checks the shapes it relies on, but a module that passes the
+        // parse checks yet is invalid SPIR-V in a way not anticipated must still fail here,
+        // as an error, rather than take the caller down.
+        let lowered = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| lower::lower(module, &consts, entry)))
+            .map_err(|_| ShaderError::Malformed { offset: 0, reason: "invalid module (lowering failed)".into() })??;
         Ok(Pipeline { program: Arc::new(lowered.program), local_size, push_constant_size: lowered.push_size })
     }
 
