@@ -119,7 +119,8 @@ pub fn dispatch(
         regions: prog.bindings.iter().map(|&(s, b)| memory.binding(s, b)).collect(),
         push: push_constants,
         local: pipeline.local_size,
-        num_groups: [0, 1, 2].map(|i| base_group[i].saturating_add(group_count[i])),
+        // NumWorkgroups is the dispatch's group count, base or not (vkCmdDispatchBase).
+        num_groups: group_count,
         watchdog,
         stop: AtomicBool::new(false),
     };
@@ -479,7 +480,6 @@ fn subgroup(op: SgOp, ty: Sc, mask: u32, a: &Regs, b: &Regs) -> Regs {
         SgOp::AllEqual => out = [active().all(|l| a[l] == a[first]) as u64; LANES],
         SgOp::Broadcast => out = [pick(b[first.min(LANES - 1)]); LANES],
         SgOp::BroadcastFirst => out = [a[first.min(LANES - 1)]; LANES],
-        SgOp::Ballot => {}
         SgOp::Shuffle => out = std::array::from_fn(|l| pick(b[l])),
         SgOp::ShuffleXor => out = std::array::from_fn(|l| pick(l as u64 ^ b[l])),
         SgOp::ShuffleUp => out = std::array::from_fn(|l| pick((l as u64).wrapping_sub(b[l]))),

@@ -114,9 +114,8 @@ pub enum SgOp {
     /// Value of the lane whose index is in `b` (uniform across the active lanes).
     Broadcast,
     BroadcastFirst,
-    /// Bits of the active lanes where `a` is true, as four 32-bit words: component in `b`.
-    Ballot,
-    /// `b`-th bit of the ballot made of the four registers starting at `a`'s list.
+    /// Value of lane `b[l]` (OpGroupNonUniformShuffle); Xor/Up/Down compute the source lane
+    /// from the lane's own index.
     Shuffle,
     ShuffleXor,
     ShuffleUp,
@@ -144,7 +143,7 @@ pub enum Op {
     Store { ty: Sc, space: Space, addr: Reg, src: Reg },
     /// dst = old value; `b` is the comparator of CompareExchange.
     Atomic { op: AtomicOp, ty: Sc, space: Space, dst: Reg, addr: Reg, a: Reg, b: Reg },
-    /// `srcs` holds the operand registers (Ballot: 1, Broadcast/Shuffle: 2, BallotBits ops: 4).
+    /// A subgroup op over the lanes in the mask: value `a`, lane index / delta / mask `b`.
     Subgroup { op: SgOp, ty: Sc, dst: Reg, a: Reg, b: Reg },
     /// Ballot results as four words: dst[0..4] from the predicate `a`.
     Ballot { dst: [Reg; 4], a: Reg },

@@ -257,6 +257,16 @@ impl Lowerer<'_> {
                 let c = self.regs_splat(id_op(inst, 0)?, a.len())?;
                 Val::Regs((0..a.len()).map(|i| self.select(c[i], a[i], b[i])).collect())
             }
+            Op::Transpose => {
+                let src = id_op(inst, 0)?;
+                let m = self.regs(src)?;
+                let cols = match self.type_of(src).map(|t| self.m.ty(t)).transpose()? {
+                    Some(Type::Matrix { n, .. }) => *n as usize,
+                    _ => return Err(self.m.malformed(src, "transpose of a non-matrix")),
+                };
+                let rows = m.len() / cols;
+                Val::Regs((0..rows * cols).map(|k| m[(k % cols) * rows + k / cols]).collect())
+            }
             Op::Any | Op::All => {
                 let v = self.regs(id_op(inst, 0)?)?;
                 let bop = if op == Op::Any { BinOp::LOr } else { BinOp::LAnd };

@@ -111,7 +111,7 @@ const OPCODES: &[Op] = {
         ConvertFToU, ConvertFToS, ConvertSToF, ConvertUToF, UConvert, SConvert, FConvert,
         ConvertUToPtr, ConvertPtrToU, Bitcast, SNegate, FNegate, IAdd, FAdd, ISub, FSub, IMul,
         FMul, UDiv, SDiv, FDiv, UMod, SRem, SMod, FRem, FMod, VectorTimesScalar,
-        MatrixTimesScalar, VectorTimesMatrix, MatrixTimesVector, MatrixTimesMatrix, Dot,
+        MatrixTimesScalar, VectorTimesMatrix, Transpose, MatrixTimesVector, MatrixTimesMatrix, Dot,
         IAddCarry, ISubBorrow, UMulExtended, SMulExtended, Any, All, IsNan, IsInf,
         LogicalEqual, LogicalNotEqual, LogicalOr, LogicalAnd, LogicalNot, Select, IEqual,
         INotEqual, UGreaterThan, SGreaterThan, UGreaterThanEqual, SGreaterThanEqual, ULessThan,

@@ -569,3 +569,89 @@ fn results_do_not_depend_on_thread_count_or_dispatch_base() {
     assert_eq!(run_on(3, 1), one);
     assert_eq!(run_on(2, 2), one);
 }
+
+/// Reference for misc.comp: the eight words of invocation `li` of workgroup `wg`, the Item it
+/// stores, and its flat index.
+fn misc_reference(wg: [u32; 3], nwg: [u32; 3], li: u32) -> (u32, [u32; 8], [u32; 4]) {
+    let flat = |li: u32| (wg[0] + nwg[0] * (wg[1] + nwg[1] * wg[2])) * 16 + li;
+    let g = flat(li);
+    let lid = [li % 4, (li / 4) % 2, li / 8];
+    let gid = [wg[0] * 4 + lid[0], wg[1] * 2 + lid[1], wg[2] * 2 + lid[2]];
+    let mut o = [0u32; 8];
+    o[0] = gid[0] + 100 * gid[1] + 10000 * gid[2];
+    o[1] = lid[0] + 10 * lid[1] + 100 * lid[2] + 1000 * li;
+    let m = [[1.0f32, 2.0, 3.0], [0.5, li as f32, 1.0], [-1.0, 0.0, 2.0]];
+    let v = [g as f32, 1.0, 2.0];
+    let mv: Vec<f32> = (0..3).map(|i| m[0][i] * v[0] + m[1][i] * v[1] + m[2][i] * v[2]).collect();
+    let vm: Vec<f32> = (0..3).map(|j| v[0] * m[j][0] + v[1] * m[j][1] + v[2] * m[j][2]).collect();
+    let mm = |j: usize, i: usize| (0..3).map(|k| m[k][i] * m[k][j]).sum::<f32>();
+    o[2] = (mv[0] + mv[1] * 2.0 + mv[2] * 3.0 + vm[0] + vm[1] * 5.0 + vm[2] * 7.0 + mm(1, 2) + mm(2, 0)).to_bits();
+    let mut q = [g, g * 2, g * 3, g * 4];
+    q[(li % 4) as usize] = 77;
+    o[3] = q[((li + 1) % 4) as usize] + q[(li % 4) as usize] * 1000 + [3, 1, 4, 1, 5][(g % 5) as usize] * 100_000;
+    let mut seed = 17u32;
+    o[4] = (0..3).fold(0u32, |r, _| {
+        seed = seed.wrapping_mul(1_103_515_245).wrapping_add(12345);
+        r.wrapping_add(seed >> 8)
+    });
+    let (mut steps, mut x) = (0u32, g);
+    loop {
+        x = x / 2 + (x & 1);
+        steps += 1;
+        if !(x > 1 && steps < 50) {
+            break;
+        }
+    }
+    'outer: for i in 0..6u32 {
+        for j in 0..6u32 {
+            if i * j == g % 17 {
+                steps += 100 * i + 10 * j;
+                break 'outer;
+            }
+        }
+    }
+    o[5] = steps;
+    let other = flat(15 - li);
+    o[6] = other + 15 - li;
+    o[7] = if li > 7 { g } else { !g };
+    (g, o, [other, 15 - li, (other as f32 * 0.25).to_bits(), 0])
+}
+
+#[test]
+fn workgroup_builtins_matrices_private_globals_and_64bit_atomics() {
+    let (count, base) = ([2u32, 2, 1], [1u32, 0, 1]);
+    let slots = 160usize;
+    for (what, words) in compile("misc.comp") {
+        let p = pipeline(&words, &[]);
+        assert_eq!(p.local_size, [4, 2, 2]);
+        let mut mem = HostMemory::new();
+        let o = mem.add_buffer(&vec![0; slots * 32]);
+        let acc = mem.add_buffer(&vec![0; 16 + slots * 16]);
+        mem.bind(0, 0, o);
+        mem.bind(0, 1, acc);
+        let report = dispatch(&p, &mem, &[], count, base, &Watchdog::default());
+        assert!(report.is_clean(), "{what}: {report:?}");
+        let (out, accb) = (u32s(&mem.bytes(o)), u32s(&mem.bytes(acc)));
+        let (mut sum, mut max) = (0u64, 0u64);
+        for z in 0..count[2] {
+            for y in 0..count[1] {
+                for x in 0..count[0] {
+                    let wg = [base[0] + x, base[1] + y, base[2] + z];
+                    for li in 0..16 {
+                        let (g, want, item) = misc_reference(wg, count, li);
+                        let got = &out[8 * g as usize..8 * g as usize + 8];
+                        for k in (0..8).filter(|&k| k != 2) {
+                            assert_eq!(got[k], want[k], "{what}: workgroup {wg:?} invocation {li} word {k}");
+                        }
+                        assert!(close(f32::from_bits(got[2]), f32::from_bits(want[2])), "{what}: matrices, invocation {g}");
+                        assert_eq!(&accb[4 + 4 * g as usize..4 + 4 * g as usize + 3], &item[..3], "{what}: items[{g}]");
+                        sum = sum.wrapping_add((g as u64) << 32 | g as u64);
+                        max = max.max((g as u64) << 32);
+                    }
+                }
+            }
+        }
+        let word64 = |k: usize| accb[2 * k] as u64 | (accb[2 * k + 1] as u64) << 32;
+        assert_eq!((word64(0), word64(1)), (sum, max), "{what}: 64-bit atomics");
+    }
+}
