@@ -91,8 +91,6 @@ pub(super) struct Ctx<'a> {
 }
 
 /// Per-workgroup mutable state besides the lane groups.
-
-
 pub(super) struct Wg {
     pub id: [u32; 3],
     pub shared: Vec<u8>,
@@ -263,7 +261,7 @@ fn run_group(ctx: &Ctx, group: &mut Group, wg: &mut Wg) {
             mask |= ((group.lane[l] == Lane::Running && group.cursor[l] == min) as u32) << l;
         }
         wg.steps += 1;
-        if wg.steps % CHECK_EVERY == 0 {
+        if wg.steps.is_multiple_of(CHECK_EVERY) {
             if let Some(stop) = check_watchdog(ctx.watchdog, wg.steps) {
                 wg.stopped = Some(stop);
                 return;

@@ -122,8 +122,8 @@ impl Layout<'_> {
             Type::RuntimeArray { elem } => (0, self.size_align(elem)?.1),
             Type::Struct { members } => {
                 let (mut end, mut align) = (0u32, 1u32);
-                for k in 0..members.len() {
-                    let (s, a) = self.size_align(members[k])?;
+                for (k, &member) in members.iter().enumerate() {
+                    let (s, a) = self.size_align(member)?;
                     end = end.max(self.member_offset(ty, k as u32)? + s);
                     align = align.max(a);
                 }
