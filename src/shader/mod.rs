@@ -23,6 +23,22 @@
 //! ends a block; the lanes in the mask run the chosen shader's program as a function-like call
 //! on a subset of lanes (their own cursors and registers, the caller's state kept as data), and
 //! resume at the continuation block — no coroutines, as with barriers.
+//!
+//! For the Vulkan wiring:
+//! - Create a [`Module`] at vkCreateShaderModule (or when a stage chains the create info) and a
+//!   [`Pipeline`] at vkCreateComputePipelines; every [`ShaderError`] arises there, never at
+//!   dispatch. [`Pipeline::bindings`], [`Pipeline::push_constant_size`] and
+//!   [`Pipeline::local_size`] are what the pipeline layout checks need.
+//! - Implement [`Memory`] over src/memory: `binding` returns the descriptor's buffer range with
+//!   dynamic offsets applied (uniform and storage buffers alike); `address` resolves a device
+//!   address to the one live buffer containing it. The executor bounds-checks every access
+//!   against those regions itself, so `read`/`write` may assume in-range offsets.
+//! - [`dispatch`] returns a [`DispatchReport`]: each [`Fault`] (kind, binding or address, byte
+//!   offset, workgroup, invocation) is one robustness diagnostic; `stopped` means the
+//!   [`Watchdog`] fired (give it the submission's deadline and a device-lost flag) and the
+//!   device should be marked lost.
+//! - [`LANES`] is the subgroup size to report; supported subgroup stages/operations: compute,
+//!   basic, vote, ballot, arithmetic, shuffle, shuffle-relative (not clustered, not quad).
 pub mod alu;
 mod exec;
 mod exec_mem;
