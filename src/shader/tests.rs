@@ -655,3 +655,25 @@ fn workgroup_builtins_matrices_private_globals_and_64bit_atomics() {
         assert_eq!((word64(0), word64(1)), (sum, max), "{what}: 64-bit atomics");
     }
 }
+
+#[test]
+fn subgroup_shuffles() {
+    let n = 64usize;
+    let x = inputs(n, 13);
+    for (what, words) in compile("shuffle.comp") {
+        let o = u32s(&run(&words, &[bytes_u32(&x), vec![0; n * 16]], &[], [2, 1, 1])[1]);
+        for g in 0..n {
+            let (base, l) = (g / LANES * LANES, g % LANES);
+            let at = |k: usize| x[base + k];
+            assert_eq!(o[4 * g], at((l + 3) % LANES), "{what}: shuffle at {g}");
+            assert_eq!(o[4 * g + 1], at(l ^ 5), "{what}: shuffle xor at {g}");
+            // Up/down past the subgroup's edge are undefined: only the defined lanes are checked.
+            if l >= 1 {
+                assert_eq!(o[4 * g + 2], at(l - 1), "{what}: shuffle up at {g}");
+            }
+            if l + 2 < LANES {
+                assert_eq!(o[4 * g + 3], at(l + 2), "{what}: shuffle down at {g}");
+            }
+        }
+    }
+}
