@@ -130,9 +130,9 @@ pub fn dispatch(
             || new_groups(&ctx),
             |groups, i| {
                 let id = [
-                    base_group[0] + (i % group_count[0] as u64) as u32,
-                    base_group[1] + ((i / group_count[0] as u64) % group_count[1] as u64) as u32,
-                    base_group[2] + (i / per_row) as u32,
+                    base_group[0].wrapping_add((i % group_count[0] as u64) as u32),
+                    base_group[1].wrapping_add(((i / group_count[0] as u64) % group_count[1] as u64) as u32),
+                    base_group[2].wrapping_add((i / per_row) as u32),
                 ];
                 run_workgroup(&ctx, groups, id)
             },

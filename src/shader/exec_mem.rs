@@ -65,7 +65,8 @@ fn access_one(ctx: &Ctx, frame: &mut [u8], wg: &mut Wg, space: Space, at: u64, t
             if at.checked_add(size as u64).is_none_or(|end| end > region.len) {
                 return Err((FaultKind::OutOfBounds, fspace));
             }
-            device(ctx, region.buffer, region.offset + at, ty, acc).ok_or((FaultKind::Refused, fspace))
+            let offset = region.offset.checked_add(at).ok_or((FaultKind::Refused, fspace))?;
+            device(ctx, region.buffer, offset, ty, acc).ok_or((FaultKind::Refused, fspace))
         }
         Space::Physical => {
             let region = ctx.mem.address(at, size as u64).ok_or((FaultKind::Unmapped, FaultSpace::DeviceAddress))?;
