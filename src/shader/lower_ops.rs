@@ -224,33 +224,7 @@ impl Lowerer<'_> {
                     .collect::<Result<_, ShaderError>>()?;
                 Val::Regs(r)
             }
-            Op::VectorExtractDynamic => {
-                let v = self.regs(id_op(inst, 0)?)?;
-                let idx_id = id_op(inst, 1)?;
-                let idx_sc = self.sc_of(idx_id)?[0];
-                let idx = self.reg1(idx_id)?;
-                let mut acc = v[0];
-                for (k, &c) in v.iter().enumerate().skip(1) {
-                    let kr = self.konst(k as u64);
-                    let eq = self.bin(BinOp::IEq, idx_sc, idx, kr);
-                    acc = self.select(eq, c, acc);
-                }
-                Val::Regs(vec![acc])
-            }
-            Op::VectorInsertDynamic => {
-                let v = self.regs(id_op(inst, 0)?)?;
-                let obj = self.reg1(id_op(inst, 1)?)?;
-                let idx_id = id_op(inst, 2)?;
-                let idx_sc = self.sc_of(idx_id)?[0];
-                let idx = self.reg1(idx_id)?;
-                let mut out = Vec::new();
-                for (k, &c) in v.iter().enumerate() {
-                    let kr = self.konst(k as u64);
-                    let eq = self.bin(BinOp::IEq, idx_sc, idx, kr);
-                    out.push(self.select(eq, obj, c));
-                }
-                Val::Regs(out)
-            }
+            Op::VectorExtractDynamic | Op::VectorInsertDynamic => Val::Regs(self.dynamic_component(inst)?),
             Op::Select => {
                 let a = self.regs(id_op(inst, 1)?)?;
                 let b = self.regs(id_op(inst, 2)?)?;
@@ -280,6 +254,29 @@ impl Lowerer<'_> {
         };
         self.define(id, v);
         Ok(())
+    }
+
+    /// OpVectorExtractDynamic / OpVectorInsertDynamic: a select per component, since registers
+    /// cannot be indexed by a run-time value.
+    fn dynamic_component(&mut self, inst: &Instruction) -> Result<Vec<Reg>, ShaderError> {
+        let extract = inst.class.opcode == Op::VectorExtractDynamic;
+        let v = self.regs(id_op(inst, 0)?)?;
+        let idx_id = id_op(inst, if extract { 1 } else { 2 })?;
+        let idx_sc = self.sc_of(idx_id)?[0];
+        let idx = self.reg1(idx_id)?;
+        let obj = if extract { None } else { Some(self.reg1(id_op(inst, 1)?)?) };
+        let mut acc = v.first().copied().ok_or_else(|| self.m.malformed(idx_id, "empty vector"))?;
+        let mut out = Vec::with_capacity(v.len());
+        for (k, &c) in v.iter().enumerate() {
+            let kr = self.konst(k as u64);
+            let eq = self.bin(BinOp::IEq, idx_sc, idx, kr);
+            match obj {
+                None if k > 0 => acc = self.select(eq, c, acc),
+                None => {}
+                Some(o) => out.push(self.select(eq, o, c)),
+            }
+        }
+        Ok(if extract { vec![acc] } else { out })
     }
 
     /// Arithmetic that does not map one-to-one onto components.
