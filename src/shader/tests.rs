@@ -613,7 +613,7 @@ fn misc_reference(wg: [u32; 3], nwg: [u32; 3], li: u32) -> (u32, [u32; 8], [u32;
     o[5] = steps;
     let other = flat(15 - li);
     o[6] = other + 15 - li;
-    o[7] = if li > 7 { g } else { !g };
+    o[7] = (if li > 7 { g } else { !g }).wrapping_add([g, 2, 3, 4][(li % 4) as usize] * 2);
     (g, o, [other, 15 - li, (other as f32 * 0.25).to_bits(), 0])
 }
 

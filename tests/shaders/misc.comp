@@ -52,5 +52,5 @@ void main() {
     o[b + 6] = it.id.x + it.id.y;
     atomicAdd(sum64, uint64_t(g) << 32 | uint64_t(g));
     atomicMax(max64, uint64_t(g) * 0x100000000ul);
-    o[b + 7] = (li > 7u) ? g : ~g;
+    o[b + 7] = ((li > 7u) ? g : ~g) + (uvec4(g, 2u, 3u, 4u) * 2u)[li % 4u];
 }
