@@ -247,18 +247,20 @@ fn init_group(ctx: &Ctx, group: &mut Group, wg: &Wg, g: u32, n: u32) {
 /// Runs a lane group until none of its lanes is running (all done or at a barrier).
 fn run_group(ctx: &Ctx, group: &mut Group, wg: &mut Wg) {
     loop {
-        let mut min = u32::MAX;
+        // One pass: the lowest cursor among running lanes, and which lanes are there.
+        let (mut min, mut mask) = (u32::MAX, 0u32);
         for l in 0..LANES {
-            if group.lane[l] == Lane::Running && group.cursor[l] < min {
-                min = group.cursor[l];
+            if group.lane[l] == Lane::Running {
+                let c = group.cursor[l];
+                if c < min {
+                    (min, mask) = (c, 1 << l);
+                } else if c == min {
+                    mask |= 1 << l;
+                }
             }
         }
-        if min == u32::MAX {
+        if mask == 0 {
             return;
-        }
-        let mut mask = 0u32;
-        for l in 0..LANES {
-            mask |= ((group.lane[l] == Lane::Running && group.cursor[l] == min) as u32) << l;
         }
         wg.steps += 1;
         if wg.steps.is_multiple_of(CHECK_EVERY) {

@@ -23,6 +23,13 @@ pub(super) fn exec_mem(ctx: &Ctx, group: &mut Group, wg: &mut Wg, op: &Op, mask:
         _ => return,
     };
     let fs = ctx.prog.lane_frame.len();
+    if space == Space::Lane && access.is_none() {
+        if let Some(dst) = dst {
+            if lane_loads(group, fs, ty, addr, dst, mask) {
+                return;
+            }
+        }
+    }
     for l in (0..LANES).filter(|&l| (mask >> l) & 1 != 0) {
         let at = group.regs[addr as usize][l];
         let acc = match access {
@@ -106,4 +113,25 @@ fn device(ctx: &Ctx, buffer: u64, offset: u64, ty: Sc, acc: Access) -> Option<u6
         Access::Write(v) => ctx.mem.write(buffer, offset, &v.to_le_bytes()[..size]).then_some(v),
         Access::Rmw(op, v, cmp) => ctx.mem.atomic(buffer, offset, size, &|old| alu::atomic(op, ty, old, v, cmp)),
     }
+}
+
+/// Loads from lane frames with every address in bounds (the common case: local variables of
+/// unoptimised SPIR-V) skip the general path. Returns false, having done nothing, otherwise.
+fn lane_loads(group: &mut Group, fs: usize, ty: Sc, addr: u32, dst: u32, mask: u32) -> bool {
+    let size = ty.size() as usize;
+    let at = group.regs[addr as usize];
+    if at.iter().any(|&a| a.saturating_add(size as u64) > fs as u64) {
+        return false;
+    }
+    let mut out = group.regs[dst as usize];
+    for (l, o) in out.iter_mut().enumerate() {
+        if (mask >> l) & 1 != 0 {
+            let p = l * fs + at[l] as usize;
+            let mut w = [0u8; 8];
+            w[..size].copy_from_slice(&group.frame[p..p + size]);
+            *o = alu::norm(ty, u64::from_le_bytes(w));
+        }
+    }
+    group.regs[dst as usize] = out;
+    true
 }
