@@ -93,8 +93,7 @@ pub enum UnOp {
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum TriOp {
     Fma, FClamp, NClamp, UClamp, SClamp, FMix, SmoothStep,
-    /// OpBitFieldInsert(base, insert, offset, count) takes four operands: `count` comes from
-    /// the op's extra register.
+    /// (base, offset, count); OpBitFieldInsert has four operands and is [`Op::BitInsert`].
     BitFieldUExtract, BitFieldSExtract,
 }
 
