@@ -152,7 +152,7 @@ impl Module {
         let scan = scan(words)?;
         let dr = dr::load_words(words).map_err(|e| ShaderError::Malformed {
             offset: 0,
-            reason: format!("{e:?}"),
+            reason: format!("rspirv could not decode the module (byte offset, instruction index): {e:?}"),
         })?;
         let mut m = Module {
             dr,

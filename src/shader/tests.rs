@@ -1,5 +1,5 @@
-//! Library tests: GLSL shaders from tests/shaders compiled at test time by glslang (and each
-//! also through `spirv-opt -O`), run by the lane executor over `HostMemory`, and checked
+//! Library tests: GLSL shaders from tests/shaders compiled at test time by glslang (assembly
+//! by spirv-as), each also through `spirv-opt -O`, run by the lane executor over `HostMemory`, and checked
 //! against a CPU reference computed here — never against Arbor's own output.
 use std::path::PathBuf;
 use std::process::Command;
@@ -16,17 +16,28 @@ fn compile_with(name: &str, defines: &[&str]) -> Vec<(String, Vec<u32>)> {
     let dir = std::env::temp_dir().join(format!("arbor-shader-tests-{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();
     let tag: String = defines.join("_").chars().filter(|c| c.is_ascii_alphanumeric() || *c == '_').collect();
-    let spv = dir.join(format!("{name}{tag}.spv"));
-    let opt = dir.join(format!("{name}{tag}.opt.spv"));
-    let mut cmd = Command::new("glslangValidator");
-    cmd.args(["-V", "--target-env", "vulkan1.2"]);
-    for d in defines {
-        cmd.arg(format!("-D{d}"));
-    }
-    let out = cmd.arg("-o").arg(&spv).arg(&src).output().unwrap_or_else(|e| {
-        panic!("glslangValidator not found ({e}): install the Debian package glslang-tools (scripts/deps.sh does)")
-    });
-    assert!(out.status.success(), "glslang failed on {name}: {}", String::from_utf8_lossy(&out.stdout));
+    // Tests run in parallel and some compile the same shader: every call gets its own files.
+    static CALLS: std::sync::atomic::AtomicUsize = std::sync::atomic::AtomicUsize::new(0);
+    let call = CALLS.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+    let spv = dir.join(format!("{name}{tag}.{call}.spv"));
+    let opt = dir.join(format!("{name}{tag}.{call}.opt.spv"));
+    // Hand-written assembly goes through spirv-as; GLSL through glslang.
+    let out = if name.ends_with(".spvasm") {
+        Command::new("spirv-as").args(["--target-env", "vulkan1.2", "-o"]).arg(&spv).arg(&src).output().unwrap_or_else(|e| {
+            panic!("spirv-as not found ({e}): install the Debian package spirv-tools (scripts/deps.sh does)")
+        })
+    } else {
+        let mut cmd = Command::new("glslangValidator");
+        cmd.args(["-V", "--target-env", "vulkan1.2"]);
+        for d in defines {
+            cmd.arg(format!("-D{d}"));
+        }
+        cmd.arg("-o").arg(&spv).arg(&src).output().unwrap_or_else(|e| {
+            panic!("glslangValidator not found ({e}): install the Debian package glslang-tools (scripts/deps.sh does)")
+        })
+    };
+    let log = format!("{}{}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
+    assert!(out.status.success(), "compiling {name} failed: {log}");
     let out = Command::new("spirv-opt").arg("-O").arg(&spv).arg("-o").arg(&opt).output().unwrap_or_else(|e| {
         panic!("spirv-opt not found ({e}): install the Debian package spirv-tools (scripts/deps.sh does)")
     });
@@ -35,6 +46,7 @@ fn compile_with(name: &str, defines: &[&str]) -> Vec<(String, Vec<u32>)> {
         .into_iter()
         .map(|(what, p)| {
             let bytes = std::fs::read(&p).unwrap();
+            let _ = std::fs::remove_file(&p);
             let words = bytes.chunks(4).map(|c| u32::from_le_bytes([c[0], c[1], c[2], c[3]])).collect();
             (format!("{name} ({what})"), words)
         })
@@ -673,6 +685,41 @@ fn subgroup_shuffles() {
             }
             if l + 2 < LANES {
                 assert_eq!(o[4 * g + 3], at(l + 2), "{what}: shuffle down at {g}");
+            }
+        }
+    }
+}
+
+#[test]
+fn handwritten_remainders_dynamic_vectors_copy_memory_spec_composites_switch64_ptr_access_chain() {
+    for (spec, k) in [(vec![], 5u32), (vec![(0u32, 9u32.to_le_bytes().to_vec())], 9)] {
+        for (what, words) in compile("handwritten.spvasm") {
+            let p = pipeline(&words, &spec);
+            let mut mem = HostMemory::new();
+            let o = mem.add_buffer(&vec![0; 16 * 32]);
+            let raw = mem.add_buffer(&vec![0; 16 * 4]);
+            mem.bind(0, 0, o);
+            let push = mem.device_address(raw).to_le_bytes();
+            let report = dispatch(&p, &mem, &push, [2, 1, 1], [0; 3], &Watchdog::default());
+            assert!(report.is_clean(), "{what}: {report:?}");
+            let (out, raw) = (u32s(&mem.bytes(o)), u32s(&mem.bytes(raw)));
+            for g in 0..16u32 {
+                let w = &out[8 * g as usize..8 * g as usize + 6];
+                let neg = -7 - g as i32;
+                let x = -7.5f32 - g as f32;
+                let mut v = [k, 7, 2, 3];
+                v[(g % 4) as usize] = g;
+                let sw = match g { 3 => 30, 5 => 50, _ => 7 };
+                let want = [
+                    (neg % 3) as u32,
+                    neg.rem_euclid(3) as u32,
+                    (x % 2.0).to_bits(),
+                    (x - 2.0 * (x / 2.0).floor()).to_bits(),
+                    v[((g + 1) % 4) as usize] + (k + 8) * 1000,
+                    sw,
+                ];
+                assert_eq!(w, &want, "{what} (K = {k}): invocation {g}");
+                assert_eq!(raw[g as usize], 3 * g + 1, "{what}: OpPtrAccessChain store {g}");
             }
         }
     }
