@@ -65,6 +65,8 @@ pub struct Module {
     pub(crate) glsl_ext: Option<u32>,
     /// Word offset of the instruction defining each result id (for error messages).
     pub(crate) offsets: HashMap<u32, usize>,
+    /// Literal operands of composite OpSpecConstantOps, by result id (rspirv drops all but one).
+    pub(crate) spec_literals: HashMap<u32, Vec<u32>>,
 }
 
 const CAPABILITIES: &[Capability] = &[
@@ -150,7 +152,7 @@ impl Module {
     /// naming it and its word offset.
     pub fn parse(words: &[u32]) -> Result<Module, ShaderError> {
         let scan = scan(words)?;
-        let dr = dr::load_words(words).map_err(|e| ShaderError::Malformed {
+        let dr = dr::load_words(scan.for_rspirv.as_deref().unwrap_or(words)).map_err(|e| ShaderError::Malformed {
             offset: 0,
             reason: format!("rspirv could not decode the module (byte offset, instruction index): {e:?}"),
         })?;
@@ -165,6 +167,7 @@ impl Module {
             entry_points: Vec::new(),
             glsl_ext: scan.glsl_ext,
             offsets: scan.offsets,
+            spec_literals: scan.spec_literals,
         };
         m.index_types()?;
         m.index_decorations()?;
@@ -305,6 +308,11 @@ impl Module {
 struct Scan {
     offsets: HashMap<u32, usize>,
     glsl_ext: Option<u32>,
+    /// Literal operands of OpSpecConstantOp VectorShuffle/CompositeExtract/CompositeInsert.
+    spec_literals: HashMap<u32, Vec<u32>>,
+    /// The words rspirv reads: the module with those literal lists cut to one (see
+    /// `spec_op_literals`), or None when nothing had to be cut.
+    for_rspirv: Option<Vec<u32>>,
 }
 
 /// The raw pass: instruction boundaries, word offsets, and the support checks.
@@ -316,7 +324,7 @@ fn scan(words: &[u32]) -> Result<Scan, ShaderError> {
     if words[1] > 0x0001_0600 {
         return Err(malformed(1, "SPIR-V version above 1.6"));
     }
-    let mut s = Scan { offsets: HashMap::new(), glsl_ext: None };
+    let mut s = Scan { offsets: HashMap::new(), glsl_ext: None, spec_literals: HashMap::new(), for_rspirv: None };
     let mut at = 5;
     while at < words.len() {
         let count = (words[at] >> 16) as usize;
@@ -333,6 +341,9 @@ fn scan(words: &[u32]) -> Result<Scan, ShaderError> {
             return Err(ShaderError::UnsupportedOpcode { opcode: name, offset: at });
         };
         check_instruction(op, operands, at, &mut s)?;
+        if op == Op::SpecConstantOp {
+            spec_op_literals(words, at, &mut s);
+        }
         if let Some(g) = rspirv::grammar::INSTRUCTION_TABLE.lookup_opcode(code) {
             let pos = match g.operands.first().map(|o| o.kind) {
                 Some(rspirv::grammar::OperandKind::IdResultType) => Some(1),
@@ -346,6 +357,29 @@ fn scan(words: &[u32]) -> Result<Scan, ShaderError> {
         at += count;
     }
     Ok(s)
+}
+
+/// rspirv 0.13 reads each operand of the opcode nested in OpSpecConstantOp once, so a
+/// VectorShuffle with several components or a CompositeExtract/Insert with several indices
+/// fails to load (glslang emits these for swizzles of specialization-constant vectors). The
+/// literals are kept here and rspirv gets a copy of the module with each list cut to one.
+fn spec_op_literals(words: &[u32], at: usize, s: &mut Scan) {
+    let count = (words[at] >> 16) as usize;
+    let inst = &words[at..at + count];
+    let ids = match inst.get(3).copied().and_then(Op::from_u32) {
+        Some(Op::VectorShuffle | Op::CompositeInsert) => 2,
+        Some(Op::CompositeExtract) => 1,
+        _ => return,
+    };
+    let (Some(&result), Some(literals)) = (inst.get(2), inst.get(4 + ids..)) else { return };
+    s.spec_literals.insert(result, literals.to_vec());
+    if literals.len() > 1 {
+        let copy = s.for_rspirv.get_or_insert_with(|| words.to_vec());
+        let cut = 4 + ids + 1;
+        let start = at - (words.len() - copy.len()); // earlier cuts shrank the copy
+        copy[start] = ((cut as u32) << 16) | (Op::SpecConstantOp as u32);
+        copy.drain(start + cut..start + count);
+    }
 }
 
 fn check_instruction(op: Op, operands: &[u32], at: usize, s: &mut Scan) -> Result<(), ShaderError> {

@@ -105,27 +105,32 @@ impl Constants {
             let def = m.globals.get(&a).and_then(|&i| m.dr.types_global_values[i].result_type);
             def.ok_or_else(|| m.malformed(a, "operand is not a constant"))
         };
+        // Literal operands from the raw words (parse.rs: rspirv keeps only the first).
+        let literals = |from: usize| -> Result<Vec<u32>, ShaderError> {
+            match m.spec_literals.get(&id) {
+                Some(v) => Ok(v.clone()),
+                None => (from..inst.operands.len()).map(|k| lit(inst, k)).collect(),
+            }
+        };
         let l = self.layout(m);
         let out_sc = l.components(ty)?;
         match op {
             Op::CompositeExtract => {
                 let base = arg(1)?;
-                let idx: Vec<u32> = (2..inst.operands.len()).map(|k| lit(inst, k)).collect::<Result<_, _>>()?;
+                let idx = literals(2)?;
                 let (start, n, _) = l.sub_range(arg_ty(1)?, &idx)?;
                 Ok(base.get(start..start + n).ok_or_else(|| m.malformed(id, "extract"))?.to_vec())
             }
             Op::CompositeInsert => {
                 let (obj, mut base) = (arg(1)?.to_vec(), arg(2)?.to_vec());
-                let idx: Vec<u32> = (3..inst.operands.len()).map(|k| lit(inst, k)).collect::<Result<_, _>>()?;
+                let idx = literals(3)?;
                 let (start, n, _) = l.sub_range(ty, &idx)?;
                 base.get_mut(start..start + n).ok_or_else(|| m.malformed(id, "insert"))?.copy_from_slice(&obj[..n]);
                 Ok(base)
             }
             Op::VectorShuffle => {
                 let joined: Vec<u64> = arg(1)?.iter().chain(arg(2)?).copied().collect();
-                (3..inst.operands.len())
-                    .map(|k| Ok(joined.get(lit(inst, k)? as usize).copied().unwrap_or(0)))
-                    .collect()
+                Ok(literals(3)?.into_iter().map(|k| joined.get(k as usize).copied().unwrap_or(0)).collect())
             }
             Op::Select => {
                 let (c, a, b) = (arg(1)?, arg(2)?, arg(3)?);

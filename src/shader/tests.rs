@@ -724,3 +724,19 @@ fn handwritten_remainders_dynamic_vectors_copy_memory_spec_composites_switch64_p
         }
     }
 }
+
+#[test]
+fn spec_constant_vector_swizzles() {
+    let spec = |x: u32, y: u32, k: u32| vec![(0, x.to_le_bytes().to_vec()), (1, y.to_le_bytes().to_vec()), (2, k.to_le_bytes().to_vec())];
+    for (what, words) in compile("spec_swizzle.comp") {
+        for (sp, size, k) in [(vec![], [1, 1], 3u32), (spec(4, 2, 10), [4, 2], 10)] {
+            let out = run_spec(&words, &sp, &[vec![0; 64]], &[], [1, 1, 1]);
+            let want = size[1] * 100 + size[0] + (2 + k * 10) * 1000;
+            let o = u32s(&out[0]);
+            for (i, &v) in o.iter().enumerate() {
+                let live = i < (size[0] * size[1]) as usize;
+                assert_eq!(v, if live { want } else { 0 }, "{what} with {size:?}, K = {k}: o[{i}]");
+            }
+        }
+    }
+}
