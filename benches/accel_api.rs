@@ -10,8 +10,8 @@ use std::time::Duration;
 use ash::vk;
 use criterion::{criterion_group, criterion_main, Criterion, Throughput};
 
+// The loader harness of the API tests (it allows its own dead code).
 #[path = "../tests/harness/mod.rs"]
-#[allow(dead_code)]
 mod support;
 
 use support::accel::{triangles, Accel};

@@ -17,7 +17,7 @@ mod peers;
 
 use arbor::accel::{self, AsType, BuildDesc, BuildFlags, Geometry, GeometryData, GeometryFlags, IndexType, VertexFormat};
 use arbor_scene::{self as scene, Mesh};
-use criterion::{criterion_group, criterion_main, BatchSize, Criterion, SamplingMode, Throughput};
+use criterion::{criterion_group, criterion_main, Criterion, SamplingMode, Throughput};
 use std::time::Duration;
 
 /// data/ of the checkout; ARBOR_DATA_DIR overrides it (a bench binary run on another machine).
@@ -140,7 +140,7 @@ fn peer_benches(group: &mut criterion::BenchmarkGroup<'_, criterion::measurement
             println!("embree {qname} {threads}t: SAH {sah:.2}");
             group.bench_function(format!("embree/{qname}/{threads}t"), |b| {
                 // Primitive copy (setup) and BVH release (output drop) are outside the timing.
-                b.iter_batched_ref(|| prims.clone(), |p| dev.build(q, mesh, p, n), BatchSize::PerIteration)
+                b.iter_batched_ref(|| prims.clone(), |p| dev.build(q, mesh, p, n), criterion::BatchSize::PerIteration)
             });
         }
         // Embree's own scene build (its BVH8 for tracing: LOW is its Morton builder, MEDIUM
@@ -159,10 +159,6 @@ fn peer_benches(group: &mut criterion::BenchmarkGroup<'_, criterion::measurement
         group.bench_function(format!("obvhs/ploc_fastest/{threads}t"), |b| b.iter_with_large_drop(|| p.install(|| obvhs_peer::build(&tris))));
     }
 }
-
-#[cfg(not(feature = "peers"))]
-#[allow(dead_code)]
-fn _unused(_: BatchSize) {}
 
 criterion_group!(benches, bench_build);
 criterion_main!(benches);

@@ -125,6 +125,7 @@ fn every_advertised_command_resolves_through_the_loader() {
     let probe = harness::context();
     // SAFETY: plain queries.
     let dev_exts = names(&unsafe { probe.instance.enumerate_device_extension_properties(probe.physical) }.unwrap());
+    // SAFETY: as above.
     let props = unsafe { probe.instance.get_physical_device_properties(probe.physical) };
     probe.finish();
     let opts = harness::Options {

@@ -56,6 +56,7 @@ fn property_query_of_a_structure_never_built_04964() {
             },
             // SAFETY: 8 bytes of output for one query with stride 8.
             || {
+                // SAFETY: valid handles of this test; the data slice outlives the call.
                 let _ = unsafe { a.ext.write_acceleration_structures_properties(&[unbuilt.s], ty, &mut data, 8) };
             },
         );
@@ -80,6 +81,7 @@ fn compacted_size_query_without_allow_compaction_03431() {
             },
             // SAFETY: 8 bytes of output for one query with stride 8.
             || {
+                // SAFETY: valid handles of this test; the data slice outlives the call.
                 let _ = unsafe {
                     a.ext.write_acceleration_structures_properties(&[s.s], vk::QueryType::ACCELERATION_STRUCTURE_COMPACTED_SIZE_KHR, &mut data, 8)
                 };
@@ -100,6 +102,7 @@ fn host_property_write_with_a_stride_not_a_multiple_of_8_03448() {
             Expect { command: HOST_WRITE, vuid: format!("VUID-{HOST_WRITE}-queryType-03448"), needles: &["stride must be a multiple of 8"], writable: &[], invalidated: &[] },
             // SAFETY: 24 bytes of output for one query; the stride is the invalid part.
             || {
+                // SAFETY: valid handles of this test; the data slice outlives the call.
                 let _ = unsafe { a.ext.write_acceleration_structures_properties(&[s.s], vk::QueryType::ACCELERATION_STRUCTURE_SIZE_KHR, &mut data, 12) };
             },
         );
@@ -118,6 +121,7 @@ fn host_property_write_with_data_too_small_03452() {
             Expect { command: HOST_WRITE, vuid: format!("VUID-{HOST_WRITE}-dataSize-03452"), needles: &["dataSize is smaller than"], writable: &[], invalidated: &[] },
             // SAFETY: two structures with stride 8 need 16 bytes; 8 are given (the invalid part).
             || {
+                // SAFETY: valid handles of this test; the data slice outlives the call.
                 let _ = unsafe { a.ext.write_acceleration_structures_properties(&[s0.s, s0.s], vk::QueryType::ACCELERATION_STRUCTURE_SIZE_KHR, &mut data, 8) };
             },
         );

@@ -176,14 +176,14 @@ print("//! dispatch level and origin, and a fallback entry that reports \"not su
 print("use ash::vk;")
 print("use std::ffi::{c_char, c_void};")
 print()
-print("use super::table::{Level, Origin, RegistryEntry};")
+print("use super::table::{void_fn, Level, Origin, RegistryEntry};")
 print()
 print("pub static REGISTRY: &[RegistryEntry] = &[")
 for n in names:
     o = wanted[n]
     origin = f"Origin::Core({o[1]})" if o[0] == "core" else f'Origin::Extension("{o[1]}")'
     can = canonical(n)
-    print(f'    RegistryEntry {{ name: "{n}", canonical: "{can}", level: Level::{level(n)}, origin: {origin}, fallback: {{ let f: vk::PFN_{can} = fallback::{snake(can)}; unsafe {{ std::mem::transmute::<vk::PFN_{can}, unsafe extern "system" fn()>(f) }} }} }},')
+    print(f'    RegistryEntry {{ name: "{n}", canonical: "{can}", level: Level::{level(n)}, origin: {origin}, fallback: void_fn!(PFN_{can} => fallback::{snake(can)}) }},')
 print("];")
 print()
 print("/// One fallback per canonical command: reports the call through the diagnostics channel and")

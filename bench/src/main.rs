@@ -197,12 +197,9 @@ fn arbor_manifest() -> Option<PathBuf> {
         "{{\"file_format_version\":\"1.0.1\",\"ICD\":{{\"library_path\":{},\"api_version\":\"1.1.281\",\"library_arch\":\"64\"}}}}",
         report::json_str(&lib.display().to_string())
     );
-    for path in [dir.join("arbor_icd.json"), std::env::temp_dir().join(format!("arbor_icd_{}.json", std::process::id()))] {
-        if std::fs::write(&path, &json).is_ok() {
-            return Some(path);
-        }
-    }
-    None
+    [dir.join("arbor_icd.json"), std::env::temp_dir().join(format!("arbor_icd_{}.json", std::process::id()))]
+        .into_iter()
+        .find(|path| std::fs::write(path, &json).is_ok())
 }
 
 fn first_existing(paths: &[&str]) -> Option<PathBuf> {

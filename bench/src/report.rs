@@ -330,7 +330,7 @@ pub fn svg(rows: &[Row], title: &str) -> String {
     for e in e0..=e1 {
         let y = mt + ph - (e - e0) as f64 / (e1 - e0) as f64 * ph;
         let _ = writeln!(o, "<line x1=\"{x0:.0}\" x2=\"{:.0}\" y1=\"{y:.1}\" y2=\"{y:.1}\" stroke=\"#ddd\"/>", x0 + pw);
-        let label = if e >= 0 { format!("{}", 10f64.powi(e)) } else { format!("{}", 10f64.powi(e)) };
+        let label = format!("{}", 10f64.powi(e));
         let _ = writeln!(o, "<text x=\"{:.0}\" y=\"{:.1}\" text-anchor=\"end\">{label}</text>", x0 - 6.0, y + 4.0);
     }
     let gw = pw / ng;

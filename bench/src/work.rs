@@ -348,6 +348,7 @@ fn prepare(a: &Arena, scene: &Scene) -> Result<Inputs, String> {
 }
 
 /// Runs the chosen workloads of one scene on one device. `progress` is called before each.
+// One call site (main), which passes its parsed options through.
 #[allow(clippy::too_many_arguments)]
 pub fn run_scene(
     gpu: &Gpu,

@@ -2,6 +2,7 @@
 //! BVH builder through FFI (Debian `libembree-dev`) and obvhs' PLOC builder. Both produce
 //! binary trees whose SAH is computed here with the PEERS.md formula (C_T = C_I = 1).
 
+// Each bench that includes this module uses a different part of it.
 #![allow(dead_code)]
 
 use arbor_scene::Mesh;

@@ -56,17 +56,20 @@ pub unsafe extern "system" fn vk_icd_negotiate_loader_icd_interface_version(p_ve
 pub unsafe extern "system" fn vk_icd_get_instance_proc_addr(instance: vk::Instance, name: *const c_char) -> vk::PFN_vkVoidFunction {
     guard("vk_icdGetInstanceProcAddr", None, || {
         // SAFETY: the loader passes a valid string.
-        let Some(n) = (unsafe { util::cstr(name) }) else { return None };
+        let n = (unsafe { util::cstr(name) })?;
         let icd: Option<table::VoidFn> = match n {
-            // SAFETY (all three): coercion of function pointers to the opaque void-function type.
+            // SAFETY: function pointers of any signature have the same
+            // size; the loader casts back to the export's own type before calling (so below).
             "vk_icdNegotiateLoaderICDInterfaceVersion" => Some(unsafe {
                 std::mem::transmute::<unsafe extern "system" fn(*mut u32) -> vk::Result, table::VoidFn>(
                     vk_icd_negotiate_loader_icd_interface_version,
                 )
             }),
+            // SAFETY: as above.
             "vk_icdGetInstanceProcAddr" => Some(unsafe {
                 std::mem::transmute::<vk::PFN_vkGetInstanceProcAddr, table::VoidFn>(vk_icd_get_instance_proc_addr)
             }),
+            // SAFETY: as above.
             "vk_icdGetPhysicalDeviceProcAddr" => Some(unsafe {
                 std::mem::transmute::<vk::PFN_vkGetInstanceProcAddr, table::VoidFn>(vk_icd_get_physical_device_proc_addr)
             }),
@@ -86,7 +89,7 @@ pub unsafe extern "system" fn vk_icd_get_physical_device_proc_addr(_instance: vk
         // SAFETY: the loader passes a valid string.
         let n = unsafe { util::cstr(name) }?;
         let r = table::lookup(n)?;
-        (r.entry.level == Level::PhysicalDevice).then_some(r.f).and_then(|f| table::to_pfn(f))
+        (r.entry.level == Level::PhysicalDevice).then_some(r.f).and_then(table::to_pfn)
     })
 }
 

@@ -95,7 +95,7 @@ unsafe extern "system" fn get_physical_device_features(pd: vk::PhysicalDevice, p
 /// # Safety
 /// `p` points to a writable struct of type `s_type`.
 pub unsafe fn fill_feature_struct(s_type: vk::StructureType, p: *mut c_void) -> bool {
-    // SAFETY (each arm): the sType identifies the struct; write_keep_chain preserves pNext.
+    // SAFETY: (each arm) the sType identifies the struct; write_keep_chain preserves pNext.
     unsafe {
         match s_type {
             vk::StructureType::PHYSICAL_DEVICE_BUFFER_DEVICE_ADDRESS_FEATURES => util::write_keep_chain(
@@ -318,7 +318,7 @@ unsafe extern "system" fn get_physical_device_properties(pd: vk::PhysicalDevice,
 /// # Safety
 /// `p` points to a writable struct of type `s_type`.
 pub unsafe fn fill_property_struct(s_type: vk::StructureType, p: *mut c_void) -> bool {
-    // SAFETY (each arm): the sType identifies the struct; write_keep_chain preserves pNext.
+    // SAFETY: (each arm) the sType identifies the struct; write_keep_chain preserves pNext.
     unsafe {
         match s_type {
             vk::StructureType::PHYSICAL_DEVICE_ID_PROPERTIES => util::write_keep_chain(

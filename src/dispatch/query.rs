@@ -86,6 +86,7 @@ unsafe extern "system" fn destroy_query_pool(device: vk::Device, pool: vk::Query
     })
 }
 
+// The Vulkan command's own parameters, one for one.
 #[allow(clippy::too_many_arguments)]
 unsafe extern "system" fn get_query_pool_results(
     device: vk::Device,

@@ -39,19 +39,22 @@ pub struct Implemented {
     pub f: VoidFn,
 }
 
-/// `imp!(PFN_vkFoo => path::to::function)`: the function is coerced to `vk::PFN_vkFoo`, so the
-/// compiler checks the signature against the registry's.
+/// `void_fn!(PFN_vkFoo => path::to::function)`: the function coerced to `vk::PFN_vkFoo` (so the
+/// compiler checks its signature against the registry's), stored as the table's opaque type.
+macro_rules! void_fn {
+    ($pfn:ident => $f:path) => {{
+        let f: ash::vk::$pfn = $f;
+        // SAFETY: function pointers of any signature have the same size; the loader casts back
+        // to the command's PFN type before calling.
+        unsafe { std::mem::transmute::<ash::vk::$pfn, $crate::dispatch::table::VoidFn>(f) }
+    }};
+}
+pub(crate) use void_fn;
+
+/// `imp!(PFN_vkFoo => path::to::function)`: an implemented command (see `void_fn!`).
 macro_rules! imp {
     ($pfn:ident => $f:path) => {
-        $crate::dispatch::table::Implemented {
-            pfn: stringify!($pfn),
-            f: {
-                let f: ash::vk::$pfn = $f;
-                // SAFETY: function pointers of any signature have the same size; the loader
-                // casts back to the command's PFN type before calling.
-                unsafe { std::mem::transmute::<ash::vk::$pfn, $crate::dispatch::table::VoidFn>(f) }
-            },
-        }
+        $crate::dispatch::table::Implemented { pfn: stringify!($pfn), f: $crate::dispatch::table::void_fn!($pfn => $f) }
     };
 }
 pub(crate) use imp;

@@ -236,15 +236,15 @@ mod tests {
     #[test]
     fn fence_wait_timeouts() {
         let f = Arc::new(Fence::new(false));
-        assert_eq!(wait_fences(&[f.clone()], true, Deadline::Now), WaitOutcome::TimedOut);
-        assert_eq!(wait_fences(&[f.clone()], true, Deadline::from_timeout_ns(1_000_000)), WaitOutcome::TimedOut);
+        assert_eq!(wait_fences(std::slice::from_ref(&f), true, Deadline::Now), WaitOutcome::TimedOut);
+        assert_eq!(wait_fences(std::slice::from_ref(&f), true, Deadline::from_timeout_ns(1_000_000)), WaitOutcome::TimedOut);
         let f2 = f.clone();
         let t = std::thread::spawn(move || {
             std::thread::sleep(Duration::from_millis(20));
             f2.mark_pending();
             f2.signal_from_queue();
         });
-        assert_eq!(wait_fences(&[f.clone()], true, Deadline::Never), WaitOutcome::Ready);
+        assert_eq!(wait_fences(std::slice::from_ref(&f), true, Deadline::Never), WaitOutcome::Ready);
         t.join().unwrap();
         f.reset();
         assert!(!f.is_signalled());

@@ -323,6 +323,8 @@ fn push_constants_uniform_buffer_and_specialization() {
         };
     }
     let push: Vec<u8> = [5u32, 1.5f32.to_bits(), count].iter().flat_map(|x| x.to_le_bytes()).collect();
+    // (specialization, expected constant, expected flag, expected local size)
+    #[allow(clippy::type_complexity)] // a table of four-column test cases, read once below
     let cases: [(Vec<(u32, Vec<u8>)>, u32, bool, u32); 2] = [
         (vec![], 3, false, 1),
         (vec![(0, 5u32.to_le_bytes().to_vec()), (1, 1u32.to_le_bytes().to_vec()), (2, 16u32.to_le_bytes().to_vec())], 5, true, 16),
@@ -391,10 +393,10 @@ fn subgroup_reference(x: &[u32]) -> Vec<[u32; 16]> {
         let g = &x[s..s + lanes];
         let ballot = (0..lanes).filter(|&l| g[l] & 1 == 1).fold(0u32, |a, l| a | 1 << l);
         let sum = g.iter().fold(0u32, |a, &v| a.wrapping_add(v));
-        let then: Vec<usize> = (0..lanes).filter(|&l| g[l] % 3 == 0).collect();
+        let then: Vec<usize> = (0..lanes).filter(|&l| g[l].is_multiple_of(3)).collect();
         let then_ballot = then.iter().fold(0u32, |a, &l| a | 1 << l);
         let then_sum = then.iter().fold(0u32, |a, &l| a.wrapping_add(g[l]));
-        let others: Vec<usize> = (0..lanes).filter(|&l| g[l] % 3 != 0).collect();
+        let others: Vec<usize> = (0..lanes).filter(|&l| !g[l].is_multiple_of(3)).collect();
         let prod = others.iter().fold(1u32, |a, &l| a.wrapping_mul(g[l] % 4 + 1));
         let fsum = g.iter().fold(0f32, |a, &v| a + v as f32 * 0.5);
         for l in 0..lanes {
@@ -414,7 +416,7 @@ fn subgroup_reference(x: &[u32]) -> Vec<[u32; 16]> {
             o[9] = g[..=l].iter().fold(0u32, |a, &v| a.wrapping_add(v));
             o[10] = g[..l].iter().fold(0u32, |a, &v| a.wrapping_add(v));
             o[11] = fsum.to_bits();
-            if g[l] % 3 == 0 {
+            if g[l].is_multiple_of(3) {
                 o[12] = then_sum + (then[0] == l) as u32;
                 o[13] = then_ballot;
             } else {
@@ -696,8 +698,8 @@ fn handwritten_remainders_dynamic_vectors_copy_memory_spec_composites_switch64_p
         for (what, words) in compile("handwritten.spvasm") {
             let p = pipeline(&words, &spec);
             let mut mem = HostMemory::new();
-            let o = mem.add_buffer(&vec![0; 16 * 32]);
-            let raw = mem.add_buffer(&vec![0; 16 * 4]);
+            let o = mem.add_buffer(&[0; 16 * 32]);
+            let raw = mem.add_buffer(&[0; 16 * 4]);
             mem.bind(0, 0, o);
             let push = mem.device_address(raw).to_le_bytes();
             let report = dispatch(&p, &mem, &push, [2, 1, 1], [0; 3], &Watchdog::default());

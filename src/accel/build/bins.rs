@@ -229,6 +229,8 @@ pub fn bin_in_chunks(src: &[PrimRef], chunk: usize, k: usize, axes: (usize, usiz
 /// The bins of a node of `n` references whose bins span `cb`: `k` per axis (the widest axis of
 /// `cb` alone below the tier's `all_axes_from`), and the per-axis scales (0 for a flat axis);
 /// None when every binned axis is flat.
+// The axis index reads several per-axis arrays at once.
+#[allow(clippy::needless_range_loop)]
 pub fn node_binning(p: &BuildParams, cb: &Aabb, k: usize, n: usize) -> Option<(Binning, [f32; 3])> {
     let mut scale = [0f32; 3];
     let mut any = false;
@@ -249,6 +251,8 @@ pub fn node_binning(p: &BuildParams, cb: &Aabb, k: usize, n: usize) -> Option<(B
 
 /// The best binned split: (axis, last left bin, left box, right box, A_L·N_L + A_R·N_R).
 #[inline(never)]
+// The axis index reads several per-axis arrays at once.
+#[allow(clippy::needless_range_loop)]
 pub fn sweep_bins(bins: &Bins, k: usize, scale: &[f32; 3]) -> Option<(usize, usize, Aabb, Aabb, f32)> {
     let mut split = None;
     // Sweep: prefix areas/counts left to right, then the right side accumulated on the

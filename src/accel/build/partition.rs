@@ -87,6 +87,7 @@ pub fn restore(refs: &mut [PrimRef], nodes: &[BinNode]) {
 
 /// Per-chunk left counts and boxes of a stable partition of `src` (64 fixed chunks); the
 /// totals are returned as (left count, left box, right box).
+// One tuple read at one call site; a named struct would only be destructured there.
 #[allow(clippy::type_complexity)]
 pub fn part_stats(src: &[PrimRef], is_left: &(impl Fn(&PrimRef) -> bool + Sync)) -> (usize, usize, [PartStat; PARTITION_CHUNKS], usize, Aabb, Aabb) {
     let n = src.len();

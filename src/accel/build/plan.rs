@@ -211,7 +211,7 @@ impl TopPlan {
     /// The bucket of centroid `c`: its ranks from the axes' grids, then the table. (A rank
     /// counts the thresholds `c` is not below, `!(c < t)`: the negation of the split test.)
     #[inline(always)]
-    #[allow(clippy::neg_cmp_op_on_partial_ord)]
+    #[allow(clippy::neg_cmp_op_on_partial_ord)] // the negation of the split test, NaN included.
     fn bucket_of(&self, c: Vec3A) -> usize {
         let q = trunc_lanes3(((c - self.gmin) * self.ginv).max(Vec3A::ZERO).min(Vec3A::splat((PLAN_GRID - 1) as f32)));
         let mut idx = 0usize;
@@ -226,7 +226,7 @@ impl TopPlan {
     /// The rank of `c` on axis `a`, threshold by threshold (a grid cell with several).
     #[cold]
     #[inline(never)]
-    #[allow(clippy::neg_cmp_op_on_partial_ord)]
+    #[allow(clippy::neg_cmp_op_on_partial_ord)] // the negation of the split test, NaN included.
     fn rank(&self, a: usize, c: f32) -> usize {
         self.th[a].iter().filter(|&&t| !(c < t)).count()
     }

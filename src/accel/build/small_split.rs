@@ -125,6 +125,8 @@ fn enum_split<const N: usize, const H: usize>(refs: &mut [PrimRef], w_ref: &[f32
 /// references (four on one axis) take the best bipartition, more the best sweep over the given
 /// axes, sorted by a network with ties by position; either way the result is deterministic.
 #[inline(never)]
+// The slot index reads several per-slot arrays at once.
+#[allow(clippy::needless_range_loop)]
 pub fn small_split(refs: &mut [PrimRef], axes: (usize, usize), weighted: bool) -> Option<(usize, f32)> {
     let n = refs.len();
     if !(2..=MAX_SMALL).contains(&n) {

@@ -34,7 +34,7 @@ fn instance_box_from_two_sums_matches_eight_corners() {
     let specials = [0.0f32, -0.0, 1.0, -1.0, 3.0e38, -3.0e38, 1e-38, -1e-45, 0.5, 2.0];
     let mut pick = move || {
         let r = next();
-        if r % 3 == 0 {
+        if r.is_multiple_of(3) {
             specials[(r >> 8) as usize % specials.len()]
         } else {
             ((r >> 11) as f64 / (1u64 << 53) as f64 * 200.0 - 100.0) as f32

@@ -63,7 +63,7 @@ fn sweep_join(a: SweepBox, b: &SweepBox) -> SweepBox {
 #[test]
 fn tiers_keep_their_sah_against_a_full_sweep_builder() {
     for path in ["data/bunny.ply", "data/dragon_vrip_res3.ply.gz"] {
-        let mesh = arbor_scene::load(&format!("{}/{path}", env!("CARGO_MANIFEST_DIR"))).expect("mesh");
+        let mesh = arbor_scene::load(format!("{}/{path}", env!("CARGO_MANIFEST_DIR"))).expect("mesh");
         let v = &mesh.positions;
         let mut items: Vec<SweepBox> = mesh
             .indices

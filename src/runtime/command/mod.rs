@@ -482,6 +482,7 @@ impl CommandBuffer {
         self.violation(vuid, command, &format!("query {query} of a pool of query type {}: {why}; not recorded", pool.query_type.as_raw()));
     }
 
+    // The Vulkan command's own parameters, one for one.
     #[allow(clippy::too_many_arguments)]
     pub fn cmd_copy_query_pool_results(&self, pool: Arc<QueryPool>, first: u32, count: u32, dst: Arc<Buffer>, offset: u64, stride: u64, flags: vk::QueryResultFlags) {
         const CMD: &str = "vkCmdCopyQueryPoolResults";
