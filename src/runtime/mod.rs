@@ -11,6 +11,7 @@ pub mod device;
 pub mod instance;
 pub mod query;
 pub mod queue;
+pub mod stall;
 pub mod sync;
 
 pub use device::Device;

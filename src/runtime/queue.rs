@@ -5,6 +5,10 @@
 //! Stopping: [`Queue::shutdown`] (vkDestroyDevice) raises the cancel flag, which ends any wait
 //! the worker is blocked in, closes the channel and joins the thread. Submissions still queued
 //! are abandoned (their buffers leave the pending state; nothing executes).
+//!
+//! Unblocking: a `vkQueueWaitIdle` that finds the queue stalled (`stall`: blocked in a wait
+//! nothing pending can satisfy) raises the interrupt flag, which ends the blocked wait and
+//! skips the rest of that one submission (its signals and fence still fire).
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::mpsc;
 use std::sync::{Arc, Mutex, Weak};
@@ -13,6 +17,7 @@ use std::thread::JoinHandle;
 use ash::vk;
 
 use super::command::{execute_recording, CommandBuffer, ExecContext, Flow, SubmittedBuffer};
+use super::stall;
 use super::sync::{self, Deadline, Fence, Semaphore, SemaphoreKind, WaitOutcome};
 use super::Device;
 use crate::diag;
@@ -58,6 +63,10 @@ struct Shared {
     submitted: AtomicU64,
     completed: AtomicU64,
     stop: AtomicBool,
+    /// Raised with `stop`, or to abandon the submission the worker is blocked in; ends the
+    /// worker's waits and the current submission. Lowered by the worker when it starts the
+    /// next submission, unless the queue is stopping.
+    interrupt: AtomicBool,
 }
 
 struct Worker {
@@ -79,7 +88,12 @@ impl Queue {
             device,
             family,
             index,
-            shared: Arc::new(Shared { submitted: AtomicU64::new(0), completed: AtomicU64::new(0), stop: AtomicBool::new(false) }),
+            shared: Arc::new(Shared {
+                submitted: AtomicU64::new(0),
+                completed: AtomicU64::new(0),
+                stop: AtomicBool::new(false),
+                interrupt: AtomicBool::new(false),
+            }),
             worker: Mutex::new(None),
         }
     }
@@ -155,11 +169,27 @@ impl Queue {
         Some(Worker { tx, thread })
     }
 
-    /// vkQueueWaitIdle: wait for everything submitted so far.
-    pub fn wait_idle(&self) -> vk::Result {
+    /// vkQueueWaitIdle (and each queue of vkDeviceWaitIdle, `command`): wait for everything
+    /// submitted so far. A stalled queue (`stall`) is reported and its blocked submission
+    /// abandoned, so the wait ends with the queue really idle; strict mode loses the device.
+    pub fn wait_idle(&self, command: &str) -> vk::Result {
         let target = self.shared.submitted.load(Ordering::Acquire);
         let shared = &self.shared;
-        sync::wait_until(Deadline::Never, Some(&shared.stop), || shared.completed.load(Ordering::Acquire) >= target);
+        loop {
+            let r = sync::wait_or_stall(Deadline::Never, Some(&shared.stop), || shared.completed.load(Ordering::Acquire) >= target);
+            if r != WaitOutcome::Stalled {
+                break;
+            }
+            if let Some(d) = self.device.upgrade() {
+                let what = format!(
+                    "queue (family {}, index {}) is blocked in a semaphore or event wait; its submission is abandoned (command buffers skipped, signals and fence fired)",
+                    self.family, self.index
+                );
+                stall::report(&d, command, &what);
+            }
+            shared.interrupt.store(true, Ordering::Release);
+            sync::notify();
+        }
         match self.device.upgrade() {
             Some(d) if !d.is_lost() => vk::Result::SUCCESS,
             _ => vk::Result::ERROR_DEVICE_LOST,
@@ -169,6 +199,7 @@ impl Queue {
     /// Stop the worker (device destruction): cancel its waits, abandon what is queued, join.
     pub fn shutdown(&self) {
         self.shared.stop.store(true, Ordering::Release);
+        self.shared.interrupt.store(true, Ordering::Release);
         sync::notify();
         let worker = self.worker.lock().unwrap_or_else(|e| e.into_inner()).take();
         if let Some(Worker { tx, thread }) = worker {
@@ -192,7 +223,14 @@ fn worker_loop(rx: mpsc::Receiver<Submission>, shared: Arc<Shared>, device: Weak
         match device {
             Some(d) if !shared.stop.load(Ordering::Acquire) => {
                 // A panic in a command must not kill the queue: report it and go on.
+                // An interrupt raised before this submission started was meant for an earlier
+                // one that completed meanwhile.
+                if !shared.stop.load(Ordering::Acquire) {
+                    shared.interrupt.store(false, Ordering::Release);
+                }
+                let executing = stall::running();
                 let r = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| run(&d, &shared, submission)));
+                drop(executing);
                 if r.is_err() {
                     diag::report(diag::Level::Error, "queue", "internal error (caught panic) while executing a submission");
                 }
@@ -205,12 +243,12 @@ fn worker_loop(rx: mpsc::Receiver<Submission>, shared: Arc<Shared>, device: Weak
 }
 
 fn run(device: &Arc<Device>, shared: &Shared, submission: Submission) {
-    let ctx = ExecContext { device, cancel: &shared.stop };
+    let ctx = ExecContext { device, cancel: &shared.interrupt };
     let mut stopped = false;
     for batch in &submission.batches {
         if !stopped {
             for (s, v) in &batch.waits {
-                let r = sync::wait_until(Deadline::Never, Some(&shared.stop), || s.try_consume(*v));
+                let r = stall::blocked(|| sync::wait_until(Deadline::Never, Some(&shared.interrupt), || s.try_consume(*v)));
                 if r != WaitOutcome::Ready {
                     stopped = true;
                     break;
@@ -307,7 +345,7 @@ mod tests {
         assert_eq!(out, [21, 0, 0, 0, 42, 0, 0, 0, 7, 0, 0, 0]);
         assert_eq!(ran.load(Ordering::Relaxed), 1);
         assert!(!cb.is_pending());
-        assert_eq!(q.wait_idle(), vk::Result::SUCCESS);
+        assert_eq!(q.wait_idle("test"), vk::Result::SUCCESS);
         q.shutdown();
     }
 

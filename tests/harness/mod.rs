@@ -337,3 +337,22 @@ impl Drop for Context {
         }
     }
 }
+
+/// Run `f` on its own thread and fail the test if it has not finished within `secs` seconds, so
+/// a call that hangs fails the test instead of stalling the run. A panic in `f` fails the test
+/// with its message. (A hung thread is left behind; the process ends with the test binary.)
+pub fn bounded<R: Send + 'static>(secs: u64, f: impl FnOnce() -> R + Send + 'static) -> R {
+    let (tx, rx) = std::sync::mpsc::channel();
+    let t = std::thread::spawn(move || {
+        let r = f();
+        let _ = tx.send(());
+        r
+    });
+    match rx.recv_timeout(std::time::Duration::from_secs(secs)) {
+        Ok(()) | Err(std::sync::mpsc::RecvTimeoutError::Disconnected) => match t.join() {
+            Ok(r) => r,
+            Err(e) => std::panic::resume_unwind(e),
+        },
+        Err(std::sync::mpsc::RecvTimeoutError::Timeout) => panic!("did not finish within {secs} s: a call hangs"),
+    }
+}

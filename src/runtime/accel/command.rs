@@ -134,17 +134,17 @@ impl Exec for WritePropertiesCommand {
     fn name(&self) -> &'static str {
         "vkCmdWriteAccelerationStructuresPropertiesKHR"
     }
+    /// Every query of the command becomes available, whatever the structure held: an invalid
+    /// one (reported by `property`) gets 0, so a host WAIT on it returns instead of hanging.
     fn execute(&self, _ctx: &ExecContext<'_>) -> Result<(), ExecError> {
+        let mut invalid = false;
         for (i, s) in self.structures.iter().enumerate() {
-            match property(s.as_deref(), self.query_type, self.name(), i) {
-                Some(v) => {
-                    self.pool.write(self.first + i as u32, v);
-                }
-                None if diag::strict() => {
-                    return Err(ExecError::Invalid { vuid: "strict", message: "invalid property query (ARBOR_STRICT)".into() })
-                }
-                None => {}
-            }
+            let value = property(s.as_deref(), self.query_type, self.name(), i);
+            invalid |= value.is_none();
+            self.pool.write(self.first + i as u32, value.unwrap_or(0));
+        }
+        if invalid && diag::strict() {
+            return Err(ExecError::Invalid { vuid: "strict", message: "invalid property query (ARBOR_STRICT)".into() });
         }
         Ok(())
     }
@@ -193,6 +193,9 @@ fn host_work(
 ) -> HostWork {
     let device = device.clone();
     Box::new(move || {
+        // Host work counts as activity: a thread waiting on a fence this thread submits next
+        // must not take the build for a stall.
+        let _executing = crate::runtime::stall::running();
         let inputs = HostInputs::new(host, &device.memory, lookup, command);
         match execute(&inputs) {
             Ok(()) => vk::Result::SUCCESS,

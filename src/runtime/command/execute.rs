@@ -57,7 +57,8 @@ impl ExecContext<'_> {
     /// Block (cancellably) until `ready()` holds. `ready` runs under the sync hub's lock; it
     /// must only read state.
     pub fn wait(&self, ready: impl FnMut() -> bool) -> Result<(), ExecError> {
-        match sync::wait_until(Deadline::Never, Some(self.cancel), ready) {
+        // Blocked, not executing: what it waits for must come from elsewhere (`stall`).
+        match crate::runtime::stall::blocked(|| sync::wait_until(Deadline::Never, Some(self.cancel), ready)) {
             WaitOutcome::Ready => Ok(()),
             _ => Err(ExecError::Cancelled),
         }
