@@ -8,6 +8,7 @@ pub mod command;
 pub mod descriptor;
 pub mod deferred;
 pub mod device;
+pub mod in_use;
 pub mod instance;
 pub mod query;
 pub mod queue;

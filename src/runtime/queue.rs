@@ -17,6 +17,7 @@ use std::thread::JoinHandle;
 use ash::vk;
 
 use super::command::{execute_recording, CommandBuffer, ExecContext, Flow, SubmittedBuffer};
+use super::in_use::{Collector, Held};
 use super::stall;
 use super::sync::{self, Deadline, Fence, Semaphore, SemaphoreKind, WaitOutcome};
 use super::Device;
@@ -33,6 +34,8 @@ struct Batch {
     waits: Vec<(Arc<Semaphore>, u64)>,
     command_buffers: Vec<SubmittedBuffer>,
     signals: Vec<(Arc<Semaphore>, u64)>,
+    /// What the command buffers use (`in_use`); released before the signals.
+    uses: Held,
 }
 
 struct Submission {
@@ -48,6 +51,7 @@ impl Submission {
             for cb in &b.command_buffers {
                 cb.complete();
             }
+            drop(b.uses);
             for (s, v) in &b.signals {
                 s.signal(*v);
             }
@@ -123,8 +127,12 @@ impl Queue {
                     );
                 }
             }
-            let command_buffers = b.command_buffers.iter().filter_map(|cb| cb.prepare_submit(command)).collect();
-            lowered.push(Batch { waits: b.waits, command_buffers, signals: b.signals });
+            let command_buffers: Vec<SubmittedBuffer> = b.command_buffers.iter().filter_map(|cb| cb.prepare_submit(command)).collect();
+            let mut uses = Collector::new(&device.memory);
+            for c in command_buffers.iter().flat_map(|cb| &cb.recording.commands) {
+                c.uses(&mut uses);
+            }
+            lowered.push(Batch { waits: b.waits, command_buffers, signals: b.signals, uses: uses.hold() });
         }
         if let Some(f) = &fence {
             f.mark_pending();
@@ -196,6 +204,21 @@ impl Queue {
         }
     }
 
+    /// vkDestroyDevice with submissions still pending: report them, then wait for them as
+    /// vkQueueWaitIdle does (a stalled one is abandoned, so this returns).
+    pub fn finish_before_destroy(&self) {
+        let pending = self.shared.submitted.load(Ordering::Acquire).saturating_sub(self.shared.completed.load(Ordering::Acquire));
+        if pending > 0 {
+            diag::report(
+                diag::Level::Error,
+                "vkDestroyDevice",
+                &format!("{pending} submission(s) still pending on queue (family {}, index {}); waiting for them (call vkDeviceWaitIdle before destroying the device)", self.family, self.index),
+            );
+            // The device goes either way; a lost device only ends the wait sooner.
+            let _ = self.wait_idle("vkDestroyDevice");
+        }
+    }
+
     /// Stop the worker (device destruction): cancel its waits, abandon what is queued, join.
     pub fn shutdown(&self) {
         self.shared.stop.store(true, Ordering::Release);
@@ -245,7 +268,7 @@ fn worker_loop(rx: mpsc::Receiver<Submission>, shared: Arc<Shared>, device: Weak
 fn run(device: &Arc<Device>, shared: &Shared, submission: Submission) {
     let ctx = ExecContext { device, cancel: &shared.interrupt };
     let mut stopped = false;
-    for batch in &submission.batches {
+    for batch in submission.batches {
         if !stopped {
             for (s, v) in &batch.waits {
                 let r = stall::blocked(|| sync::wait_until(Deadline::Never, Some(&shared.interrupt), || s.try_consume(*v)));
@@ -261,6 +284,7 @@ fn run(device: &Arc<Device>, shared: &Shared, submission: Submission) {
             }
             cb.complete();
         }
+        drop(batch.uses);
         for (s, v) in &batch.signals {
             s.signal(*v);
         }

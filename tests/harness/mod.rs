@@ -356,3 +356,23 @@ pub fn bounded<R: Send + 'static>(secs: u64, f: impl FnOnce() -> R + Send + 'sta
         Err(std::sync::mpsc::RecvTimeoutError::Timeout) => panic!("did not finish within {secs} s: a call hangs"),
     }
 }
+
+impl Context {
+    /// Destroy device and instance without waiting for the device to be idle first (tests of
+    /// vkDestroyDevice with work pending), then fail if the validation layer said anything.
+    pub fn finish_without_wait(mut self) {
+        if let Some((du, m)) = self.messenger.take() {
+            let _serial = lifecycle();
+            // SAFETY: the test destroys the device with work pending on purpose; nothing of it
+            // is used afterwards.
+            unsafe {
+                self.device.destroy_device(None);
+                du.destroy_debug_utils_messenger(m, None);
+                self.instance.destroy_instance(None);
+            }
+        }
+        self.finished = true;
+        let msgs = self.messages();
+        assert!(msgs.is_empty(), "validation messages:\n{}", msgs.join("\n"));
+    }
+}

@@ -11,10 +11,11 @@ use std::sync::Arc;
 use ash::vk;
 
 use super::inputs::{DeviceInputs, HostInputs, StructureLookup};
-use super::{execute_builds, execute_copy, property, AccelerationStructure, BuildInfo, Copy, DeviceLost};
+use super::{execute_builds, execute_copy, property, AccelerationStructure, BuildInfo, Copy, DeviceLost, GeometryDesc, Ranges};
 use crate::diag;
 use crate::memory::region::HostMemory;
 use crate::runtime::command::{CommandBuffer, Exec, ExecContext, ExecError};
+use crate::runtime::in_use::Collector;
 use crate::runtime::deferred::DeferredOperation;
 use crate::runtime::query::QueryPool;
 use crate::runtime::Device;
@@ -61,6 +62,28 @@ impl Exec for BuildCommand {
             message: "an acceleration-structure build broke a valid-usage rule (ARBOR_STRICT)".into(),
         })
     }
+    fn uses(&self, c: &mut Collector<'_>) {
+        for info in &self.infos {
+            for s in info.src.iter().chain(&info.dst) {
+                c.structure(s);
+            }
+            c.address(info.scratch);
+            for g in &info.geometries {
+                match &g.desc {
+                    GeometryDesc::Triangles { vertex_data, index_data, transform_data, .. } => {
+                        for a in [vertex_data, index_data, transform_data] {
+                            c.address(*a);
+                        }
+                    }
+                    GeometryDesc::Aabbs { data, .. } | GeometryDesc::Instances { data, .. } => c.address(*data),
+                    GeometryDesc::Unsupported(_) => {}
+                }
+            }
+            if let Ranges::Indirect { address, .. } = &info.ranges {
+                c.address(*address);
+            }
+        }
+    }
 }
 
 impl Copy {
@@ -92,6 +115,23 @@ impl Exec for CopyCommand {
             vuid: "strict",
             message: "an acceleration-structure copy broke a valid-usage rule (ARBOR_STRICT)".into(),
         })
+    }
+    fn uses(&self, c: &mut Collector<'_>) {
+        match &self.op {
+            Copy::Structure { src, dst, .. } => {
+                for s in src.iter().chain(dst) {
+                    c.structure(s);
+                }
+            }
+            Copy::ToMemory { src, dst, .. } => {
+                src.iter().for_each(|s| c.structure(s));
+                c.address(*dst);
+            }
+            Copy::FromMemory { src, dst, .. } => {
+                c.address(*src);
+                dst.iter().for_each(|s| c.structure(s));
+            }
+        }
     }
 }
 
@@ -147,6 +187,9 @@ impl Exec for WritePropertiesCommand {
             return Err(ExecError::Invalid { vuid: "strict", message: "invalid property query (ARBOR_STRICT)".into() });
         }
         Ok(())
+    }
+    fn uses(&self, c: &mut Collector<'_>) {
+        self.structures.iter().flatten().for_each(|s| c.structure(s));
     }
 }
 
