@@ -1,11 +1,13 @@
 #!/usr/bin/env bash
-# Installs what Arbor's tests and tools need on Debian/Ubuntu: the Vulkan loader, vulkaninfo and
+# Installs what Arbor's tests and tools need on Debian/Ubuntu: the Vulkan loader, vulkaninfo, valgrind and
 # the Khronos validation layer. As root it uses apt-get; otherwise it says what to install.
 set -euo pipefail
 need=()
 ldconfig -p 2>/dev/null | grep -q 'libvulkan.so.1 ' || need+=(libvulkan1)
 command -v vulkaninfo >/dev/null 2>&1 || need+=(vulkan-tools)
 ls /usr/share/vulkan/explicit_layer.d/VkLayer_khronos_validation.json >/dev/null 2>&1 || need+=(vulkan-validationlayers)
+# tests/teardown.rs runs a create/build/destroy program under valgrind's leak checker.
+command -v valgrind >/dev/null 2>&1 || need+=(valgrind)
 if [ ${#need[@]} -eq 0 ]; then
   exit 0
 fi

@@ -149,9 +149,19 @@ pub fn unregister<T: Send + Sync + 'static>(handle: u64) -> Option<Arc<T>> {
         return None;
     }
     let mut map = registry().map.write().unwrap_or_else(|e| e.into_inner());
-    match map.get(&handle) {
+    let removed = match map.get(&handle) {
         Some(e) if e.object.is::<T>() => map.remove(&handle).and_then(|e| e.object.downcast::<T>().ok()),
         _ => None,
+    };
+    release_if_empty(&mut map);
+    removed
+}
+
+/// An empty registry gives its table back, so nothing of it outlives the last object (a
+/// leak checker would see the table of a hash map as "possibly lost").
+fn release_if_empty(map: &mut HashMap<u64, Entry>) {
+    if map.is_empty() {
+        map.shrink_to_fit();
     }
 }
 
@@ -162,7 +172,9 @@ pub fn remove_children(device: &crate::runtime::Device) -> Vec<(&'static str, us
     let removed: Vec<Entry> = {
         let mut map = registry().map.write().unwrap_or_else(|e| e.into_inner());
         let ids: Vec<u64> = map.iter().filter(|(_, e)| e.owner == owner).map(|(id, _)| *id).collect();
-        ids.iter().filter_map(|id| map.remove(id)).collect()
+        let removed = ids.iter().filter_map(|id| map.remove(id)).collect();
+        release_if_empty(&mut map);
+        removed
     };
     let mut counts: Vec<(&'static str, usize)> = Vec::new();
     for e in &removed {

@@ -123,6 +123,10 @@ impl Drop for Held {
                 }
             }
         }
+        // Nothing pending: give the table back (teardown leaves nothing behind).
+        if t.is_empty() {
+            t.shrink_to_fit();
+        }
     }
 }
 
