@@ -203,3 +203,47 @@ fn destroying_a_device_with_work_pending() {
         assert!(said.contains("vkDestroyDevice: [stall] queue (family 0, index 1) is blocked"), "{said}");
     });
 }
+
+const STRICT_CHILD: &str = "strict_child_destroying_in_use_loses_the_device";
+
+#[test]
+fn strict_mode_turns_destroying_in_use_into_device_lost() {
+    bounded(BOUND_S, || {
+        stall_ms();
+        let out = std::process::Command::new(std::env::current_exe().unwrap())
+            .args([STRICT_CHILD, "--exact", "--ignored", "--nocapture", "--test-threads=1"])
+            .env("ARBOR_STRICT", "1")
+            .output()
+            .expect("run the test binary as a child");
+        let text = format!("{}{}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
+        assert!(out.status.success(), "the strict-mode child failed:\n{text}");
+        assert!(text.contains("strict child: device lost as expected"), "the strict-mode child skipped its checks:\n{text}");
+    });
+}
+
+#[test]
+#[ignore = "run by strict_mode_turns_destroying_in_use_into_device_lost in a child process with ARBOR_STRICT=1"]
+fn strict_child_destroying_in_use_loses_the_device() {
+    if std::env::var("ARBOR_STRICT").as_deref() != Ok("1") {
+        return;
+    }
+    stall_ms();
+    let ctx = context();
+    let a = Accel::new(&ctx);
+    let m = upload_grid(&a);
+    let d = &ctx.device;
+    let (size, scratch_size) = sizes_of_grid(&a, &m);
+    let own = Own::new(&a, size);
+    let scratch = guarded(&a, scratch_size);
+    let sem = timeline(d);
+    let fence = pending_build(&a, &m, own.s, &scratch, sem);
+    // SAFETY: destroyed while the build into it is pending, on purpose.
+    unsafe { a.ext.destroy_acceleration_structure(own.s, None) };
+    let tl = ash::khr::timeline_semaphore::Device::new(&ctx.instance, d);
+    // SAFETY: live semaphore and fence.
+    unsafe {
+        let _ = tl.signal_semaphore(&vk::SemaphoreSignalInfo::default().semaphore(sem).value(1));
+        assert_eq!(d.wait_for_fences(&[fence], true, u64::MAX), Err(vk::Result::ERROR_DEVICE_LOST));
+    }
+    println!("strict child: device lost as expected");
+}
