@@ -159,7 +159,7 @@ fn fence_and_semaphore_waits_that_nothing_can_end_time_out() {
         let signaller = {
             let tl = tl.clone();
             std::thread::spawn(move || {
-                std::thread::sleep(Duration::from_millis(100));
+                std::thread::sleep(Duration::from_millis(20));
                 // SAFETY: live semaphore.
                 unsafe { tl.signal_semaphore(&vk::SemaphoreSignalInfo::default().semaphore(sem).value(5)) }.unwrap();
             })
