@@ -25,6 +25,7 @@ use crate::runtime::accel::{
 };
 use crate::runtime::command::CommandBuffer;
 use crate::runtime::deferred::DeferredOperation;
+use crate::runtime::in_use;
 use crate::runtime::query::QueryPool;
 
 pub fn commands() -> Vec<Implemented> {
@@ -126,17 +127,25 @@ unsafe extern "system" fn create_acceleration_structure_khr(
 /// The command's valid-usage rules hold for its pointer and handle parameters (the caller's
 /// obligation under the Vulkan API contract).
 unsafe extern "system" fn destroy_acceleration_structure_khr(
-    _device: vk::Device,
+    device: vk::Device,
     h: vk::AccelerationStructureKHR,
     _p_allocator: *const vk::AllocationCallbacks,
 ) {
-    guard("vkDestroyAccelerationStructureKHR", (), || {
-        if h != vk::AccelerationStructureKHR::null() && handle::unregister::<AccelerationStructure>(h.as_raw()).is_none() {
-            diag::vuid(
-                "VUID-vkDestroyAccelerationStructureKHR-accelerationStructure-parameter",
-                "vkDestroyAccelerationStructureKHR",
-                "not a valid acceleration structure",
-            );
+    const CMD: &str = "vkDestroyAccelerationStructureKHR";
+    guard(CMD, (), || {
+        if h == vk::AccelerationStructureKHR::null() {
+            return;
+        }
+        match handle::unregister::<AccelerationStructure>(h.as_raw()) {
+            None => diag::vuid("VUID-vkDestroyAccelerationStructureKHR-accelerationStructure-parameter", CMD, "not a valid acceleration structure"),
+            Some(s) => in_use::check_destroy(
+                device_from(device).as_deref(),
+                &*s,
+                CMD,
+                "VUID-vkDestroyAccelerationStructureKHR-accelerationStructure-02442",
+                &format!("acceleration structure {:#x}", h.as_raw()),
+                "the pending commands keep the structure's view and finish",
+            ),
         }
     })
 }

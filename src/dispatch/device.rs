@@ -5,7 +5,7 @@ use std::sync::{Arc, OnceLock};
 
 use ash::vk;
 
-use super::handle::{dispatchable, free_dispatchable, new_dispatchable, Dispatchable};
+use super::handle::{self, dispatchable, free_dispatchable, new_dispatchable, Dispatchable};
 use super::physical_device::{physical_from, DEVICE_EXTENSIONS, QUEUE_COUNT, QUEUE_FAMILY_COUNT};
 use super::table::{self, imp, Implemented, Level, Origin};
 use super::{guard, util};
@@ -27,7 +27,9 @@ pub type QueueHandle = *mut Dispatchable<Queue>;
 
 pub fn device_from(h: vk::Device) -> Option<Arc<Device>> {
     // SAFETY: a non-null VkDevice is a live handle we created (application obligation).
-    unsafe { dispatchable::<Device>(vk::Handle::as_raw(h) as DeviceHandle) }
+    let dev = unsafe { dispatchable::<Device>(vk::Handle::as_raw(h) as DeviceHandle) }?;
+    handle::note_device(&dev);
+    Some(dev)
 }
 
 pub fn queue_from(h: vk::Queue) -> Option<Arc<Queue>> {
@@ -184,12 +186,30 @@ unsafe extern "system" fn destroy_device(device: vk::Device, _p_allocator: *cons
             for (_, _, q) in dev.queues.get().map(|v| v.as_slice()).unwrap_or(&[]) {
                 // SAFETY: queue handles were created with the device and die with it.
                 if let Some(queue) = unsafe { free_dispatchable::<Queue>(*q as QueueHandle) } {
+                    // Work still pending finishes first, as after vkDeviceWaitIdle (which the
+                    // spec asks for); a submission no one can unblock is abandoned (`stall`).
+                    queue.finish_before_destroy();
                     // Stop and join the queue's worker (cancels waits it is blocked in).
                     queue.shutdown();
                 }
             }
+            report_leaks(&dev);
         }
     })
+}
+
+/// Objects of the device still alive at vkDestroyDevice: one report with the count of each
+/// type, as the validation layer's object tracker gives; they are destroyed with the device.
+fn report_leaks(dev: &Device) {
+    let children = handle::remove_children(dev);
+    if !children.is_empty() {
+        let list: Vec<String> = children.iter().map(|(name, n)| format!("{n} {name}")).collect();
+        crate::diag::vuid(
+            "VUID-vkDestroyDevice-device-05137",
+            "vkDestroyDevice",
+            &format!("child objects not destroyed: {}; destroyed with the device", list.join(", ")),
+        );
+    }
 }
 
 fn find_queue(dev: &Device, family: u32, index: u32) -> Option<usize> {

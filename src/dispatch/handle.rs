@@ -1,6 +1,7 @@
 //! Handles: dispatchable objects carry the loader's word first; non-dispatchable handles are
 //! ids in a registry, so a stale or garbage handle is detected instead of dereferenced.
 use std::any::Any;
+use std::cell::Cell;
 use std::collections::HashMap;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, OnceLock, RwLock};
@@ -77,7 +78,13 @@ pub unsafe fn free_dispatchable<T: DispatchTag>(ptr: *mut Dispatchable<T>) -> Op
     Some(obj)
 }
 
-type Entry = Arc<dyn Any + Send + Sync>;
+/// A registered object, the device it was created on and its Vulkan type name.
+struct Entry {
+    object: Arc<dyn Any + Send + Sync>,
+    /// The owning device (its address; 0 for none).
+    owner: usize,
+    type_name: &'static str,
+}
 
 struct Registry {
     map: RwLock<HashMap<u64, Entry>>,
@@ -89,11 +96,41 @@ fn registry() -> &'static Registry {
     R.get_or_init(|| Registry { map: RwLock::new(HashMap::new()), next: AtomicU64::new(0x1000) })
 }
 
+thread_local! {
+    /// The device this thread resolved last ([`note_device`]).
+    static CURRENT_DEVICE: Cell<usize> = const { Cell::new(0) };
+}
+
+/// Called when a command resolves its `VkDevice`: every vkCreate*/vkAllocate* command does so
+/// before it registers what it creates, so [`register`] learns the owner without each call
+/// site passing it (the leak report of `vkDestroyDevice` needs it).
+pub fn note_device(device: &crate::runtime::Device) {
+    CURRENT_DEVICE.with(|c| c.set(device as *const _ as usize));
+}
+
+/// The Vulkan name of a registered Rust type ("arbor::memory::Buffer" → "VkBuffer").
+fn vk_type_name<T>() -> &'static str {
+    let full = std::any::type_name::<T>();
+    match full.rsplit("::").next().unwrap_or(full) {
+        "AccelerationStructure" => "VkAccelerationStructureKHR",
+        "DeferredOperation" => "VkDeferredOperationKHR",
+        "Memory" => "VkDeviceMemory",
+        "Buffer" => "VkBuffer",
+        "Fence" => "VkFence",
+        "Semaphore" => "VkSemaphore",
+        "Event" => "VkEvent",
+        "QueryPool" => "VkQueryPool",
+        "CommandPool" => "VkCommandPool",
+        _ => full,
+    }
+}
+
 /// Register a non-dispatchable object; the returned id is its handle value (never 0, never reused).
 pub fn register<T: Send + Sync + 'static>(object: Arc<T>) -> u64 {
     let r = registry();
     let id = r.next.fetch_add(0x10, Ordering::Relaxed);
-    r.map.write().unwrap_or_else(|e| e.into_inner()).insert(id, object);
+    let owner = CURRENT_DEVICE.with(Cell::get);
+    r.map.write().unwrap_or_else(|e| e.into_inner()).insert(id, Entry { object, owner, type_name: vk_type_name::<T>() });
     id
 }
 
@@ -103,7 +140,7 @@ pub fn get<T: Send + Sync + 'static>(handle: u64) -> Option<Arc<T>> {
         return None;
     }
     let map = registry().map.read().unwrap_or_else(|e| e.into_inner());
-    map.get(&handle).cloned().and_then(|e| e.downcast::<T>().ok())
+    map.get(&handle).map(|e| e.object.clone()).and_then(|e| e.downcast::<T>().ok())
 }
 
 /// Remove a non-dispatchable handle (destroy). Returns the object if it was of type T.
@@ -112,8 +149,42 @@ pub fn unregister<T: Send + Sync + 'static>(handle: u64) -> Option<Arc<T>> {
         return None;
     }
     let mut map = registry().map.write().unwrap_or_else(|e| e.into_inner());
-    match map.get(&handle) {
-        Some(e) if e.is::<T>() => map.remove(&handle).and_then(|e| e.downcast::<T>().ok()),
+    let removed = match map.get(&handle) {
+        Some(e) if e.object.is::<T>() => map.remove(&handle).and_then(|e| e.object.downcast::<T>().ok()),
         _ => None,
+    };
+    release_if_empty(&mut map);
+    removed
+}
+
+/// An empty registry gives its table back, so nothing of it outlives the last object (a
+/// leak checker would see the table of a hash map as "possibly lost").
+fn release_if_empty(map: &mut HashMap<u64, Entry>) {
+    if map.is_empty() {
+        map.shrink_to_fit();
     }
+}
+
+/// Remove every handle still registered for `device` (it is being destroyed; its children
+/// cannot be used any more) and return how many of each Vulkan type there were, sorted by name.
+pub fn remove_children(device: &crate::runtime::Device) -> Vec<(&'static str, usize)> {
+    let owner = device as *const _ as usize;
+    let removed: Vec<Entry> = {
+        let mut map = registry().map.write().unwrap_or_else(|e| e.into_inner());
+        let ids: Vec<u64> = map.iter().filter(|(_, e)| e.owner == owner).map(|(id, _)| *id).collect();
+        let removed = ids.iter().filter_map(|id| map.remove(id)).collect();
+        release_if_empty(&mut map);
+        removed
+    };
+    let mut counts: Vec<(&'static str, usize)> = Vec::new();
+    for e in &removed {
+        match counts.iter_mut().find(|(n, _)| *n == e.type_name) {
+            Some((_, c)) => *c += 1,
+            None => counts.push((e.type_name, 1)),
+        }
+    }
+    counts.sort();
+    // The objects drop here, outside the registry's lock (some hold device memory).
+    drop(removed);
+    counts
 }

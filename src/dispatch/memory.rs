@@ -16,6 +16,7 @@ use super::table::{imp, Implemented};
 use super::{guard, util};
 use crate::diag;
 use crate::memory::{AllocError, BindError, Buffer, MapError, Memory};
+use crate::runtime::in_use;
 use crate::runtime::Device;
 
 pub fn commands() -> Vec<Implemented> {
@@ -194,7 +195,17 @@ unsafe extern "system" fn free_memory(device: vk::Device, memory: vk::DeviceMemo
             return;
         }
         match unregister::<Memory>(memory.as_raw()) {
-            Some(m) => dev.memory.free(&m),
+            Some(m) => {
+                in_use::check_destroy(
+                    Some(&dev),
+                    &*m,
+                    CMD,
+                    "VUID-vkFreeMemory-memory-00677",
+                    &format!("memory {:#x}", memory.as_raw()),
+                    "its addresses stop resolving now, so the pending work touching it is reported and skipped",
+                );
+                dev.memory.free(&m)
+            }
             None => diag::vuid("VUID-vkFreeMemory-memory-parameter", CMD, "memory is not a live VkDeviceMemory"),
         }
     })
@@ -466,12 +477,23 @@ unsafe extern "system" fn create_buffer(
 unsafe extern "system" fn destroy_buffer(device: vk::Device, buffer: vk::Buffer, _p_allocator: *const vk::AllocationCallbacks) {
     const CMD: &str = "vkDestroyBuffer";
     guard(CMD, (), || {
-        if device_from(device).is_none() {
+        let Some(dev) = device_from(device) else {
             report_unknown_device(CMD);
             return;
+        };
+        if buffer == vk::Buffer::null() {
+            return;
         }
-        if buffer != vk::Buffer::null() && unregister::<Buffer>(buffer.as_raw()).is_none() {
-            diag::vuid("VUID-vkDestroyBuffer-buffer-parameter", CMD, "buffer is not a live VkBuffer");
+        match unregister::<Buffer>(buffer.as_raw()) {
+            None => diag::vuid("VUID-vkDestroyBuffer-buffer-parameter", CMD, "buffer is not a live VkBuffer"),
+            Some(b) => in_use::check_destroy(
+                Some(&dev),
+                &*b,
+                CMD,
+                "VUID-vkDestroyBuffer-buffer-00922",
+                &format!("buffer {:#x}", buffer.as_raw()),
+                "the pending commands keep the buffer alive and finish",
+            ),
         }
     })
 }

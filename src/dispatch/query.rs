@@ -12,6 +12,7 @@ use super::guard;
 use crate::diag;
 use crate::runtime::command::copy_results_len;
 use crate::runtime::query::{QueryKind, QueryPool, RangeError, ReadFlags};
+use crate::runtime::stall;
 use crate::runtime::sync::{Deadline, WaitOutcome};
 
 pub fn commands() -> Vec<Implemented> {
@@ -135,20 +136,21 @@ unsafe extern "system" fn get_query_pool_results(
             return vk::Result::SUCCESS;
         }
         if f.wait {
-            // The spec lets WAIT block forever on a query nothing will write; say so once it
-            // has taken suspiciously long, then keep waiting (or stop if the device is lost).
-            let soon = Deadline::from_timeout_ns(2_000_000_000);
-            let mut r = p.wait_available(first, count, soon, Some(&dev.lost));
-            if r == WaitOutcome::TimedOut {
-                diag::report(
-                    diag::Level::Warn,
-                    CMD,
-                    &format!("WAIT: queries [{first}, +{count}) still unavailable after 2 s; unless a pending submission writes them this never returns"),
-                );
-                r = p.wait_available(first, count, Deadline::Never, Some(&dev.lost));
-            }
-            if r != WaitOutcome::Ready {
-                return vk::Result::ERROR_DEVICE_LOST;
+            // The spec lets WAIT on a query that nothing will write block forever, or end in
+            // VK_ERROR_DEVICE_LOST. Arbor does neither in normal mode: once nothing pending can
+            // write the queries (`runtime::stall`) it reports them and answers VK_NOT_READY, the
+            // answer of a read without WAIT, so the application sees exactly which queries are
+            // missing and keeps a working device; strict mode loses the device.
+            match p.wait_available(first, count, Deadline::Never, Some(&dev.lost)) {
+                WaitOutcome::Ready => {}
+                WaitOutcome::Stalled => {
+                    let missing: Vec<String> = (first..first + count).filter(|&q| !p.is_available(q)).map(|q| q.to_string()).collect();
+                    let what = format!("WAIT on queries {} of query pool {:#x}, which no submitted command will write", missing.join(", "), query_pool.as_raw());
+                    if stall::report(&dev, CMD, &what) {
+                        return vk::Result::ERROR_DEVICE_LOST;
+                    }
+                }
+                WaitOutcome::TimedOut | WaitOutcome::Cancelled => return vk::Result::ERROR_DEVICE_LOST,
             }
         }
         // SAFETY: pData is valid for dataSize bytes per the spec; dataSize ≥ needed, checked above.

@@ -139,7 +139,7 @@ unsafe extern "system" fn queue_submit2(queue: vk::Queue, count: u32, p_submits:
 
 unsafe extern "system" fn queue_wait_idle(queue: vk::Queue) -> vk::Result {
     guard("vkQueueWaitIdle", vk::Result::ERROR_DEVICE_LOST, || match queue_from(queue) {
-        Some(q) => q.wait_idle(),
+        Some(q) => q.wait_idle("vkQueueWaitIdle"),
         None => vk::Result::ERROR_DEVICE_LOST,
     })
 }
@@ -151,7 +151,7 @@ unsafe extern "system" fn device_wait_idle(device: vk::Device) -> vk::Result {
         for (_, _, h) in dev.queues.get().map(|v| v.as_slice()).unwrap_or(&[]) {
             // SAFETY: queue handles live as long as their device.
             if let Some(q) = unsafe { dispatchable::<Queue>(*h as QueueHandle) } {
-                let r = q.wait_idle();
+                let r = q.wait_idle("vkDeviceWaitIdle");
                 if r != vk::Result::SUCCESS {
                     result = r;
                 }

@@ -9,6 +9,7 @@ use super::handle;
 use super::table::{imp, Implemented};
 use super::{guard, util};
 use crate::diag;
+use crate::runtime::stall;
 use crate::runtime::sync::{self, Deadline, Event, Fence, Semaphore, SemaphoreKind, WaitOutcome};
 use crate::runtime::Device;
 
@@ -32,8 +33,9 @@ pub fn commands() -> Vec<Implemented> {
     ]
 }
 
-/// The result of a host wait.
-fn wait_result(dev: &Device, outcome: WaitOutcome) -> vk::Result {
+/// The result of a host wait. A stall (`runtime::stall`: nothing pending can end the wait) is
+/// reported with `what` and answered as a timeout would be, or device lost in strict mode.
+fn wait_result(dev: &Device, command: &str, outcome: WaitOutcome, what: impl FnOnce() -> String) -> vk::Result {
     if dev.is_lost() {
         return vk::Result::ERROR_DEVICE_LOST;
     }
@@ -41,6 +43,8 @@ fn wait_result(dev: &Device, outcome: WaitOutcome) -> vk::Result {
         WaitOutcome::Ready => vk::Result::SUCCESS,
         WaitOutcome::TimedOut => vk::Result::TIMEOUT,
         WaitOutcome::Cancelled => vk::Result::ERROR_DEVICE_LOST,
+        WaitOutcome::Stalled if stall::report(dev, command, &what()) => vk::Result::ERROR_DEVICE_LOST,
+        WaitOutcome::Stalled => vk::Result::TIMEOUT,
     }
 }
 
@@ -122,14 +126,20 @@ unsafe extern "system" fn wait_for_fences(device: vk::Device, count: u32, p_fenc
     guard("vkWaitForFences", vk::Result::ERROR_DEVICE_LOST, || {
         let Some(dev) = device_from(device) else { return vk::Result::ERROR_DEVICE_LOST };
         // SAFETY: valid array of count fences per the spec.
-        let fences: Vec<Arc<Fence>> = unsafe { util::slice(p_fences, count) }
+        let fences: Vec<(u64, Arc<Fence>)> = unsafe { util::slice(p_fences, count) }
             .iter()
-            .filter_map(|h| get::<Fence>(h.as_raw(), "vkWaitForFences", "fence"))
+            .filter_map(|h| get::<Fence>(h.as_raw(), "vkWaitForFences", "fence").map(|f| (h.as_raw(), f)))
             .collect();
-        if fences.is_empty() {
-            return wait_result(&dev, WaitOutcome::Ready);
-        }
-        wait_result(&dev, sync::wait_fences(&fences, wait_all != 0, Deadline::from_timeout_ns(timeout)))
+        let objects: Vec<Arc<Fence>> = fences.iter().map(|(_, f)| f.clone()).collect();
+        let outcome = if objects.is_empty() { WaitOutcome::Ready } else { sync::wait_fences(&objects, wait_all != 0, Deadline::from_timeout_ns(timeout)) };
+        wait_result(&dev, "vkWaitForFences", outcome, || {
+            let unsignalled: Vec<String> = fences
+                .iter()
+                .filter(|(_, f)| !f.is_signalled())
+                .map(|(h, f)| format!("{h:#x} ({})", if f.is_pending() { "its submission is blocked" } else { "never submitted" }))
+                .collect();
+            format!("fences not signalled: {}", unsignalled.join(", "))
+        })
     })
 }
 
@@ -211,6 +221,7 @@ unsafe extern "system" fn wait_semaphores(device: vk::Device, p_info: *const vk:
         // SAFETY: valid arrays of semaphoreCount elements per the spec.
         let (sems, values) = unsafe { (util::slice(info.p_semaphores, info.semaphore_count), util::slice(info.p_values, info.semaphore_count)) };
         let mut waits = Vec::with_capacity(sems.len());
+        let mut handles = Vec::with_capacity(sems.len());
         for (h, v) in sems.iter().zip(values) {
             let Some(s) = get::<Semaphore>(h.as_raw(), CMD, "semaphore") else { continue };
             if s.kind != SemaphoreKind::Timeline {
@@ -218,12 +229,19 @@ unsafe extern "system" fn wait_semaphores(device: vk::Device, p_info: *const vk:
                 continue;
             }
             waits.push((s, *v));
-        }
-        if waits.is_empty() {
-            return wait_result(&dev, WaitOutcome::Ready);
+            handles.push(h.as_raw());
         }
         let all = !info.flags.contains(vk::SemaphoreWaitFlags::ANY);
-        wait_result(&dev, sync::wait_semaphores(&waits, all, Deadline::from_timeout_ns(timeout)))
+        let outcome = if waits.is_empty() { WaitOutcome::Ready } else { sync::wait_semaphores(&waits, all, Deadline::from_timeout_ns(timeout)) };
+        wait_result(&dev, CMD, outcome, || {
+            let short: Vec<String> = handles
+                .iter()
+                .zip(&waits)
+                .filter(|(_, (s, v))| !s.reached(*v))
+                .map(|(h, (s, v))| format!("{h:#x} at {} waiting for {v}", s.value()))
+                .collect();
+            format!("timeline semaphores short of their values: {}", short.join(", "))
+        })
     })
 }
 

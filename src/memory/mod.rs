@@ -22,6 +22,7 @@
 //! structures, commands) is for the layers above.
 mod backing;
 pub mod region;
+pub mod sparse;
 pub mod view;
 
 use backing::Backing;
@@ -93,6 +94,8 @@ pub struct Memory {
     freed: AtomicBool,
     /// Buffers bound to this memory (for address resolution).
     buffers: Mutex<Vec<Weak<Buffer>>>,
+    /// For the range of a sparse buffer: what each page is bound to (`sparse`).
+    sparse: Option<sparse::Pages>,
 }
 
 impl Memory {
@@ -347,6 +350,17 @@ impl AddressSpace {
         capture_replay: bool,
         capture_address: Option<u64>,
     ) -> Result<Arc<Memory>, AllocError> {
+        self.allocate_kind(size, device_address_flag, capture_replay, capture_address, sparse::Kind::Ordinary)
+    }
+
+    fn allocate_kind(
+        &self,
+        size: u64,
+        device_address_flag: bool,
+        capture_replay: bool,
+        capture_address: Option<u64>,
+        kind: sparse::Kind,
+    ) -> Result<Arc<Memory>, AllocError> {
         let size = size.max(1);
         let reserved = self.used.fetch_add(size, Ordering::Relaxed).saturating_add(size);
         if reserved > self.heap_size {
@@ -358,7 +372,12 @@ impl AddressSpace {
             e
         };
         let rounded = size.checked_add(ALLOCATION_ALIGNMENT - 1).ok_or(AllocError::OutOfDeviceMemory).map_err(release)? & !(ALLOCATION_ALIGNMENT - 1);
-        let backing = usize::try_from(rounded).ok().and_then(Backing::new).ok_or_else(|| release(AllocError::OutOfHostMemory))?;
+        let new_backing = match kind {
+            sparse::Kind::Ordinary => Backing::new,
+            sparse::Kind::Shareable => Backing::new_shared,
+            sparse::Kind::SparseRange => Backing::new_reserved,
+        };
+        let backing = usize::try_from(rounded).ok().and_then(new_backing).ok_or_else(|| release(AllocError::OutOfHostMemory))?;
 
         let mut allocations = self.allocations.write().unwrap_or_else(|e| e.into_inner());
         let address = match capture_address {
@@ -394,6 +413,7 @@ impl AddressSpace {
             mapping: Mutex::new(None),
             freed: AtomicBool::new(false),
             buffers: Mutex::new(Vec::new()),
+            sparse: (kind == sparse::Kind::SparseRange).then(|| sparse::Pages::new(rounded)),
         });
         allocations.retain(|_, m| m.strong_count() > 0);
         allocations.insert(address, Arc::downgrade(&memory));

@@ -8,9 +8,11 @@ pub mod command;
 pub mod descriptor;
 pub mod deferred;
 pub mod device;
+pub mod in_use;
 pub mod instance;
 pub mod query;
 pub mod queue;
+pub mod stall;
 pub mod sync;
 
 pub use device::Device;

@@ -146,10 +146,11 @@ impl QueryPool {
         self.slots().get(query as usize).is_some_and(|s| s.available)
     }
 
-    /// Wait until the queries of the range are available (WAIT flag). `cancel`: stop early.
+    /// Wait until the queries of the range are available (WAIT flag of a host read). `cancel`:
+    /// stop early; [`WaitOutcome::Stalled`] when nothing pending can write them (`stall`).
     pub fn wait_available(&self, first: u32, count: u32, deadline: Deadline, cancel: Option<&AtomicBool>) -> WaitOutcome {
         let end = first as usize + count as usize;
-        sync::wait_until(deadline, cancel, || {
+        sync::wait_or_stall(deadline, cancel, || {
             let s = self.slots();
             s.get(first as usize..end).is_some_and(|r| r.iter().all(|q| q.available))
         })

@@ -5,6 +5,10 @@
 //! Stopping: [`Queue::shutdown`] (vkDestroyDevice) raises the cancel flag, which ends any wait
 //! the worker is blocked in, closes the channel and joins the thread. Submissions still queued
 //! are abandoned (their buffers leave the pending state; nothing executes).
+//!
+//! Unblocking: a `vkQueueWaitIdle` that finds the queue stalled (`stall`: blocked in a wait
+//! nothing pending can satisfy) raises the interrupt flag, which ends the blocked wait and
+//! skips the rest of that one submission (its signals and fence still fire).
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::mpsc;
 use std::sync::{Arc, Mutex, Weak};
@@ -13,6 +17,8 @@ use std::thread::JoinHandle;
 use ash::vk;
 
 use super::command::{execute_recording, CommandBuffer, ExecContext, Flow, SubmittedBuffer};
+use super::in_use::{Collector, Held};
+use super::stall;
 use super::sync::{self, Deadline, Fence, Semaphore, SemaphoreKind, WaitOutcome};
 use super::Device;
 use crate::diag;
@@ -28,6 +34,8 @@ struct Batch {
     waits: Vec<(Arc<Semaphore>, u64)>,
     command_buffers: Vec<SubmittedBuffer>,
     signals: Vec<(Arc<Semaphore>, u64)>,
+    /// What the command buffers use (`in_use`); released before the signals.
+    uses: Held,
 }
 
 struct Submission {
@@ -43,6 +51,7 @@ impl Submission {
             for cb in &b.command_buffers {
                 cb.complete();
             }
+            drop(b.uses);
             for (s, v) in &b.signals {
                 s.signal(*v);
             }
@@ -58,6 +67,10 @@ struct Shared {
     submitted: AtomicU64,
     completed: AtomicU64,
     stop: AtomicBool,
+    /// Raised with `stop`, or to abandon the submission the worker is blocked in; ends the
+    /// worker's waits and the current submission. Lowered by the worker when it starts the
+    /// next submission, unless the queue is stopping.
+    interrupt: AtomicBool,
 }
 
 struct Worker {
@@ -79,7 +92,12 @@ impl Queue {
             device,
             family,
             index,
-            shared: Arc::new(Shared { submitted: AtomicU64::new(0), completed: AtomicU64::new(0), stop: AtomicBool::new(false) }),
+            shared: Arc::new(Shared {
+                submitted: AtomicU64::new(0),
+                completed: AtomicU64::new(0),
+                stop: AtomicBool::new(false),
+                interrupt: AtomicBool::new(false),
+            }),
             worker: Mutex::new(None),
         }
     }
@@ -109,8 +127,12 @@ impl Queue {
                     );
                 }
             }
-            let command_buffers = b.command_buffers.iter().filter_map(|cb| cb.prepare_submit(command)).collect();
-            lowered.push(Batch { waits: b.waits, command_buffers, signals: b.signals });
+            let command_buffers: Vec<SubmittedBuffer> = b.command_buffers.iter().filter_map(|cb| cb.prepare_submit(command)).collect();
+            let mut uses = Collector::new(&device.memory);
+            for c in command_buffers.iter().flat_map(|cb| &cb.recording.commands) {
+                c.uses(&mut uses);
+            }
+            lowered.push(Batch { waits: b.waits, command_buffers, signals: b.signals, uses: uses.hold() });
         }
         if let Some(f) = &fence {
             f.mark_pending();
@@ -155,20 +177,52 @@ impl Queue {
         Some(Worker { tx, thread })
     }
 
-    /// vkQueueWaitIdle: wait for everything submitted so far.
-    pub fn wait_idle(&self) -> vk::Result {
+    /// vkQueueWaitIdle (and each queue of vkDeviceWaitIdle, `command`): wait for everything
+    /// submitted so far. A stalled queue (`stall`) is reported and its blocked submission
+    /// abandoned, so the wait ends with the queue really idle; strict mode loses the device.
+    pub fn wait_idle(&self, command: &str) -> vk::Result {
         let target = self.shared.submitted.load(Ordering::Acquire);
         let shared = &self.shared;
-        sync::wait_until(Deadline::Never, Some(&shared.stop), || shared.completed.load(Ordering::Acquire) >= target);
+        loop {
+            let r = sync::wait_or_stall(Deadline::Never, Some(&shared.stop), || shared.completed.load(Ordering::Acquire) >= target);
+            if r != WaitOutcome::Stalled {
+                break;
+            }
+            if let Some(d) = self.device.upgrade() {
+                let what = format!(
+                    "queue (family {}, index {}) is blocked in a semaphore or event wait; its submission is abandoned (command buffers skipped, signals and fence fired)",
+                    self.family, self.index
+                );
+                stall::report(&d, command, &what);
+            }
+            shared.interrupt.store(true, Ordering::Release);
+            sync::notify();
+        }
         match self.device.upgrade() {
             Some(d) if !d.is_lost() => vk::Result::SUCCESS,
             _ => vk::Result::ERROR_DEVICE_LOST,
         }
     }
 
+    /// vkDestroyDevice with submissions still pending: report them, then wait for them as
+    /// vkQueueWaitIdle does (a stalled one is abandoned, so this returns).
+    pub fn finish_before_destroy(&self) {
+        let pending = self.shared.submitted.load(Ordering::Acquire).saturating_sub(self.shared.completed.load(Ordering::Acquire));
+        if pending > 0 {
+            diag::report(
+                diag::Level::Error,
+                "vkDestroyDevice",
+                &format!("{pending} submission(s) still pending on queue (family {}, index {}); waiting for them (call vkDeviceWaitIdle before destroying the device)", self.family, self.index),
+            );
+            // The device goes either way; a lost device only ends the wait sooner.
+            let _ = self.wait_idle("vkDestroyDevice");
+        }
+    }
+
     /// Stop the worker (device destruction): cancel its waits, abandon what is queued, join.
     pub fn shutdown(&self) {
         self.shared.stop.store(true, Ordering::Release);
+        self.shared.interrupt.store(true, Ordering::Release);
         sync::notify();
         let worker = self.worker.lock().unwrap_or_else(|e| e.into_inner()).take();
         if let Some(Worker { tx, thread }) = worker {
@@ -192,7 +246,14 @@ fn worker_loop(rx: mpsc::Receiver<Submission>, shared: Arc<Shared>, device: Weak
         match device {
             Some(d) if !shared.stop.load(Ordering::Acquire) => {
                 // A panic in a command must not kill the queue: report it and go on.
+                // An interrupt raised before this submission started was meant for an earlier
+                // one that completed meanwhile.
+                if !shared.stop.load(Ordering::Acquire) {
+                    shared.interrupt.store(false, Ordering::Release);
+                }
+                let executing = stall::running();
                 let r = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| run(&d, &shared, submission)));
+                drop(executing);
                 if r.is_err() {
                     diag::report(diag::Level::Error, "queue", "internal error (caught panic) while executing a submission");
                 }
@@ -205,12 +266,12 @@ fn worker_loop(rx: mpsc::Receiver<Submission>, shared: Arc<Shared>, device: Weak
 }
 
 fn run(device: &Arc<Device>, shared: &Shared, submission: Submission) {
-    let ctx = ExecContext { device, cancel: &shared.stop };
+    let ctx = ExecContext { device, cancel: &shared.interrupt };
     let mut stopped = false;
-    for batch in &submission.batches {
+    for batch in submission.batches {
         if !stopped {
             for (s, v) in &batch.waits {
-                let r = sync::wait_until(Deadline::Never, Some(&shared.stop), || s.try_consume(*v));
+                let r = stall::blocked(|| sync::wait_until(Deadline::Never, Some(&shared.interrupt), || s.try_consume(*v)));
                 if r != WaitOutcome::Ready {
                     stopped = true;
                     break;
@@ -223,6 +284,7 @@ fn run(device: &Arc<Device>, shared: &Shared, submission: Submission) {
             }
             cb.complete();
         }
+        drop(batch.uses);
         for (s, v) in &batch.signals {
             s.signal(*v);
         }
@@ -307,7 +369,7 @@ mod tests {
         assert_eq!(out, [21, 0, 0, 0, 42, 0, 0, 0, 7, 0, 0, 0]);
         assert_eq!(ran.load(Ordering::Relaxed), 1);
         assert!(!cb.is_pending());
-        assert_eq!(q.wait_idle(), vk::Result::SUCCESS);
+        assert_eq!(q.wait_idle("test"), vk::Result::SUCCESS);
         q.shutdown();
     }
 

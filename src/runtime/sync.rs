@@ -29,6 +29,7 @@ fn hub_lock() -> MutexGuard<'static, ()> {
 
 /// Publish a state change (call after the atomic store): wakes every waiter to re-check.
 pub fn notify() {
+    super::stall::advance();
     let _g = hub_lock();
     hub().changed.notify_all();
 }
@@ -59,11 +60,23 @@ pub enum WaitOutcome {
     TimedOut,
     /// The `cancel` flag was raised (device destruction stops blocked queue workers).
     Cancelled,
+    /// Nothing can complete the wait (`stall`); only from [`wait_or_stall`].
+    Stalled,
 }
 
 /// Block until `ready()` holds, the deadline passes or `cancel` is raised.
 /// `ready` must only read state (atomics, short-lived locks); it runs with the hub's lock held.
-pub fn wait_until(deadline: Deadline, cancel: Option<&AtomicBool>, mut ready: impl FnMut() -> bool) -> WaitOutcome {
+pub fn wait_until(deadline: Deadline, cancel: Option<&AtomicBool>, ready: impl FnMut() -> bool) -> WaitOutcome {
+    wait_inner(deadline, cancel, None, ready)
+}
+
+/// [`wait_until`] for a host wait that must not outlast a stall: also returns
+/// [`WaitOutcome::Stalled`] once nothing in the driver can make `ready()` hold (`stall`).
+pub fn wait_or_stall(deadline: Deadline, cancel: Option<&AtomicBool>, ready: impl FnMut() -> bool) -> WaitOutcome {
+    wait_inner(deadline, cancel, Some(super::stall::Watch::new()), ready)
+}
+
+fn wait_inner(deadline: Deadline, cancel: Option<&AtomicBool>, mut watch: Option<super::stall::Watch>, mut ready: impl FnMut() -> bool) -> WaitOutcome {
     let mut guard = hub_lock();
     loop {
         if ready() {
@@ -72,13 +85,30 @@ pub fn wait_until(deadline: Deadline, cancel: Option<&AtomicBool>, mut ready: im
         if cancel.is_some_and(|c| c.load(Ordering::Acquire)) {
             return WaitOutcome::Cancelled;
         }
-        guard = match deadline {
-            Deadline::Now => return WaitOutcome::TimedOut,
-            Deadline::Never => hub().changed.wait(guard).unwrap_or_else(|e| e.into_inner()),
-            Deadline::At(t) => {
+        if watch.as_mut().is_some_and(|w| w.stalled()) {
+            return WaitOutcome::Stalled;
+        }
+        // A stall-aware wait wakes up now and then to look at the driver's activity.
+        let poll = watch.as_ref().and_then(|w| w.poll_interval());
+        let until = match (deadline, poll) {
+            (Deadline::Now, _) => return WaitOutcome::TimedOut,
+            (Deadline::Never, None) => None,
+            (Deadline::Never, Some(p)) => Some((Instant::now() + p, false)),
+            (Deadline::At(t), None) => Some((t, true)),
+            (Deadline::At(t), Some(p)) => {
+                let wake = Instant::now() + p;
+                Some(if wake < t { (wake, false) } else { (t, true) })
+            }
+        };
+        guard = match until {
+            None => hub().changed.wait(guard).unwrap_or_else(|e| e.into_inner()),
+            Some((t, is_deadline)) => {
                 let now = Instant::now();
                 if now >= t {
-                    return WaitOutcome::TimedOut;
+                    if is_deadline {
+                        return WaitOutcome::TimedOut;
+                    }
+                    continue;
                 }
                 hub().changed.wait_timeout(guard, t - now).unwrap_or_else(|e| e.into_inner()).0
             }
@@ -125,7 +155,7 @@ impl Fence {
 
 /// Wait for fences: all of them or any of them.
 pub fn wait_fences(fences: &[std::sync::Arc<Fence>], all: bool, deadline: Deadline) -> WaitOutcome {
-    wait_until(deadline, None, || {
+    wait_or_stall(deadline, None, || {
         if all {
             fences.iter().all(|f| f.is_signalled())
         } else {
@@ -189,7 +219,7 @@ impl Semaphore {
 
 /// Host wait on timeline semaphores (vkWaitSemaphores): all or any reach their values.
 pub fn wait_semaphores(waits: &[(std::sync::Arc<Semaphore>, u64)], all: bool, deadline: Deadline) -> WaitOutcome {
-    wait_until(deadline, None, || {
+    wait_or_stall(deadline, None, || {
         if all {
             waits.iter().all(|(s, v)| s.reached(*v))
         } else {

@@ -337,3 +337,42 @@ impl Drop for Context {
         }
     }
 }
+
+/// Run `f` on its own thread and fail the test if it has not finished within `secs` seconds, so
+/// a call that hangs fails the test instead of stalling the run. A panic in `f` fails the test
+/// with its message. (A hung thread is left behind; the process ends with the test binary.)
+pub fn bounded<R: Send + 'static>(secs: u64, f: impl FnOnce() -> R + Send + 'static) -> R {
+    let (tx, rx) = std::sync::mpsc::channel();
+    let t = std::thread::spawn(move || {
+        let r = f();
+        let _ = tx.send(());
+        r
+    });
+    match rx.recv_timeout(std::time::Duration::from_secs(secs)) {
+        Ok(()) | Err(std::sync::mpsc::RecvTimeoutError::Disconnected) => match t.join() {
+            Ok(r) => r,
+            Err(e) => std::panic::resume_unwind(e),
+        },
+        Err(std::sync::mpsc::RecvTimeoutError::Timeout) => panic!("did not finish within {secs} s: a call hangs"),
+    }
+}
+
+impl Context {
+    /// Destroy device and instance without waiting for the device to be idle first (tests of
+    /// vkDestroyDevice with work pending), then fail if the validation layer said anything.
+    pub fn finish_without_wait(mut self) {
+        if let Some((du, m)) = self.messenger.take() {
+            let _serial = lifecycle();
+            // SAFETY: the test destroys the device with work pending on purpose; nothing of it
+            // is used afterwards.
+            unsafe {
+                self.device.destroy_device(None);
+                du.destroy_debug_utils_messenger(m, None);
+                self.instance.destroy_instance(None);
+            }
+        }
+        self.finished = true;
+        let msgs = self.messages();
+        assert!(msgs.is_empty(), "validation messages:\n{}", msgs.join("\n"));
+    }
+}

@@ -72,10 +72,35 @@ pub fn execute_builds(mem: &dyn InputMemory, infos: &[BuildInfo]) -> Result<(), 
 
 /// The destination and scratch of a checked build (None when either no longer resolves, or,
 /// against a check `validate` made, overlaps a region claimed before).
+/// Each miss is reported: memory freed while the command was pending (reported by
+/// vkFreeMemory too) is the way a checked region stops resolving.
 fn claim_regions<'m>(mem: &'m dyn InputMemory, writes: &mut WriteSet, p: &Prepared) -> Option<Claim<'m, 2>> {
-    let dst = Region::of_buffer(&p.dst.buffer, p.dst.offset, p.dst.size).ok()?;
-    let scratch = if p.scratch_len == 0 { Region::empty() } else { mem.writable(p.info.scratch, p.scratch_len).ok()? };
-    writes.claim([dst, scratch]).ok()
+    let skipped = |what: &str| diag::report(diag::Level::Error, mem.command(), &format!("pInfos[{}]: {what}; build skipped", p.index));
+    let dst = match Region::of_buffer(&p.dst.buffer, p.dst.offset, p.dst.size) {
+        Ok(r) => r,
+        Err(e) => {
+            skipped(&format!("the destination no longer resolves ({e})"));
+            return None;
+        }
+    };
+    let scratch = if p.scratch_len == 0 {
+        Region::empty()
+    } else {
+        match mem.writable(p.info.scratch, p.scratch_len) {
+            Ok(r) => r,
+            Err(e) => {
+                skipped(&format!("the scratch no longer resolves ({e:?})"));
+                return None;
+            }
+        }
+    };
+    match writes.claim([dst, scratch]) {
+        Ok(c) => Some(c),
+        Err(_) => {
+            skipped("destination or scratch overlaps a region another element of the command writes");
+            None
+        }
+    }
 }
 
 /// Run one checked build. Returns false when the library rejected it (reported, dst invalid).

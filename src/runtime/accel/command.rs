@@ -11,10 +11,11 @@ use std::sync::Arc;
 use ash::vk;
 
 use super::inputs::{DeviceInputs, HostInputs, StructureLookup};
-use super::{execute_builds, execute_copy, property, AccelerationStructure, BuildInfo, Copy, DeviceLost};
+use super::{execute_builds, execute_copy, property, AccelerationStructure, BuildInfo, Copy, DeviceLost, GeometryDesc, Ranges};
 use crate::diag;
 use crate::memory::region::HostMemory;
 use crate::runtime::command::{CommandBuffer, Exec, ExecContext, ExecError};
+use crate::runtime::in_use::Collector;
 use crate::runtime::deferred::DeferredOperation;
 use crate::runtime::query::QueryPool;
 use crate::runtime::Device;
@@ -61,6 +62,28 @@ impl Exec for BuildCommand {
             message: "an acceleration-structure build broke a valid-usage rule (ARBOR_STRICT)".into(),
         })
     }
+    fn uses(&self, c: &mut Collector<'_>) {
+        for info in &self.infos {
+            for s in info.src.iter().chain(&info.dst) {
+                c.structure(s);
+            }
+            c.address(info.scratch);
+            for g in &info.geometries {
+                match &g.desc {
+                    GeometryDesc::Triangles { vertex_data, index_data, transform_data, .. } => {
+                        for a in [vertex_data, index_data, transform_data] {
+                            c.address(*a);
+                        }
+                    }
+                    GeometryDesc::Aabbs { data, .. } | GeometryDesc::Instances { data, .. } => c.address(*data),
+                    GeometryDesc::Unsupported(_) => {}
+                }
+            }
+            if let Ranges::Indirect { address, .. } = &info.ranges {
+                c.address(*address);
+            }
+        }
+    }
 }
 
 impl Copy {
@@ -92,6 +115,23 @@ impl Exec for CopyCommand {
             vuid: "strict",
             message: "an acceleration-structure copy broke a valid-usage rule (ARBOR_STRICT)".into(),
         })
+    }
+    fn uses(&self, c: &mut Collector<'_>) {
+        match &self.op {
+            Copy::Structure { src, dst, .. } => {
+                for s in src.iter().chain(dst) {
+                    c.structure(s);
+                }
+            }
+            Copy::ToMemory { src, dst, .. } => {
+                src.iter().for_each(|s| c.structure(s));
+                c.address(*dst);
+            }
+            Copy::FromMemory { src, dst, .. } => {
+                c.address(*src);
+                dst.iter().for_each(|s| c.structure(s));
+            }
+        }
     }
 }
 
@@ -134,19 +174,22 @@ impl Exec for WritePropertiesCommand {
     fn name(&self) -> &'static str {
         "vkCmdWriteAccelerationStructuresPropertiesKHR"
     }
+    /// Every query of the command becomes available, whatever the structure held: an invalid
+    /// one (reported by `property`) gets 0, so a host WAIT on it returns instead of hanging.
     fn execute(&self, _ctx: &ExecContext<'_>) -> Result<(), ExecError> {
+        let mut invalid = false;
         for (i, s) in self.structures.iter().enumerate() {
-            match property(s.as_deref(), self.query_type, self.name(), i) {
-                Some(v) => {
-                    self.pool.write(self.first + i as u32, v);
-                }
-                None if diag::strict() => {
-                    return Err(ExecError::Invalid { vuid: "strict", message: "invalid property query (ARBOR_STRICT)".into() })
-                }
-                None => {}
-            }
+            let value = property(s.as_deref(), self.query_type, self.name(), i);
+            invalid |= value.is_none();
+            self.pool.write(self.first + i as u32, value.unwrap_or(0));
+        }
+        if invalid && diag::strict() {
+            return Err(ExecError::Invalid { vuid: "strict", message: "invalid property query (ARBOR_STRICT)".into() });
         }
         Ok(())
+    }
+    fn uses(&self, c: &mut Collector<'_>) {
+        self.structures.iter().flatten().for_each(|s| c.structure(s));
     }
 }
 
@@ -193,6 +236,9 @@ fn host_work(
 ) -> HostWork {
     let device = device.clone();
     Box::new(move || {
+        // Host work counts as activity: a thread waiting on a fence this thread submits next
+        // must not take the build for a stall.
+        let _executing = crate::runtime::stall::running();
         let inputs = HostInputs::new(host, &device.memory, lookup, command);
         match execute(&inputs) {
             Ok(()) => vk::Result::SUCCESS,

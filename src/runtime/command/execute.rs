@@ -12,6 +12,7 @@ use ash::vk;
 use super::{CommandBuffer, Recording};
 use crate::diag;
 use crate::memory::{AccessError, AddressSpace, Buffer};
+use crate::runtime::in_use::Collector;
 use crate::runtime::query::{QueryPool, ReadFlags};
 use crate::runtime::sync::{self, Deadline, Event, WaitOutcome};
 use crate::runtime::Device;
@@ -57,7 +58,8 @@ impl ExecContext<'_> {
     /// Block (cancellably) until `ready()` holds. `ready` runs under the sync hub's lock; it
     /// must only read state.
     pub fn wait(&self, ready: impl FnMut() -> bool) -> Result<(), ExecError> {
-        match sync::wait_until(Deadline::Never, Some(self.cancel), ready) {
+        // Blocked, not executing: what it waits for must come from elsewhere (`stall`).
+        match crate::runtime::stall::blocked(|| sync::wait_until(Deadline::Never, Some(self.cancel), ready)) {
             WaitOutcome::Ready => Ok(()),
             _ => Err(ExecError::Cancelled),
         }
@@ -85,6 +87,9 @@ pub trait Exec: Send + Sync {
     fn name(&self) -> &'static str;
     /// Run it. Reads of device memory happen here, not at record time.
     fn execute(&self, ctx: &ExecContext<'_>) -> Result<(), ExecError>;
+    /// The structures, buffers and device addresses it names, collected when it is submitted
+    /// (`in_use`: destroying them while it is pending is reported).
+    fn uses(&self, _uses: &mut Collector<'_>) {}
 }
 
 /// A buffer copy region (validated at record time, checked again when executed).
@@ -135,6 +140,31 @@ impl Command {
             Command::CopyQueryResults { .. } => "vkCmdCopyQueryPoolResults",
             Command::ExecuteCommands(_) => "vkCmdExecuteCommands",
             Command::Custom(c) => c.name(),
+        }
+    }
+
+    /// What the command names, for `in_use`.
+    pub fn uses(&self, c: &mut Collector<'_>) {
+        match self {
+            Command::CopyBuffer { src, dst, .. } => {
+                c.buffer(src);
+                c.buffer(dst);
+            }
+            Command::FillBuffer { dst, .. } | Command::UpdateBuffer { dst, .. } | Command::CopyQueryResults { dst, .. } => c.buffer(dst),
+            Command::ExecuteCommands(secondaries) => {
+                for s in secondaries {
+                    for cmd in &s.recording.commands {
+                        cmd.uses(c);
+                    }
+                }
+            }
+            Command::Custom(x) => x.uses(c),
+            Command::Barrier
+            | Command::SetEvent(_)
+            | Command::ResetEvent(_)
+            | Command::WaitEvents(_)
+            | Command::WriteTimestamp { .. }
+            | Command::ResetQueries { .. } => {}
         }
     }
 
