@@ -630,7 +630,7 @@ fn capture_replay_reproduces_structure_addresses() {
     let flags = vk::MemoryAllocateFlags::DEVICE_ADDRESS | vk::MemoryAllocateFlags::DEVICE_ADDRESS_CAPTURE_REPLAY;
     let size = 1u64 << 20;
     // Returns (memory capture address, structure address, serialization of a build into it).
-    let session = |replay: Option<(u64, u64)>| -> (u64, u64, Vec<u8>) {
+    let capture_run = |replay: Option<(u64, u64)>| -> (u64, u64, Vec<u8>) {
         let ctx = as_context();
         let a = Accel::new(&ctx);
         let mesh = bunny();
@@ -679,9 +679,9 @@ fn capture_replay_reproduces_structure_addresses() {
         ctx.finish();
         out
     };
-    let (mem_addr, addr, captured) = session(None);
+    let (mem_addr, addr, captured) = capture_run(None);
     assert_eq!(addr % 256, 0);
-    let (_, replayed_addr, replayed) = session(Some((mem_addr, addr)));
+    let (_, replayed_addr, replayed) = capture_run(Some((mem_addr, addr)));
     assert_eq!(replayed_addr, addr);
     assert_eq!(replayed, captured, "the same build at the same address gives the same bytes");
 }
