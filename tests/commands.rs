@@ -375,15 +375,7 @@ fn a_failing_command_is_skipped_and_the_rest_runs() {
 /// Strict mode (ARBOR_STRICT=1, read once per process): run in a child process.
 #[test]
 fn strict_mode_loses_the_device() {
-    let exe = std::env::current_exe().unwrap();
-    let out = std::process::Command::new(exe)
-        .args(["--exact", "strict_mode_child", "--ignored", "--test-threads=1"])
-        .env("ARBOR_STRICT", "1")
-        .env("ARBOR_DIAG", "off")
-        .output()
-        .unwrap();
-    let text = String::from_utf8_lossy(&out.stdout);
-    assert!(out.status.success() && text.contains("1 passed"), "child failed:\n{text}\n{}", String::from_utf8_lossy(&out.stderr));
+    harness::child::run_child_test("strict_mode_child", &[("ARBOR_STRICT", "1"), ("ARBOR_DIAG", "off")]);
 }
 
 #[test]

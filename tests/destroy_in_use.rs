@@ -210,13 +210,7 @@ const STRICT_CHILD: &str = "strict_child_destroying_in_use_loses_the_device";
 fn strict_mode_turns_destroying_in_use_into_device_lost() {
     bounded(BOUND_S, || {
         stall_ms();
-        let out = std::process::Command::new(std::env::current_exe().unwrap())
-            .args([STRICT_CHILD, "--exact", "--ignored", "--nocapture", "--test-threads=1"])
-            .env("ARBOR_STRICT", "1")
-            .output()
-            .expect("run the test binary as a child");
-        let text = format!("{}{}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
-        assert!(out.status.success(), "the strict-mode child failed:\n{text}");
+        let text = harness::child::run_child_test(STRICT_CHILD, &[("ARBOR_STRICT", "1")]);
         assert!(text.contains("strict child: device lost as expected"), "the strict-mode child skipped its checks:\n{text}");
     });
 }

@@ -11,14 +11,7 @@ const STRICT_CHILD: &str = "strict_mode_child_invalid_build_loses_the_device";
 
 #[test]
 fn strict_mode_turns_an_invalid_build_into_device_lost() {
-    let out = std::process::Command::new(std::env::current_exe().unwrap())
-        .args([STRICT_CHILD, "--exact", "--ignored", "--nocapture", "--test-threads=1"])
-        .env("ARBOR_STRICT", "1")
-        .output()
-        .expect("run the test binary as a child");
-    let text = format!("{}{}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
-    assert!(out.status.success(), "the strict-mode child failed:\n{text}");
-    assert!(text.contains("1 passed"), "the strict-mode child did not run:\n{text}");
+    let text = harness::child::run_child_test(STRICT_CHILD, &[("ARBOR_STRICT", "1")]);
     assert!(text.contains("strict child: device lost as expected"), "the strict-mode child skipped its checks:\n{text}");
 }
 

@@ -8,6 +8,7 @@
 #![allow(dead_code)]
 
 pub mod accel;
+pub mod child;
 pub mod vuid;
 
 use std::ffi::{c_void, CStr, CString};
