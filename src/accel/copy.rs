@@ -3,7 +3,7 @@
 use super::layout::parse;
 
 /// Identifies this format version in serialized data; change with layout::FORMAT_VERSION.
-pub const ACCEL_FORMAT_UUID: [u8; 16] = *b"ArborAS-BVH4q-02";
+pub const ACCEL_FORMAT_UUID: [u8; 16] = *b"ArborAS-BVH4q-03";
 
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub enum CopyError {
@@ -58,7 +58,9 @@ pub fn serialized_size(src: &[u8]) -> Option<u64> {
     Some(SER_HEADER + 8 * p.raw.blas_reference_count as u64 + p.raw.used_size)
 }
 
-/// The N addresses of the serialized header (distinct BLAS addresses, sorted).
+/// The N addresses of the serialized header: one per stored (active) instance, duplicates
+/// included, in the instance order of the build's input; inactive instances contribute none.
+/// N is also what the BOTTOM_LEVEL_POINTERS query reports.
 pub fn blas_references(src: &[u8]) -> Vec<u64> {
     match parse(src) {
         Some(p) => (0..p.raw.blas_reference_count).filter_map(|i| p.blas_address(i)).collect(),
@@ -121,7 +123,7 @@ pub fn deserialize(data: &[u8], driver_uuid: [u8; 16], dst: &mut [u8]) -> Result
             s.copy_from_slice(&a.to_le_bytes());
         }
     }
-    // BLAS indices in instances refer to table slots, so a non-sorted rewritten table is fine.
+    // Each instance refers to its own table slot, so each is relocated by its own handle.
     Ok(())
 }
 

@@ -6,7 +6,7 @@ use bytemuck::{Pod, Zeroable};
 
 pub const MAGIC: u32 = u32::from_le_bytes(*b"ARBR");
 /// Bump whenever any stored layout or its meaning changes (and change ACCEL_FORMAT_UUID).
-pub const FORMAT_VERSION: u32 = 2;
+pub const FORMAT_VERSION: u32 = 3;
 const VALID: u32 = 0x5641_4c44;
 /// Sections start at multiples of this (keeps nodes cache-line aligned when dst is).
 pub const SECTION_ALIGN: u64 = 64;
@@ -30,7 +30,7 @@ pub struct RawHeader {
     pub bounds: [f32; 6],
     /// Primitive IDs consumed, inactive ones included (sum of primitive counts).
     pub total_primitives: u32,
-    /// Slots in the BLAS address table (= stored instances, so an update can change references).
+    /// Slots in the BLAS address table (= stored instances: one reference per stored instance).
     pub blas_table_capacity: u32,
     pub used_size: u64,
     pub nodes_offset: u64,
