@@ -381,7 +381,8 @@ fn host_tlas_over_many_blases_matches_the_device_build() {
         let dev_records = records(&|k| a.address_of(blases[k]));
         let host_records = records(&|k| vk::Handle::as_raw(blases[k]));
         let (t, device, host) = tlas_device_and_host(&a, &dev_records, &host_records, n);
-        assert_eq!(a.query(t, vk::QueryType::ACCELERATION_STRUCTURE_SERIALIZATION_BOTTOM_LEVEL_POINTERS_KHR), 7);
+        // One handle per instance (all 300 active), not per distinct BLAS.
+        assert_eq!(a.query(t, vk::QueryType::ACCELERATION_STRUCTURE_SERIALIZATION_BOTTOM_LEVEL_POINTERS_KHR), n as u64);
         assert_eq!(host, device, "host TLAS build over 7 BLASes differs from the device build (pattern {pattern:?})");
     }
     a.destroy();
@@ -411,7 +412,7 @@ fn tlas_over_blases_device_and_host_builds_match_brute_force() {
     let n = transforms.len() as u32;
     // Host build: references are handles.
     let (t, device, host) = tlas_device_and_host(&a, &records([a0, a1]), &records([vk::Handle::as_raw(b0), vk::Handle::as_raw(b1)]), n);
-    assert_eq!(a.query(t, vk::QueryType::ACCELERATION_STRUCTURE_SERIALIZATION_BOTTOM_LEVEL_POINTERS_KHR), 2);
+    assert_eq!(a.query(t, vk::QueryType::ACCELERATION_STRUCTURE_SERIALIZATION_BOTTOM_LEVEL_POINTERS_KHR), n as u64);
     assert_eq!(host, device, "host TLAS build differs from the device build");
 
     // Traverse: BLASes found at their device addresses.

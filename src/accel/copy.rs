@@ -1,9 +1,13 @@
 //! Clone, compaction, serialization. The blob is position-independent, so all of these are
 //! byte copies; serialization adds the Vulkan header and takes BLAS addresses from its list.
+//! Every copy verifies its source first (`check`: checksum and structure), so a structure the
+//! application wrote over, or serialized data it corrupted, is rejected with the check that
+//! failed and nothing is copied.
+use super::check::{check, Reason};
 use super::layout::parse;
 
 /// Identifies this format version in serialized data; change with layout::FORMAT_VERSION.
-pub const ACCEL_FORMAT_UUID: [u8; 16] = *b"ArborAS-BVH4q-02";
+pub const ACCEL_FORMAT_UUID: [u8; 16] = *b"ArborAS-BVH4q-04";
 
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub enum CopyError {
@@ -12,6 +16,9 @@ pub enum CopyError {
     DestinationTooSmall { needed: u64, got: u64 },
     /// Serialized data from another driver or format version.
     Incompatible,
+    /// The source (a structure, or the payload of serialized data) fails a check of its
+    /// integrity or structure: the name of the check (`check::check`).
+    Corrupt(Reason),
 }
 
 const SER_HEADER: u64 = 56;
@@ -35,8 +42,15 @@ pub fn compacted_size(src: &[u8]) -> Option<u64> {
     parse(src).map(|p| p.raw.used_size)
 }
 
+/// The source's parsed header, once it passed every check (`InvalidSource` when it is not a
+/// structure at all: never built, or marked invalid).
+fn checked(src: &[u8]) -> Result<super::layout::Parsed<'_>, CopyError> {
+    parse(src).ok_or(CopyError::InvalidSource)?;
+    check(src).map_err(CopyError::Corrupt)
+}
+
 fn copy_used(src: &[u8], dst: &mut [u8]) -> Result<usize, CopyError> {
-    let p = parse(src).ok_or(CopyError::InvalidSource)?;
+    let p = checked(src)?;
     let used = p.raw.used_size as usize;
     let got = dst.len() as u64;
     let d = dst.get_mut(..used).ok_or(CopyError::DestinationTooSmall { needed: used as u64, got })?;
@@ -58,7 +72,9 @@ pub fn serialized_size(src: &[u8]) -> Option<u64> {
     Some(SER_HEADER + 8 * p.raw.blas_reference_count as u64 + p.raw.used_size)
 }
 
-/// The N addresses of the serialized header (distinct BLAS addresses, sorted).
+/// The N addresses of the serialized header: one per stored (active) instance, duplicates
+/// included, in the instance order of the build's input; inactive instances contribute none.
+/// N is also what the BOTTOM_LEVEL_POINTERS query reports.
 pub fn blas_references(src: &[u8]) -> Vec<u64> {
     match parse(src) {
         Some(p) => (0..p.raw.blas_reference_count).filter_map(|i| p.blas_address(i)).collect(),
@@ -67,7 +83,7 @@ pub fn blas_references(src: &[u8]) -> Vec<u64> {
 }
 
 pub fn serialize(src: &[u8], driver_uuid: [u8; 16], dst: &mut [u8]) -> Result<u64, CopyError> {
-    let p = parse(src).ok_or(CopyError::InvalidSource)?;
+    let p = checked(src)?;
     let n = p.raw.blas_reference_count as u64;
     let used = p.raw.used_size;
     let total = SER_HEADER + 8 * n + used;
@@ -93,22 +109,32 @@ fn u64_at(b: &[u8], off: usize) -> Option<u64> {
 }
 
 pub fn deserialize(data: &[u8], driver_uuid: [u8; 16], dst: &mut [u8]) -> Result<(), CopyError> {
-    let version: &[u8; 32] = data.get(..32).and_then(|s| s.try_into().ok()).ok_or(CopyError::InvalidSource)?;
+    deserialize_relocated(data, driver_uuid, dst, None)
+}
+
+/// `deserialize` storing `handles` (one per entry of the header's list, in order) instead of the
+/// list itself: the driver checks each handle and host commands translate handles into device
+/// addresses first.
+pub fn deserialize_relocated(data: &[u8], driver_uuid: [u8; 16], dst: &mut [u8], handles: Option<&[u64]>) -> Result<(), CopyError> {
+    let version: &[u8; 32] = data.get(..32).and_then(|s| s.try_into().ok()).ok_or(CopyError::Corrupt("serialized header"))?;
     if !compatible(version, driver_uuid) {
         return Err(CopyError::Incompatible);
     }
-    let total = u64_at(data, 32).ok_or(CopyError::InvalidSource)?;
-    let size = u64_at(data, 40).ok_or(CopyError::InvalidSource)?;
-    let n = u64_at(data, 48).ok_or(CopyError::InvalidSource)?;
-    let off = n.checked_mul(8).and_then(|x| x.checked_add(SER_HEADER)).ok_or(CopyError::InvalidSource)?;
-    let end = off.checked_add(size).ok_or(CopyError::InvalidSource)?;
+    let total = u64_at(data, 32).ok_or(CopyError::Corrupt("serialized header"))?;
+    let size = u64_at(data, 40).ok_or(CopyError::Corrupt("serialized header"))?;
+    let n = u64_at(data, 48).ok_or(CopyError::Corrupt("serialized header"))?;
+    let off = n.checked_mul(8).and_then(|x| x.checked_add(SER_HEADER)).ok_or(CopyError::Corrupt("serialized header"))?;
+    let end = off.checked_add(size).ok_or(CopyError::Corrupt("serialized header"))?;
     if end > data.len() as u64 || end > total {
-        return Err(CopyError::InvalidSource);
+        return Err(CopyError::Corrupt("serialized header"));
     }
     let payload = &data[off as usize..end as usize];
-    let p = parse(payload).ok_or(CopyError::InvalidSource)?;
-    if p.raw.used_size != size || p.raw.blas_reference_count as u64 != n {
-        return Err(CopyError::InvalidSource);
+    let p = check(payload).map_err(CopyError::Corrupt)?;
+    if p.raw.used_size != size {
+        return Err(CopyError::Corrupt("deserialized size"));
+    }
+    if p.raw.blas_reference_count as u64 != n || handles.is_some_and(|h| h.len() as u64 != n) {
+        return Err(CopyError::Corrupt("handle count"));
     }
     let got = dst.len() as u64;
     let d = dst.get_mut(..size as usize).ok_or(CopyError::DestinationTooSmall { needed: size, got })?;
@@ -116,12 +142,15 @@ pub fn deserialize(data: &[u8], driver_uuid: [u8; 16], dst: &mut [u8]) -> Result
     // The application rewrote the header's addresses: they replace the payload's table.
     let table = p.raw.blas_table_offset as usize;
     for i in 0..n as usize {
-        let a = u64_at(data, 56 + 8 * i).ok_or(CopyError::InvalidSource)?;
+        let a = match handles {
+            Some(h) => h[i],
+            None => u64_at(data, 56 + 8 * i).ok_or(CopyError::Corrupt("serialized header"))?,
+        };
         if let Some(s) = d.get_mut(table + 8 * i..table + 8 * i + 8) {
             s.copy_from_slice(&a.to_le_bytes());
         }
     }
-    // BLAS indices in instances refer to table slots, so a non-sorted rewritten table is fine.
+    // Each instance refers to its own table slot, so each is relocated by its own handle.
     Ok(())
 }
 

@@ -6,7 +6,7 @@ use bytemuck::{Pod, Zeroable};
 
 pub const MAGIC: u32 = u32::from_le_bytes(*b"ARBR");
 /// Bump whenever any stored layout or its meaning changes (and change ACCEL_FORMAT_UUID).
-pub const FORMAT_VERSION: u32 = 2;
+pub const FORMAT_VERSION: u32 = 4;
 const VALID: u32 = 0x5641_4c44;
 /// Sections start at multiples of this (keeps nodes cache-line aligned when dst is).
 pub const SECTION_ALIGN: u64 = 64;
@@ -30,7 +30,7 @@ pub struct RawHeader {
     pub bounds: [f32; 6],
     /// Primitive IDs consumed, inactive ones included (sum of primitive counts).
     pub total_primitives: u32,
-    /// Slots in the BLAS address table (= stored instances, so an update can change references).
+    /// Slots in the BLAS address table (= stored instances: one reference per stored instance).
     pub blas_table_capacity: u32,
     pub used_size: u64,
     pub nodes_offset: u64,
@@ -41,8 +41,12 @@ pub struct RawHeader {
     pub blas_table_offset: u64,
     pub max_leaf_size: u32,
     pub reserved: u32,
+    /// `checksum::structure_checksum` of the finished structure (this field counted as 0, the
+    /// BLAS table left out): copies and deserialization verify it.
+    pub checksum: u64,
+    pub spare: u64,
 }
-pub const HEADER_SIZE: usize = 144;
+pub const HEADER_SIZE: usize = 160;
 const _: () = assert!(std::mem::size_of::<RawHeader>() == HEADER_SIZE);
 
 /// Child slot `prim_count[i]`: 0 = empty slot, LEAF_INTERNAL = internal node, else leaf size.
@@ -338,7 +342,7 @@ pub fn valid_word() -> u32 {
 
 /// Traversal of a structure marked invalid finds nothing; header() returns None.
 pub fn mark_invalid(dst: &mut [u8]) {
-    // Clearing magic and valid word is enough: parse() checks both.
+    // Clearing magic and valid word is enough: parse() checks both (the checksum goes too).
     let n = dst.len().min(HEADER_SIZE);
     for b in dst[..n].iter_mut() {
         *b = 0;

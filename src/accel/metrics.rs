@@ -86,10 +86,12 @@ fn prim_box(p: &Parsed, s: u32) -> Option<Aabb> {
     Some(Aabb { lo, hi })
 }
 
-/// Invariants: valid header and sections, a tree (each node reached once, children after
+/// Invariants: everything `check::check` verifies (checksum, counts, records, the preorder
+/// tree), then valid header and sections, a tree (each node reached once, children after
 /// parents), every stored primitive in exactly one leaf, child boxes inside parents, primitive
 /// boxes inside their leaf boxes, records and instance BLAS indices in range.
 pub fn validate(structure: &[u8]) -> Result<(), String> {
+    super::check::check(structure).map_err(|reason| format!("check: {reason}"))?;
     let p = layout::parse(structure).ok_or("header invalid")?;
     let r = p.raw;
     let n = r.primitive_count as usize;

@@ -15,6 +15,8 @@
 #![forbid(unsafe_code)]
 
 mod build;
+mod check;
+mod checksum;
 mod copy;
 mod encode;
 mod geometry;
@@ -35,10 +37,11 @@ mod tests;
 use std::collections::HashMap;
 
 pub use copy::{
-    blas_references, clone_into, compact_into, compacted_size, compatible, deserialize, serialize,
+    blas_references, clone_into, compact_into, compacted_size, compatible, deserialize, deserialize_relocated, serialize,
     serialized_size, CopyError, ACCEL_FORMAT_UUID, PAR_COPY_CHUNK,
 };
 pub use input::{fetch_aabb, fetch_triangle};
+pub use check::Reason as CheckReason;
 pub use layout::{header, mark_invalid, Header};
 pub use metrics::{metrics, validate, Metrics};
 pub use traverse::{all_hits, any_hit, closest_hit, intersect_triangle, Hit, HitKind, Ray, RayFlags, RayQuery};
@@ -399,6 +402,18 @@ pub fn build_timed(desc: &BuildDesc, view: &dyn DeviceView, dst: &mut [u8], scra
         mark_invalid(dst);
     }
     result
+}
+
+/// Whether `structure` passes every check a copy makes of its source: header, section offsets,
+/// checksum, counts, records and the node tree; Err names the first check that failed.
+pub fn verify(structure: &[u8]) -> Result<(), CheckReason> {
+    check::check(structure).map(|_| ())
+}
+
+/// The integrity checksum of a valid structure as computed now over its bytes (the header
+/// stores the one computed when it was finished); None when `structure` has no valid header.
+pub fn structure_checksum(structure: &[u8]) -> Option<u64> {
+    layout::parse(structure).map(|p| checksum::structure_checksum(&p.raw, p.bytes))
 }
 
 /// Refit (UPDATE). `src: None` = in place (dst holds the structure). Same topology; checks the

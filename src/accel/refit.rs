@@ -1,7 +1,7 @@
 //! Update (refit): same topology, new vertex/AABB positions or instance definitions. Checks the
 //! update rules visible here, rewrites primitive data, then recomputes node boxes bottom-up,
 //! subtree by subtree in parallel (preorder layout: each subtree is a contiguous node range).
-use super::encode::instances::sort_distinct;
+use super::encode::instances::{input_order_key, write_table};
 use super::encode::quantize::quantize_node;
 use super::geometry::{instance_bounds_of, sanitize, triangle_box, triangle_bounds, Aabb, BlasBoundsMemo};
 use super::layout::carve;
@@ -142,6 +142,7 @@ pub fn update(desc: &BuildDesc, view: &dyn DeviceView, src: Option<&[u8]>, dst: 
         h.bounds = [root.lo[0], root.lo[1], root.lo[2], root.hi[0], root.hi[1], root.hi[2]];
     }
     layout::write_header(dst, &h);
+    super::checksum::seal(dst);
     Ok(BuildReport { used_size: raw.used_size, node_count: raw.node_count, leaf_count: raw.leaf_count, primitive_count: raw.primitive_count, clusters: None, top_planned: super::TopPlanned::No, forked_buckets: 0 })
 }
 
@@ -356,42 +357,32 @@ fn refit_instances(desc: &BuildDesc, view: &dyn DeviceView, raw: &layout::RawHea
         let o = rec_off + i * layout::RECORD_SIZE;
         dst.get(o..o + layout::RECORD_SIZE).map(bytemuck::pod_read_unaligned)
     };
-    // Keys: the new references of stored instances, sorted and made distinct. Both passes over
-    // the instances run in parallel; an error is the lowest instance's, as a sequential pass
-    // would report it.
     let read = |dst: &[u8], i: usize| -> Result<super::input::InstanceDesc, BuildError> {
         let r = read_rec(dst, i).ok_or(BuildError::InvalidSource("record"))?;
         let g = desc.geometries.get(r.geometry as usize).ok_or(BuildError::InvalidSource("record"))?;
         read_instance(r.geometry, g, r.primitive, view)?.ok_or(mismatch("an active instance became inactive"))
     };
+    // The BLAS table: one entry per stored instance in input order (as the build wrote it; the
+    // active set cannot change), each from the instance's new reference. An unreadable
+    // instance gets 0 here; the instance pass below reports it and a failed update leaves the
+    // destination marked invalid.
     {
-        // Only the reference field here; the instance pass below decodes (and checks) every
-        // instance fully and reports the lowest failing one, and a failed update leaves the
-        // destination marked invalid, so a key of 0 for an unreadable instance never lasts.
         let d: &[u8] = dst;
-        keys.get_mut(..n)
-            .ok_or(BuildError::InvalidSource("record"))?
-            .par_iter_mut()
+        let keys = keys.get_mut(..n).ok_or(BuildError::InvalidSource("record"))?;
+        keys.par_iter_mut()
             .enumerate()
             .map(|(i, k)| {
                 let r = read_rec(d, i).ok_or((i, BuildError::InvalidSource("record")))?;
-                let g = desc.geometries.get(r.geometry as usize).ok_or((i, BuildError::InvalidSource("record")))?;
-                *k = super::input::read_instance_reference(g, r.primitive, view).unwrap_or(0);
+                *k = input_order_key(r.geometry, r.primitive);
                 Ok(())
             })
             .reduce(|| Ok(()), lowest_err)
             .map_err(|e| e.1)?;
+        let table = raw.blas_table_offset as usize;
+        let end = table + raw.blas_table_capacity as usize * 8;
+        write_table(desc, view, keys, dst.get_mut(table..end).ok_or(BuildError::InvalidSource("BLAS table"))?);
     }
-    let keys = &mut keys[..n];
-    let distinct = sort_distinct(keys);
-    let keys = &keys[..distinct];
-    let table = raw.blas_table_offset as usize;
-    for i in 0..raw.blas_table_capacity as usize {
-        let v = keys.get(i).copied().unwrap_or(0);
-        if let Some(d) = dst.get_mut(table + 8 * i..table + 8 * i + 8) {
-            d.copy_from_slice(&v.to_le_bytes());
-        }
-    }
+    let keys = &keys[..n];
     let (head, tail) = dst.split_at_mut(raw.instances_offset as usize);
     let head: &[u8] = head;
     tail.get_mut(..n * layout::INSTANCE_RECORD_SIZE)
@@ -415,15 +406,12 @@ fn refit_instances(desc: &BuildDesc, view: &dyn DeviceView, raw: &layout::RawHea
                 rec.sbt_offset = inst.sbt_offset;
                 rec.flags = inst.flags;
                 rec.instance_index = r.primitive;
-                rec.blas_index = keys.binary_search(&inst.reference).map_or(u32::MAX, |x| x as u32);
+                rec.blas_index = keys.binary_search(&input_order_key(r.geometry, r.primitive)).map_or(u32::MAX, |x| x as u32);
                 o.copy_from_slice(bytemuck::bytes_of(&rec));
             }
             Ok(())
         })
         .reduce(|| Ok(()), lowest_err)
         .map_err(|e| e.1)?;
-    let mut h = *raw;
-    h.blas_reference_count = distinct as u32;
-    layout::write_header(dst, &h);
     Ok(())
 }

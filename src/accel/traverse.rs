@@ -70,6 +70,9 @@ pub struct Hit {
     pub world_to_object: [f32; 12],
 }
 
+/// Pending traversal items at most (a valid BVH4 needs 3 per level of depth).
+const MAX_STACK: usize = 1 << 16;
+
 const IDENTITY: [f32; 12] = [1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0];
 
 fn max_dim(d: Vec3) -> usize {
@@ -241,6 +244,9 @@ pub struct RayQuery<'a> {
     /// the blob is corrupt (e.g. a DAG that would make traversal exponential): stop that level.
     budget_top: u64,
     budget_inner: u64,
+    /// The first instance reference met that names no built bottom-level structure (its
+    /// instance was treated as absent), for the caller to report once.
+    unresolved: Option<u64>,
 }
 
 fn ray_ok(r: &Ray) -> bool {
@@ -288,6 +294,7 @@ impl<'a> RayQuery<'a> {
             collect_all: false,
             budget_top: top.map_or(0, |l| l.s.raw.node_count as u64 + l.s.raw.primitive_count as u64),
             budget_inner: 0,
+            unresolved: None,
         };
         match top {
             Some(l) if ray_ok(&ray) && l.s.raw.node_count > 0 => q.stack.push(Item::Node { node: 0, inner: false, tnear: ray.tmin }),
@@ -355,7 +362,12 @@ impl<'a> RayQuery<'a> {
                         hits[nh] = (t, it);
                         nh += 1;
                     }
-                    // Push far to near so the nearest child is processed first.
+                    // Push far to near so the nearest child is processed first. A valid tree
+                    // never holds more than three pending siblings per level; a stack this
+                    // deep means a corrupt blob, whose rest is dropped.
+                    if self.stack.len() + nh > MAX_STACK {
+                        continue;
+                    }
                     let hs = &mut hits[..nh];
                     hs.sort_unstable_by(|a, b| b.0.total_cmp(&a.0));
                     for h in hs.iter() {
@@ -391,8 +403,12 @@ impl<'a> RayQuery<'a> {
             return;
         }
         let Some(addr) = l.s.blas_address(rec.blas_index) else { return };
-        let Some(blas) = self.view.acceleration_structure(addr).and_then(layout::parse) else { return };
-        if blas.is_tlas() || blas.raw.node_count == 0 {
+        // A reference that resolves to no built BLAS is never followed: the instance is absent.
+        let Some(blas) = self.view.acceleration_structure(addr).and_then(layout::parse).filter(|b| !b.is_tlas()) else {
+            self.unresolved.get_or_insert(addr);
+            return;
+        };
+        if blas.raw.node_count == 0 {
             return;
         }
         let org = transform_point(&rec.world_to_object, self.ray.origin);
@@ -544,6 +560,12 @@ impl<'a> RayQuery<'a> {
 
     pub fn committed(&self) -> Option<Hit> {
         self.committed
+    }
+
+    /// The first instance reference this traversal met that names no built bottom-level
+    /// structure (the instance was skipped as absent); None when every reference resolved.
+    pub fn unresolved_reference(&self) -> Option<u64> {
+        self.unresolved
     }
 }
 

@@ -1,5 +1,5 @@
-//! The TLAS sections: instance records (both transforms, the BLAS index) and the table of
-//! distinct BLAS addresses, in leaf order.
+//! The TLAS sections: instance records (both transforms, the BLAS-table index) and the BLAS
+//! table: one reference per stored instance, in the instance order of the input.
 //!
 //! Owns: the instances and BLAS-table sections. Must not touch: nodes, BLAS bytes.
 use crate::accel::geometry::PrimRef;
@@ -10,39 +10,35 @@ use crate::accel::{BuildDesc, DeviceView};
 use bytemuck::Zeroable;
 use rayon::prelude::*;
 
-/// Sort `keys` and move the distinct values to the front; returns how many there are.
-pub fn sort_distinct(keys: &mut [u64]) -> usize {
-    keys.sort_unstable();
-    let mut distinct = 0usize;
-    for i in 0..keys.len() {
-        if i == 0 || keys[i] != keys[distinct - 1] {
-            keys[distinct] = keys[i];
-            distinct += 1;
-        }
-    }
-    distinct
+/// The key that orders instances as the build's input does: geometry, then instance index.
+pub fn input_order_key(geometry: u32, primitive: u32) -> u64 {
+    (geometry as u64) << 32 | primitive as u64
 }
 
-/// Instance records + BLAS table for stored instances (TLAS). `keys` is scratch for the sort.
-/// Returns the number of distinct BLAS addresses.
+/// Sorts `keys` (the `input_order_key`s of the stored instances) and writes the BLAS table
+/// from them: entry k is the (translated) reference of the k-th stored instance in input order.
+/// Slots past the stored instances are zeroed so the bytes stay deterministic.
+pub fn write_table(desc: &BuildDesc, view: &dyn DeviceView, keys: &mut [u64], table: &mut [u8]) {
+    keys.par_sort_unstable();
+    let reference = |k: u64| desc.geometries.get((k >> 32) as usize).and_then(|g| input::read_instance_reference(g, k as u32, view));
+    let n = keys.len().min(table.len() / 8);
+    let (used, rest) = table.split_at_mut(n * 8);
+    used.par_chunks_mut(8).zip(keys.par_iter()).for_each(|(d, &k)| d.copy_from_slice(&reference(k).unwrap_or(0).to_le_bytes()));
+    rest.fill(0);
+}
+
+/// Instance records + BLAS table for stored instances (TLAS). The table holds one reference
+/// per stored (active) instance, duplicates included, in the instance order of the input (the
+/// serialized header lists it, and applications rewrite it entry by entry; inactive instances
+/// store nothing and contribute no entry). `keys` is scratch for ordering the instances.
+/// Returns the number of table entries (= stored instances).
 pub fn write_instances(desc: &BuildDesc, view: &dyn DeviceView, refs: &[PrimRef], keys: &mut [u64], instances: &mut [u8], records: &mut [u8], table: &mut [u8]) -> u32 {
     let n = refs.len();
     let read = |r: &PrimRef| desc.geometries.get(r.geom as usize).and_then(|g| read_instance(r.geom, g, r.prim, view).ok().flatten());
-    // Distinct references, sorted (deterministic, no hashing, no heap).
     let keys = &mut keys[..n];
-    let reference = |r: &PrimRef| desc.geometries.get(r.geom as usize).and_then(|g| input::read_instance_reference(g, r.prim, view));
-    keys.par_iter_mut().zip(refs.par_iter()).for_each(|(k, r)| *k = reference(r).unwrap_or(0));
-    let distinct = sort_distinct(keys);
-    let keys = &keys[..distinct];
-    for (i, k) in keys.iter().enumerate() {
-        if let Some(d) = table.get_mut(i * 8..i * 8 + 8) {
-            d.copy_from_slice(&k.to_le_bytes());
-        }
-    }
-    // Unused table slots (capacity > distinct) are zero so the bytes stay deterministic.
-    if let Some(rest) = table.get_mut(distinct * 8..) {
-        rest.fill(0);
-    }
+    keys.par_iter_mut().zip(refs.par_iter()).for_each(|(k, r)| *k = input_order_key(r.geom, r.prim));
+    write_table(desc, view, keys, table);
+    let keys = &keys[..];
     instances
         .par_chunks_mut(INSTANCE_CHUNK * layout::INSTANCE_RECORD_SIZE)
         .zip(records.par_chunks_mut(INSTANCE_CHUNK * RECORD_SIZE))
@@ -57,7 +53,7 @@ pub fn write_instances(desc: &BuildDesc, view: &dyn DeviceView, refs: &[PrimRef]
                     rec.mask = inst.mask;
                     rec.sbt_offset = inst.sbt_offset;
                     rec.flags = inst.flags;
-                    rec.blas_index = keys.binary_search(&inst.reference).map_or(u32::MAX, |x| x as u32);
+                    rec.blas_index = keys.binary_search(&input_order_key(r.geom, r.prim)).map_or(u32::MAX, |x| x as u32);
                 }
                 rec.instance_index = r.prim;
                 let o = k * layout::INSTANCE_RECORD_SIZE;
@@ -70,5 +66,5 @@ pub fn write_instances(desc: &BuildDesc, view: &dyn DeviceView, refs: &[PrimRef]
                 }
             }
         });
-    distinct as u32
+    n as u32
 }

@@ -9,6 +9,7 @@ pub mod leaves;
 pub mod nodes;
 pub mod quantize;
 
+use super::checksum;
 use super::geometry::{Aabb, PrimRef};
 use super::layout::{self, RawHeader, NODE_SIZE, PRIM_SIZE, RECORD_SIZE, STAGE_SIZE};
 use super::params::EMIT_CUT;
@@ -157,8 +158,11 @@ pub fn finish(desc: &BuildDesc, view: &dyn DeviceView, dst: &mut [u8], refs: &[P
         blas_table_offset: s.blas_table,
         max_leaf_size: sum.max_leaf_size,
         reserved: 0,
+        checksum: 0,
+        spare: 0,
     };
     layout::write_header(dst, &raw);
+    checksum::seal(dst);
     Ok(used)
 }
 

@@ -5,6 +5,7 @@ use glam::Vec3;
 
 mod determinism;
 mod inputs;
+mod integrity;
 mod quality;
 mod refit;
 mod tlas;

@@ -26,8 +26,9 @@ fn tlas_instances_flags_masks_and_copies() {
     let g = Geometry { flags: GeometryFlags(0), primitive_count: 4, data: GeometryData::Instances { array_of_pointers: false, data: &inst } };
     let tlas = build_ok(AsType::TopLevel, BuildFlags::ALLOW_UPDATE, &[g], &view);
     let h = header(&tlas).unwrap();
-    assert_eq!((h.instance_count, h.blas_reference_count), (3, 2));
-    assert_eq!(blas_references(&tlas), vec![0x1000, 0x9000]);
+    // One reference per active instance, in instance order (instance 2 is inactive: none).
+    assert_eq!((h.instance_count, h.blas_reference_count), (3, 3));
+    assert_eq!(blas_references(&tlas), vec![0x1000, 0x9000, 0x1000]);
     let ray = Ray { origin: Vec3::new(0.2, 0.2, 0.0), direction: Vec3::Z, tmin: 0.0, tmax: 100.0 };
     let hit = closest_hit(&tlas, &view, ray, RayFlags(0), 0xff).unwrap();
     assert_eq!((hit.t, hit.instance_index, hit.instance_custom_index, hit.sbt_record_offset, hit.front_face, hit.opaque), (5.0, 0, 7, 3, true, false));
@@ -59,7 +60,7 @@ fn tlas_instances_flags_masks_and_copies() {
     assert!(clone_into(&tlas, &mut small).is_err());
     let uuid = [7u8; 16];
     let ss = serialized_size(&tlas).unwrap() as usize;
-    assert_eq!(ss, 56 + 16 + used);
+    assert_eq!(ss, 56 + 24 + used);
     let mut ser = vec![0u8; ss];
     assert_eq!(serialize(&tlas, uuid, &mut ser).unwrap(), ss as u64);
     assert!(compatible(ser[..32].try_into().unwrap(), uuid));
@@ -67,12 +68,13 @@ fn tlas_instances_flags_masks_and_copies() {
     // Rewrite the addresses: BLASes moved.
     ser[56..64].copy_from_slice(&0x5000u64.to_le_bytes());
     ser[64..72].copy_from_slice(&0x7000u64.to_le_bytes());
+    ser[72..80].copy_from_slice(&0x5000u64.to_le_bytes());
     let mut view2 = MapView::new();
     view2.insert(0x5000, blas_a.clone());
     view2.insert(0x7000, blas_b.clone());
     let mut de = vec![0u8; used];
     deserialize(&ser, uuid, &mut de).unwrap();
-    assert_eq!(blas_references(&de), vec![0x5000, 0x7000]);
+    assert_eq!(blas_references(&de), vec![0x5000, 0x7000, 0x5000]);
     assert_eq!(closest_hit(&de, &view2, ray, RayFlags(0), 0xff).map(|h| h.t), Some(5.0));
     assert!(deserialize(&ser, [1u8; 16], &mut de).is_err());
     assert!(deserialize(&ser[..100], uuid, &mut de).is_err());
@@ -86,6 +88,7 @@ fn tlas_instances_flags_masks_and_copies() {
     let mut upd = tlas.clone();
     update(&desc, &view, None, &mut upd, &mut scratch).unwrap();
     validate(&upd).unwrap();
+    assert_eq!(blas_references(&upd), vec![0x9000, 0x9000, 0x1000]);
     let hit = closest_hit(&upd, &view, ray, RayFlags(0), 0xff).unwrap();
     assert_eq!((hit.t, hit.instance_custom_index, hit.kind), (2.0, 70, HitKind::Aabb));
     // Activating the inactive instance is an update mismatch.
@@ -244,4 +247,38 @@ fn large_tlas_is_the_same_on_any_thread_count() {
     // 1,024 references) with the fast-trace tier's bins: the same tree as FAST_TRACE's.
     assert_eq!(sah[2], sah[0], "default-tier TLAS against FAST_TRACE's (SAH, nodes)");
     assert!(sah[1].0 > sah[0].0, "the fast-build TLAS bins one axis: {:?} against {:?}", sah[1], sah[0]);
+}
+
+/// Eight instances of one BLAS: the serialized header lists eight handles (one per instance, in
+/// instance order), and each instance is relocated by its own handle: rewriting handle k to a
+/// BLAS that exists only for even k leaves the odd instances absent after deserialization.
+#[test]
+fn serialized_header_lists_one_handle_per_instance() {
+    let vb = f32_bytes(&[Vec3::new(0.0, 0.0, 0.0), Vec3::new(0.0, 1.0, 0.0), Vec3::new(1.0, 0.0, 0.0)]);
+    let blas = build_ok(AsType::BottomLevel, 0, &[tri_geom(&vb, 3, &[], 1, GeometryFlags::OPAQUE)], &NoDevice);
+    let mut view = MapView::new();
+    view.insert(0x1000, blas.clone());
+    let inst: Vec<u8> = (0..8).flat_map(|k| instance_bytes(translate(2.0 * k as f32, 0.0, 5.0), k, 0xff, 0, 0, 0x1000)).collect();
+    let g = Geometry { flags: GeometryFlags(0), primitive_count: 8, data: GeometryData::Instances { array_of_pointers: false, data: &inst } };
+    let tlas = build_ok(AsType::TopLevel, 0, &[g], &view);
+    assert_eq!(blas_references(&tlas), vec![0x1000; 8]);
+    let uuid = [3u8; 16];
+    let mut ser = vec![0u8; serialized_size(&tlas).unwrap() as usize];
+    serialize(&tlas, uuid, &mut ser).unwrap();
+    assert_eq!(u64::from_le_bytes(ser[48..56].try_into().unwrap()), 8);
+    let mut moved = MapView::new();
+    for k in 0..8u64 {
+        let a = 0x10_0000 * (k + 1);
+        ser[56 + 8 * k as usize..64 + 8 * k as usize].copy_from_slice(&a.to_le_bytes());
+        if k % 2 == 0 {
+            moved.insert(a, blas.clone());
+        }
+    }
+    let mut de = vec![0u8; tlas.len()];
+    deserialize(&ser, uuid, &mut de).unwrap();
+    for k in 0..8u32 {
+        let ray = Ray { origin: Vec3::new(2.0 * k as f32 + 0.2, 0.2, 0.0), direction: Vec3::Z, tmin: 0.0, tmax: 100.0 };
+        let hit = closest_hit(&de, &moved, ray, RayFlags(0), 0xff);
+        assert_eq!(hit.map(|h| (h.t, h.instance_custom_index)), (k % 2 == 0).then_some((5.0, k)), "instance {k}");
+    }
 }

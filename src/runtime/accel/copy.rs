@@ -38,6 +38,14 @@ fn copy_violation(kind: CopyKind, command: &str, vuid: &str, message: &str) {
     diag::vuid(&format!("VUID-{info}-{vuid}"), command, message);
 }
 
+/// What a copy error says about its source, for a diagnostic.
+fn describe(e: &accel::CopyError) -> String {
+    match e {
+        accel::CopyError::Corrupt(reason) => format!("failed check: {reason}"),
+        other => format!("{other:?}"),
+    }
+}
+
 /// The constructed structure's bytes and header, or a reported violation.
 fn built(kind: CopyKind, command: &str, s: &Option<Arc<AccelerationStructure>>, what: &str) -> Option<(Arc<AccelerationStructure>, accel::Header)> {
     let Some(s) = s else {
@@ -123,7 +131,9 @@ fn copy_structure(
     // src and dst were checked not to overlap (07791): the write cannot change what is read.
     let copied = dst.buffer.with_slice_mut(dst.offset, dst.size, |d| {
         let r = if mode == vk::CopyAccelerationStructureModeKHR::COMPACT { accel::compact_into(s, d) } else { accel::clone_into(s, d) };
-        if r.is_err() {
+        if let Err(e) = &r {
+            // The source's checks run before anything is copied: a failure writes only the mark.
+            copy_violation(CopyKind::Structure, cmd, "src-04963", &format!("src fails its integrity check and is not a constructed structure: {}", describe(e)));
             accel::mark_invalid(d);
         }
         r.is_ok()
@@ -153,7 +163,13 @@ fn serialize_to(mem: &dyn InputMemory, src: &Option<Arc<AccelerationStructure>>,
     // The destination does not overlap the source (checked above on device; the application's
     // obligation on the host).
     match mem.writable(dst, size) {
-        Ok(d) => d.write_with(|d| accel::serialize(s, crate::DRIVER_UUID, d).is_ok()),
+        Ok(d) => d.write_with(|d| match accel::serialize(s, crate::DRIVER_UUID, d) {
+            Ok(_) => true,
+            Err(e) => {
+                copy_violation(CopyKind::ToMemory, cmd, "src-04959", &format!("src fails its integrity check and is not a constructed structure: {}", describe(&e)));
+                false
+            }
+        }),
         Err(e) => {
             copy_violation(CopyKind::ToMemory, cmd, "dst-03561", &format!("[{dst:#x}, +{size}) is not writable device memory: {e}"));
             false
@@ -206,15 +222,83 @@ fn deserialize_from(mem: &dyn InputMemory, src: u64, dst: &Option<Arc<Accelerati
         copy_violation(CopyKind::FromMemory, cmd, "dst-07791", "the source memory overlaps the destination structure");
         return false;
     }
+    let handles = match checked_handles(mem, data, &dst) {
+        Ok(h) => h,
+        Err(message) => {
+            copy_violation(CopyKind::FromMemory, cmd, "src-04960", &message);
+            mark_invalid(&dst);
+            return false;
+        }
+    };
     // The source does not overlap the destination (checked above on device; the application's
     // obligation on the host).
-    let written = dst.buffer.with_slice_mut(dst.offset, dst.size, |d| match accel::deserialize(data, crate::DRIVER_UUID, d) {
+    let written = dst.buffer.with_slice_mut(dst.offset, dst.size, |d| match accel::deserialize_relocated(data, crate::DRIVER_UUID, d, handles.as_deref()) {
         Ok(()) => true,
-        Err(e) => {
+        Err(e @ accel::CopyError::DestinationTooSmall { .. }) => {
             copy_violation(CopyKind::FromMemory, cmd, "dst-03746", &format!("cannot deserialize into dst (size {}): {e:?}", dst.size));
+            accel::mark_invalid(d);
+            false
+        }
+        Err(e) => {
+            // Checked before anything is copied: a rejected source writes only the mark.
+            copy_violation(CopyKind::FromMemory, cmd, "src-04960", &format!("the serialized data is not what serialization wrote: {}", describe(&e)));
             accel::mark_invalid(d);
             false
         }
     });
     written.unwrap_or(false)
+}
+
+/// The handles of serialized data, each checked, as the structure will store them (host
+/// commands: handles become device addresses); None when the list is not readable (the
+/// library rejects such data by name). Each handle must name a bottom-level structure: a built
+/// one whose header checks out, or, as the spec allows, one created but not built yet (a
+/// 256-aligned address in a buffer with ACCELERATION_STRUCTURE_STORAGE usage, or a live
+/// handle on the host). Never 0 (every listed handle belongs to an active instance), never the
+/// destination itself. Err: the first bad handle and how many are bad.
+fn checked_handles(mem: &dyn InputMemory, data: &[u8], dst: &AccelerationStructure) -> Result<Option<Vec<u64>>, String> {
+    let at = |o: usize| data.get(o..o + 8).map(|b| u64::from_le_bytes(b.try_into().unwrap_or([0; 8])));
+    let Some(n) = at(48).filter(|&n| n <= (data.len() as u64).saturating_sub(56) / 8) else { return Ok(None) };
+    let mut out = Vec::with_capacity(n as usize);
+    let mut first: Option<String> = None;
+    let mut bad = 0u64;
+    let own = dst.address().map(|a| a..a.saturating_add(dst.size));
+    for k in 0..n as usize {
+        let h = at(56 + 8 * k).unwrap_or(0);
+        let address = mem.translate_reference(h);
+        let problem = if h == 0 {
+            Some("is 0, but every listed handle belongs to an active instance".to_string())
+        } else if own.as_ref().is_some_and(|r| r.contains(&address)) {
+            Some("addresses the destination itself".to_string())
+        } else {
+            handle_problem(mem, h, address)
+        };
+        if let Some(p) = problem {
+            bad += 1;
+            first.get_or_insert_with(|| format!("handle {k} ({h:#x}) {p}"));
+        }
+        out.push(address);
+    }
+    match first {
+        Some(f) => Err(format!("{f} ({bad} of {n} handles are not bottom-level structures)")),
+        None => Ok(Some(out)),
+    }
+}
+
+/// What is wrong with handle `h` (structure address `address`), if anything.
+fn handle_problem(mem: &dyn InputMemory, h: u64, address: u64) -> Option<String> {
+    let Some(bytes) = accel::DeviceView::acceleration_structure(mem, h) else {
+        return Some("does not address live memory (a freed or never-created structure)".into());
+    };
+    match accel::header(bytes) {
+        Some(header) if header.ty == accel::AsType::BottomLevel => None,
+        Some(_) => Some("is a top-level structure".into()),
+        // Not built (yet): allowed for a created structure.
+        None if !address.is_multiple_of(super::STRUCTURE_ALIGNMENT) => Some("is not the address of an acceleration structure (not 256-aligned)".into()),
+        None if mem.is_host() => (address == h).then(|| "is neither a built structure nor a live structure handle".into()),
+        None => match mem.input(address, 1, vk::BufferUsageFlags::ACCELERATION_STRUCTURE_STORAGE_KHR) {
+            Ok(_) => None,
+            Err(_) => Some("is not in a buffer with ACCELERATION_STRUCTURE_STORAGE usage".into()),
+        },
+    }
 }

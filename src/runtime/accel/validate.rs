@@ -538,7 +538,26 @@ fn check_aabbs(mem: &dyn InputMemory, data: u64, stride: u64, r: &RangeInfo, inp
             format!("primitiveOffset {} is not a multiple of 8", r.primitive_offset),
         ));
     }
-    read_input(mem, inputs, data + r.primitive_offset as u64, (count - 1) * stride + 24, "pInfos-03811")?;
+    let bytes = read_input(mem, inputs, data + r.primitive_offset as u64, (count - 1) * stride + 24, "pInfos-03811")?;
+    check_aabb_order(bytes, stride, count)
+}
+
+/// VkAabbPositionsKHR: min <= max on every axis (minX-03546, minY-03547, minZ-03548). An AABB
+/// with a NaN minX is inactive (the spec's rule), so it is not checked; the first offending
+/// primitive of the geometry is reported.
+fn check_aabb_order(bytes: &[u8], stride: u64, count: u64) -> Result<(), Finding> {
+    const VUIDS: [&str; 3] = ["VUID-VkAabbPositionsKHR-minX-03546", "VUID-VkAabbPositionsKHR-minY-03547", "VUID-VkAabbPositionsKHR-minZ-03548"];
+    let f = |b: &[u8], k: usize| f32::from_le_bytes([b[4 * k], b[4 * k + 1], b[4 * k + 2], b[4 * k + 3]]);
+    for p in 0..count {
+        let Some(b) = bytes.get((p * stride) as usize..(p * stride) as usize + 24) else { break };
+        if f(b, 0).is_nan() {
+            continue;
+        }
+        if let Some(axis) = (0..3).find(|&a| f(b, a) > f(b, a + 3)) {
+            let name = ["X", "Y", "Z"][axis];
+            return Err((VUIDS[axis], format!("primitive {p}: min{name} {} > max{name} {}", f(b, axis), f(b, axis + 3))));
+        }
+    }
     Ok(())
 }
 
