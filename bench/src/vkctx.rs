@@ -219,6 +219,17 @@ impl Gpu {
         }
     }
 
+    /// Milliseconds between the two timestamps of `qp` (None where they cannot be read).
+    fn timestamps_ms(&self, qp: vk::QueryPool) -> Option<f64> {
+        let mut v = [0u64; 2];
+        // SAFETY: a live query pool of this device with two timestamp queries, written by a
+        // submission that has completed.
+        unsafe { self.device.get_query_pool_results(qp, 0, &mut v, vk::QueryResultFlags::TYPE_64 | vk::QueryResultFlags::WAIT) }.ok()?;
+        let mask = self.caps.timestamp_mask;
+        let ticks = (v[1] & mask).wrapping_sub(v[0] & mask) & mask;
+        Some(ticks as f64 * self.caps.timestamp_period_ns * 1e-6)
+    }
+
     /// Record `body` once between two timestamps (where the queue has them), submit it
     /// `warmup + repeat` times and return the (timestamp ms, fence wall ms) of the timed runs.
     pub fn timed(&self, warmup: usize, repeat: usize, body: impl FnOnce(vk::CommandBuffer)) -> Result<Vec<(Option<f64>, f64)>, String> {
@@ -274,19 +285,7 @@ impl Gpu {
                     break;
                 }
                 let _ = d.reset_fences(&[fence]);
-                let ts = match qp {
-                    Some(qp) => {
-                        let mut v = [0u64; 2];
-                        match d.get_query_pool_results(qp, 0, &mut v, vk::QueryResultFlags::TYPE_64 | vk::QueryResultFlags::WAIT) {
-                            Ok(()) => {
-                                let ticks = (v[1] & self.caps.timestamp_mask).wrapping_sub(v[0] & self.caps.timestamp_mask) & self.caps.timestamp_mask;
-                                Some(ticks as f64 * self.caps.timestamp_period_ns * 1e-6)
-                            }
-                            Err(_) => None,
-                        }
-                    }
-                    None => None,
-                };
+                let ts = qp.and_then(|qp| self.timestamps_ms(qp));
                 if k >= warmup {
                     out.push((ts, wall));
                 }

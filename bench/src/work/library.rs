@@ -43,7 +43,7 @@ pub(super) fn library_build(gpu: &Gpu, scene: &Scene, w: Workload, opts: &Option
     let desc = BuildDesc { ty: AsType::BottomLevel, flags, geometries: &geoms };
     let mut dst = vec![0u8; sizes.acceleration_structure_size as usize];
     let mut scratch = vec![0u8; sizes.build_scratch_size as usize];
-    let (times, phases, report) = timed_builds(&desc, opts, &mut dst, &mut scratch)?;
+    let Timed { times, phases, report } = timed_builds(&desc, opts, &mut dst, &mut scratch)?;
     row.time = Stats::of(&times);
     row.wall = row.time;
     row.timing = "host";
@@ -66,14 +66,15 @@ pub(super) fn library_build(gpu: &Gpu, scene: &Scene, w: Workload, opts: &Option
     Ok(())
 }
 
-/// `warmup + repeat` builds in the current pool: the timed runs' milliseconds and phases, and
-/// the last build's report.
-fn timed_builds(
-    desc: &BuildDesc,
-    opts: &Options,
-    dst: &mut [u8],
-    scratch: &mut [u8],
-) -> Result<(Vec<f64>, Vec<accel::BuildPhases>, Option<accel::BuildReport>), String> {
+/// The timed runs' milliseconds and phases, and the last build's report.
+struct Timed {
+    times: Vec<f64>,
+    phases: Vec<accel::BuildPhases>,
+    report: Option<accel::BuildReport>,
+}
+
+/// `warmup + repeat` builds in the current pool.
+fn timed_builds(desc: &BuildDesc, opts: &Options, dst: &mut [u8], scratch: &mut [u8]) -> Result<Timed, String> {
     let mut times = Vec::new();
     let mut phases = Vec::new();
     let mut report = None;
@@ -87,7 +88,7 @@ fn timed_builds(
         }
         report = Some(r);
     }
-    Ok((times, phases, report))
+    Ok(Timed { times, phases, report })
 }
 
 /// The row's note: the median of each phase over the timed runs (accel::BuildPhases).
