@@ -8,7 +8,8 @@
 use std::time::Duration;
 
 use ash::vk;
-use criterion::{criterion_group, criterion_main, Criterion, Throughput};
+use criterion::measurement::WallTime;
+use criterion::{criterion_group, criterion_main, BenchmarkGroup, Criterion, Throughput};
 
 // The loader harness of the API tests (it allows its own dead code).
 #[path = "../tests/harness/mod.rs"]
@@ -29,40 +30,7 @@ fn bench(c: &mut Criterion) {
     let mut g = c.benchmark_group("api_dragon");
     g.sample_size(10).measurement_time(Duration::from_secs(8)).warm_up_time(Duration::from_secs(1));
     g.throughput(Throughput::Elements(n as u64));
-
-    // src/accel alone, on Arbor's pool (same thread count as the driver).
-    {
-        let geometry = arbor::accel::Geometry {
-            flags: arbor::accel::GeometryFlags(1),
-            primitive_count: n,
-            data: arbor::accel::GeometryData::Triangles {
-                format: arbor::accel::VertexFormat::R32G32B32Sfloat,
-                vertices: &vbytes,
-                stride: 12,
-                max_vertex: mesh.vertex_count() as u32 - 1,
-                index_type: arbor::accel::IndexType::U32,
-                indices: &ibytes,
-                transform: None,
-            },
-        };
-        let shape = [arbor::accel::GeometryShape::Triangles {
-            format: arbor::accel::VertexFormat::R32G32B32Sfloat,
-            index_type: arbor::accel::IndexType::U32,
-            max_vertex: mesh.vertex_count() as u32 - 1,
-            has_transform: false,
-        }];
-        let flags = arbor::accel::BuildFlags(0);
-        let sizes = arbor::accel::build_sizes(arbor::accel::AsType::BottomLevel, flags, &shape, &[n]);
-        let mut dst = vec![0u8; sizes.acceleration_structure_size as usize];
-        let mut scratch = vec![0u8; sizes.build_scratch_size as usize];
-        let geoms = [geometry];
-        let desc = arbor::accel::BuildDesc { ty: arbor::accel::AsType::BottomLevel, flags, geometries: &geoms };
-        g.bench_function("accel_only", |b| {
-            b.iter(|| {
-                arbor::threads::pool().install(|| arbor::accel::build(&desc, &arbor::accel::NoDevice, &mut dst, &mut scratch).unwrap())
-            })
-        });
-    }
+    bench_accel_only(&mut g, &mesh, &vbytes, &ibytes);
 
     let ctx = support::Context::new(support::Options { validation: false, acceleration_structure: true, ..Default::default() });
     let a = Accel::new(&ctx);
@@ -114,6 +82,55 @@ fn bench(c: &mut Criterion) {
             unsafe { a.ext.build_acceleration_structures(vk::DeferredOperationKHR::null(), &[hinfo], &[&range]) }.unwrap()
         })
     });
+    bench_host_deferred(&mut g, &ctx, &a, &hinfo, &range);
+    g.finish();
+    drop(hscratch);
+    a.destroy();
+    ctx.finish();
+}
+
+/// src/accel alone, on Arbor's pool (same thread count as the driver).
+fn bench_accel_only(g: &mut BenchmarkGroup<WallTime>, mesh: &arbor_scene::Mesh, vbytes: &[u8], ibytes: &[u8]) {
+    let n = mesh.triangle_count() as u32;
+    let geometry = arbor::accel::Geometry {
+        flags: arbor::accel::GeometryFlags(1),
+        primitive_count: n,
+        data: arbor::accel::GeometryData::Triangles {
+            format: arbor::accel::VertexFormat::R32G32B32Sfloat,
+            vertices: vbytes,
+            stride: 12,
+            max_vertex: mesh.vertex_count() as u32 - 1,
+            index_type: arbor::accel::IndexType::U32,
+            indices: ibytes,
+            transform: None,
+        },
+    };
+    let shape = [arbor::accel::GeometryShape::Triangles {
+        format: arbor::accel::VertexFormat::R32G32B32Sfloat,
+        index_type: arbor::accel::IndexType::U32,
+        max_vertex: mesh.vertex_count() as u32 - 1,
+        has_transform: false,
+    }];
+    let flags = arbor::accel::BuildFlags(0);
+    let sizes = arbor::accel::build_sizes(arbor::accel::AsType::BottomLevel, flags, &shape, &[n]);
+    let mut dst = vec![0u8; sizes.acceleration_structure_size as usize];
+    let mut scratch = vec![0u8; sizes.build_scratch_size as usize];
+    let geoms = [geometry];
+    let desc = arbor::accel::BuildDesc { ty: arbor::accel::AsType::BottomLevel, flags, geometries: &geoms };
+    g.bench_function("accel_only", |b| {
+        b.iter(|| arbor::threads::pool().install(|| arbor::accel::build(&desc, &arbor::accel::NoDevice, &mut dst, &mut scratch).unwrap()))
+    });
+}
+
+/// Host builds (`hinfo`, inputs by host pointer) under a deferred operation joined by 1, 2 and
+/// all threads.
+fn bench_host_deferred(
+    g: &mut BenchmarkGroup<WallTime>,
+    ctx: &support::Context,
+    a: &Accel,
+    hinfo: &vk::AccelerationStructureBuildGeometryInfoKHR,
+    range: &[vk::AccelerationStructureBuildRangeInfoKHR],
+) {
     let all = std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1);
     let mut joiner_counts = vec![1, 2, all];
     joiner_counts.dedup();
@@ -123,7 +140,7 @@ fn bench(c: &mut Criterion) {
                 // SAFETY: valid infos; the operation completes before the iteration ends.
                 unsafe {
                     let op = a.deferred.create_deferred_operation(None).unwrap();
-                    let r = (a.ext.fp().build_acceleration_structures_khr)(ctx.device.handle(), op, 1, &hinfo, [range.as_ptr()].as_ptr());
+                    let r = (a.ext.fp().build_acceleration_structures_khr)(ctx.device.handle(), op, 1, hinfo, [range.as_ptr()].as_ptr());
                     if r == vk::Result::OPERATION_DEFERRED_KHR {
                         let dev = ctx.device.handle();
                         let join = a.deferred.fp().deferred_operation_join_khr;
@@ -139,10 +156,6 @@ fn bench(c: &mut Criterion) {
             })
         });
     }
-    g.finish();
-    drop(hscratch);
-    a.destroy();
-    ctx.finish();
 }
 
 criterion_group!(benches, bench);

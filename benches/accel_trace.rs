@@ -53,23 +53,7 @@ fn copy(r: &Ray) -> Ray {
 fn bench_trace(c: &mut Criterion) {
     let path = data_dir().join("dragon_vrip.ply.gz");
     let mesh = scene::load(path).expect("dragon");
-    let (vb, ib) = (mesh.vertex_bytes(), mesh.index_bytes());
-    let geoms = [Geometry {
-        flags: GeometryFlags(1),
-        primitive_count: mesh.indices.len() as u32,
-        data: GeometryData::Triangles { format: VertexFormat::R32G32B32Sfloat, vertices: &vb, stride: 12, max_vertex: mesh.max_index(), index_type: IndexType::U32, indices: &ib, transform: None },
-    }];
-    let flags = BuildFlags(BuildFlags::PREFER_FAST_TRACE);
-    let sizes = accel::build_sizes(AsType::BottomLevel, flags, &[accel::GeometryShape::Triangles {
-        format: VertexFormat::R32G32B32Sfloat,
-        index_type: IndexType::U32,
-        max_vertex: mesh.max_index(),
-        has_transform: false,
-    }], &[mesh.indices.len() as u32]);
-    let mut dst = vec![0u8; sizes.acceleration_structure_size as usize];
-    let mut scratch = vec![0u8; sizes.build_scratch_size as usize];
-    accel::build(&BuildDesc { ty: AsType::BottomLevel, flags, geometries: &geoms }, &accel::NoDevice, &mut dst, &mut scratch).expect("build");
-    drop(scratch);
+    let dst = fast_trace_blas(&mesh);
     let bvh = &dst[..];
     let b = mesh.bounds();
     let primary: Vec<Ray> = scene::primary_rays(b, 256, 256).into_iter().map(|r| Ray { origin: r.origin, direction: r.direction, tmin: 0.0, tmax: f32::INFINITY }).collect();
@@ -109,39 +93,64 @@ fn bench_trace(c: &mut Criterion) {
         }
     }
     #[cfg(feature = "peers")]
-    {
-        use peers::embree;
-        let dev = embree::Device::new(all);
-        let scene = embree::Scene::new(&dev, &mesh, 1);
-        // Agreement check: same hit/miss and t within 1e-4 relative on nearly every ray.
-        for (name, rays) in [("primary", &primary), ("random", &random)] {
-            let mut agree = 0;
-            for r in rays.iter() {
-                let a = accel::closest_hit(bvh, &accel::NoDevice, copy(r), RayFlags(0), 0xFF).map(|h| h.t);
-                let e = scene.intersect(r.origin.to_array(), r.direction.to_array(), r.tmin, r.tmax).map(|h| h.0);
-                agree += match (a, e) {
-                    (None, None) => 1,
-                    (Some(x), Some(y)) => ((x - y).abs() <= 1e-4 * x.abs().max(1e-3)) as usize,
-                    _ => 0,
-                };
-            }
-            println!("arbor vs embree, {name} rays: {:.3}% agree (hit/miss and t)", 100.0 * agree as f64 / rays.len() as f64);
-        }
-        for (name, rays, any) in [("primary_closest", &primary, false), ("random_closest", &random, false), ("random_any", &random, true)] {
-            let trace = |r: &Ray| {
-                let (o, d) = (r.origin.to_array(), r.direction.to_array());
-                if any { scene.occluded(o, d, r.tmin, r.tmax) } else { scene.intersect(o, d, r.tmin, r.tmax).is_some() }
+    bench_embree(&mut group, &mesh, bvh, &primary, &random, all);
+    group.finish();
+}
+
+/// The mesh's FAST_TRACE BLAS, built by the library on the host.
+fn fast_trace_blas(mesh: &scene::Mesh) -> Vec<u8> {
+    let (vb, ib) = (mesh.vertex_bytes(), mesh.index_bytes());
+    let geoms = [Geometry {
+        flags: GeometryFlags(1),
+        primitive_count: mesh.indices.len() as u32,
+        data: GeometryData::Triangles { format: VertexFormat::R32G32B32Sfloat, vertices: &vb, stride: 12, max_vertex: mesh.max_index(), index_type: IndexType::U32, indices: &ib, transform: None },
+    }];
+    let flags = BuildFlags(BuildFlags::PREFER_FAST_TRACE);
+    let sizes = accel::build_sizes(AsType::BottomLevel, flags, &[accel::GeometryShape::Triangles {
+        format: VertexFormat::R32G32B32Sfloat,
+        index_type: IndexType::U32,
+        max_vertex: mesh.max_index(),
+        has_transform: false,
+    }], &[mesh.indices.len() as u32]);
+    let mut dst = vec![0u8; sizes.acceleration_structure_size as usize];
+    let mut scratch = vec![0u8; sizes.build_scratch_size as usize];
+    accel::build(&BuildDesc { ty: AsType::BottomLevel, flags, geometries: &geoms }, &accel::NoDevice, &mut dst, &mut scratch).expect("build");
+    dst
+}
+
+/// Embree 3 on the same rays, on 1 and `all` threads, after a check that it finds the same hits.
+#[cfg(feature = "peers")]
+fn bench_embree(group: &mut criterion::BenchmarkGroup<criterion::measurement::WallTime>, mesh: &scene::Mesh, bvh: &[u8], primary: &[Ray], random: &[Ray], all: usize) {
+    use peers::embree;
+    let dev = embree::Device::new(all);
+    let scene = embree::Scene::new(&dev, mesh, 1);
+    // Agreement check: same hit/miss and t within 1e-4 relative on nearly every ray.
+    for (name, rays) in [("primary", primary), ("random", random)] {
+        let mut agree = 0;
+        for r in rays.iter() {
+            let a = accel::closest_hit(bvh, &accel::NoDevice, copy(r), RayFlags(0), 0xFF).map(|h| h.t);
+            let e = scene.intersect(r.origin.to_array(), r.direction.to_array(), r.tmin, r.tmax).map(|h| h.0);
+            agree += match (a, e) {
+                (None, None) => 1,
+                (Some(x), Some(y)) => ((x - y).abs() <= 1e-4 * x.abs().max(1e-3)) as usize,
+                _ => 0,
             };
-            group.bench_function(format!("embree/{name}/1t"), |bn| bn.iter(|| rays.iter().filter(|r| trace(r)).count()));
-            if all > 1 {
-                let pool = rayon::ThreadPoolBuilder::new().num_threads(all).build().unwrap();
-                group.bench_function(format!("embree/{name}/{all}t"), |bn| {
-                    bn.iter(|| pool.install(|| rays.par_chunks(1024).map(|c| c.iter().filter(|r| trace(r)).count()).sum::<usize>()))
-                });
-            }
+        }
+        println!("arbor vs embree, {name} rays: {:.3}% agree (hit/miss and t)", 100.0 * agree as f64 / rays.len() as f64);
+    }
+    for (name, rays, any) in [("primary_closest", primary, false), ("random_closest", random, false), ("random_any", random, true)] {
+        let trace = |r: &Ray| {
+            let (o, d) = (r.origin.to_array(), r.direction.to_array());
+            if any { scene.occluded(o, d, r.tmin, r.tmax) } else { scene.intersect(o, d, r.tmin, r.tmax).is_some() }
+        };
+        group.bench_function(format!("embree/{name}/1t"), |bn| bn.iter(|| rays.iter().filter(|r| trace(r)).count()));
+        if all > 1 {
+            let pool = rayon::ThreadPoolBuilder::new().num_threads(all).build().unwrap();
+            group.bench_function(format!("embree/{name}/{all}t"), |bn| {
+                bn.iter(|| pool.install(|| rays.par_chunks(1024).map(|c| c.iter().filter(|r| trace(r)).count()).sum::<usize>()))
+            });
         }
     }
-    group.finish();
 }
 
 criterion_group!(benches, bench_trace);

@@ -120,6 +120,7 @@ fn device_build_of_the_bunny_traverses_like_brute_force() {
 /// The same build through every path: device, indirect (records written by vkCmdUpdateBuffer
 /// earlier in the same command buffer), host, and host under a deferred operation joined by
 /// 1, 2 and 8 threads — byte-identical serializations, for FAST_TRACE and FAST_BUILD.
+// One function: one scenario, every build path compared against the same device build.
 #[test]
 fn host_device_indirect_and_deferred_builds_are_byte_identical() {
     let ctx = as_context();
@@ -225,6 +226,7 @@ fn host_device_indirect_and_deferred_builds_are_byte_identical() {
 /// Compaction shrinks (or keeps) the size and traversal stays identical; clone is identical;
 /// serialize → deserialize → serialize round-trips; compatibility says COMPATIBLE for our header
 /// and INCOMPATIBLE for a changed UUID; host and device property queries agree.
+// One function: one scenario, each copy checked against the structure built first.
 #[test]
 fn compaction_clone_serialization_round_trip_and_queries() {
     let ctx = as_context();
@@ -391,6 +393,7 @@ fn host_tlas_over_many_blases_matches_the_device_build() {
 
 /// A two-level structure: TLAS over instances of two BLASes, device and host builds identical,
 /// traversal (BLASes found by device address) equal to brute force over the transformed triangles.
+// One function: one scenario, the BLASes, the TLAS over them and its check against brute force.
 #[test]
 fn tlas_over_blases_device_and_host_builds_match_brute_force() {
     let ctx = as_context();

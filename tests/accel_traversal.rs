@@ -83,6 +83,7 @@ fn blas_random_soups_match_brute_force() {
 
 /// Opaque and non-opaque triangle geometries, one with a transform, U16/U32/NONE indices and
 /// several vertex formats, in one BLAS.
+// One function: one BLAS of mixed geometries, described geometry by geometry, then checked once.
 #[test]
 fn blas_several_geometries_formats_index_types_transforms() {
     let soup = scene::random_soup(400, 77);

@@ -87,6 +87,7 @@ fn pools_allocate_until_out_of_pool_memory() {
     ctx.finish();
 }
 
+// One function: one scenario, writes, a copy and a template on the same two sets, checked at the end.
 #[test]
 fn writes_copies_and_templates() {
     let ctx = harness::context();

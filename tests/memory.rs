@@ -197,6 +197,7 @@ fn out_of_device_memory_and_recovery() {
 }
 
 /// Device addresses recorded on one device are reproduced on another (opaque capture/replay).
+// One function: one scenario, the replay on a second device needs the addresses the capture returned.
 #[test]
 fn capture_replay_reproduces_buffer_address() {
     let usage = STORAGE_ADDR;

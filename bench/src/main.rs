@@ -81,33 +81,8 @@ struct Args {
 }
 
 fn parse_args(argv: &[String]) -> Result<Args, String> {
-    let cores = std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1);
-    let mut a = Args {
-        drivers: Vec::new(),
-        icds: Vec::new(),
-        threads: None,
-        list: false,
-        scenes: Vec::new(),
-        meshes: Vec::new(),
-        soup: 1_000_000,
-        terrain: 512,
-        instances: 10_000,
-        workloads: Vec::new(),
-        repeat: 5,
-        warmup: 1,
-        joiners: cores,
-        metrics: true,
-        efficiency: false,
-        json: None,
-        csv: None,
-        svg: None,
-        render: None,
-        render_scene: None,
-        render_size: (480, 360),
-        quiet: false,
-    };
+    let mut a = Args::defaults();
     let mut it = argv.iter();
-    let list = |v: &str| -> Vec<String> { v.split(',').map(|s| s.trim().to_string()).filter(|s| !s.is_empty()).collect() };
     while let Some(arg) = it.next() {
         let (flag, inline) = match arg.split_once('=') {
             Some((f, v)) if f.starts_with("--") => (f.to_string(), Some(v.to_string())),
@@ -116,73 +91,152 @@ fn parse_args(argv: &[String]) -> Result<Args, String> {
         let mut value = |name: &str| -> Result<String, String> {
             inline.clone().or_else(|| it.next().cloned()).ok_or_else(|| format!("{name} needs a value"))
         };
-        let num = |name: &str, v: String| -> Result<usize, String> { v.parse::<usize>().map_err(|_| format!("{name}: not a number: {v}")) };
-        match flag.as_str() {
+        let known = a.driver_option(&flag, &mut value)?
+            || a.scene_option(&flag, &mut value)?
+            || a.workload_option(&flag, &mut value)?
+            || a.output_option(&flag, &mut value)?;
+        if !known {
+            return Err(format!("unknown option {flag} (see --help)"));
+        }
+    }
+    a.complete()?;
+    Ok(a)
+}
+
+/// An option's value, from `--flag=value` or the next argument; the name is for the error.
+type Value<'v> = dyn FnMut(&str) -> Result<String, String> + 'v;
+
+fn list(v: &str) -> Vec<String> {
+    v.split(',').map(|s| s.trim().to_string()).filter(|s| !s.is_empty()).collect()
+}
+
+fn num(name: &str, v: String) -> Result<usize, String> {
+    v.parse::<usize>().map_err(|_| format!("{name}: not a number: {v}"))
+}
+
+// Each `*_option` takes the options of one group of --help: whether `flag` was one of them.
+impl Args {
+    fn defaults() -> Args {
+        let cores = std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1);
+        Args {
+            drivers: Vec::new(),
+            icds: Vec::new(),
+            threads: None,
+            list: false,
+            scenes: Vec::new(),
+            meshes: Vec::new(),
+            soup: 1_000_000,
+            terrain: 512,
+            instances: 10_000,
+            workloads: Vec::new(),
+            repeat: 5,
+            warmup: 1,
+            joiners: cores,
+            metrics: true,
+            efficiency: false,
+            json: None,
+            csv: None,
+            svg: None,
+            render: None,
+            render_scene: None,
+            render_size: (480, 360),
+            quiet: false,
+        }
+    }
+
+    fn driver_option(&mut self, flag: &str, value: &mut Value) -> Result<bool, String> {
+        match flag {
+            "--driver" => self.drivers.extend(list(&value("--driver")?)),
+            "--icd" => self.icds.push(PathBuf::from(value("--icd")?)),
+            "--threads" => self.threads = Some(num("--threads", value("--threads")?)?.max(1)),
+            "--list" => self.list = true,
+            _ => return Ok(false),
+        }
+        Ok(true)
+    }
+
+    fn scene_option(&mut self, flag: &str, value: &mut Value) -> Result<bool, String> {
+        match flag {
+            "--scene" => self.scenes.extend(list(&value("--scene")?)),
+            "--mesh" => self.meshes.push(PathBuf::from(value("--mesh")?)),
+            "--soup" => self.soup = num("--soup", value("--soup")?)?.max(1),
+            "--terrain" => self.terrain = num("--terrain", value("--terrain")?)?.max(1) as u32,
+            "--instances" => self.instances = num("--instances", value("--instances")?)?.max(1),
+            _ => return Ok(false),
+        }
+        Ok(true)
+    }
+
+    fn workload_option(&mut self, flag: &str, value: &mut Value) -> Result<bool, String> {
+        match flag {
+            "--workloads" | "--workload" => {
+                for w in list(&value("--workloads")?) {
+                    if w == "all" {
+                        self.workloads.extend(Workload::ALL);
+                    } else {
+                        self.workloads.push(Workload::parse(&w).ok_or_else(|| format!("unknown workload {w}"))?);
+                    }
+                }
+            }
+            "--repeat" => self.repeat = num("--repeat", value("--repeat")?)?.max(1),
+            "--warmup" => self.warmup = num("--warmup", value("--warmup")?)?,
+            "--joiners" => self.joiners = num("--joiners", value("--joiners")?)?.max(1),
+            "--no-metrics" => self.metrics = false,
+            "--efficiency" => self.efficiency = true,
+            _ => return Ok(false),
+        }
+        Ok(true)
+    }
+
+    fn output_option(&mut self, flag: &str, value: &mut Value) -> Result<bool, String> {
+        match flag {
             "-h" | "--help" => {
                 print!("{HELP}");
                 std::process::exit(0);
             }
-            "--driver" => a.drivers.extend(list(&value("--driver")?)),
-            "--icd" => a.icds.push(PathBuf::from(value("--icd")?)),
-            "--threads" => a.threads = Some(num("--threads", value("--threads")?)?.max(1)),
-            "--list" => a.list = true,
-            "--scene" => a.scenes.extend(list(&value("--scene")?)),
-            "--mesh" => a.meshes.push(PathBuf::from(value("--mesh")?)),
-            "--soup" => a.soup = num("--soup", value("--soup")?)?.max(1),
-            "--terrain" => a.terrain = num("--terrain", value("--terrain")?)?.max(1) as u32,
-            "--instances" => a.instances = num("--instances", value("--instances")?)?.max(1),
-            "--workloads" | "--workload" => {
-                for w in list(&value("--workloads")?) {
-                    if w == "all" {
-                        a.workloads.extend(Workload::ALL);
-                    } else {
-                        a.workloads.push(Workload::parse(&w).ok_or_else(|| format!("unknown workload {w}"))?);
-                    }
-                }
-            }
-            "--repeat" => a.repeat = num("--repeat", value("--repeat")?)?.max(1),
-            "--warmup" => a.warmup = num("--warmup", value("--warmup")?)?,
-            "--joiners" => a.joiners = num("--joiners", value("--joiners")?)?.max(1),
-            "--no-metrics" => a.metrics = false,
-            "--efficiency" => a.efficiency = true,
-            "--json" => a.json = Some(PathBuf::from(value("--json")?)),
-            "--csv" => a.csv = Some(PathBuf::from(value("--csv")?)),
-            "--svg" => a.svg = Some(PathBuf::from(value("--svg")?)),
-            "--render" => a.render = Some(PathBuf::from(value("--render")?)),
-            "--render-scene" => a.render_scene = Some(value("--render-scene")?),
+            "--json" => self.json = Some(PathBuf::from(value("--json")?)),
+            "--csv" => self.csv = Some(PathBuf::from(value("--csv")?)),
+            "--svg" => self.svg = Some(PathBuf::from(value("--svg")?)),
+            "--render" => self.render = Some(PathBuf::from(value("--render")?)),
+            "--render-scene" => self.render_scene = Some(value("--render-scene")?),
             "--render-size" => {
                 let v = value("--render-size")?;
                 let (w, h) = v.split_once('x').ok_or("--render-size WxH")?;
                 let w: u32 = w.parse().map_err(|_| "--render-size WxH")?;
                 let h: u32 = h.parse().map_err(|_| "--render-size WxH")?;
-                a.render_size = (w.clamp(1, 8192), h.clamp(1, 8192));
+                self.render_size = (w.clamp(1, 8192), h.clamp(1, 8192));
             }
-            "--quiet" | "-q" => a.quiet = true,
-            other => return Err(format!("unknown option {other} (see --help)")),
+            "--quiet" | "-q" => self.quiet = true,
+            _ => return Ok(false),
         }
+        Ok(true)
     }
-    if a.workloads.is_empty() {
-        a.workloads.extend(Workload::ALL);
-    }
-    a.workloads.dedup();
-    if a.drivers.is_empty() && a.icds.is_empty() {
-        a.drivers.push("arbor".into());
-    }
-    if a.drivers.iter().any(|d| d == "all") {
-        a.drivers = vec!["arbor".into(), "lavapipe".into(), "nvidia".into()];
-    }
-    for d in &a.drivers {
-        if !["arbor", "lavapipe", "nvidia"].contains(&d.as_str()) {
-            return Err(format!("unknown driver {d} (arbor, lavapipe, nvidia, all; or --icd PATH)"));
+
+    /// The defaults that depend on what was given (workloads, drivers, scenes), and "all".
+    fn complete(&mut self) -> Result<(), String> {
+        if self.workloads.is_empty() {
+            self.workloads.extend(Workload::ALL);
         }
+        self.workloads.dedup();
+        if self.drivers.is_empty() && self.icds.is_empty() {
+            self.drivers.push("arbor".into());
+        }
+        if self.drivers.iter().any(|d| d == "all") {
+            self.drivers = vec!["arbor".into(), "lavapipe".into(), "nvidia".into()];
+        }
+        for d in &self.drivers {
+            if !["arbor", "lavapipe", "nvidia"].contains(&d.as_str()) {
+                return Err(format!("unknown driver {d} (arbor, lavapipe, nvidia, all; or --icd PATH)"));
+            }
+        }
+        if self.scenes.is_empty() && self.meshes.is_empty() {
+            self.scenes.push("bunny".into());
+        }
+        if self.scenes.iter().any(|s| s == "all") {
+            self.scenes = vec!["bunny".into(), "soup".into(), "terrain".into(), "instances".into()];
+        }
+        Ok(())
     }
-    if a.scenes.is_empty() && a.meshes.is_empty() {
-        a.scenes.push("bunny".into());
-    }
-    if a.scenes.iter().any(|s| s == "all") {
-        a.scenes = vec!["bunny".into(), "soup".into(), "terrain".into(), "instances".into()];
-    }
-    Ok(a)
 }
 
 /// Writes a manifest for the libvulkan_arbor.so beside this program (target/<profile>/).
@@ -294,6 +348,45 @@ fn main() {
 /// Returns whether any workload failed.
 fn run(args: &Args, argv: &[String]) -> Result<bool, String> {
     let cores = std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1);
+    let arbor_threads = set_threads(args, cores);
+    let (joined, wanted) = select_drivers(args)?;
+    let scenes = if args.list { Vec::new() } else { load_scenes(args)? };
+
+    // SAFETY: loading the system Vulkan loader.
+    let entry = unsafe { ash::Entry::load() }.map_err(|e| format!("cannot load libvulkan.so.1 ({e}); install libvulkan1"))?;
+    let app = vk::ApplicationInfo::default().application_name(c"arbor-bench").api_version(vk::API_VERSION_1_1);
+    // SAFETY: valid create info.
+    let instance = unsafe { entry.create_instance(&vk::InstanceCreateInfo::default().application_info(&app), None) }
+        .map_err(|e| format!("vkCreateInstance: {e} (manifests: {})", joined.to_string_lossy()))?;
+    let devices = find_devices(&instance, &wanted)?;
+    if args.list {
+        for (label, pd) in &devices {
+            println!("{label}: {}", device_name(&instance, *pd));
+        }
+        // SAFETY: no child objects.
+        unsafe { instance.destroy_instance(None) };
+        return Ok(false);
+    }
+    let mut meta = report::Meta {
+        command: std::iter::once("arbor-bench".to_string()).chain(argv.iter().cloned()).collect::<Vec<_>>().join(" "),
+        unix_time: std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map(|d| d.as_secs()).unwrap_or(0),
+        host_cpus: cores,
+        drivers: Vec::new(),
+        scenes: scenes.iter().map(|s| (s.name.clone(), s.primitives(), s.describe())).collect(),
+    };
+    let render_scene = args.render_scene.clone().or_else(|| scenes.first().map(|s| s.name.clone()));
+    let measured = measure(args, &instance, &devices, &scenes, arbor_threads, render_scene.as_ref(), &mut meta);
+    // SAFETY: every device was destroyed.
+    unsafe { instance.destroy_instance(None) };
+
+    print!("{}", report::table(&measured.rows));
+    let render_failed = write_outputs(args, &meta, &scenes, &measured, render_scene)?;
+    Ok(measured.failed || render_failed)
+}
+
+/// --threads into the environment Arbor and this process's rayon pool read; returns the size of
+/// Arbor's worker pool.
+fn set_threads(args: &Args, cores: usize) -> usize {
     if let Some(t) = args.threads {
         // SAFETY: single-threaded here, before the loader and any driver are loaded.
         unsafe {
@@ -302,7 +395,12 @@ fn run(args: &Args, argv: &[String]) -> Result<bool, String> {
             std::env::set_var("RAYON_NUM_THREADS", t.to_string());
         }
     }
-    let arbor_threads = std::env::var("ARBOR_THREADS").ok().and_then(|v| v.parse::<usize>().ok()).unwrap_or(cores);
+    std::env::var("ARBOR_THREADS").ok().and_then(|v| v.parse::<usize>().ok()).unwrap_or(cores)
+}
+
+/// The manifests of the drivers asked for, set as the loader's only drivers: the joined list,
+/// and the named drivers that were found, in their order.
+fn select_drivers(args: &Args) -> Result<(std::ffi::OsString, Vec<String>), String> {
     let mut manifests = Vec::new();
     let mut wanted = Vec::new();
     for d in &args.drivers {
@@ -331,14 +429,19 @@ fn run(args: &Args, argv: &[String]) -> Result<bool, String> {
         // Mesa's implicit device-select layer reorders/filters devices: not under test.
         std::env::set_var("NODEVICE_SELECT", "1");
     }
-    let scenes = if args.list { Vec::new() } else { load_scenes(args)? };
+    Ok((joined, wanted))
+}
 
-    // SAFETY: loading the system Vulkan loader.
-    let entry = unsafe { ash::Entry::load() }.map_err(|e| format!("cannot load libvulkan.so.1 ({e}); install libvulkan1"))?;
-    let app = vk::ApplicationInfo::default().application_name(c"arbor-bench").api_version(vk::API_VERSION_1_1);
-    // SAFETY: valid create info.
-    let instance = unsafe { entry.create_instance(&vk::InstanceCreateInfo::default().application_info(&app), None) }
-        .map_err(|e| format!("vkCreateInstance: {e} (manifests: {})", joined.to_string_lossy()))?;
+fn device_name(instance: &ash::Instance, pd: vk::PhysicalDevice) -> String {
+    // SAFETY: plain query.
+    let p = unsafe { instance.get_physical_device_properties(pd) };
+    // SAFETY: NUL-terminated by the driver.
+    unsafe { CStr::from_ptr(p.device_name.as_ptr()) }.to_string_lossy().into_owned()
+}
+
+/// The devices, labelled by driver and ordered as asked: named drivers first in their order,
+/// then devices of --icd manifests.
+fn find_devices(instance: &ash::Instance, wanted: &[String]) -> Result<Vec<(String, vk::PhysicalDevice)>, String> {
     // SAFETY: plain queries.
     let pds = unsafe { instance.enumerate_physical_devices() }.map_err(|e| format!("vkEnumeratePhysicalDevices: {e}"))?;
     let mut devices: Vec<(String, vk::PhysicalDevice)> = pds
@@ -346,75 +449,55 @@ fn run(args: &Args, argv: &[String]) -> Result<bool, String> {
         .map(|&pd| {
             // SAFETY: plain query.
             let p = unsafe { instance.get_physical_device_properties(pd) };
-            // SAFETY: NUL-terminated by the driver.
-            let name = unsafe { CStr::from_ptr(p.device_name.as_ptr()) }.to_string_lossy().into_owned();
-            (classify(&p, &name), pd)
+            (classify(&p, &device_name(instance, pd)), pd)
         })
         .collect();
-    // Order as asked: named drivers first in their order, then devices of --icd manifests.
     devices.sort_by_key(|(label, _)| wanted.iter().position(|w| w == label).unwrap_or(usize::MAX));
-    for w in &wanted {
+    for w in wanted {
         if !devices.iter().any(|(l, _)| l == w) {
             eprintln!("arbor-bench: {w}: its manifest loaded but no device of it was found");
         }
     }
-    if args.list {
-        for (label, pd) in &devices {
-            // SAFETY: plain query.
-            let p = unsafe { instance.get_physical_device_properties(*pd) };
-            // SAFETY: NUL-terminated by the driver.
-            let name = unsafe { CStr::from_ptr(p.device_name.as_ptr()) }.to_string_lossy().into_owned();
-            println!("{label}: {name}");
-        }
-        // SAFETY: no child objects.
-        unsafe { instance.destroy_instance(None) };
-        return Ok(false);
-    }
-    let mut rows = Vec::new();
-    let mut meta = report::Meta {
-        command: std::iter::once("arbor-bench".to_string()).chain(argv.iter().cloned()).collect::<Vec<_>>().join(" "),
-        unix_time: std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map(|d| d.as_secs()).unwrap_or(0),
-        host_cpus: cores,
-        drivers: Vec::new(),
-        scenes: scenes.iter().map(|s| (s.name.clone(), s.primitives(), s.describe())).collect(),
-    };
+    Ok(devices)
+}
+
+/// What the measuring loop gives the outputs.
+struct Measured {
+    rows: Vec<work::Row>,
+    render_data: Option<work::RenderData>,
+    failed: bool,
+}
+
+/// Every scene's workloads on every device, with progress on stderr.
+fn measure(
+    args: &Args,
+    instance: &ash::Instance,
+    devices: &[(String, vk::PhysicalDevice)],
+    scenes: &[Scene],
+    arbor_threads: usize,
+    render_scene: Option<&String>,
+    meta: &mut report::Meta,
+) -> Measured {
     let opts = work::Options { repeat: args.repeat, warmup: args.warmup, joiners: args.joiners, metrics: args.metrics, efficiency: args.efficiency };
     let total = devices.len() * scenes.len() * args.workloads.len();
     let mut step = 0usize;
     let tty = std::io::stderr().is_terminal();
-    let render_scene = args.render_scene.clone().or_else(|| scenes.first().map(|s| s.name.clone()));
-    let mut render_data = None;
-    let mut failed = false;
+    let mut out = Measured { rows: Vec::new(), render_data: None, failed: false };
     let started = std::time::Instant::now();
-    for (label, pd) in &devices {
-        let gpu = match vkctx::Gpu::new(&instance, *pd, label.clone()) {
+    for (label, pd) in devices {
+        let gpu = match vkctx::Gpu::new(instance, *pd, label.clone()) {
             Ok(g) => g,
             Err(e) => {
                 eprintln!("arbor-bench: {label}: {e}");
-                failed = true;
+                out.failed = true;
                 continue;
             }
         };
         let is_arbor = label == "arbor";
         let threads = if is_arbor { arbor_threads.to_string() } else { "-".to_string() };
-        meta.drivers.push((
-            label.clone(),
-            gpu.name.clone(),
-            gpu.driver_version.clone(),
-            gpu.caps.host_commands,
-            gpu.caps.indirect_build,
-            gpu.caps.timestamps,
-        ));
-        if !args.quiet {
-            eprintln!(
-                "arbor-bench: {label}: {} (driver {}){}",
-                gpu.name,
-                gpu.driver_version,
-                gpu.caps.missing.as_ref().map(|m| format!(": {m}")).unwrap_or_default()
-            );
-        }
-        for scene in &scenes {
-            let want_render = args.render.is_some() && is_arbor && Some(&scene.name) == render_scene.as_ref();
+        announce_driver(args, meta, label, &gpu);
+        for scene in scenes {
+            let want_render = args.render.is_some() && is_arbor && Some(&scene.name) == render_scene;
             let opts = work::Options { metrics: opts.metrics && is_arbor || want_render, ..opts };
             let mut progress = |w: &str| {
                 step += 1;
@@ -428,19 +511,41 @@ fn run(args: &Args, argv: &[String]) -> Result<bool, String> {
                     let _ = std::io::stderr().flush();
                 }
             };
-            let r = work::run_scene(&gpu, &threads, scene, &args.workloads, &opts, want_render, &mut progress, &mut render_data);
-            failed |= r.iter().any(|r| matches!(r.status, work::Status::Failed(_)));
-            rows.extend(r);
+            let r = work::run_scene(&gpu, &threads, scene, &args.workloads, &opts, want_render, &mut progress, &mut out.render_data);
+            out.failed |= r.iter().any(|r| matches!(r.status, work::Status::Failed(_)));
+            out.rows.extend(r);
         }
         gpu.destroy();
     }
     if tty && !args.quiet {
         eprint!("\r\x1b[K");
     }
-    // SAFETY: every device was destroyed.
-    unsafe { instance.destroy_instance(None) };
+    out
+}
 
-    print!("{}", report::table(&rows));
+/// The driver into the report's metadata and, unless --quiet, its name and version on stderr.
+fn announce_driver(args: &Args, meta: &mut report::Meta, label: &str, gpu: &vkctx::Gpu) {
+    meta.drivers.push((
+        label.to_string(),
+        gpu.name.clone(),
+        gpu.driver_version.clone(),
+        gpu.caps.host_commands,
+        gpu.caps.indirect_build,
+        gpu.caps.timestamps,
+    ));
+    if !args.quiet {
+        eprintln!(
+            "arbor-bench: {label}: {} (driver {}){}",
+            gpu.name,
+            gpu.driver_version,
+            gpu.caps.missing.as_ref().map(|m| format!(": {m}")).unwrap_or_default()
+        );
+    }
+}
+
+/// The files asked for (JSON, CSV, SVG, PNG); returns whether --render had nothing to render.
+fn write_outputs(args: &Args, meta: &report::Meta, scenes: &[Scene], measured: &Measured, render_scene: Option<String>) -> Result<bool, String> {
+    let rows = &measured.rows;
     let write = |path: &Path, data: &[u8]| -> Result<(), String> {
         std::fs::write(path, data).map_err(|e| format!("{}: {e}", path.display()))?;
         if !args.quiet {
@@ -449,17 +554,17 @@ fn run(args: &Args, argv: &[String]) -> Result<bool, String> {
         Ok(())
     };
     if let Some(p) = &args.json {
-        write(p, report::json(&meta, &rows).as_bytes())?;
+        write(p, report::json(meta, rows).as_bytes())?;
     }
     if let Some(p) = &args.csv {
-        write(p, report::csv(&rows).as_bytes())?;
+        write(p, report::csv(rows).as_bytes())?;
     }
     if let Some(p) = &args.svg {
         let title = format!("arbor-bench: {} (repeat {})", scenes.iter().map(|s| s.name.as_str()).collect::<Vec<_>>().join(", "), args.repeat);
-        write(p, report::svg(&rows, &title).as_bytes())?;
+        write(p, report::svg(rows, &title).as_bytes())?;
     }
     if let Some(p) = &args.render {
-        match &render_data {
+        match &measured.render_data {
             Some(d) => {
                 let (w, h) = args.render_size;
                 let rgb = render::render(d, w, h)?;
@@ -467,9 +572,9 @@ fn run(args: &Args, argv: &[String]) -> Result<bool, String> {
             }
             None => {
                 eprintln!("arbor-bench: --render: no Arbor fast-trace build of scene {} to render", render_scene.unwrap_or_default());
-                failed = true;
+                return Ok(true);
             }
         }
     }
-    Ok(failed)
+    Ok(false)
 }

@@ -287,7 +287,7 @@ pub fn svg(rows: &[Row], title: &str) -> String {
     let mut drivers: Vec<String> = Vec::new();
     let mut scenes: Vec<String> = Vec::new();
     for r in rows {
-        let d = if r.threads.is_empty() || r.threads == "-" { r.driver.clone() } else { format!("{} ({} thr)", r.driver, r.threads) };
+        let d = series_key(r);
         if !drivers.contains(&d) {
             drivers.push(d);
         }
@@ -295,113 +295,168 @@ pub fn svg(rows: &[Row], title: &str) -> String {
             scenes.push(r.scene.clone());
         }
     }
-    let key = |r: &Row| if r.threads.is_empty() || r.threads == "-" { r.driver.clone() } else { format!("{} ({} thr)", r.driver, r.threads) };
-    let find = |d: &str, s: &str, w: &str| rows.iter().find(|r| key(r) == d && r.scene == s && r.workload == w && r.status == Status::Ok);
-    let series: Vec<(String, usize, &str)> = drivers
-        .iter()
-        .enumerate()
-        .flat_map(|(i, d)| [(d.clone(), i, "fast-trace"), (d.clone(), i, "fast-build")])
-        .collect();
-    let (pw, ph) = (520.0f64, 300.0f64);
-    let (ml, mt, mb) = (60.0, 50.0, 60.0);
-    let width = ml + pw + 90.0 + pw + 30.0;
-    let legend_h = 20.0 * drivers.len() as f64 + 30.0;
-    let height = mt + ph + mb + legend_h;
+    let c = Chart { rows, drivers, scenes, pw: 520.0, ph: 300.0, ml: 60.0, mt: 50.0, mb: 60.0 };
+    let width = c.ml + c.pw + 90.0 + c.pw + 30.0;
+    let legend_h = 20.0 * c.drivers.len() as f64 + 30.0;
+    let height = c.mt + c.ph + c.mb + legend_h;
     let mut o = String::new();
     let _ = writeln!(
         o,
         "<svg xmlns=\"http://www.w3.org/2000/svg\" width=\"{width:.0}\" height=\"{height:.0}\" viewBox=\"0 0 {width:.0} {height:.0}\" font-family=\"sans-serif\" font-size=\"12\">"
     );
     let _ = writeln!(o, "<rect width=\"100%\" height=\"100%\" fill=\"white\"/>");
-    let _ = writeln!(o, "<text x=\"{:.0}\" y=\"22\" font-size=\"15\" font-weight=\"bold\">{}</text>", ml, esc(title));
-    let ng = scenes.len().max(1) as f64;
-    // Panel 1: build time, log10 scale.
-    let times: Vec<f64> = series
-        .iter()
-        .flat_map(|(d, _, w)| scenes.iter().filter_map(move |s| find(d, s, w).and_then(|r| r.time).map(|t| t.median)))
-        .filter(|t| *t > 0.0)
-        .collect();
-    let lo = times.iter().cloned().fold(f64::INFINITY, f64::min);
-    let hi = times.iter().cloned().fold(0.0f64, f64::max);
-    let (e0, e1) = if times.is_empty() { (-1, 3) } else { (lo.log10().floor() as i32, (hi.log10().ceil() as i32).max(lo.log10().floor() as i32 + 1)) };
-    let x0 = ml;
-    let y_of = |t: f64| mt + ph - (t.log10() - e0 as f64) / (e1 - e0) as f64 * ph;
-    let _ = writeln!(o, "<text x=\"{x0:.0}\" y=\"{:.0}\" font-weight=\"bold\">Device build time, ms (log scale; solid = fast-trace, light = fast-build)</text>", mt - 12.0);
-    for e in e0..=e1 {
-        let y = mt + ph - (e - e0) as f64 / (e1 - e0) as f64 * ph;
-        let _ = writeln!(o, "<line x1=\"{x0:.0}\" x2=\"{:.0}\" y1=\"{y:.1}\" y2=\"{y:.1}\" stroke=\"#ddd\"/>", x0 + pw);
-        let label = format!("{}", 10f64.powi(e));
-        let _ = writeln!(o, "<text x=\"{:.0}\" y=\"{:.1}\" text-anchor=\"end\">{label}</text>", x0 - 6.0, y + 4.0);
-    }
-    let gw = pw / ng;
-    let bw = (gw * 0.8) / series.len().max(1) as f64;
-    for (si, s) in scenes.iter().enumerate() {
-        let gx = x0 + si as f64 * gw + gw * 0.1;
-        for (k, (d, di, w)) in series.iter().enumerate() {
-            if let Some(t) = find(d, s, w).and_then(|r| r.time).map(|t| t.median).filter(|t| *t > 0.0) {
-                let y = y_of(t).min(mt + ph);
-                let op = if *w == "fast-trace" { "1" } else { "0.5" };
-                let _ = writeln!(
-                    o,
-                    "<rect x=\"{:.1}\" y=\"{y:.1}\" width=\"{:.1}\" height=\"{:.1}\" fill=\"{}\" fill-opacity=\"{op}\"><title>{} {} {}: {:.3} ms</title></rect>",
-                    gx + k as f64 * bw,
-                    bw * 0.92,
-                    mt + ph - y,
-                    PALETTE[di % PALETTE.len()],
-                    esc(d),
-                    esc(s),
-                    w,
-                    t
-                );
-            }
-        }
-        let _ = writeln!(o, "<text x=\"{:.1}\" y=\"{:.0}\" text-anchor=\"middle\">{}</text>", x0 + si as f64 * gw + gw / 2.0, mt + ph + 18.0, esc(s));
-    }
-    let _ = writeln!(o, "<line x1=\"{x0:.0}\" x2=\"{x0:.0}\" y1=\"{mt:.0}\" y2=\"{:.0}\" stroke=\"black\"/>", mt + ph);
-    let _ = writeln!(o, "<line x1=\"{x0:.0}\" x2=\"{:.0}\" y1=\"{:.0}\" y2=\"{:.0}\" stroke=\"black\"/>", x0 + pw, mt + ph, mt + ph);
-    // Panel 2: compacted bytes per primitive of the fast-trace build, linear.
-    let x1 = ml + pw + 90.0;
-    let vals: Vec<f64> = drivers.iter().flat_map(|d| scenes.iter().filter_map(move |s| find(d, s, "fast-trace").and_then(bytes_per_prim))).collect();
-    let vmax = vals.iter().cloned().fold(0.0f64, f64::max).max(1.0);
-    let step = [1.0, 2.0, 5.0, 10.0, 20.0, 25.0, 50.0, 100.0, 200.0, 500.0, 1000.0].into_iter().find(|s| vmax / s <= 8.0).unwrap_or(1000.0);
-    let top = (vmax / step).ceil() * step;
-    let _ = writeln!(o, "<text x=\"{x1:.0}\" y=\"{:.0}\" font-weight=\"bold\">Compacted size, bytes per primitive (fast-trace)</text>", mt - 12.0);
-    let mut v = 0.0;
-    while v <= top + 1e-9 {
-        let y = mt + ph - v / top * ph;
-        let _ = writeln!(o, "<line x1=\"{x1:.0}\" x2=\"{:.0}\" y1=\"{y:.1}\" y2=\"{y:.1}\" stroke=\"#ddd\"/>", x1 + pw);
-        let _ = writeln!(o, "<text x=\"{:.0}\" y=\"{:.1}\" text-anchor=\"end\">{v}</text>", x1 - 6.0, y + 4.0);
-        v += step;
-    }
-    let bw2 = (gw * 0.8) / drivers.len().max(1) as f64;
-    for (si, s) in scenes.iter().enumerate() {
-        let gx = x1 + si as f64 * gw + gw * 0.1;
-        for (di, d) in drivers.iter().enumerate() {
-            if let Some(b) = find(d, s, "fast-trace").and_then(bytes_per_prim) {
-                let hgt = b / top * ph;
-                let _ = writeln!(
-                    o,
-                    "<rect x=\"{:.1}\" y=\"{:.1}\" width=\"{:.1}\" height=\"{hgt:.1}\" fill=\"{}\"><title>{} {}: {:.1} B/prim</title></rect>",
-                    gx + di as f64 * bw2,
-                    mt + ph - hgt,
-                    bw2 * 0.92,
-                    PALETTE[di % PALETTE.len()],
-                    esc(d),
-                    esc(s),
-                    b
-                );
-            }
-        }
-        let _ = writeln!(o, "<text x=\"{:.1}\" y=\"{:.0}\" text-anchor=\"middle\">{}</text>", x1 + si as f64 * gw + gw / 2.0, mt + ph + 18.0, esc(s));
-    }
-    let _ = writeln!(o, "<line x1=\"{x1:.0}\" x2=\"{x1:.0}\" y1=\"{mt:.0}\" y2=\"{:.0}\" stroke=\"black\"/>", mt + ph);
-    let _ = writeln!(o, "<line x1=\"{x1:.0}\" x2=\"{:.0}\" y1=\"{:.0}\" y2=\"{:.0}\" stroke=\"black\"/>", x1 + pw, mt + ph, mt + ph);
-    // Legend.
-    for (di, d) in drivers.iter().enumerate() {
-        let y = mt + ph + mb + 20.0 * di as f64;
-        let _ = writeln!(o, "<rect x=\"{ml:.0}\" y=\"{:.0}\" width=\"14\" height=\"14\" fill=\"{}\"/>", y - 11.0, PALETTE[di % PALETTE.len()]);
-        let _ = writeln!(o, "<text x=\"{:.0}\" y=\"{y:.0}\">{}</text>", ml + 20.0, esc(d));
-    }
+    let _ = writeln!(o, "<text x=\"{:.0}\" y=\"22\" font-size=\"15\" font-weight=\"bold\">{}</text>", c.ml, esc(title));
+    c.time_panel(&mut o);
+    c.size_panel(&mut o);
+    c.legend(&mut o);
     o.push_str("</svg>\n");
     o
+}
+
+/// A driver in the chart: its label, with its thread count where it has one.
+fn series_key(r: &Row) -> String {
+    if r.threads.is_empty() || r.threads == "-" {
+        r.driver.clone()
+    } else {
+        format!("{} ({} thr)", r.driver, r.threads)
+    }
+}
+
+/// The chart's rows, its drivers and scenes in first-seen order, and its layout: panel width and
+/// height, left, top and bottom margins.
+struct Chart<'r> {
+    rows: &'r [Row],
+    drivers: Vec<String>,
+    scenes: Vec<String>,
+    pw: f64,
+    ph: f64,
+    ml: f64,
+    mt: f64,
+    mb: f64,
+}
+
+impl Chart<'_> {
+    fn find(&self, d: &str, s: &str, w: &str) -> Option<&Row> {
+        self.rows.iter().find(|r| series_key(r) == d && r.scene == s && r.workload == w && r.status == Status::Ok)
+    }
+
+    /// Width of one scene's group of bars.
+    fn group_width(&self) -> f64 {
+        self.pw / self.scenes.len().max(1) as f64
+    }
+
+    /// Scene `si`'s label under its group of bars, in the panel starting at `x0`.
+    fn scene_label(&self, o: &mut String, x0: f64, si: usize, s: &str) {
+        let gw = self.group_width();
+        let _ = writeln!(o, "<text x=\"{:.1}\" y=\"{:.0}\" text-anchor=\"middle\">{}</text>", x0 + si as f64 * gw + gw / 2.0, self.mt + self.ph + 18.0, esc(s));
+    }
+
+    /// The axes of the panel starting at `x0`.
+    fn axes(&self, o: &mut String, x0: f64) {
+        let (ph, mt) = (self.ph, self.mt);
+        let _ = writeln!(o, "<line x1=\"{x0:.0}\" x2=\"{x0:.0}\" y1=\"{mt:.0}\" y2=\"{:.0}\" stroke=\"black\"/>", mt + ph);
+        let _ = writeln!(o, "<line x1=\"{x0:.0}\" x2=\"{:.0}\" y1=\"{:.0}\" y2=\"{:.0}\" stroke=\"black\"/>", x0 + self.pw, mt + ph, mt + ph);
+    }
+
+    /// Panel 1: build time, log10 scale; per driver a fast-trace (solid) and fast-build (light) bar.
+    fn time_panel(&self, o: &mut String) {
+        let (pw, ph, mt) = (self.pw, self.ph, self.mt);
+        let series: Vec<(String, usize, &str)> = self
+            .drivers
+            .iter()
+            .enumerate()
+            .flat_map(|(i, d)| [(d.clone(), i, "fast-trace"), (d.clone(), i, "fast-build")])
+            .collect();
+        let median = |d: &str, s: &str, w: &str| self.find(d, s, w).and_then(|r| r.time).map(|t| t.median).filter(|t| *t > 0.0);
+        let times: Vec<f64> = series.iter().flat_map(|(d, _, w)| self.scenes.iter().filter_map(move |s| median(d, s, w))).collect();
+        let lo = times.iter().cloned().fold(f64::INFINITY, f64::min);
+        let hi = times.iter().cloned().fold(0.0f64, f64::max);
+        let (e0, e1) = if times.is_empty() { (-1, 3) } else { (lo.log10().floor() as i32, (hi.log10().ceil() as i32).max(lo.log10().floor() as i32 + 1)) };
+        let x0 = self.ml;
+        let y_of = |t: f64| mt + ph - (t.log10() - e0 as f64) / (e1 - e0) as f64 * ph;
+        let _ = writeln!(o, "<text x=\"{x0:.0}\" y=\"{:.0}\" font-weight=\"bold\">Device build time, ms (log scale; solid = fast-trace, light = fast-build)</text>", mt - 12.0);
+        for e in e0..=e1 {
+            let y = mt + ph - (e - e0) as f64 / (e1 - e0) as f64 * ph;
+            let _ = writeln!(o, "<line x1=\"{x0:.0}\" x2=\"{:.0}\" y1=\"{y:.1}\" y2=\"{y:.1}\" stroke=\"#ddd\"/>", x0 + pw);
+            let label = format!("{}", 10f64.powi(e));
+            let _ = writeln!(o, "<text x=\"{:.0}\" y=\"{:.1}\" text-anchor=\"end\">{label}</text>", x0 - 6.0, y + 4.0);
+        }
+        let gw = self.group_width();
+        let bw = (gw * 0.8) / series.len().max(1) as f64;
+        for (si, s) in self.scenes.iter().enumerate() {
+            let gx = x0 + si as f64 * gw + gw * 0.1;
+            for (k, (d, di, w)) in series.iter().enumerate() {
+                if let Some(t) = median(d, s, w) {
+                    let y = y_of(t).min(mt + ph);
+                    let op = if *w == "fast-trace" { "1" } else { "0.5" };
+                    let _ = writeln!(
+                        o,
+                        "<rect x=\"{:.1}\" y=\"{y:.1}\" width=\"{:.1}\" height=\"{:.1}\" fill=\"{}\" fill-opacity=\"{op}\"><title>{} {} {}: {:.3} ms</title></rect>",
+                        gx + k as f64 * bw,
+                        bw * 0.92,
+                        mt + ph - y,
+                        PALETTE[di % PALETTE.len()],
+                        esc(d),
+                        esc(s),
+                        w,
+                        t
+                    );
+                }
+            }
+            self.scene_label(o, x0, si, s);
+        }
+        self.axes(o, x0);
+    }
+
+    /// Panel 2: compacted bytes per primitive of the fast-trace build, linear.
+    fn size_panel(&self, o: &mut String) {
+        let (pw, ph, mt) = (self.pw, self.ph, self.mt);
+        let x1 = self.ml + pw + 90.0;
+        let per_prim = |d: &str, s: &str| self.find(d, s, "fast-trace").and_then(bytes_per_prim);
+        let vals: Vec<f64> = self.drivers.iter().flat_map(|d| self.scenes.iter().filter_map(move |s| per_prim(d, s))).collect();
+        let vmax = vals.iter().cloned().fold(0.0f64, f64::max).max(1.0);
+        let step = [1.0, 2.0, 5.0, 10.0, 20.0, 25.0, 50.0, 100.0, 200.0, 500.0, 1000.0].into_iter().find(|s| vmax / s <= 8.0).unwrap_or(1000.0);
+        let top = (vmax / step).ceil() * step;
+        let _ = writeln!(o, "<text x=\"{x1:.0}\" y=\"{:.0}\" font-weight=\"bold\">Compacted size, bytes per primitive (fast-trace)</text>", mt - 12.0);
+        let mut v = 0.0;
+        while v <= top + 1e-9 {
+            let y = mt + ph - v / top * ph;
+            let _ = writeln!(o, "<line x1=\"{x1:.0}\" x2=\"{:.0}\" y1=\"{y:.1}\" y2=\"{y:.1}\" stroke=\"#ddd\"/>", x1 + pw);
+            let _ = writeln!(o, "<text x=\"{:.0}\" y=\"{:.1}\" text-anchor=\"end\">{v}</text>", x1 - 6.0, y + 4.0);
+            v += step;
+        }
+        let gw = self.group_width();
+        let bw2 = (gw * 0.8) / self.drivers.len().max(1) as f64;
+        for (si, s) in self.scenes.iter().enumerate() {
+            let gx = x1 + si as f64 * gw + gw * 0.1;
+            for (di, d) in self.drivers.iter().enumerate() {
+                if let Some(b) = per_prim(d, s) {
+                    let hgt = b / top * ph;
+                    let _ = writeln!(
+                        o,
+                        "<rect x=\"{:.1}\" y=\"{:.1}\" width=\"{:.1}\" height=\"{hgt:.1}\" fill=\"{}\"><title>{} {}: {:.1} B/prim</title></rect>",
+                        gx + di as f64 * bw2,
+                        mt + ph - hgt,
+                        bw2 * 0.92,
+                        PALETTE[di % PALETTE.len()],
+                        esc(d),
+                        esc(s),
+                        b
+                    );
+                }
+            }
+            self.scene_label(o, x1, si, s);
+        }
+        self.axes(o, x1);
+    }
+
+    /// One swatch and label per driver, under the panels.
+    fn legend(&self, o: &mut String) {
+        let ml = self.ml;
+        for (di, d) in self.drivers.iter().enumerate() {
+            let y = self.mt + self.ph + self.mb + 20.0 * di as f64;
+            let _ = writeln!(o, "<rect x=\"{ml:.0}\" y=\"{:.0}\" width=\"14\" height=\"14\" fill=\"{}\"/>", y - 11.0, PALETTE[di % PALETTE.len()]);
+            let _ = writeln!(o, "<text x=\"{:.0}\" y=\"{y:.0}\">{}</text>", ml + 20.0, esc(d));
+        }
+    }
 }

@@ -82,103 +82,24 @@ impl Gpu {
     /// Create a device with the acceleration-structure extensions and every optional feature the
     /// driver has. `label` names the driver in the report.
     pub fn new(instance: &ash::Instance, physical: vk::PhysicalDevice, label: String) -> Result<Gpu, String> {
-        // SAFETY: plain queries on a live instance and physical device.
+        // SAFETY: plain query on a live instance and physical device.
+        let props = unsafe { instance.get_physical_device_properties(physical) };
+        // SAFETY: NUL-terminated by the driver.
+        let name = unsafe { CStr::from_ptr(props.device_name.as_ptr()) }.to_string_lossy().into_owned();
+        let driver_version = driver_version(instance, physical, &props);
+        // SAFETY: plain query.
+        let exts: Vec<String> = unsafe { instance.enumerate_device_extension_properties(physical) }
+            .map_err(vk_err("vkEnumerateDeviceExtensionProperties"))?
+            .iter()
+            // SAFETY: NUL-terminated by the driver.
+            .map(|e| unsafe { CStr::from_ptr(e.extension_name.as_ptr()) }.to_string_lossy().into_owned())
+            .collect();
+        let has = |e: &str| exts.iter().any(|x| x == e);
+        let mut caps = as_caps(instance, physical, &has);
+        let family = compute_family(instance, physical, &props, &mut caps)?;
+        let device = create_device(instance, physical, family, &caps, &has)?;
+        // SAFETY: a live device; everything created here is destroyed by `destroy`.
         unsafe {
-            let props = instance.get_physical_device_properties(physical);
-            let name = CStr::from_ptr(props.device_name.as_ptr()).to_string_lossy().into_owned();
-            let dv = props.driver_version;
-            let mut driver_version = if props.vendor_id == 0x10DE {
-                format!("{}.{}", dv >> 22, (dv >> 14) & 0xFF)
-            } else {
-                format!("{}.{}.{}", vk::api_version_major(dv), vk::api_version_minor(dv), vk::api_version_patch(dv))
-            };
-            if props.api_version >= vk::API_VERSION_1_2 {
-                // VkPhysicalDeviceDriverProperties (core in 1.2): the driver's own version text.
-                let mut dp = vk::PhysicalDeviceDriverProperties::default();
-                let mut p2 = vk::PhysicalDeviceProperties2::default().push_next(&mut dp);
-                instance.get_physical_device_properties2(physical, &mut p2);
-                let name = CStr::from_ptr(dp.driver_name.as_ptr()).to_string_lossy().into_owned();
-                let info = CStr::from_ptr(dp.driver_info.as_ptr()).to_string_lossy().into_owned();
-                if !name.is_empty() || !info.is_empty() {
-                    driver_version = format!("{name} {info}").trim().to_string();
-                }
-            }
-            let exts: Vec<String> = instance
-                .enumerate_device_extension_properties(physical)
-                .map_err(vk_err("vkEnumerateDeviceExtensionProperties"))?
-                .iter()
-                .map(|e| CStr::from_ptr(e.extension_name.as_ptr()).to_string_lossy().into_owned())
-                .collect();
-            let has = |e: &str| exts.iter().any(|x| x == e);
-            let mut caps = Caps::default();
-            let mut missing = Vec::new();
-            for e in ["VK_KHR_acceleration_structure", "VK_KHR_buffer_device_address", "VK_KHR_deferred_host_operations"] {
-                if !has(e) {
-                    missing.push(e);
-                }
-            }
-            // Features.
-            let mut asf = vk::PhysicalDeviceAccelerationStructureFeaturesKHR::default();
-            let mut bdaf = vk::PhysicalDeviceBufferDeviceAddressFeatures::default();
-            if missing.is_empty() {
-                let mut f2 = vk::PhysicalDeviceFeatures2::default().push_next(&mut asf).push_next(&mut bdaf);
-                instance.get_physical_device_features2(physical, &mut f2);
-                if asf.acceleration_structure == vk::FALSE {
-                    missing.push("accelerationStructure feature");
-                }
-                if bdaf.buffer_device_address == vk::FALSE {
-                    missing.push("bufferDeviceAddress feature");
-                }
-            }
-            caps.acceleration_structure = missing.is_empty();
-            caps.missing = (!missing.is_empty()).then(|| format!("missing {}", missing.join(", ")));
-            caps.host_commands = caps.acceleration_structure && asf.acceleration_structure_host_commands == vk::TRUE;
-            caps.indirect_build = caps.acceleration_structure && asf.acceleration_structure_indirect_build == vk::TRUE;
-            caps.deferred = has("VK_KHR_deferred_host_operations");
-            if caps.acceleration_structure {
-                let mut asp = vk::PhysicalDeviceAccelerationStructurePropertiesKHR::default();
-                let mut p2 = vk::PhysicalDeviceProperties2::default().push_next(&mut asp);
-                instance.get_physical_device_properties2(physical, &mut p2);
-                caps.max_primitive_count = asp.max_primitive_count;
-                caps.max_instance_count = asp.max_instance_count;
-            }
-            // The first queue family with compute (AS builds are compute-queue commands).
-            let families = instance.get_physical_device_queue_family_properties(physical);
-            let family = families
-                .iter()
-                .position(|q| q.queue_flags.contains(vk::QueueFlags::COMPUTE))
-                .ok_or("no compute queue family")? as u32;
-            let bits = families[family as usize].timestamp_valid_bits;
-            caps.timestamps = bits > 0 && props.limits.timestamp_period > 0.0;
-            caps.timestamp_mask = if bits >= 64 { u64::MAX } else { (1u64 << bits) - 1 };
-            caps.timestamp_period_ns = props.limits.timestamp_period as f64;
-
-            let mut names: Vec<&CStr> = Vec::new();
-            if caps.acceleration_structure {
-                for e in [
-                    ash::khr::acceleration_structure::NAME,
-                    ash::khr::deferred_host_operations::NAME,
-                    ash::khr::buffer_device_address::NAME,
-                    ash::ext::descriptor_indexing::NAME,
-                ] {
-                    if has(e.to_str().unwrap_or("")) {
-                        names.push(e);
-                    }
-                }
-            }
-            let name_ptrs: Vec<*const std::ffi::c_char> = names.iter().map(|c| c.as_ptr()).collect();
-            let prio = [1.0f32];
-            let qci = [vk::DeviceQueueCreateInfo::default().queue_family_index(family).queue_priorities(&prio)];
-            let mut asf_on = vk::PhysicalDeviceAccelerationStructureFeaturesKHR::default()
-                .acceleration_structure(true)
-                .acceleration_structure_host_commands(caps.host_commands)
-                .acceleration_structure_indirect_build(caps.indirect_build);
-            let mut bda_on = vk::PhysicalDeviceBufferDeviceAddressFeatures::default().buffer_device_address(true);
-            let mut dci = vk::DeviceCreateInfo::default().queue_create_infos(&qci).enabled_extension_names(&name_ptrs);
-            if caps.acceleration_structure {
-                dci = dci.push_next(&mut asf_on).push_next(&mut bda_on);
-            }
-            let device = instance.create_device(physical, &dci, None).map_err(vk_err("vkCreateDevice"))?;
             let queue = device.get_device_queue(family, 0);
             let pool = device
                 .create_command_pool(
@@ -298,6 +219,17 @@ impl Gpu {
         }
     }
 
+    /// Milliseconds between the two timestamps of `qp` (None where they cannot be read).
+    fn timestamps_ms(&self, qp: vk::QueryPool) -> Option<f64> {
+        let mut v = [0u64; 2];
+        // SAFETY: a live query pool of this device with two timestamp queries, written by a
+        // submission that has completed.
+        unsafe { self.device.get_query_pool_results(qp, 0, &mut v, vk::QueryResultFlags::TYPE_64 | vk::QueryResultFlags::WAIT) }.ok()?;
+        let mask = self.caps.timestamp_mask;
+        let ticks = (v[1] & mask).wrapping_sub(v[0] & mask) & mask;
+        Some(ticks as f64 * self.caps.timestamp_period_ns * 1e-6)
+    }
+
     /// Record `body` once between two timestamps (where the queue has them), submit it
     /// `warmup + repeat` times and return the (timestamp ms, fence wall ms) of the timed runs.
     pub fn timed(&self, warmup: usize, repeat: usize, body: impl FnOnce(vk::CommandBuffer)) -> Result<Vec<(Option<f64>, f64)>, String> {
@@ -353,19 +285,7 @@ impl Gpu {
                     break;
                 }
                 let _ = d.reset_fences(&[fence]);
-                let ts = match qp {
-                    Some(qp) => {
-                        let mut v = [0u64; 2];
-                        match d.get_query_pool_results(qp, 0, &mut v, vk::QueryResultFlags::TYPE_64 | vk::QueryResultFlags::WAIT) {
-                            Ok(()) => {
-                                let ticks = (v[1] & self.caps.timestamp_mask).wrapping_sub(v[0] & self.caps.timestamp_mask) & self.caps.timestamp_mask;
-                                Some(ticks as f64 * self.caps.timestamp_period_ns * 1e-6)
-                            }
-                            Err(_) => None,
-                        }
-                    }
-                    None => None,
-                };
+                let ts = qp.and_then(|qp| self.timestamps_ms(qp));
                 if k >= warmup {
                     out.push((ts, wall));
                 }
@@ -382,6 +302,126 @@ impl Gpu {
             }
         }
     }
+}
+
+/// The driver's version as the report shows it: its own version text where the driver has
+/// VkPhysicalDeviceDriverProperties (core in 1.2), else decoded from `driverVersion`.
+fn driver_version(instance: &ash::Instance, physical: vk::PhysicalDevice, props: &vk::PhysicalDeviceProperties) -> String {
+    let dv = props.driver_version;
+    let mut driver_version = if props.vendor_id == 0x10DE {
+        format!("{}.{}", dv >> 22, (dv >> 14) & 0xFF)
+    } else {
+        format!("{}.{}.{}", vk::api_version_major(dv), vk::api_version_minor(dv), vk::api_version_patch(dv))
+    };
+    if props.api_version >= vk::API_VERSION_1_2 {
+        let mut dp = vk::PhysicalDeviceDriverProperties::default();
+        let mut p2 = vk::PhysicalDeviceProperties2::default().push_next(&mut dp);
+        // SAFETY: plain query into a valid chain; the strings are NUL-terminated by the driver.
+        let (name, info) = unsafe {
+            instance.get_physical_device_properties2(physical, &mut p2);
+            (
+                CStr::from_ptr(dp.driver_name.as_ptr()).to_string_lossy().into_owned(),
+                CStr::from_ptr(dp.driver_info.as_ptr()).to_string_lossy().into_owned(),
+            )
+        };
+        if !name.is_empty() || !info.is_empty() {
+            driver_version = format!("{name} {info}").trim().to_string();
+        }
+    }
+    driver_version
+}
+
+/// The acceleration-structure extensions, features and limits the driver has (`has`: whether
+/// it offers a device extension). Timestamps are filled in by `compute_family`.
+fn as_caps(instance: &ash::Instance, physical: vk::PhysicalDevice, has: &dyn Fn(&str) -> bool) -> Caps {
+    let mut caps = Caps::default();
+    let mut missing = Vec::new();
+    for e in ["VK_KHR_acceleration_structure", "VK_KHR_buffer_device_address", "VK_KHR_deferred_host_operations"] {
+        if !has(e) {
+            missing.push(e);
+        }
+    }
+    let mut asf = vk::PhysicalDeviceAccelerationStructureFeaturesKHR::default();
+    let mut bdaf = vk::PhysicalDeviceBufferDeviceAddressFeatures::default();
+    if missing.is_empty() {
+        let mut f2 = vk::PhysicalDeviceFeatures2::default().push_next(&mut asf).push_next(&mut bdaf);
+        // SAFETY: plain query into a valid chain (both extensions are offered).
+        unsafe { instance.get_physical_device_features2(physical, &mut f2) };
+        if asf.acceleration_structure == vk::FALSE {
+            missing.push("accelerationStructure feature");
+        }
+        if bdaf.buffer_device_address == vk::FALSE {
+            missing.push("bufferDeviceAddress feature");
+        }
+    }
+    caps.acceleration_structure = missing.is_empty();
+    caps.missing = (!missing.is_empty()).then(|| format!("missing {}", missing.join(", ")));
+    caps.host_commands = caps.acceleration_structure && asf.acceleration_structure_host_commands == vk::TRUE;
+    caps.indirect_build = caps.acceleration_structure && asf.acceleration_structure_indirect_build == vk::TRUE;
+    caps.deferred = has("VK_KHR_deferred_host_operations");
+    if caps.acceleration_structure {
+        let mut asp = vk::PhysicalDeviceAccelerationStructurePropertiesKHR::default();
+        let mut p2 = vk::PhysicalDeviceProperties2::default().push_next(&mut asp);
+        // SAFETY: plain query into a valid chain (the extension is offered).
+        unsafe { instance.get_physical_device_properties2(physical, &mut p2) };
+        caps.max_primitive_count = asp.max_primitive_count;
+        caps.max_instance_count = asp.max_instance_count;
+    }
+    caps
+}
+
+/// The first queue family with compute (AS builds are compute-queue commands); its timestamp
+/// support goes into `caps`.
+fn compute_family(instance: &ash::Instance, physical: vk::PhysicalDevice, props: &vk::PhysicalDeviceProperties, caps: &mut Caps) -> Result<u32, String> {
+    // SAFETY: plain query.
+    let families = unsafe { instance.get_physical_device_queue_family_properties(physical) };
+    let family = families
+        .iter()
+        .position(|q| q.queue_flags.contains(vk::QueueFlags::COMPUTE))
+        .ok_or("no compute queue family")? as u32;
+    let bits = families[family as usize].timestamp_valid_bits;
+    caps.timestamps = bits > 0 && props.limits.timestamp_period > 0.0;
+    caps.timestamp_mask = if bits >= 64 { u64::MAX } else { (1u64 << bits) - 1 };
+    caps.timestamp_period_ns = props.limits.timestamp_period as f64;
+    Ok(family)
+}
+
+/// The device: one queue of `family`, and where the AS work can run, its extensions (those the
+/// driver offers) and features.
+fn create_device(
+    instance: &ash::Instance,
+    physical: vk::PhysicalDevice,
+    family: u32,
+    caps: &Caps,
+    has: &dyn Fn(&str) -> bool,
+) -> Result<ash::Device, String> {
+    let mut names: Vec<&CStr> = Vec::new();
+    if caps.acceleration_structure {
+        for e in [
+            ash::khr::acceleration_structure::NAME,
+            ash::khr::deferred_host_operations::NAME,
+            ash::khr::buffer_device_address::NAME,
+            ash::ext::descriptor_indexing::NAME,
+        ] {
+            if has(e.to_str().unwrap_or("")) {
+                names.push(e);
+            }
+        }
+    }
+    let name_ptrs: Vec<*const std::ffi::c_char> = names.iter().map(|c| c.as_ptr()).collect();
+    let prio = [1.0f32];
+    let qci = [vk::DeviceQueueCreateInfo::default().queue_family_index(family).queue_priorities(&prio)];
+    let mut asf_on = vk::PhysicalDeviceAccelerationStructureFeaturesKHR::default()
+        .acceleration_structure(true)
+        .acceleration_structure_host_commands(caps.host_commands)
+        .acceleration_structure_indirect_build(caps.indirect_build);
+    let mut bda_on = vk::PhysicalDeviceBufferDeviceAddressFeatures::default().buffer_device_address(true);
+    let mut dci = vk::DeviceCreateInfo::default().queue_create_infos(&qci).enabled_extension_names(&name_ptrs);
+    if caps.acceleration_structure {
+        dci = dci.push_next(&mut asf_on).push_next(&mut bda_on);
+    }
+    // SAFETY: valid create info; the caller destroys the device (`Gpu::destroy`).
+    unsafe { instance.create_device(physical, &dci, None) }.map_err(vk_err("vkCreateDevice"))
 }
 
 /// Owns the buffers and structures of one workload; everything is destroyed on drop.

@@ -143,22 +143,32 @@ fn read_index(r: &mut Reader, ty: Scalar) -> Result<u32, SceneError> {
 
 /// Parses a PLY file held in memory (already decompressed).
 pub fn parse_ply(data: &[u8]) -> Result<Mesh, SceneError> {
-    // Header: text lines up to and including "end_header".
-    let mut pos = 0usize;
-    let mut lines = Vec::new();
-    loop {
-        let rest = &data[pos..];
-        let Some(nl) = rest.iter().position(|&b| b == b'\n') else {
-            return parse_err("PLY: header has no end_header line");
-        };
-        let line = std::str::from_utf8(&rest[..nl]).or_else(|_| parse_err("PLY: header is not text"))?;
-        let line = line.trim_end_matches('\r').trim();
-        pos += nl + 1;
-        if line == "end_header" {
-            break;
+    let (encoding, elements, pos) = parse_header(data)?;
+    let mut r = Reader { data, pos, encoding };
+    let mut mesh = Mesh::default();
+    for el in &elements {
+        match el.name.as_str() {
+            "vertex" => read_vertices(&mut r, el, &mut mesh.positions)?,
+            "face" => read_faces(&mut r, el, &mut mesh.indices)?,
+            _ => {
+                for _ in 0..el.count {
+                    for prop in &el.properties {
+                        skip_property(&mut r, prop)?;
+                    }
+                }
+            }
         }
-        lines.push(line.to_string());
     }
+    let nv = mesh.positions.len() as u32;
+    if let Some(bad) = mesh.indices.iter().flat_map(|t| t.iter()).find(|&&i| i >= nv) {
+        return parse_err(format!("PLY: face refers to vertex {bad} of {nv}"));
+    }
+    Ok(mesh)
+}
+
+/// The header: the body's encoding, its elements and the offset where the body starts.
+fn parse_header(data: &[u8]) -> Result<(Encoding, Vec<Element>, usize), SceneError> {
+    let (lines, pos) = header_lines(data)?;
     if lines.first().map(String::as_str) != Some("ply") {
         return parse_err("PLY: missing 'ply' magic");
     }
@@ -186,18 +196,7 @@ pub fn parse_ply(data: &[u8]) -> Result<Mesh, SceneError> {
                 let Some(el) = elements.last_mut() else {
                     return parse_err("PLY: property before any element");
                 };
-                let prop = if words.get(1) == Some(&"list") {
-                    match (words.get(2).and_then(|w| Scalar::parse(w)), words.get(3).and_then(|w| Scalar::parse(w)), words.get(4)) {
-                        (Some(count), Some(item), Some(name)) => Property::List { name: name.to_string(), count, item },
-                        _ => return parse_err(format!("PLY: bad list property {line:?}")),
-                    }
-                } else {
-                    match (words.get(1).and_then(|w| Scalar::parse(w)), words.get(2)) {
-                        (Some(ty), Some(name)) => Property::Scalar { name: name.to_string(), ty },
-                        _ => return parse_err(format!("PLY: bad property {line:?}")),
-                    }
-                };
-                el.properties.push(prop);
+                el.properties.push(parse_property(&words, line)?);
             }
             Some("comment") | Some("obj_info") | None => {}
             Some(other) => return parse_err(format!("PLY: unknown header keyword {other:?}")),
@@ -206,100 +205,109 @@ pub fn parse_ply(data: &[u8]) -> Result<Mesh, SceneError> {
     let Some(encoding) = encoding else {
         return parse_err("PLY: no format line");
     };
+    Ok((encoding, elements, pos))
+}
 
-    let mut r = Reader { data, pos, encoding };
-    let mut mesh = Mesh::default();
-    for el in &elements {
-        match el.name.as_str() {
-            "vertex" => {
-                let find = |axis: &str| {
-                    el.properties
-                        .iter()
-                        .position(|p| matches!(p, Property::Scalar { name, .. } if name == axis))
-                };
-                let (Some(ix), Some(iy), Some(iz)) = (find("x"), find("y"), find("z")) else {
-                    return parse_err("PLY: vertex element lacks x, y or z");
-                };
-                // Bounded by the data actually present, so a lying header cannot over-allocate.
-                mesh.positions.reserve(el.count.min(data.len() / 3));
-                for _ in 0..el.count {
-                    let mut p = [0f32; 3];
-                    for (k, prop) in el.properties.iter().enumerate() {
-                        match prop {
-                            Property::Scalar { ty, .. } => {
-                                if k == ix || k == iy || k == iz {
-                                    let v = r.read(*ty)? as f32;
-                                    p[if k == ix { 0 } else if k == iy { 1 } else { 2 }] = v;
-                                } else {
-                                    r.skip(*ty)?;
-                                }
-                            }
-                            Property::List { count, item, .. } => {
-                                let n = read_index(&mut r, *count)?;
-                                for _ in 0..n {
-                                    r.skip(*item)?;
-                                }
-                            }
-                        }
-                    }
-                    mesh.positions.push(p);
-                }
+/// Text lines up to and including "end_header" (trimmed, without it), and the offset after it.
+fn header_lines(data: &[u8]) -> Result<(Vec<String>, usize), SceneError> {
+    let mut pos = 0usize;
+    let mut lines = Vec::new();
+    loop {
+        let rest = &data[pos..];
+        let Some(nl) = rest.iter().position(|&b| b == b'\n') else {
+            return parse_err("PLY: header has no end_header line");
+        };
+        let line = std::str::from_utf8(&rest[..nl]).or_else(|_| parse_err("PLY: header is not text"))?;
+        let line = line.trim_end_matches('\r').trim();
+        pos += nl + 1;
+        if line == "end_header" {
+            return Ok((lines, pos));
+        }
+        lines.push(line.to_string());
+    }
+}
+
+/// One `property` line, split into `words`.
+fn parse_property(words: &[&str], line: &str) -> Result<Property, SceneError> {
+    Ok(if words.get(1) == Some(&"list") {
+        match (words.get(2).and_then(|w| Scalar::parse(w)), words.get(3).and_then(|w| Scalar::parse(w)), words.get(4)) {
+            (Some(count), Some(item), Some(name)) => Property::List { name: name.to_string(), count, item },
+            _ => return parse_err(format!("PLY: bad list property {line:?}")),
+        }
+    } else {
+        match (words.get(1).and_then(|w| Scalar::parse(w)), words.get(2)) {
+            (Some(ty), Some(name)) => Property::Scalar { name: name.to_string(), ty },
+            _ => return parse_err(format!("PLY: bad property {line:?}")),
+        }
+    })
+}
+
+/// Skips one property's value (a scalar, or a list with its count).
+fn skip_property(r: &mut Reader, prop: &Property) -> Result<(), SceneError> {
+    match prop {
+        Property::Scalar { ty, .. } => r.skip(*ty),
+        Property::List { count, item, .. } => {
+            let n = read_index(r, *count)?;
+            for _ in 0..n {
+                r.skip(*item)?;
             }
-            "face" => {
-                let list_pos = el
-                    .properties
-                    .iter()
-                    .position(|p| matches!(p, Property::List { name, .. } if name == "vertex_indices" || name == "vertex_index"))
-                    .or_else(|| el.properties.iter().position(|p| matches!(p, Property::List { .. })));
-                let Some(list_pos) = list_pos else {
-                    return parse_err("PLY: face element has no list property");
-                };
-                mesh.indices.reserve(el.count.min(data.len() / 4));
-                let mut poly = Vec::with_capacity(8);
-                for _ in 0..el.count {
-                    for (k, prop) in el.properties.iter().enumerate() {
-                        match prop {
-                            Property::Scalar { ty, .. } => r.skip(*ty)?,
-                            Property::List { count, item, .. } => {
-                                let n = read_index(&mut r, *count)?;
-                                if k == list_pos {
-                                    poly.clear();
-                                    for _ in 0..n {
-                                        poly.push(read_index(&mut r, *item)?);
-                                    }
-                                } else {
-                                    for _ in 0..n {
-                                        r.skip(*item)?;
-                                    }
-                                }
-                            }
-                        }
-                    }
-                    for j in 2..poly.len() {
-                        mesh.indices.push([poly[0], poly[j - 1], poly[j]]);
-                    }
-                }
-            }
-            _ => {
-                for _ in 0..el.count {
-                    for prop in &el.properties {
-                        match prop {
-                            Property::Scalar { ty, .. } => r.skip(*ty)?,
-                            Property::List { count, item, .. } => {
-                                let n = read_index(&mut r, *count)?;
-                                for _ in 0..n {
-                                    r.skip(*item)?;
-                                }
-                            }
-                        }
-                    }
-                }
-            }
+            Ok(())
         }
     }
-    let nv = mesh.positions.len() as u32;
-    if let Some(bad) = mesh.indices.iter().flat_map(|t| t.iter()).find(|&&i| i >= nv) {
-        return parse_err(format!("PLY: face refers to vertex {bad} of {nv}"));
+}
+
+/// The `vertex` element: x, y and z of each vertex, every other property skipped.
+fn read_vertices(r: &mut Reader, el: &Element, positions: &mut Vec<[f32; 3]>) -> Result<(), SceneError> {
+    let find = |axis: &str| el.properties.iter().position(|p| matches!(p, Property::Scalar { name, .. } if name == axis));
+    let (Some(ix), Some(iy), Some(iz)) = (find("x"), find("y"), find("z")) else {
+        return parse_err("PLY: vertex element lacks x, y or z");
+    };
+    // Bounded by the data actually present, so a lying header cannot over-allocate.
+    positions.reserve(el.count.min(r.data.len() / 3));
+    for _ in 0..el.count {
+        let mut p = [0f32; 3];
+        for (k, prop) in el.properties.iter().enumerate() {
+            match prop {
+                Property::Scalar { ty, .. } if k == ix || k == iy || k == iz => {
+                    let v = r.read(*ty)? as f32;
+                    p[if k == ix { 0 } else if k == iy { 1 } else { 2 }] = v;
+                }
+                _ => skip_property(r, prop)?,
+            }
+        }
+        positions.push(p);
     }
-    Ok(mesh)
+    Ok(())
+}
+
+/// The `face` element: its vertex-index list (fan-triangulated), every other property skipped.
+fn read_faces(r: &mut Reader, el: &Element, indices: &mut Vec<[u32; 3]>) -> Result<(), SceneError> {
+    let list_pos = el
+        .properties
+        .iter()
+        .position(|p| matches!(p, Property::List { name, .. } if name == "vertex_indices" || name == "vertex_index"))
+        .or_else(|| el.properties.iter().position(|p| matches!(p, Property::List { .. })));
+    let Some(list_pos) = list_pos else {
+        return parse_err("PLY: face element has no list property");
+    };
+    indices.reserve(el.count.min(r.data.len() / 4));
+    let mut poly = Vec::with_capacity(8);
+    for _ in 0..el.count {
+        for (k, prop) in el.properties.iter().enumerate() {
+            match prop {
+                Property::List { count, item, .. } if k == list_pos => {
+                    let n = read_index(r, *count)?;
+                    poly.clear();
+                    for _ in 0..n {
+                        poly.push(read_index(r, *item)?);
+                    }
+                }
+                _ => skip_property(r, prop)?,
+            }
+        }
+        for j in 2..poly.len() {
+            indices.push([poly[0], poly[j - 1], poly[j]]);
+        }
+    }
+    Ok(())
 }

@@ -175,6 +175,98 @@ fn lifecycle() -> std::sync::MutexGuard<'static, ()> {
     LOCK.lock().unwrap_or_else(|e| e.into_inner())
 }
 
+/// The instance: validation layer (if asked for), debug utils and the options' extensions, with
+/// a messenger into `sink` that also covers vkCreateInstance itself.
+fn create_instance(entry: &ash::Entry, opts: &Options, sink: *mut c_void) -> ash::Instance {
+    let app = vk::ApplicationInfo::default().api_version(vk::API_VERSION_1_1);
+    let layer = CString::new("VK_LAYER_KHRONOS_validation").unwrap();
+    let ext_debug = ash::ext::debug_utils::NAME;
+    let layers: Vec<*const i8> = if opts.validation {
+        // SAFETY: plain query.
+        let available = unsafe { entry.enumerate_instance_layer_properties() }.unwrap();
+        assert!(
+            available.iter().any(|l| l.layer_name_as_c_str().unwrap() == layer.as_c_str()),
+            "VK_LAYER_KHRONOS_validation is not installed (apt-get install vulkan-validationlayers)"
+        );
+        vec![layer.as_ptr()]
+    } else {
+        vec![]
+    };
+    let inst_ext_c: Vec<CString> = opts.instance_extensions.iter().map(|e| CString::new(*e).unwrap()).collect();
+    let mut exts = vec![ext_debug.as_ptr()];
+    exts.extend(inst_ext_c.iter().map(|c| c.as_ptr()));
+    let mut dbg_info = messenger_info(sink);
+    let ci = vk::InstanceCreateInfo::default()
+        .application_info(&app)
+        .enabled_layer_names(&layers)
+        .enabled_extension_names(&exts)
+        .push_next(&mut dbg_info);
+    // SAFETY: valid create info.
+    unsafe { entry.create_instance(&ci, None) }.expect("vkCreateInstance")
+}
+
+/// Arbor's physical device among those the loader found.
+fn arbor_physical_device(instance: &ash::Instance) -> vk::PhysicalDevice {
+    // SAFETY: plain query.
+    let pds = unsafe { instance.enumerate_physical_devices() }.expect("enumerate");
+    *pds.iter()
+        .find(|&&pd| {
+            // SAFETY: plain query.
+            let p = unsafe { instance.get_physical_device_properties(pd) };
+            p.device_name_as_c_str().unwrap().to_str().unwrap() == "Arbor (software)"
+        })
+        .expect("Arbor's physical device")
+}
+
+/// The device: `queue_count` queues of family 0, the options' extensions (with the
+/// acceleration-structure set if asked for) and the features those extensions bring.
+fn create_device(instance: &ash::Instance, physical: vk::PhysicalDevice, opts: &Options) -> ash::Device {
+    let prio = vec![1.0f32; opts.queue_count as usize];
+    let qci = [vk::DeviceQueueCreateInfo::default().queue_family_index(0).queue_priorities(&prio)];
+    let mut dev_exts = opts.device_extensions.clone();
+    if opts.acceleration_structure {
+        for e in ["VK_KHR_acceleration_structure", "VK_KHR_deferred_host_operations", "VK_EXT_descriptor_indexing", "VK_KHR_buffer_device_address", "VK_KHR_ray_tracing_maintenance1"] {
+            if !dev_exts.contains(&e) {
+                dev_exts.push(e);
+            }
+        }
+    }
+    let ext_c: Vec<CString> = dev_exts.iter().map(|e| CString::new(*e).unwrap()).collect();
+    let ext_p: Vec<*const i8> = ext_c.iter().map(|c| c.as_ptr()).collect();
+    let mut bda = vk::PhysicalDeviceBufferDeviceAddressFeatures::default()
+        .buffer_device_address(true)
+        .buffer_device_address_capture_replay(true);
+    let mut tl = vk::PhysicalDeviceTimelineSemaphoreFeatures::default().timeline_semaphore(true);
+    let mut s2 = vk::PhysicalDeviceSynchronization2Features::default().synchronization2(true);
+    let mut hqr = vk::PhysicalDeviceHostQueryResetFeatures::default().host_query_reset(true);
+    let mut dci = vk::DeviceCreateInfo::default().queue_create_infos(&qci).enabled_extension_names(&ext_p);
+    let mut asf = vk::PhysicalDeviceAccelerationStructureFeaturesKHR::default()
+        .acceleration_structure(true)
+        .acceleration_structure_capture_replay(true)
+        .acceleration_structure_indirect_build(true)
+        .acceleration_structure_host_commands(true)
+        .descriptor_binding_acceleration_structure_update_after_bind(true);
+    let mut rtm1 = vk::PhysicalDeviceRayTracingMaintenance1FeaturesKHR::default().ray_tracing_maintenance1(true);
+    let has = |e: &str| dev_exts.contains(&e);
+    if opts.acceleration_structure {
+        dci = dci.push_next(&mut asf).push_next(&mut rtm1);
+    }
+    if has("VK_KHR_buffer_device_address") {
+        dci = dci.push_next(&mut bda);
+    }
+    if has("VK_KHR_timeline_semaphore") {
+        dci = dci.push_next(&mut tl);
+    }
+    if has("VK_KHR_synchronization2") {
+        dci = dci.push_next(&mut s2);
+    }
+    if has("VK_EXT_host_query_reset") {
+        dci = dci.push_next(&mut hqr);
+    }
+    // SAFETY: valid create info.
+    unsafe { instance.create_device(physical, &dci, None) }.expect("vkCreateDevice")
+}
+
 impl Context {
     pub fn new(opts: Options) -> Context {
         use_arbor_manifest();
@@ -182,90 +274,14 @@ impl Context {
         // SAFETY: loading the system Vulkan loader.
         let entry = unsafe { ash::Entry::load() }.expect("libvulkan.so.1 (install libvulkan1)");
         let messages: Messages = Arc::new(Mutex::new(Vec::new()));
-        let app = vk::ApplicationInfo::default().api_version(vk::API_VERSION_1_1);
-        let layer = CString::new("VK_LAYER_KHRONOS_validation").unwrap();
-        let ext_debug = ash::ext::debug_utils::NAME;
-        let layers: Vec<*const i8> = if opts.validation {
-            // SAFETY: plain query.
-            let available = unsafe { entry.enumerate_instance_layer_properties() }.unwrap();
-            assert!(
-                available.iter().any(|l| l.layer_name_as_c_str().unwrap() == layer.as_c_str()),
-                "VK_LAYER_KHRONOS_validation is not installed (apt-get install vulkan-validationlayers)"
-            );
-            vec![layer.as_ptr()]
-        } else {
-            vec![]
-        };
-        let inst_ext_c: Vec<CString> = opts.instance_extensions.iter().map(|e| CString::new(*e).unwrap()).collect();
-        let mut exts = vec![ext_debug.as_ptr()];
-        exts.extend(inst_ext_c.iter().map(|c| c.as_ptr()));
         let sink_ptr = Arc::as_ptr(&messages) as *mut c_void;
-        let mut dbg_info = messenger_info(sink_ptr);
-        let ci = vk::InstanceCreateInfo::default()
-            .application_info(&app)
-            .enabled_layer_names(&layers)
-            .enabled_extension_names(&exts)
-            .push_next(&mut dbg_info);
-        // SAFETY: valid create info.
-        let instance = unsafe { entry.create_instance(&ci, None) }.expect("vkCreateInstance");
+        let instance = create_instance(&entry, &opts, sink_ptr);
         let du = ash::ext::debug_utils::Instance::new(&entry, &instance);
         let dbg_info2 = messenger_info(sink_ptr);
         // SAFETY: valid create info; the sink outlives the messenger (destroyed in Drop first).
         let messenger = unsafe { du.create_debug_utils_messenger(&dbg_info2, None) }.expect("messenger");
-        // SAFETY: plain query.
-        let pds = unsafe { instance.enumerate_physical_devices() }.expect("enumerate");
-        let physical = *pds
-            .iter()
-            .find(|&&pd| {
-                // SAFETY: plain query.
-                let p = unsafe { instance.get_physical_device_properties(pd) };
-                p.device_name_as_c_str().unwrap().to_str().unwrap() == "Arbor (software)"
-            })
-            .expect("Arbor's physical device");
-        let prio = vec![1.0f32; opts.queue_count as usize];
-        let qci = [vk::DeviceQueueCreateInfo::default().queue_family_index(0).queue_priorities(&prio)];
-        let mut dev_exts = opts.device_extensions.clone();
-        if opts.acceleration_structure {
-            for e in ["VK_KHR_acceleration_structure", "VK_KHR_deferred_host_operations", "VK_EXT_descriptor_indexing", "VK_KHR_buffer_device_address", "VK_KHR_ray_tracing_maintenance1"] {
-                if !dev_exts.contains(&e) {
-                    dev_exts.push(e);
-                }
-            }
-        }
-        let ext_c: Vec<CString> = dev_exts.iter().map(|e| CString::new(*e).unwrap()).collect();
-        let ext_p: Vec<*const i8> = ext_c.iter().map(|c| c.as_ptr()).collect();
-        let mut bda = vk::PhysicalDeviceBufferDeviceAddressFeatures::default()
-            .buffer_device_address(true)
-            .buffer_device_address_capture_replay(true);
-        let mut tl = vk::PhysicalDeviceTimelineSemaphoreFeatures::default().timeline_semaphore(true);
-        let mut s2 = vk::PhysicalDeviceSynchronization2Features::default().synchronization2(true);
-        let mut hqr = vk::PhysicalDeviceHostQueryResetFeatures::default().host_query_reset(true);
-        let mut dci = vk::DeviceCreateInfo::default().queue_create_infos(&qci).enabled_extension_names(&ext_p);
-        let mut asf = vk::PhysicalDeviceAccelerationStructureFeaturesKHR::default()
-            .acceleration_structure(true)
-            .acceleration_structure_capture_replay(true)
-            .acceleration_structure_indirect_build(true)
-            .acceleration_structure_host_commands(true)
-            .descriptor_binding_acceleration_structure_update_after_bind(true);
-        let mut rtm1 = vk::PhysicalDeviceRayTracingMaintenance1FeaturesKHR::default().ray_tracing_maintenance1(true);
-        let has = |e: &str| dev_exts.contains(&e);
-        if opts.acceleration_structure {
-            dci = dci.push_next(&mut asf).push_next(&mut rtm1);
-        }
-        if has("VK_KHR_buffer_device_address") {
-            dci = dci.push_next(&mut bda);
-        }
-        if has("VK_KHR_timeline_semaphore") {
-            dci = dci.push_next(&mut tl);
-        }
-        if has("VK_KHR_synchronization2") {
-            dci = dci.push_next(&mut s2);
-        }
-        if has("VK_EXT_host_query_reset") {
-            dci = dci.push_next(&mut hqr);
-        }
-        // SAFETY: valid create info.
-        let device = unsafe { instance.create_device(physical, &dci, None) }.expect("vkCreateDevice");
+        let physical = arbor_physical_device(&instance);
+        let device = create_device(&instance, physical, &opts);
         // SAFETY: queues created above.
         let queues = (0..opts.queue_count).map(|i| unsafe { device.get_device_queue(0, i) }).collect();
         Context { entry, instance, physical, device, queues, messages, messenger: Some((du, messenger)), finished: false }

@@ -116,6 +116,7 @@ pub fn slab_f64(o: [f64; 3], d: [f64; 3], b: &[f32; 6]) -> (f64, f64) {
 }
 
 /// The reference traversal of one BLAS for an object-space ray.
+// One function: the reference rules per primitive (opacity, culling, margins) read in one place.
 // why: the ray in two precisions and the four attributes of the instance that reached the BLAS
 // (0 for a bare BLAS) are what a reference hit records; two private call sites.
 #[allow(clippy::too_many_arguments)]

@@ -121,7 +121,7 @@ fn paired_grid(cells: u32, phase: f32) -> (Vec<Vec3>, Vec<u32>, Vec<u32>) {
 /// Clustered builds of a grid (two geometries, hostile vertices) in every clustering tier:
 /// traversal equals brute force, the bytes are the same on any thread count, a refit follows
 /// moved vertices; then an empty geometry between two, and builds that must not cluster.
-/// One long function: each step reuses the grid and the checks of the steps before it.
+// One function: each step reuses the grid and the checks of the steps before it.
 #[test]
 fn paired_builds_match_brute_force_and_are_deterministic() {
     let cells = 72; // 10,368 triangles: above the pairing threshold

@@ -3,8 +3,8 @@
 use super::*;
 
 /// Instance flags, masks, custom indices and SBT offsets through traversal, then clone,
-/// compaction and serialization of the same TLAS. One long function: every step reuses the
-/// structures the steps before it built.
+/// compaction and serialization of the same TLAS.
+// One function: every step reuses the structures the steps before it built.
 #[test]
 fn tlas_instances_flags_masks_and_copies() {
     // BLAS A: one triangle facing -z viewers (front for rays along +z), non-opaque geometry.
