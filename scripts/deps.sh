@@ -1,11 +1,14 @@
 #!/usr/bin/env bash
-# Installs what Arbor's tests and tools need on Debian/Ubuntu: the Vulkan loader, vulkaninfo and
-# the Khronos validation layer. As root it uses apt-get; otherwise it says what to install.
+# Installs what Arbor's tests and tools need on Debian/Ubuntu: the Vulkan loader, vulkaninfo,
+# the Khronos validation layer, and glslang + SPIRV-Tools (the shader tests compile GLSL at test
+# time). As root it uses apt-get; otherwise it says what to install.
 set -euo pipefail
 need=()
 ldconfig -p 2>/dev/null | grep -q 'libvulkan.so.1 ' || need+=(libvulkan1)
 command -v vulkaninfo >/dev/null 2>&1 || need+=(vulkan-tools)
 ls /usr/share/vulkan/explicit_layer.d/VkLayer_khronos_validation.json >/dev/null 2>&1 || need+=(vulkan-validationlayers)
+command -v glslangValidator >/dev/null 2>&1 || need+=(glslang-tools)
+command -v spirv-opt >/dev/null 2>&1 || need+=(spirv-tools)
 if [ ${#need[@]} -eq 0 ]; then
   exit 0
 fi

@@ -12,6 +12,7 @@ pub mod diag;
 pub mod dispatch;
 pub mod memory;
 pub mod runtime;
+pub mod shader;
 pub mod threads;
 
 /// The loader's magic word for dispatchable handles (vk_icd.h `ICD_LOADER_MAGIC`).

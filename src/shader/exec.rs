@@ -1,0 +1,502 @@
+//! The SIMD-lane executor and `dispatch`.
+//!
+//! A workgroup is split into lane groups of [`LANES`] invocations. A lane group runs one block
+//! at a time for the lanes whose cursor is the lowest block index among its running lanes (the
+//! execution mask); every op loops over all lanes and blends its result under the mask, so op
+//! bodies are short fixed-length loops. Because blocks are in structured order, lanes that
+//! diverged meet again at the merge block before it runs. A lane group's state is plain data,
+//! so a workgroup barrier is: run every group until its lanes wait at the barrier (or exit),
+//! then release them all. Workgroups of a dispatch run in parallel on rayon; each writes only
+//! through [`Memory`], and faults are collected per workgroup in index order, so the report
+//! does not depend on thread timing.
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
+use std::time::Instant;
+
+use rayon::prelude::*;
+
+use super::alu;
+use super::ir::{builtin_offset as bo, BallotOp, BinOp, Block, Op, Program, Sc, SgOp, Term, UnOp};
+use super::memory::{Fault, Memory, Region};
+use super::{Pipeline, LANES};
+
+/// Faults kept in a report; later ones are only counted.
+const MAX_FAULTS: usize = 16;
+/// How many blocks a lane group runs between watchdog checks.
+const CHECK_EVERY: u64 = 1024;
+
+/// Stops a dispatch that runs too long. All fields optional; `Default` never stops.
+#[derive(Clone, Debug, Default)]
+pub struct Watchdog {
+    /// Stop once this instant has passed (the runtime's per-submission deadline).
+    pub deadline: Option<Instant>,
+    /// Stop when this flag becomes true (device lost, process shutting down).
+    pub cancel: Option<Arc<AtomicBool>>,
+    /// Stop a workgroup after this many block executions of one lane group.
+    pub step_budget: Option<u64>,
+}
+
+/// Why a dispatch stopped early.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Stop {
+    Deadline,
+    Cancelled,
+    StepBudget,
+}
+
+/// What a dispatch did: contained faults (the first few, in workgroup order, and how many) and
+/// whether the watchdog stopped it. Memory written before a stop stays written.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct DispatchReport {
+    pub faults: Vec<Fault>,
+    pub fault_count: u64,
+    pub stopped: Option<Stop>,
+}
+
+impl DispatchReport {
+    pub fn is_clean(&self) -> bool {
+        self.fault_count == 0 && self.stopped.is_none()
+    }
+}
+
+#[derive(Clone, Copy, PartialEq, Eq, Debug)]
+enum Lane {
+    Running,
+    AtBarrier,
+    Done,
+}
+
+type Regs = [u64; LANES];
+
+/// One lane group: registers, cursors and per-lane memory — plain data.
+pub(super) struct Group {
+    /// Index of this lane group in its workgroup (first invocation = index * LANES).
+    pub index: u32,
+    pub regs: Vec<Regs>,
+    cursor: [u32; LANES],
+    lane: [Lane; LANES],
+    pub frame: Vec<u8>,
+}
+
+/// Per-dispatch, read-only context.
+pub(super) struct Ctx<'a> {
+    pub prog: &'a Program,
+    pub mem: &'a dyn Memory,
+    pub regions: Vec<Option<Region>>,
+    pub push: &'a [u8],
+    local: [u32; 3],
+    num_groups: [u32; 3],
+    watchdog: &'a Watchdog,
+    stop: AtomicBool,
+}
+
+/// Per-workgroup mutable state besides the lane groups.
+pub(super) struct Wg {
+    pub id: [u32; 3],
+    pub shared: Vec<u8>,
+    pub faults: Vec<Fault>,
+    pub fault_count: u64,
+    steps: u64,
+    stopped: Option<Stop>,
+}
+
+/// Runs `group_count` workgroups starting at `base_group` (vkCmdDispatchBase). Never panics on
+/// shader behaviour: bad accesses become faults, endless loops meet the watchdog.
+pub fn dispatch(
+    pipeline: &Pipeline,
+    memory: &dyn Memory,
+    push_constants: &[u8],
+    group_count: [u32; 3],
+    base_group: [u32; 3],
+    watchdog: &Watchdog,
+) -> DispatchReport {
+    let prog = &*pipeline.program;
+    let ctx = Ctx {
+        prog,
+        mem: memory,
+        regions: prog.bindings.iter().map(|&(s, b)| memory.binding(s, b)).collect(),
+        push: push_constants,
+        local: pipeline.local_size,
+        // NumWorkgroups is the dispatch's group count, base or not (vkCmdDispatchBase).
+        num_groups: group_count,
+        watchdog,
+        stop: AtomicBool::new(false),
+    };
+    let total = group_count.iter().map(|&c| c as u64).product::<u64>();
+    let per_row = group_count[0] as u64 * group_count[1] as u64;
+    let results: Vec<(Vec<Fault>, u64, Option<Stop>)> = (0..total)
+        .into_par_iter()
+        .map_init(
+            || new_groups(&ctx),
+            |groups, i| {
+                let id = [
+                    base_group[0].wrapping_add((i % group_count[0] as u64) as u32),
+                    base_group[1].wrapping_add(((i / group_count[0] as u64) % group_count[1] as u64) as u32),
+                    base_group[2].wrapping_add((i / per_row) as u32),
+                ];
+                run_workgroup(&ctx, groups, id)
+            },
+        )
+        .filter(|r| r.1 > 0 || r.2.is_some())
+        .collect();
+    let mut report = DispatchReport::default();
+    for (faults, count, stop) in results {
+        report.fault_count += count;
+        report.faults.extend(faults.into_iter().take(MAX_FAULTS - report.faults.len().min(MAX_FAULTS)));
+        report.stopped = report.stopped.or(stop);
+    }
+    report
+}
+
+fn new_groups(ctx: &Ctx) -> Vec<Group> {
+    let n = ctx.local.iter().product::<u32>() as usize;
+    let frame = ctx.prog.lane_frame.len();
+    (0..n.div_ceil(LANES))
+        .enumerate()
+        .map(|(index, _)| Group {
+            index: index as u32,
+            regs: vec![[0; LANES]; ctx.prog.reg_count as usize],
+            cursor: [0; LANES],
+            lane: [Lane::Done; LANES],
+            frame: vec![0; frame * LANES],
+        })
+        .collect()
+}
+
+fn run_workgroup(ctx: &Ctx, groups: &mut [Group], id: [u32; 3]) -> (Vec<Fault>, u64, Option<Stop>) {
+    if ctx.stop.load(Ordering::Relaxed) {
+        return (Vec::new(), 0, None);
+    }
+    let mut wg = Wg {
+        id,
+        shared: vec![0; ctx.prog.workgroup_bytes as usize],
+        faults: Vec::new(),
+        fault_count: 0,
+        steps: 0,
+        stopped: None,
+    };
+    let n = ctx.local.iter().product::<u32>();
+    for (g, group) in groups.iter_mut().enumerate() {
+        init_group(ctx, group, &wg, g as u32, n);
+    }
+    loop {
+        for group in groups.iter_mut() {
+            run_group(ctx, group, &mut wg);
+            if wg.stopped.is_some() {
+                ctx.stop.store(true, Ordering::Relaxed);
+                return (wg.faults, wg.fault_count, wg.stopped);
+            }
+        }
+        // Every group now waits at the barrier or is done: release the barrier.
+        let mut waiting = false;
+        for group in groups.iter_mut() {
+            for l in group.lane.iter_mut().filter(|l| **l == Lane::AtBarrier) {
+                *l = Lane::Running;
+                waiting = true;
+            }
+        }
+        if !waiting {
+            return (wg.faults, wg.fault_count, None);
+        }
+    }
+}
+
+fn init_group(ctx: &Ctx, group: &mut Group, wg: &Wg, g: u32, n: u32) {
+    let prog = ctx.prog;
+    for &(r, v) in &prog.consts {
+        group.regs[r as usize] = [v; LANES];
+    }
+    let fs = prog.lane_frame.len();
+    let [lx, ly, lz] = ctx.local;
+    let groups = n.div_ceil(LANES as u32);
+    for l in 0..LANES {
+        let index = g * LANES as u32 + l as u32;
+        group.cursor[l] = 0;
+        group.lane[l] = if index < n { Lane::Running } else { Lane::Done };
+        let frame = &mut group.frame[l * fs..(l + 1) * fs];
+        frame.copy_from_slice(&prog.lane_frame);
+        let local = [index % lx, (index / lx) % ly, index / (lx * ly)];
+        let global = [0, 1, 2].map(|i| wg.id[i].wrapping_mul(ctx.local[i]).wrapping_add(local[i]));
+        let all = (1u32 << LANES) - 1;
+        let words: [(u32, &[u32]); 15] = [
+            (bo::GLOBAL_INVOCATION_ID, &global),
+            (bo::LOCAL_INVOCATION_ID, &local),
+            (bo::WORKGROUP_ID, &wg.id),
+            (bo::NUM_WORKGROUPS, &ctx.num_groups),
+            (bo::LOCAL_INVOCATION_INDEX, &[index]),
+            (bo::WORKGROUP_SIZE, &[lx, ly, lz]),
+            (bo::SUBGROUP_SIZE, &[LANES as u32]),
+            (bo::SUBGROUP_LOCAL_INVOCATION_ID, &[l as u32]),
+            (bo::SUBGROUP_ID, &[g]),
+            (bo::NUM_SUBGROUPS, &[groups]),
+            (bo::SUBGROUP_EQ_MASK, &[1 << l, 0, 0, 0]),
+            (bo::SUBGROUP_GE_MASK, &[all & !((1 << l) - 1), 0, 0, 0]),
+            (bo::SUBGROUP_GT_MASK, &[all & !((2 << l) - 1), 0, 0, 0]),
+            (bo::SUBGROUP_LE_MASK, &[(2 << l) - 1, 0, 0, 0]),
+            (bo::SUBGROUP_LT_MASK, &[(1 << l) - 1, 0, 0, 0]),
+        ];
+        for (at, vals) in words {
+            for (k, v) in vals.iter().enumerate() {
+                let o = at as usize + 4 * k;
+                frame[o..o + 4].copy_from_slice(&v.to_le_bytes());
+            }
+        }
+    }
+}
+
+/// Runs a lane group until none of its lanes is running (all done or at a barrier).
+fn run_group(ctx: &Ctx, group: &mut Group, wg: &mut Wg) {
+    loop {
+        // One pass: the lowest cursor among running lanes, and which lanes are there.
+        let (mut min, mut mask) = (u32::MAX, 0u32);
+        for l in 0..LANES {
+            if group.lane[l] == Lane::Running {
+                let c = group.cursor[l];
+                if c < min {
+                    (min, mask) = (c, 1 << l);
+                } else if c == min {
+                    mask |= 1 << l;
+                }
+            }
+        }
+        if mask == 0 {
+            return;
+        }
+        wg.steps += 1;
+        if wg.steps.is_multiple_of(CHECK_EVERY) {
+            if let Some(stop) = check_watchdog(ctx.watchdog, wg.steps) {
+                wg.stopped = Some(stop);
+                return;
+            }
+        }
+        exec_block(ctx, group, wg, &ctx.prog.blocks[min as usize], mask);
+    }
+}
+
+fn check_watchdog(w: &Watchdog, steps: u64) -> Option<Stop> {
+    if w.step_budget.is_some_and(|b| steps >= b) {
+        return Some(Stop::StepBudget);
+    }
+    if w.cancel.as_ref().is_some_and(|c| c.load(Ordering::Relaxed)) {
+        return Some(Stop::Cancelled);
+    }
+    if w.deadline.is_some_and(|d| Instant::now() >= d) {
+        return Some(Stop::Deadline);
+    }
+    None
+}
+
+#[inline(always)]
+fn on(mask: u32, l: usize) -> bool {
+    (mask >> l) & 1 != 0
+}
+
+fn exec_block(ctx: &Ctx, group: &mut Group, wg: &mut Wg, block: &Block, mask: u32) {
+    let regs = &mut group.regs;
+    for &(dst, tmp) in &block.phi_in {
+        let t = regs[tmp as usize];
+        let d = &mut regs[dst as usize];
+        for l in 0..LANES {
+            if on(mask, l) {
+                d[l] = t[l];
+            }
+        }
+    }
+    for op in &block.ops {
+        exec_op(ctx, group, wg, op, mask);
+    }
+    let regs = &mut group.regs;
+    for l in (0..LANES).filter(|&l| on(mask, l)) {
+        let target = match &block.term {
+            Term::Jump(t) => *t,
+            Term::Cond { cond, t, f } => {
+                if regs[*cond as usize][l] != 0 { *t } else { *f }
+            }
+            Term::Switch { sel, default, cases } => {
+                let v = regs[*sel as usize][l];
+                cases.iter().find(|c| c.0 == v).map_or(*default, |c| c.1)
+            }
+            Term::Exit => {
+                group.lane[l] = Lane::Done;
+                continue;
+            }
+            Term::Barrier(next) => {
+                group.lane[l] = Lane::AtBarrier;
+                group.cursor[l] = *next;
+                continue;
+            }
+        };
+        for m in block.edge_moves.iter().filter(|m| m.target == target) {
+            regs[m.dst as usize][l] = regs[m.src as usize][l];
+        }
+        group.cursor[l] = target;
+    }
+}
+
+/// dst[l] = f(l) for the lanes in the mask; the others keep their value.
+#[inline(always)]
+fn lanes(regs: &mut [Regs], dst: u32, mask: u32, f: impl Fn(usize) -> u64) {
+    let mut out = regs[dst as usize];
+    for (l, o) in out.iter_mut().enumerate() {
+        let v = f(l);
+        *o = if on(mask, l) { v } else { *o };
+    }
+    regs[dst as usize] = out;
+}
+
+fn exec_op(ctx: &Ctx, group: &mut Group, wg: &mut Wg, op: &Op, mask: u32) {
+    let regs = &mut group.regs;
+    match *op {
+        Op::Mov { dst, src } => {
+            let s = regs[src as usize];
+            lanes(regs, dst, mask, |l| s[l]);
+        }
+        Op::Bin { op, ty, dst, a, b } => {
+            let (a, b) = (regs[a as usize], regs[b as usize]);
+            exec_bin(regs, op, ty, dst, mask, &a, &b);
+        }
+        Op::Un { op, ty, from, dst, a } => {
+            let a = regs[a as usize];
+            exec_un(regs, op, ty, from, dst, mask, &a);
+        }
+        Op::Tri { op, ty, dst, a, b, c } => {
+            let (a, b, c) = (regs[a as usize], regs[b as usize], regs[c as usize]);
+            lanes(regs, dst, mask, |l| alu::tri(op, ty, a[l], b[l], c[l]));
+        }
+        Op::BitInsert { ty, dst, base, insert, offset, count } => {
+            let (a, b, c, d) = (regs[base as usize], regs[insert as usize], regs[offset as usize], regs[count as usize]);
+            lanes(regs, dst, mask, |l| alu::bit_insert(ty, a[l], b[l], c[l], d[l]));
+        }
+        Op::Select { dst, cond, a, b } => {
+            let (c, a, b) = (regs[cond as usize], regs[a as usize], regs[b as usize]);
+            lanes(regs, dst, mask, |l| if c[l] != 0 { a[l] } else { b[l] });
+        }
+        Op::Index { dst, base, index, index_ty, stride } => {
+            let (b, i) = (regs[base as usize], regs[index as usize]);
+            let ext = |v: u64| if index_ty == Sc::I32 { v as u32 as i32 as i64 as u64 } else { v };
+            lanes(regs, dst, mask, |l| b[l].wrapping_add(ext(i[l]).wrapping_mul(stride)));
+        }
+        Op::AddImm { dst, a, imm } => {
+            let a = regs[a as usize];
+            lanes(regs, dst, mask, |l| a[l].wrapping_add(imm));
+        }
+        Op::Load { .. } | Op::Store { .. } | Op::Atomic { .. } => super::exec_mem::exec_mem(ctx, group, wg, op, mask),
+        Op::Subgroup { op, ty, dst, a, b } => {
+            let (a, b) = (regs[a as usize], regs[b as usize]);
+            let v = subgroup(op, ty, mask, &a, &b);
+            lanes(regs, dst, mask, |l| v[l]);
+        }
+        Op::Ballot { dst, a } => {
+            let a = regs[a as usize];
+            let bits = (0..LANES).filter(|&l| on(mask, l) && a[l] != 0).fold(0u64, |acc, l| acc | 1 << l);
+            lanes(regs, dst[0], mask, |_| bits);
+            for &d in &dst[1..] {
+                lanes(regs, d, mask, |_| 0);
+            }
+        }
+        Op::BallotOp { op, dst, ballot, b } => {
+            let (w, b) = (regs[ballot[0] as usize], regs[b as usize]);
+            let all = (1u64 << LANES) - 1;
+            lanes(regs, dst, mask, |l| {
+                let bits = w[l] & all;
+                match op {
+                    BallotOp::Inverse => (bits >> l) & 1,
+                    BallotOp::BitExtract => if b[l] < 32 { (w[l] >> b[l]) & 1 } else { 0 },
+                    BallotOp::BitCountReduce => bits.count_ones() as u64,
+                    BallotOp::BitCountInclusive => (bits & ((2u64 << l) - 1)).count_ones() as u64,
+                    BallotOp::BitCountExclusive => (bits & ((1u64 << l) - 1)).count_ones() as u64,
+                    BallotOp::FindLsb => if bits == 0 { 0xFFFF_FFFF } else { bits.trailing_zeros() as u64 },
+                    BallotOp::FindMsb => if bits == 0 { 0xFFFF_FFFF } else { 63 - bits.leading_zeros() as u64 },
+                }
+            });
+        }
+    }
+}
+
+/// Expands to a match whose arms call `alu` with constant op and type, so each arm's lane
+/// loop is specialised (and can vectorise) instead of dispatching per lane.
+macro_rules! specialised {
+    (($op:ident, $ty:ident): $Op:ident, [$(($o:ident, $t:ident)),* $(,)?], $body:expr) => {
+        match ($op, $ty) {
+            $( ($Op::$o, Sc::$t) => {
+                let ($op, $ty) = ($Op::$o, Sc::$t);
+                $body
+            } )*
+            _ => $body,
+        }
+    };
+}
+
+/// Binary ops: the common (op, type) pairs get their own loops.
+fn exec_bin(regs: &mut [Regs], op: BinOp, ty: Sc, dst: u32, mask: u32, a: &Regs, b: &Regs) {
+    specialised!((op, ty): BinOp, [
+        (IAdd, I32), (ISub, I32), (IMul, I32), (UDiv, I32), (UMod, I32), (Shl, I32), (ShrL, I32),
+        (ShrA, I32), (And, I32), (Or, I32), (Xor, I32), (IEq, I32), (INe, I32), (ULt, I32),
+        (ULe, I32), (UGt, I32), (UGe, I32), (SLt, I32), (SLe, I32), (SGt, I32), (SGe, I32),
+        (IAdd, I64), (ISub, I64), (IMul, I64), (Shl, I64), (ShrL, I64), (And, I64), (Or, I64),
+        (Xor, I64), (FAdd, F32), (FSub, F32), (FMul, F32), (FDiv, F32), (FOrdLt, F32),
+        (FOrdLe, F32), (FOrdGt, F32), (FOrdGe, F32), (FOrdEq, F32), (FMin, F32), (FMax, F32),
+        (FAdd, F64), (FSub, F64), (FMul, F64), (FDiv, F64), (LAnd, Bool), (LOr, Bool),
+        (LEq, Bool), (LNe, Bool),
+    ], lanes(regs, dst, mask, |l| alu::bin(op, ty, a[l], b[l])))
+}
+
+/// Unary ops: conversions and the common float functions get their own loops.
+fn exec_un(regs: &mut [Regs], op: UnOp, ty: Sc, from: Sc, dst: u32, mask: u32, a: &Regs) {
+    specialised!((op, ty): UnOp, [
+        (ConvertUToF, F32), (ConvertSToF, F32), (ConvertFToU, I32), (ConvertFToS, I32),
+        (Bitcast, I32), (Bitcast, F32), (UConvert, I32), (UConvert, I64), (SConvert, I64),
+        (FNeg, F32), (SNeg, I32), (Not, I32), (LNot, Bool), (FAbs, F32), (Floor, F32),
+        (Sqrt, F32), (InverseSqrt, F32), (Fract, F32),
+    ], lanes(regs, dst, mask, |l| alu::un(op, ty, from, a[l])))
+}
+
+/// The identity of a scan's operation (the exclusive scan's first value).
+fn identity(op: BinOp, ty: Sc) -> u64 {
+    let fl = |x: f64| alu::from_f(ty, x);
+    let wide = ty.bits() == 64;
+    match op {
+        BinOp::IMul => 1,
+        BinOp::FMul => fl(1.0),
+        BinOp::FAdd => fl(0.0),
+        BinOp::FMin => fl(f64::INFINITY),
+        BinOp::FMax => fl(f64::NEG_INFINITY),
+        BinOp::UMin | BinOp::And => alu::norm(ty, u64::MAX),
+        BinOp::SMin => if wide { i64::MAX as u64 } else { i32::MAX as u64 },
+        BinOp::SMax => if wide { i64::MIN as u64 } else { i32::MIN as u32 as u64 },
+        _ => 0,
+    }
+}
+
+fn subgroup(op: SgOp, ty: Sc, mask: u32, a: &Regs, b: &Regs) -> Regs {
+    let first = mask.trailing_zeros() as usize;
+    let active = || (0..LANES).filter(move |&l| on(mask, l));
+    let pick = |i: u64| a[(i as usize) % LANES];
+    let mut out = [0u64; LANES];
+    match op {
+        SgOp::Elect => out[first.min(LANES - 1)] = 1,
+        SgOp::All => out = [active().all(|l| a[l] != 0) as u64; LANES],
+        SgOp::Any => out = [active().any(|l| a[l] != 0) as u64; LANES],
+        SgOp::AllEqual => out = [active().all(|l| a[l] == a[first]) as u64; LANES],
+        SgOp::Broadcast => out = [pick(b[first.min(LANES - 1)]); LANES],
+        SgOp::BroadcastFirst => out = [a[first.min(LANES - 1)]; LANES],
+        SgOp::Shuffle => out = std::array::from_fn(|l| pick(b[l])),
+        SgOp::ShuffleXor => out = std::array::from_fn(|l| pick(l as u64 ^ b[l])),
+        SgOp::ShuffleUp => out = std::array::from_fn(|l| pick((l as u64).wrapping_sub(b[l]))),
+        SgOp::ShuffleDown => out = std::array::from_fn(|l| pick(l as u64 + b[l])),
+        SgOp::Reduce(bop) => {
+            let v = active().fold(identity(bop, ty), |acc, l| alu::bin(bop, ty, acc, a[l]));
+            out = [v; LANES];
+        }
+        SgOp::InclusiveScan(bop) | SgOp::ExclusiveScan(bop) => {
+            let inclusive = matches!(op, SgOp::InclusiveScan(_));
+            let mut acc = identity(bop, ty);
+            for l in active() {
+                let next = alu::bin(bop, ty, acc, a[l]);
+                out[l] = if inclusive { next } else { acc };
+                acc = next;
+            }
+        }
+    }
+    out
+}

@@ -1,0 +1,137 @@
+//! Loads, stores and atomics of the lane executor: every access is bounds-checked against its
+//! space (lane frame, shared memory, push constants, a descriptor's region, a resolved device
+//! address); a failed check records a [`Fault`] and the access reads zero or is dropped.
+use super::alu;
+use super::exec::{Ctx, Group, Wg};
+use super::ir::{AtomicOp, Op, Sc, Space};
+use super::memory::{Fault, FaultKind, FaultSpace};
+use super::LANES;
+
+/// What one lane does at an address.
+#[derive(Clone, Copy)]
+enum Access {
+    Read,
+    Write(u64),
+    Rmw(AtomicOp, u64, u64),
+}
+
+pub(super) fn exec_mem(ctx: &Ctx, group: &mut Group, wg: &mut Wg, op: &Op, mask: u32) {
+    let (ty, space, addr, dst, access) = match *op {
+        Op::Load { ty, space, dst, addr } => (ty, space, addr, Some(dst), None),
+        Op::Store { ty, space, addr, src } => (ty, space, addr, None, Some((Access::Write(0), src, 0))),
+        Op::Atomic { op, ty, space, dst, addr, a, b } => (ty, space, addr, Some(dst), Some((Access::Rmw(op, 0, 0), a, b))),
+        _ => return,
+    };
+    let fs = ctx.prog.lane_frame.len();
+    if space == Space::Lane && access.is_none() {
+        if let Some(dst) = dst {
+            if lane_loads(group, fs, ty, addr, dst, mask) {
+                return;
+            }
+        }
+    }
+    for l in (0..LANES).filter(|&l| (mask >> l) & 1 != 0) {
+        let at = group.regs[addr as usize][l];
+        let acc = match access {
+            None => Access::Read,
+            Some((Access::Write(_), src, _)) => Access::Write(group.regs[src as usize][l]),
+            Some((Access::Rmw(op, ..), a, b)) => Access::Rmw(op, group.regs[a as usize][l], group.regs[b as usize][l]),
+            Some((Access::Read, ..)) => Access::Read,
+        };
+        let frame = &mut group.frame[l * fs..(l + 1) * fs];
+        let invocation = group.index * LANES as u32 + l as u32;
+        let v = access_one(ctx, frame, wg, space, at, ty, acc).unwrap_or_else(|(kind, fspace)| {
+            wg.fault_count += 1;
+            if wg.faults.len() < 16 {
+                let write = !matches!(acc, Access::Read);
+                wg.faults.push(Fault { kind, space: fspace, at, len: ty.size(), write, workgroup: wg.id, invocation });
+            }
+            0
+        });
+        if let Some(d) = dst {
+            group.regs[d as usize][l] = alu::norm(ty, v);
+        }
+    }
+}
+
+type AccessResult = Result<u64, (FaultKind, FaultSpace)>;
+
+fn access_one(ctx: &Ctx, frame: &mut [u8], wg: &mut Wg, space: Space, at: u64, ty: Sc, acc: Access) -> AccessResult {
+    let size = ty.size() as usize;
+    match space {
+        Space::Lane => local(frame, at, size, ty, acc).ok_or((FaultKind::OutOfBounds, FaultSpace::Invocation)),
+        Space::Workgroup => local(&mut wg.shared, at, size, ty, acc).ok_or((FaultKind::OutOfBounds, FaultSpace::Workgroup)),
+        Space::Push => match acc {
+            Access::Read => read_le(ctx.push, at, size).ok_or((FaultKind::OutOfBounds, FaultSpace::PushConstant)),
+            _ => Err((FaultKind::Refused, FaultSpace::PushConstant)),
+        },
+        Space::Buffer(slot) => {
+            let (set, binding) = ctx.prog.bindings[slot as usize];
+            let fspace = FaultSpace::Binding { set, binding };
+            let region = ctx.regions[slot as usize].ok_or((FaultKind::Unbound, fspace))?;
+            if at.checked_add(size as u64).is_none_or(|end| end > region.len) {
+                return Err((FaultKind::OutOfBounds, fspace));
+            }
+            let offset = region.offset.checked_add(at).ok_or((FaultKind::Refused, fspace))?;
+            device(ctx, region.buffer, offset, ty, acc).ok_or((FaultKind::Refused, fspace))
+        }
+        Space::Physical => {
+            let region = ctx.mem.address(at, size as u64).ok_or((FaultKind::Unmapped, FaultSpace::DeviceAddress))?;
+            device(ctx, region.buffer, region.offset, ty, acc).ok_or((FaultKind::Refused, FaultSpace::DeviceAddress))
+        }
+    }
+}
+
+fn read_le(bytes: &[u8], at: u64, size: usize) -> Option<u64> {
+    let at = usize::try_from(at).ok()?;
+    let src = bytes.get(at..at.checked_add(size)?)?;
+    let mut w = [0u8; 8];
+    w[..size].copy_from_slice(src);
+    Some(u64::from_le_bytes(w))
+}
+
+/// Lane-frame and shared memory: plain bytes owned by this workgroup's thread.
+fn local(bytes: &mut [u8], at: u64, size: usize, ty: Sc, acc: Access) -> Option<u64> {
+    let old = read_le(bytes, at, size)?;
+    let new = match acc {
+        Access::Read => return Some(old),
+        Access::Write(v) => v,
+        Access::Rmw(op, v, cmp) => alu::atomic(op, ty, old, v, cmp),
+    };
+    let at = at as usize;
+    bytes[at..at + size].copy_from_slice(&new.to_le_bytes()[..size]);
+    Some(if matches!(acc, Access::Write(_)) { new } else { old })
+}
+
+fn device(ctx: &Ctx, buffer: u64, offset: u64, ty: Sc, acc: Access) -> Option<u64> {
+    let size = ty.size() as usize;
+    match acc {
+        Access::Read => {
+            let mut w = [0u8; 8];
+            ctx.mem.read(buffer, offset, &mut w[..size]).then(|| u64::from_le_bytes(w))
+        }
+        Access::Write(v) => ctx.mem.write(buffer, offset, &v.to_le_bytes()[..size]).then_some(v),
+        Access::Rmw(op, v, cmp) => ctx.mem.atomic(buffer, offset, size, &|old| alu::atomic(op, ty, old, v, cmp)),
+    }
+}
+
+/// Loads from lane frames with every address in bounds (the common case: local variables of
+/// unoptimised SPIR-V) skip the general path. Returns false, having done nothing, otherwise.
+fn lane_loads(group: &mut Group, fs: usize, ty: Sc, addr: u32, dst: u32, mask: u32) -> bool {
+    let size = ty.size() as usize;
+    let at = group.regs[addr as usize];
+    if at.iter().any(|&a| a.saturating_add(size as u64) > fs as u64) {
+        return false;
+    }
+    let mut out = group.regs[dst as usize];
+    for (l, o) in out.iter_mut().enumerate() {
+        if (mask >> l) & 1 != 0 {
+            let p = l * fs + at[l] as usize;
+            let mut w = [0u8; 8];
+            w[..size].copy_from_slice(&group.frame[p..p + size]);
+            *o = alu::norm(ty, u64::from_le_bytes(w));
+        }
+    }
+    group.regs[dst as usize] = out;
+    true
+}

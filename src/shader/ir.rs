@@ -1,0 +1,232 @@
+//! Arbor's shader IR: what `lower` produces and `exec` runs.
+//!
+//! A [`Program`] is one entry point with every call inlined: a list of [`Block`]s in structured
+//! order (SPIR-V's block order, which puts dominators first and a construct's blocks before its
+//! merge block), each a flat list of [`Op`]s over typed virtual registers and one [`Term`].
+//! Composite values do not exist here: `lower` flattens vectors, structs and arrays into their
+//! scalar components, so extract/insert/shuffle/copy-logical cost nothing at run time. Memory is
+//! bytes: every pointer is a register holding a byte address in one [`Space`], computed with
+//! explicit offset arithmetic from the SPIR-V layout decorations.
+//!
+//! A register holds one 64-bit word per lane; the scalar type of an op says how to read it
+//! (`I32`/`F32` values live in the low 32 bits, upper bits zero; `Bool` is 0 or 1).
+
+/// A virtual register: an index into the lane group's register file.
+pub type Reg = u32;
+
+/// Scalar types of register contents.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub enum Sc {
+    Bool,
+    I32,
+    I64,
+    F32,
+    F64,
+}
+
+impl Sc {
+    /// Size in bytes when stored in memory (Bool is stored as a 32-bit word).
+    pub fn size(self) -> u32 {
+        match self {
+            Sc::Bool | Sc::I32 | Sc::F32 => 4,
+            Sc::I64 | Sc::F64 => 8,
+        }
+    }
+    pub fn bits(self) -> u32 {
+        match self {
+            Sc::Bool => 1,
+            _ => self.size() * 8,
+        }
+    }
+}
+
+/// Where a pointer register's address points.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Space {
+    /// Per-invocation memory: built-in inputs, Private and Function variables.
+    Lane,
+    /// The workgroup's shared memory.
+    Workgroup,
+    /// The push-constant block.
+    Push,
+    /// A descriptor binding: index into [`Program::bindings`], resolved once per dispatch.
+    Buffer(u16),
+    /// PhysicalStorageBuffer64: the register holds a device address.
+    Physical,
+}
+
+/// Two-operand ALU ops. Signedness lives in the op, width in the [`Sc`] it is applied to.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum BinOp {
+    IAdd, ISub, IMul, UDiv, SDiv, UMod, SRem, SMod,
+    Shl, ShrL, ShrA, And, Or, Xor,
+    IEq, INe, ULt, ULe, UGt, UGe, SLt, SLe, SGt, SGe,
+    FAdd, FSub, FMul, FDiv, FRem, FMod,
+    FOrdEq, FOrdNe, FOrdLt, FOrdLe, FOrdGt, FOrdGe,
+    FUnordEq, FUnordNe, FUnordLt, FUnordLe, FUnordGt, FUnordGe,
+    LEq, LNe, LAnd, LOr,
+    FMin, FMax, NMin, NMax, UMin, UMax, SMin, SMax,
+    Pow, Atan2, Step, Ldexp,
+    /// High half of the full-width unsigned / signed product (OpUMulExtended, OpSMulExtended).
+    UMulHi, SMulHi,
+    /// Carry out of an unsigned add, borrow out of an unsigned subtract.
+    AddCarry, SubBorrow,
+}
+
+/// One-operand ALU ops, including conversions (`from` is the source type; the op's `Sc` is
+/// the destination type).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum UnOp {
+    SNeg, FNeg, Not, LNot,
+    /// Reinterpret bits (same width) or zero-/sign-extend/truncate integers.
+    Bitcast, UConvert, SConvert, FConvert,
+    ConvertFToU, ConvertFToS, ConvertUToF, ConvertSToF,
+    IsNan, IsInf,
+    FAbs, SAbs, FSign, SSign, Floor, Ceil, Trunc, Round, RoundEven, Fract,
+    Sqrt, InverseSqrt, Exp, Log, Exp2, Log2,
+    Sin, Cos, Tan, Asin, Acos, Atan, Sinh, Cosh, Tanh, Asinh, Acosh, Atanh,
+    Radians, Degrees,
+    FindILsb, FindSMsb, FindUMsb, BitCount, BitReverse,
+}
+
+/// Three-operand ALU ops.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum TriOp {
+    Fma, FClamp, NClamp, UClamp, SClamp, FMix, SmoothStep,
+    /// (base, offset, count); OpBitFieldInsert has four operands and is [`Op::BitInsert`].
+    BitFieldUExtract, BitFieldSExtract,
+}
+
+/// Atomic read-modify-write operations.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum AtomicOp {
+    Exchange, CompareExchange, IAdd, ISub, SMin, UMin, SMax, UMax, And, Or, Xor,
+}
+
+/// Subgroup (lane group) operations; the subgroup is the lane group, its size `LANES`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum SgOp {
+    Elect,
+    All,
+    Any,
+    AllEqual,
+    /// Value of the lane whose index is in `b` (uniform across the active lanes).
+    Broadcast,
+    BroadcastFirst,
+    /// Value of lane `b[l]` (OpGroupNonUniformShuffle); Xor/Up/Down compute the source lane
+    /// from the lane's own index.
+    Shuffle,
+    ShuffleXor,
+    ShuffleUp,
+    ShuffleDown,
+    Reduce(BinOp),
+    InclusiveScan(BinOp),
+    ExclusiveScan(BinOp),
+}
+
+#[derive(Clone, Debug, PartialEq)]
+pub enum Op {
+    Mov { dst: Reg, src: Reg },
+    Un { op: UnOp, ty: Sc, from: Sc, dst: Reg, a: Reg },
+    Bin { op: BinOp, ty: Sc, dst: Reg, a: Reg, b: Reg },
+    Tri { op: TriOp, ty: Sc, dst: Reg, a: Reg, b: Reg, c: Reg },
+    /// OpBitFieldInsert: dst = base with `count` bits at `offset` replaced by `insert`'s low bits.
+    BitInsert { ty: Sc, dst: Reg, base: Reg, insert: Reg, offset: Reg, count: Reg },
+    Select { dst: Reg, cond: Reg, a: Reg, b: Reg },
+    /// dst = base + index * stride, index of type `index_ty` sign-extended (SPIR-V indices are
+    /// signed), all in 64-bit wrapping arithmetic.
+    Index { dst: Reg, base: Reg, index: Reg, index_ty: Sc, stride: u64 },
+    /// dst = base + imm (64-bit wrapping): constant struct-member and array offsets.
+    AddImm { dst: Reg, a: Reg, imm: u64 },
+    Load { ty: Sc, space: Space, dst: Reg, addr: Reg },
+    Store { ty: Sc, space: Space, addr: Reg, src: Reg },
+    /// dst = old value; `b` is the comparator of CompareExchange.
+    Atomic { op: AtomicOp, ty: Sc, space: Space, dst: Reg, addr: Reg, a: Reg, b: Reg },
+    /// A subgroup op over the lanes in the mask: value `a`, lane index / delta / mask `b`.
+    Subgroup { op: SgOp, ty: Sc, dst: Reg, a: Reg, b: Reg },
+    /// Ballot results as four words: dst[0..4] from the predicate `a`.
+    Ballot { dst: [Reg; 4], a: Reg },
+    /// Operations on a ballot (four words): InverseBallot / BitExtract / BitCount / FindLSB /
+    /// FindMSB.
+    BallotOp { op: BallotOp, dst: Reg, ballot: [Reg; 4], b: Reg },
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum BallotOp {
+    Inverse,
+    BitExtract,
+    BitCountReduce,
+    BitCountInclusive,
+    BitCountExclusive,
+    FindLsb,
+    FindMsb,
+}
+
+/// How a block ends. Targets are block indices.
+#[derive(Clone, Debug, PartialEq)]
+pub enum Term {
+    Jump(u32),
+    Cond { cond: Reg, t: u32, f: u32 },
+    /// Selector of type `ty`; cases compare the selector's bits.
+    Switch { sel: Reg, default: u32, cases: Vec<(u64, u32)> },
+    /// The lane is done (return from the entry point, OpUnreachable, OpKill).
+    Exit,
+    /// OpControlBarrier at workgroup scope: wait until every invocation of the workgroup has
+    /// arrived (or exited), then continue at the block.
+    Barrier(u32),
+}
+
+/// A basic block. `phi_in` copies phi temporaries into the phi registers when the block starts;
+/// `edge_moves` fill those temporaries for lanes leaving by the edge to `target`. Going through
+/// temporaries gives OpPhi its parallel-copy semantics.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Block {
+    pub ops: Vec<Op>,
+    pub term: Term,
+    pub phi_in: Vec<(Reg, Reg)>,
+    pub edge_moves: Vec<EdgeMove>,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct EdgeMove {
+    pub target: u32,
+    pub dst: Reg,
+    pub src: Reg,
+}
+
+/// Offsets of the built-in inputs at the start of every lane's frame (bytes).
+pub mod builtin_offset {
+    pub const GLOBAL_INVOCATION_ID: u32 = 0;
+    pub const LOCAL_INVOCATION_ID: u32 = 12;
+    pub const WORKGROUP_ID: u32 = 24;
+    pub const NUM_WORKGROUPS: u32 = 36;
+    pub const LOCAL_INVOCATION_INDEX: u32 = 48;
+    pub const WORKGROUP_SIZE: u32 = 52;
+    pub const SUBGROUP_SIZE: u32 = 64;
+    pub const SUBGROUP_LOCAL_INVOCATION_ID: u32 = 68;
+    pub const SUBGROUP_ID: u32 = 72;
+    pub const NUM_SUBGROUPS: u32 = 76;
+    /// Subgroup masks (eq, ge, gt, le, lt), each four words.
+    pub const SUBGROUP_EQ_MASK: u32 = 80;
+    pub const SUBGROUP_GE_MASK: u32 = 96;
+    pub const SUBGROUP_GT_MASK: u32 = 112;
+    pub const SUBGROUP_LE_MASK: u32 = 128;
+    pub const SUBGROUP_LT_MASK: u32 = 144;
+    /// Where Private and Function variables start.
+    pub const END: u32 = 160;
+}
+
+/// One lowered entry point, specialised and ready to run.
+#[derive(Clone, Debug)]
+pub struct Program {
+    pub blocks: Vec<Block>,
+    pub reg_count: u32,
+    /// Registers that hold constants: filled for every lane when a lane group starts.
+    pub consts: Vec<(Reg, u64)>,
+    /// Bytes of one lane's frame (built-ins, Private, Function) and its initial contents
+    /// (Private initializers); built-ins are written over it per lane.
+    pub lane_frame: Vec<u8>,
+    pub workgroup_bytes: u32,
+    /// Descriptor (set, binding) for each `Space::Buffer` index.
+    pub bindings: Vec<(u32, u32)>,
+}

@@ -1,0 +1,216 @@
+//! How a shader sees device memory: the [`Memory`] trait, the [`Fault`]s an access can raise,
+//! and [`HostMemory`], a Vec-backed implementation for tests and benches.
+//!
+//! The executor resolves each descriptor binding once per dispatch into a [`Region`] and checks
+//! every access against the region's length itself; only in-range accesses reach
+//! [`Memory::read`] / [`Memory::write`] / [`Memory::atomic`]. Device addresses
+//! (PhysicalStorageBuffer64) are resolved per access through [`Memory::address`]. A failed
+//! check is a [`Fault`]: the load reads zero, the store or atomic is dropped, execution goes on.
+use std::sync::atomic::{AtomicU64, Ordering};
+
+/// A range of one buffer, as a descriptor or an address resolves to.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Region {
+    /// The implementation's own name for the buffer (an index, a handle value): passed back to
+    /// `read`/`write`/`atomic` unchanged.
+    pub buffer: u64,
+    /// Where the range starts inside the buffer.
+    pub offset: u64,
+    /// Bytes the shader may access from `offset` (a descriptor's range).
+    pub len: u64,
+}
+
+/// The device memory a dispatch reads and writes. Implementations must be `Sync`: workgroups run
+/// in parallel. Offsets passed to `read`/`write`/`atomic` are absolute within the buffer and
+/// lie inside a region this trait returned; returning `false`/`None` still reports a fault
+/// (for memory freed under a running dispatch, say).
+pub trait Memory: Sync {
+    /// The region bound at (set, binding), after dynamic offsets; None when nothing is bound.
+    fn binding(&self, set: u32, binding: u32) -> Option<Region>;
+    /// The region of the one live buffer containing `[address, address + len)`, with `offset`
+    /// the position of `address` in that buffer and `len` the bytes from there to the buffer's
+    /// end; None for an unmapped or null address.
+    fn address(&self, address: u64, len: u64) -> Option<Region>;
+    fn read(&self, buffer: u64, offset: u64, out: &mut [u8]) -> bool;
+    fn write(&self, buffer: u64, offset: u64, data: &[u8]) -> bool;
+    /// Atomically replaces the `size`-byte (4 or 8) little-endian value at `offset` with
+    /// `update(old)` and returns `old`.
+    fn atomic(&self, buffer: u64, offset: u64, size: usize, update: &dyn Fn(u64) -> u64) -> Option<u64>;
+}
+
+/// What went wrong with one access.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum FaultKind {
+    /// Outside the descriptor's range, the push-constant block, or shared/lane memory.
+    OutOfBounds,
+    /// A descriptor binding the shader uses has nothing bound.
+    Unbound,
+    /// A device address no live buffer contains (including null).
+    Unmapped,
+    /// The memory refused an in-range access.
+    Refused,
+}
+
+/// Which memory a faulting access went to.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum FaultSpace {
+    Binding { set: u32, binding: u32 },
+    DeviceAddress,
+    PushConstant,
+    Workgroup,
+    Invocation,
+}
+
+/// One contained memory fault: what, where, and which invocation.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Fault {
+    pub kind: FaultKind,
+    pub space: FaultSpace,
+    /// Byte offset in the binding / block, or the device address.
+    pub at: u64,
+    pub len: u32,
+    pub write: bool,
+    pub workgroup: [u32; 3],
+    /// LocalInvocationIndex of the faulting invocation.
+    pub invocation: u32,
+}
+
+impl std::fmt::Display for Fault {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let what = if self.write { "write" } else { "read" };
+        write!(f, "{:?} {what} of {} bytes at {:#x} in {:?} (workgroup {:?}, invocation {})",
+            self.kind, self.len, self.at, self.space, self.workgroup, self.invocation)
+    }
+}
+
+/// Buffers in host memory, each at a fake device address, with word-granular atomic storage so
+/// concurrent workgroups never race at the Rust level.
+#[derive(Default)]
+pub struct HostMemory {
+    buffers: Vec<HostBuffer>,
+    bindings: Vec<((u32, u32), Region)>,
+}
+
+struct HostBuffer {
+    address: u64,
+    len: u64,
+    words: Vec<AtomicU64>,
+}
+
+impl HostMemory {
+    pub fn new() -> HostMemory {
+        HostMemory::default()
+    }
+
+    /// Adds a buffer holding `bytes`; returns its index. Device addresses start at 1 MiB and
+    /// leave a gap after each buffer so overruns land nowhere.
+    pub fn add_buffer(&mut self, bytes: &[u8]) -> usize {
+        let address = self.buffers.last().map_or(1 << 20, |b| (b.address + b.len + 0x1_0000) & !0xFFFF);
+        let words = bytes
+            .chunks(8)
+            .map(|c| {
+                let mut w = [0u8; 8];
+                w[..c.len()].copy_from_slice(c);
+                AtomicU64::new(u64::from_le_bytes(w))
+            })
+            .collect();
+        self.buffers.push(HostBuffer { address, len: bytes.len() as u64, words });
+        self.buffers.len() - 1
+    }
+
+    /// Binds the whole of buffer `index` at (set, binding).
+    pub fn bind(&mut self, set: u32, binding: u32, index: usize) {
+        let len = self.buffers[index].len;
+        self.bind_range(set, binding, index, 0, len);
+    }
+
+    pub fn bind_range(&mut self, set: u32, binding: u32, index: usize, offset: u64, len: u64) {
+        self.bindings.retain(|(k, _)| *k != (set, binding));
+        self.bindings.push(((set, binding), Region { buffer: index as u64, offset, len }));
+    }
+
+    pub fn device_address(&self, index: usize) -> u64 {
+        self.buffers[index].address
+    }
+
+    /// The current contents of buffer `index`.
+    pub fn bytes(&self, index: usize) -> Vec<u8> {
+        let b = &self.buffers[index];
+        let mut out: Vec<u8> =
+            b.words.iter().flat_map(|w| w.load(Ordering::Relaxed).to_le_bytes()).collect();
+        out.truncate(b.len as usize);
+        out
+    }
+
+    fn buffer(&self, buffer: u64, offset: u64, len: usize) -> Option<&HostBuffer> {
+        let b = self.buffers.get(usize::try_from(buffer).ok()?)?;
+        (offset.checked_add(len as u64)? <= b.len).then_some(b)
+    }
+}
+
+/// Replaces bytes [shift, shift + n) of a word; one CAS keeps neighbouring bytes that other
+/// workgroups write intact.
+fn merge_word(word: &AtomicU64, shift: u32, n: u32, value: u64) {
+    let mask = if n >= 8 { !0u64 } else { ((1u64 << (8 * n)) - 1) << (8 * shift) };
+    let value = (value << (8 * shift)) & mask;
+    let _ = word.fetch_update(Ordering::Relaxed, Ordering::Relaxed, |w| Some((w & !mask) | value));
+}
+
+impl Memory for HostMemory {
+    fn binding(&self, set: u32, binding: u32) -> Option<Region> {
+        self.bindings.iter().find(|(k, _)| *k == (set, binding)).map(|(_, r)| *r)
+    }
+
+    fn address(&self, address: u64, len: u64) -> Option<Region> {
+        self.buffers.iter().enumerate().find_map(|(i, b)| {
+            let end = address.checked_add(len)?;
+            (address >= b.address && end <= b.address + b.len).then(|| Region {
+                buffer: i as u64,
+                offset: address - b.address,
+                len: b.address + b.len - address,
+            })
+        })
+    }
+
+    fn read(&self, buffer: u64, offset: u64, out: &mut [u8]) -> bool {
+        let Some(b) = self.buffer(buffer, offset, out.len()) else { return false };
+        for (i, o) in out.iter_mut().enumerate() {
+            let at = offset + i as u64;
+            *o = (b.words[(at / 8) as usize].load(Ordering::Relaxed) >> (8 * (at % 8))) as u8;
+        }
+        true
+    }
+
+    fn write(&self, buffer: u64, offset: u64, data: &[u8]) -> bool {
+        let Some(b) = self.buffer(buffer, offset, data.len()) else { return false };
+        let mut i = 0;
+        while i < data.len() {
+            let at = offset + i as u64;
+            let shift = (at % 8) as u32;
+            let n = (8 - shift as usize).min(data.len() - i);
+            let mut v = [0u8; 8];
+            v[..n].copy_from_slice(&data[i..i + n]);
+            merge_word(&b.words[(at / 8) as usize], shift, n as u32, u64::from_le_bytes(v));
+            i += n;
+        }
+        true
+    }
+
+    fn atomic(&self, buffer: u64, offset: u64, size: usize, update: &dyn Fn(u64) -> u64) -> Option<u64> {
+        let b = self.buffer(buffer, offset, size)?;
+        let shift = (offset % 8) as u32;
+        if shift as usize + size > 8 {
+            return None; // misaligned atomics are invalid SPIR-V; refuse rather than tear
+        }
+        let mask = if size >= 8 { !0u64 } else { (1u64 << (8 * size)) - 1 };
+        let word = &b.words[(offset / 8) as usize];
+        let old = word
+            .fetch_update(Ordering::AcqRel, Ordering::Acquire, |w| {
+                let old = (w >> (8 * shift)) & mask;
+                let new = update(old) & mask;
+                Some((w & !(mask << (8 * shift))) | (new << (8 * shift)))
+            })
+            .unwrap_or(0);
+        Some((old >> (8 * shift)) & mask)
+    }
+}

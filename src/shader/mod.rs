@@ -1,0 +1,145 @@
+//! Compute shaders: SPIR-V → Arbor's IR → a SIMD-lane interpreter. Pure library: no Vulkan
+//! handles, no `unsafe`, no access to the rest of the driver; device memory is reached only
+//! through the [`Memory`] trait the caller implements.
+//!
+//! Pipeline of modules:
+//! - `parse`: words → [`Module`], rejecting unknown capabilities/extensions/opcodes with their
+//!   word offset (so a bad module fails at pipeline creation, never at dispatch);
+//! - `specialize`: constants and specialization constants (OpSpecConstantOp folded) → values;
+//! - `lower`/`lower_ops`: one entry point → [`ir::Program`]: calls inlined, composites flattened
+//!   into scalar registers, every memory access an explicit byte address in a [`ir::Space`];
+//! - `exec`: runs lane groups of [`LANES`] invocations under an execution mask, per-lane block
+//!   cursors, always the lowest block index first (blocks are in structured order, so lanes
+//!   reconverge at merge blocks); `dispatch`: workgroups over rayon, barriers, faults, watchdog;
+//! - `alu`: scalar semantics shared by the executor and the constant folder;
+//! - `memory`: the [`Memory`] trait, [`Fault`]s, and [`HostMemory`] for tests.
+//!
+//! Where ray queries and ray-tracing stages fit (not built yet): a ray query becomes a per-lane
+//! slot in the lane group (an opaque traversal state next to the registers, indexed by the
+//! query variable's id), and each `OpRayQuery*` an IR op that calls native traversal through a
+//! small trait keyed by the structure's device address, for the lanes in the mask — Proceed is
+//! resumable, so it is an ordinary op returning a Bool register, and the shader's own loop does
+//! the rest. Ray-tracing stages (raygen/hit/miss/callable) fit the same scheduler: a trace call
+//! ends a block; the lanes in the mask run the chosen shader's program as a function-like call
+//! on a subset of lanes (their own cursors and registers, the caller's state kept as data), and
+//! resume at the continuation block — no coroutines, as with barriers.
+//!
+//! For the Vulkan wiring:
+//! - Create a [`Module`] at vkCreateShaderModule (or when a stage chains the create info) and a
+//!   [`Pipeline`] at vkCreateComputePipelines; every [`ShaderError`] arises there, never at
+//!   dispatch. [`Pipeline::bindings`], [`Pipeline::push_constant_size`] and
+//!   [`Pipeline::local_size`] are what the pipeline layout checks need.
+//! - Implement [`Memory`] over src/memory: `binding` returns the descriptor's buffer range with
+//!   dynamic offsets applied (uniform and storage buffers alike); `address` resolves a device
+//!   address to the one live buffer containing it. The executor bounds-checks every access
+//!   against those regions itself, so `read`/`write` may assume in-range offsets.
+//! - [`dispatch`] returns a [`DispatchReport`]: each [`Fault`] (kind, binding or address, byte
+//!   offset, workgroup, invocation) is one robustness diagnostic; `stopped` means the
+//!   [`Watchdog`] fired (give it the submission's deadline and a device-lost flag) and the
+//!   device should be marked lost.
+//! - [`LANES`] is the subgroup size to report; supported subgroup stages/operations: compute,
+//!   basic, vote, ballot, arithmetic, shuffle, shuffle-relative (not clustered, not quad).
+pub mod alu;
+mod exec;
+mod exec_mem;
+pub mod ir;
+mod layout;
+mod lower;
+mod lower_ops;
+mod memory;
+mod parse;
+mod specialize;
+#[cfg(test)]
+mod tests;
+
+use std::sync::Arc;
+
+pub use exec::{dispatch, DispatchReport, Stop, Watchdog};
+pub use memory::{Fault, FaultKind, FaultSpace, HostMemory, Memory, Region};
+pub use parse::Module;
+
+/// Invocations a lane group runs together; also the subgroup size Arbor reports.
+pub const LANES: usize = 8;
+
+/// Why a module or pipeline cannot be created. Offsets are in 32-bit words from the start of
+/// the module.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum ShaderError {
+    Malformed { offset: usize, reason: String },
+    UnsupportedCapability { capability: String, offset: usize },
+    UnsupportedExtension { name: String, offset: usize },
+    UnsupportedOpcode { opcode: String, offset: usize },
+    UnsupportedExtInst { set: String, number: u32, offset: usize },
+    /// A supported opcode used in a way this library does not run (a storage class, a type).
+    Unsupported { what: String, offset: usize },
+    NoEntryPoint { name: String },
+    Specialization { id: u32, reason: String },
+}
+
+impl std::fmt::Display for ShaderError {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            ShaderError::Malformed { offset, reason } => write!(f, "malformed SPIR-V at word {offset}: {reason}"),
+            ShaderError::UnsupportedCapability { capability, offset } => {
+                write!(f, "unsupported capability {capability} at word {offset}")
+            }
+            ShaderError::UnsupportedExtension { name, offset } => write!(f, "unsupported extension {name} at word {offset}"),
+            ShaderError::UnsupportedOpcode { opcode, offset } => write!(f, "unsupported instruction {opcode} at word {offset}"),
+            ShaderError::UnsupportedExtInst { set, number, offset } => {
+                write!(f, "unsupported {set} instruction {number} at word {offset}")
+            }
+            ShaderError::Unsupported { what, offset } => write!(f, "unsupported: {what} at word {offset}"),
+            ShaderError::NoEntryPoint { name } => write!(f, "no GLCompute entry point named {name:?}"),
+            ShaderError::Specialization { id, reason } => write!(f, "specialization constant {id}: {reason}"),
+        }
+    }
+}
+
+impl std::error::Error for ShaderError {}
+
+/// A descriptor binding the pipeline's entry point uses.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct BindingUse {
+    pub set: u32,
+    pub binding: u32,
+}
+
+/// A compute pipeline: one specialised, lowered entry point. Cheap to clone.
+#[derive(Clone, Debug)]
+pub struct Pipeline {
+    pub(crate) program: Arc<ir::Program>,
+    /// Workgroup size after specialization.
+    pub local_size: [u32; 3],
+    /// Bytes of push constants the entry point reads (highest member end).
+    pub push_constant_size: u32,
+}
+
+impl Pipeline {
+    /// Lowers `entry_point` of `module` with the given specialization data: (SpecId, bytes of
+    /// the value, little-endian, 4 or 8 bytes; booleans are 4-byte 0/1).
+    pub fn compute(module: &Module, entry_point: &str, specialization: &[(u32, Vec<u8>)]) -> Result<Pipeline, ShaderError> {
+        let entry = module
+            .entry_points
+            .iter()
+            .find(|e| e.name == entry_point)
+            .ok_or_else(|| ShaderError::NoEntryPoint { name: entry_point.into() })?;
+        let consts = specialize::Constants::new(module, specialization)?;
+        let local_size = consts.local_size(module, entry)?;
+        // Backstop: lowering checks the shapes it relies on, but a module that passes the
+        // parse checks yet is invalid SPIR-V in a way not anticipated must still fail here,
+        // as an error, rather than take the caller down.
+        let lowered = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| lower::lower(module, &consts, entry)))
+            .map_err(|_| ShaderError::Malformed { offset: 0, reason: "invalid module (lowering failed)".into() })??;
+        Ok(Pipeline { program: Arc::new(lowered.program), local_size, push_constant_size: lowered.push_size })
+    }
+
+    /// Descriptor bindings the entry point uses, in first-use order.
+    pub fn bindings(&self) -> Vec<BindingUse> {
+        self.program.bindings.iter().map(|&(set, binding)| BindingUse { set, binding }).collect()
+    }
+
+    /// Bytes of workgroup shared memory one workgroup needs.
+    pub fn workgroup_memory_size(&self) -> u32 {
+        self.program.workgroup_bytes
+    }
+}

@@ -1,0 +1,422 @@
+//! SPIR-V words → [`Module`]: the checks that make an unsupported module fail here, at
+//! pipeline creation, and the indexes `lower` reads (types, decorations, definitions).
+//!
+//! A raw pass over the words finds each instruction's word offset (for error messages) and
+//! rejects unknown capabilities, extensions, opcodes and GLSL.std.450 instructions; rspirv then
+//! builds the data representation the rest of the module indexes. Nothing here panics on
+//! malformed input: operand accessors return errors instead of rspirv's `unwrap_*`.
+use std::collections::HashMap;
+
+use rspirv::dr::{self, Instruction, Operand};
+use spirv::{BuiltIn, Capability, Decoration, Op, StorageClass};
+
+use super::ShaderError;
+
+/// A SPIR-V type, as far as the compute subset needs it.
+#[derive(Clone, Debug, PartialEq)]
+pub enum Type {
+    Void,
+    Bool,
+    Int { bits: u32, signed: bool },
+    Float { bits: u32 },
+    Vector { elem: u32, n: u32 },
+    Matrix { column: u32, n: u32 },
+    /// `len` is the id of a (possibly specialization) constant.
+    Array { elem: u32, len: u32 },
+    RuntimeArray { elem: u32 },
+    Struct { members: Vec<u32> },
+    Pointer { class: StorageClass, pointee: u32 },
+    Function,
+}
+
+/// Decorations `lower` needs, per id.
+#[derive(Clone, Debug, Default)]
+pub struct Decorations {
+    pub set: Option<u32>,
+    pub binding: Option<u32>,
+    pub builtin: Option<BuiltIn>,
+    pub spec_id: Option<u32>,
+    pub array_stride: Option<u32>,
+}
+
+#[derive(Clone, Debug)]
+pub struct EntryPoint {
+    pub name: String,
+    pub function: u32,
+    pub local_size: [u32; 3],
+    /// LocalSizeId: constant ids (may be specialization constants).
+    pub local_size_id: Option<[u32; 3]>,
+}
+
+/// A parsed, checked SPIR-V module. Cheap to keep; lowering happens per pipeline, once the
+/// specialization constants are known.
+#[derive(Clone, Debug)]
+pub struct Module {
+    pub(crate) dr: dr::Module,
+    pub(crate) types: HashMap<u32, Type>,
+    /// Constants, spec constants, global variables and OpUndef: id → index in
+    /// `dr.types_global_values`.
+    pub(crate) globals: HashMap<u32, usize>,
+    pub(crate) functions: HashMap<u32, usize>,
+    pub(crate) decorations: HashMap<u32, Decorations>,
+    pub(crate) member_offset: HashMap<(u32, u32), u32>,
+    pub(crate) member_matrix_stride: HashMap<(u32, u32), u32>,
+    pub(crate) entry_points: Vec<EntryPoint>,
+    pub(crate) glsl_ext: Option<u32>,
+    /// Word offset of the instruction defining each result id (for error messages).
+    pub(crate) offsets: HashMap<u32, usize>,
+}
+
+const CAPABILITIES: &[Capability] = &[
+    Capability::Shader,
+    Capability::Matrix,
+    Capability::Int64,
+    Capability::Float64,
+    Capability::Int64Atomics,
+    Capability::PhysicalStorageBufferAddresses,
+    Capability::VulkanMemoryModel,
+    Capability::VulkanMemoryModelDeviceScope,
+    Capability::GroupNonUniform,
+    Capability::GroupNonUniformVote,
+    Capability::GroupNonUniformBallot,
+    Capability::GroupNonUniformArithmetic,
+    Capability::GroupNonUniformShuffle,
+    Capability::GroupNonUniformShuffleRelative,
+];
+
+const EXTENSIONS: &[&str] = &[
+    "SPV_KHR_storage_buffer_storage_class",
+    "SPV_KHR_physical_storage_buffer",
+    "SPV_EXT_physical_storage_buffer",
+    "SPV_KHR_vulkan_memory_model",
+    "SPV_KHR_non_semantic_info",
+    "SPV_KHR_shader_ballot",
+];
+
+/// Opcodes the lowering handles; anything else is rejected with its word offset.
+const OPCODES: &[Op] = {
+    use Op::*;
+    &[
+        Nop, Undef, SourceContinued, Source, SourceExtension, Name, MemberName, String, Line,
+        NoLine, ModuleProcessed, Extension, ExtInstImport, ExtInst, MemoryModel, EntryPoint,
+        ExecutionMode, ExecutionModeId, Capability, TypeVoid, TypeBool, TypeInt, TypeFloat,
+        TypeVector, TypeMatrix, TypeArray, TypeRuntimeArray, TypeStruct, TypePointer,
+        TypeForwardPointer, TypeFunction, ConstantTrue, ConstantFalse, Constant,
+        ConstantComposite, ConstantNull, SpecConstantTrue, SpecConstantFalse, SpecConstant,
+        SpecConstantComposite, SpecConstantOp, Function, FunctionParameter, FunctionEnd,
+        FunctionCall, Variable, Load, Store, CopyMemory, AccessChain, InBoundsAccessChain,
+        PtrAccessChain, Decorate, MemberDecorate, DecorateId, DecorateString,
+        MemberDecorateString, VectorExtractDynamic, VectorInsertDynamic, VectorShuffle,
+        CompositeConstruct, CompositeExtract, CompositeInsert, CopyObject, CopyLogical,
+        ConvertFToU, ConvertFToS, ConvertSToF, ConvertUToF, UConvert, SConvert, FConvert,
+        ConvertUToPtr, ConvertPtrToU, Bitcast, SNegate, FNegate, IAdd, FAdd, ISub, FSub, IMul,
+        FMul, UDiv, SDiv, FDiv, UMod, SRem, SMod, FRem, FMod, VectorTimesScalar,
+        MatrixTimesScalar, VectorTimesMatrix, Transpose, MatrixTimesVector, MatrixTimesMatrix, Dot,
+        IAddCarry, ISubBorrow, UMulExtended, SMulExtended, Any, All, IsNan, IsInf,
+        LogicalEqual, LogicalNotEqual, LogicalOr, LogicalAnd, LogicalNot, Select, IEqual,
+        INotEqual, UGreaterThan, SGreaterThan, UGreaterThanEqual, SGreaterThanEqual, ULessThan,
+        SLessThan, ULessThanEqual, SLessThanEqual, FOrdEqual, FUnordEqual, FOrdNotEqual,
+        FUnordNotEqual, FOrdLessThan, FUnordLessThan, FOrdGreaterThan, FUnordGreaterThan,
+        FOrdLessThanEqual, FUnordLessThanEqual, FOrdGreaterThanEqual, FUnordGreaterThanEqual,
+        ShiftRightLogical, ShiftRightArithmetic, ShiftLeftLogical, BitwiseOr, BitwiseXor,
+        BitwiseAnd, Not, BitFieldInsert, BitFieldSExtract, BitFieldUExtract, BitReverse,
+        BitCount, ControlBarrier, MemoryBarrier, AtomicLoad, AtomicStore, AtomicExchange,
+        AtomicCompareExchange, AtomicIIncrement, AtomicIDecrement, AtomicIAdd, AtomicISub,
+        AtomicSMin, AtomicUMin, AtomicSMax, AtomicUMax, AtomicAnd, AtomicOr, AtomicXor, Phi,
+        LoopMerge, SelectionMerge, Label, Branch, BranchConditional, Switch, Return,
+        ReturnValue, Unreachable, GroupNonUniformElect, GroupNonUniformAll,
+        GroupNonUniformAny, GroupNonUniformAllEqual, GroupNonUniformBroadcast,
+        GroupNonUniformBroadcastFirst, GroupNonUniformBallot, GroupNonUniformInverseBallot,
+        GroupNonUniformBallotBitExtract, GroupNonUniformBallotBitCount,
+        GroupNonUniformBallotFindLSB, GroupNonUniformBallotFindMSB, GroupNonUniformShuffle,
+        GroupNonUniformShuffleXor, GroupNonUniformShuffleUp, GroupNonUniformShuffleDown,
+        GroupNonUniformIAdd, GroupNonUniformFAdd, GroupNonUniformIMul, GroupNonUniformFMul,
+        GroupNonUniformSMin, GroupNonUniformUMin, GroupNonUniformFMin, GroupNonUniformSMax,
+        GroupNonUniformUMax, GroupNonUniformFMax, GroupNonUniformBitwiseAnd,
+        GroupNonUniformBitwiseOr, GroupNonUniformBitwiseXor, GroupNonUniformLogicalAnd,
+        GroupNonUniformLogicalOr, GroupNonUniformLogicalXor,
+    ]
+};
+
+/// GLSL.std.450 instruction numbers `lower` implements.
+pub(crate) const GLSL_SUPPORTED: &[u32] = &[
+    1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15, 16, 17, 18, 19, 20, 21, 22, 23, 24, 25,
+    26, 27, 28, 29, 30, 31, 32, 33, 37, 38, 39, 40, 41, 42, 43, 44, 45, 46, 47, 48, 49, 50, 53,
+    66, 67, 68, 69, 70, 71, 73, 74, 75, 79, 80, 81,
+];
+
+impl Module {
+    /// Parses and checks a module. Fails on malformed SPIR-V and on anything Arbor cannot run,
+    /// naming it and its word offset.
+    pub fn parse(words: &[u32]) -> Result<Module, ShaderError> {
+        let scan = scan(words)?;
+        let dr = dr::load_words(words).map_err(|e| ShaderError::Malformed {
+            offset: 0,
+            reason: format!("{e:?}"),
+        })?;
+        let mut m = Module {
+            dr,
+            types: HashMap::new(),
+            globals: HashMap::new(),
+            functions: HashMap::new(),
+            decorations: HashMap::new(),
+            member_offset: HashMap::new(),
+            member_matrix_stride: HashMap::new(),
+            entry_points: Vec::new(),
+            glsl_ext: scan.glsl_ext,
+            offsets: scan.offsets,
+        };
+        m.index_types()?;
+        m.index_decorations()?;
+        m.index_entry_points()?;
+        for (i, f) in m.dr.functions.iter().enumerate() {
+            if let Some(id) = f.def.as_ref().and_then(|d| d.result_id) {
+                m.functions.insert(id, i);
+            }
+        }
+        Ok(m)
+    }
+
+    /// Names of the GLCompute entry points.
+    pub fn entry_point_names(&self) -> Vec<&str> {
+        self.entry_points.iter().map(|e| e.name.as_str()).collect()
+    }
+
+    pub(crate) fn offset_of(&self, id: u32) -> usize {
+        self.offsets.get(&id).copied().unwrap_or(0)
+    }
+
+    pub(crate) fn ty(&self, id: u32) -> Result<&Type, ShaderError> {
+        self.types.get(&id).ok_or_else(|| self.malformed(id, "not a supported type"))
+    }
+
+    pub(crate) fn malformed(&self, id: u32, reason: &str) -> ShaderError {
+        ShaderError::Malformed { offset: self.offset_of(id), reason: format!("%{id}: {reason}") }
+    }
+
+    fn index_types(&mut self) -> Result<(), ShaderError> {
+        for (i, inst) in self.dr.types_global_values.iter().enumerate() {
+            let Some(id) = inst.result_id else { continue };
+            let ty = match inst.class.opcode {
+                Op::TypeVoid => Type::Void,
+                Op::TypeBool => Type::Bool,
+                Op::TypeInt => Type::Int { bits: lit(inst, 0)?, signed: lit(inst, 1)? != 0 },
+                Op::TypeFloat => Type::Float { bits: lit(inst, 0)? },
+                Op::TypeVector => Type::Vector { elem: id_op(inst, 0)?, n: lit(inst, 1)? },
+                Op::TypeMatrix => Type::Matrix { column: id_op(inst, 0)?, n: lit(inst, 1)? },
+                Op::TypeArray => Type::Array { elem: id_op(inst, 0)?, len: id_op(inst, 1)? },
+                Op::TypeRuntimeArray => Type::RuntimeArray { elem: id_op(inst, 0)? },
+                Op::TypeStruct => Type::Struct {
+                    members: (0..inst.operands.len()).map(|k| id_op(inst, k)).collect::<Result<_, _>>()?,
+                },
+                Op::TypePointer => Type::Pointer { class: storage_class(inst, 0)?, pointee: id_op(inst, 1)? },
+                Op::TypeFunction => Type::Function,
+                _ => {
+                    self.globals.insert(id, i);
+                    continue;
+                }
+            };
+            if let Type::Int { bits, .. } | Type::Float { bits } = ty {
+                if bits != 32 && bits != 64 {
+                    return Err(ShaderError::Unsupported {
+                        what: format!("{bits}-bit scalar type"),
+                        offset: self.offset_of(id),
+                    });
+                }
+            }
+            self.types.insert(id, ty);
+        }
+        Ok(())
+    }
+
+    fn index_decorations(&mut self) -> Result<(), ShaderError> {
+        for inst in &self.dr.annotations {
+            match inst.class.opcode {
+                Op::Decorate => {
+                    let target = id_op(inst, 0)?;
+                    let d = self.decorations.entry(target).or_default();
+                    match inst.operands.get(1) {
+                        Some(Operand::Decoration(Decoration::DescriptorSet)) => d.set = Some(lit(inst, 2)?),
+                        Some(Operand::Decoration(Decoration::Binding)) => d.binding = Some(lit(inst, 2)?),
+                        Some(Operand::Decoration(Decoration::SpecId)) => d.spec_id = Some(lit(inst, 2)?),
+                        Some(Operand::Decoration(Decoration::ArrayStride)) => d.array_stride = Some(lit(inst, 2)?),
+                        Some(Operand::Decoration(Decoration::BuiltIn)) => match inst.operands.get(2) {
+                            Some(Operand::BuiltIn(b)) => d.builtin = Some(*b),
+                            _ => return Err(bad(inst, "BuiltIn operand")),
+                        },
+                        _ => {}
+                    }
+                }
+                Op::MemberDecorate => {
+                    let key = (id_op(inst, 0)?, lit(inst, 1)?);
+                    match inst.operands.get(2) {
+                        Some(Operand::Decoration(Decoration::Offset)) => {
+                            self.member_offset.insert(key, lit(inst, 3)?);
+                        }
+                        Some(Operand::Decoration(Decoration::MatrixStride)) => {
+                            self.member_matrix_stride.insert(key, lit(inst, 3)?);
+                        }
+                        Some(Operand::Decoration(Decoration::RowMajor)) => {
+                            return Err(ShaderError::Unsupported {
+                                what: "RowMajor matrix layout".into(),
+                                offset: self.offset_of(key.0),
+                            })
+                        }
+                        _ => {}
+                    }
+                }
+                _ => {}
+            }
+        }
+        Ok(())
+    }
+
+    fn index_entry_points(&mut self) -> Result<(), ShaderError> {
+        for inst in &self.dr.entry_points {
+            if !matches!(inst.operands.first(), Some(Operand::ExecutionModel(spirv::ExecutionModel::GLCompute))) {
+                continue; // other stages are not run by this library (yet)
+            }
+            let function = id_op(inst, 1)?;
+            let name = match inst.operands.get(2) {
+                Some(Operand::LiteralString(s)) => s.clone(),
+                _ => return Err(bad(inst, "entry point name")),
+            };
+            let mut e = EntryPoint { name, function, local_size: [1, 1, 1], local_size_id: None };
+            for m in &self.dr.execution_modes {
+                if id_op(m, 0)? != function {
+                    continue;
+                }
+                match m.operands.get(1) {
+                    Some(Operand::ExecutionMode(spirv::ExecutionMode::LocalSize)) => {
+                        e.local_size = [lit(m, 2)?, lit(m, 3)?, lit(m, 4)?];
+                    }
+                    Some(Operand::ExecutionMode(spirv::ExecutionMode::LocalSizeId)) => {
+                        e.local_size_id = Some([id_op(m, 2)?, id_op(m, 3)?, id_op(m, 4)?]);
+                    }
+                    _ => {}
+                }
+            }
+            self.entry_points.push(e);
+        }
+        Ok(())
+    }
+}
+
+struct Scan {
+    offsets: HashMap<u32, usize>,
+    glsl_ext: Option<u32>,
+}
+
+/// The raw pass: instruction boundaries, word offsets, and the support checks.
+fn scan(words: &[u32]) -> Result<Scan, ShaderError> {
+    let malformed = |offset, reason: &str| ShaderError::Malformed { offset, reason: reason.into() };
+    if words.len() < 5 || words[0] != spirv::MAGIC_NUMBER {
+        return Err(malformed(0, "not a SPIR-V module (magic number)"));
+    }
+    if words[1] > 0x0001_0600 {
+        return Err(malformed(1, "SPIR-V version above 1.6"));
+    }
+    let mut s = Scan { offsets: HashMap::new(), glsl_ext: None };
+    let mut at = 5;
+    while at < words.len() {
+        let count = (words[at] >> 16) as usize;
+        let code = words[at] & 0xFFFF;
+        if count == 0 || at + count > words.len() {
+            return Err(malformed(at, "bad instruction word count"));
+        }
+        let operands = &words[at + 1..at + count];
+        let op = Op::from_u32(code).filter(|op| OPCODES.contains(op));
+        let Some(op) = op else {
+            let name = rspirv::grammar::INSTRUCTION_TABLE
+                .lookup_opcode(code)
+                .map_or_else(|| format!("opcode {code}"), |g| format!("Op{}", g.opname));
+            return Err(ShaderError::UnsupportedOpcode { opcode: name, offset: at });
+        };
+        check_instruction(op, operands, at, &mut s)?;
+        if let Some(g) = rspirv::grammar::INSTRUCTION_TABLE.lookup_opcode(code) {
+            let pos = match g.operands.first().map(|o| o.kind) {
+                Some(rspirv::grammar::OperandKind::IdResultType) => Some(1),
+                Some(rspirv::grammar::OperandKind::IdResult) => Some(0),
+                _ => None,
+            };
+            if let Some(&id) = pos.and_then(|p| operands.get(p)) {
+                s.offsets.insert(id, at);
+            }
+        }
+        at += count;
+    }
+    Ok(s)
+}
+
+fn check_instruction(op: Op, operands: &[u32], at: usize, s: &mut Scan) -> Result<(), ShaderError> {
+    match op {
+        Op::Capability => {
+            let code = operands.first().copied().unwrap_or(u32::MAX);
+            let cap = Capability::from_u32(code);
+            if !cap.is_some_and(|c| CAPABILITIES.contains(&c)) {
+                let capability = cap.map_or_else(|| format!("capability {code}"), |c| format!("{c:?}"));
+                return Err(ShaderError::UnsupportedCapability { capability, offset: at });
+            }
+        }
+        Op::Extension | Op::ExtInstImport => {
+            let skip = usize::from(op == Op::ExtInstImport);
+            let name = literal_string(operands.get(skip..).unwrap_or(&[]));
+            if op == Op::ExtInstImport {
+                if name == "GLSL.std.450" {
+                    s.glsl_ext = operands.first().copied();
+                } else if !name.starts_with("NonSemantic.") {
+                    return Err(ShaderError::UnsupportedExtension { name, offset: at });
+                }
+            } else if !EXTENSIONS.contains(&name.as_str()) {
+                return Err(ShaderError::UnsupportedExtension { name, offset: at });
+            }
+        }
+        Op::ExtInst => {
+            let (set, number) = (operands.get(2).copied(), operands.get(3).copied().unwrap_or(0));
+            if set.is_some() && set == s.glsl_ext && !GLSL_SUPPORTED.contains(&number) {
+                return Err(ShaderError::UnsupportedExtInst { set: "GLSL.std.450".into(), number, offset: at });
+            }
+        }
+        Op::MemoryModel => {
+            let addressing = operands.first().copied().unwrap_or(u32::MAX);
+            // Logical (0) or PhysicalStorageBuffer64 (5348).
+            if addressing != 0 && addressing != 5348 {
+                return Err(ShaderError::Unsupported { what: format!("addressing model {addressing}"), offset: at });
+            }
+        }
+        _ => {}
+    }
+    Ok(())
+}
+
+fn literal_string(words: &[u32]) -> String {
+    let bytes: Vec<u8> = words.iter().flat_map(|w| w.to_le_bytes()).take_while(|&b| b != 0).collect();
+    String::from_utf8_lossy(&bytes).into_owned()
+}
+
+fn bad(inst: &Instruction, what: &str) -> ShaderError {
+    ShaderError::Malformed { offset: 0, reason: format!("Op{}: bad {what}", inst.class.opname) }
+}
+
+/// The `k`-th operand as an id.
+pub(crate) fn id_op(inst: &Instruction, k: usize) -> Result<u32, ShaderError> {
+    match inst.operands.get(k) {
+        Some(Operand::IdRef(v)) | Some(Operand::IdScope(v)) | Some(Operand::IdMemorySemantics(v)) => Ok(*v),
+        _ => Err(bad(inst, &format!("operand {k} (expected an id)"))),
+    }
+}
+
+/// The `k`-th operand as a 32-bit literal.
+pub(crate) fn lit(inst: &Instruction, k: usize) -> Result<u32, ShaderError> {
+    match inst.operands.get(k) {
+        Some(Operand::LiteralBit32(v)) | Some(Operand::LiteralExtInstInteger(v)) => Ok(*v),
+        _ => Err(bad(inst, &format!("operand {k} (expected a literal)"))),
+    }
+}
+
+pub(crate) fn storage_class(inst: &Instruction, k: usize) -> Result<StorageClass, ShaderError> {
+    match inst.operands.get(k) {
+        Some(Operand::StorageClass(c)) => Ok(*c),
+        _ => Err(bad(inst, &format!("operand {k} (expected a storage class)"))),
+    }
+}
