@@ -4,6 +4,7 @@
 //! No panic crosses this boundary: every entry point runs inside [`guard`].
 pub mod accel;
 pub mod command;
+pub mod core_caps;
 pub mod deferred;
 pub mod descriptor;
 pub mod device;

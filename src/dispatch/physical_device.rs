@@ -189,7 +189,7 @@ pub unsafe fn fill_feature_struct(s_type: vk::StructureType, p: *mut c_void) -> 
             vk::StructureType::PHYSICAL_DEVICE_SHADER_DRAW_PARAMETERS_FEATURES => {
                 util::write_keep_chain(p, vk::PhysicalDeviceShaderDrawParametersFeatures::default())
             }
-            _ => return false,
+            _ => return super::core_caps::fill_feature_struct(s_type, p),
         }
     }
     true
@@ -433,7 +433,7 @@ pub unsafe fn fill_property_struct(s_type: vk::StructureType, p: *mut c_void) ->
                     ..Default::default()
                 },
             ),
-            _ => return false,
+            _ => return super::core_caps::fill_property_struct(s_type, p),
         }
     }
     true
