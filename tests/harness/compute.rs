@@ -247,21 +247,31 @@ pub enum Size {
     Indirect([u32; 3]),
 }
 
+/// Write the device address of binding `of` (plus `plus` bytes) as 8 bytes at `at` of the
+/// push constants (`into: None`) or of binding `into`'s buffer.
+#[derive(Clone, Copy, Debug)]
+pub struct AddressPatch {
+    pub into: Option<usize>,
+    pub at: usize,
+    pub of: usize,
+    pub plus: u64,
+}
+
 /// One dispatch of one shader: set 0 holds `bindings` at binding 0, 1, …
 #[derive(Clone)]
 pub struct Job {
     pub spirv: Vec<u32>,
     pub bindings: Vec<Binding>,
     pub push: Vec<u8>,
-    /// Replace push-constant bytes [at, at + 8) with the device address of binding `index`.
-    pub push_address: Option<(usize, usize)>,
+    /// Device addresses written before the dispatch (buffer device address).
+    pub addresses: Vec<AddressPatch>,
     pub spec: Vec<(u32, Vec<u8>)>,
     pub size: Size,
 }
 
 impl Job {
     pub fn new(spirv: Vec<u32>, bindings: Vec<Binding>, size: Size) -> Job {
-        Job { spirv, bindings, push: Vec::new(), push_address: None, spec: Vec::new(), size }
+        Job { spirv, bindings, push: Vec::new(), addresses: Vec::new(), spec: Vec::new(), size }
     }
 }
 

@@ -176,10 +176,17 @@ pub fn run(gpu: &Gpu, job: &Job) -> Result<Vec<Vec<u8>>, JobError> {
     }
     let indirect = buffer(gpu, &record, vk::BufferUsageFlags::INDIRECT_BUFFER);
     let mut job = job.clone();
-    if let Some((at, index)) = job.push_address {
+    for p in &job.addresses {
         // SAFETY: a live buffer created with SHADER_DEVICE_ADDRESS usage.
-        let address = unsafe { gpu.device.get_buffer_device_address(&vk::BufferDeviceAddressInfo::default().buffer(buffers[index].buffer)) };
-        job.push[at..at + 8].copy_from_slice(&address.to_le_bytes());
+        let address = unsafe { gpu.device.get_buffer_device_address(&vk::BufferDeviceAddressInfo::default().buffer(buffers[p.of].buffer)) } + p.plus;
+        match p.into {
+            None => job.push[p.at..p.at + 8].copy_from_slice(&address.to_le_bytes()),
+            Some(b) => {
+                assert!(p.at + 8 <= buffers[b].size as usize);
+                // SAFETY: mapped memory of a live buffer, inside its size (asserted).
+                unsafe { std::ptr::copy_nonoverlapping(address.to_le_bytes().as_ptr(), buffers[b].ptr.add(p.at), 8) };
+            }
+        }
     }
     let result = objects(gpu, &job, &buffers).and_then(|o| {
         let r = submit(gpu, &job, &o, &indirect);
