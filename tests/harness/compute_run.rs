@@ -151,11 +151,11 @@ fn submit(gpu: &Gpu, job: &Job, o: &Objects, indirect: &Buffer) -> Result<(), Jo
         d.end_command_buffer(cb).unwrap();
         let fence = d.create_fence(&vk::FenceCreateInfo::default(), None).unwrap();
         let cbs = [cb];
-        let r = d
-            .queue_submit(gpu.queue, &[vk::SubmitInfo::default().command_buffers(&cbs)], fence)
-            .and_then(|_| d.wait_for_fences(&[fence], true, 60_000_000_000));
-        // A lost device still signals the fence; wait for it so nothing is pending at destroy.
-        if r.is_err() {
+        let submitted = d.queue_submit(gpu.queue, &[vk::SubmitInfo::default().command_buffers(&cbs)], fence);
+        let r = submitted.and_then(|_| d.wait_for_fences(&[fence], true, 60_000_000_000));
+        // A lost device still signals the fence of a submission it accepted; make sure it did,
+        // so nothing is pending when the objects are destroyed.
+        if submitted.is_ok() && r.is_err() {
             let _ = d.wait_for_fences(&[fence], true, 60_000_000_000);
         }
         d.destroy_fence(fence, None);
