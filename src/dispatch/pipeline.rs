@@ -147,7 +147,7 @@ unsafe fn create_one(info: &vk::ComputePipelineCreateInfo) -> Result<ComputePipe
     let entry = unsafe { util::cstr(stage.p_name) }.unwrap_or("main");
     // SAFETY: valid specialization info (or null) per the spec.
     let spec = unsafe { specialization(stage.p_specialization_info) };
-    ComputePipeline::new(&module, entry, &spec, layout, &compute_limits()).map_err(|e| match e {
+    ComputePipeline::new(&module, entry, &spec, layout, info.flags, &compute_limits()).map_err(|e| match e {
         PipelineError::Shader(e) => {
             diag::report(diag::Level::Error, CMD, &format!("the shader cannot run on Arbor: {e}"));
             vk::Result::ERROR_UNKNOWN
@@ -351,6 +351,11 @@ fn record_dispatch(cb: vk::CommandBuffer, name: &'static str, size: DispatchSize
         let vuid = if name == "vkCmdDispatchIndirect" { "VUID-vkCmdDispatchIndirect-None-08606" } else { "VUID-vkCmdDispatch-None-08606" };
         return c.violation(vuid, name, "no compute pipeline is bound");
     };
+    if let DispatchSize::Direct { base, .. } = &size {
+        if *base != [0; 3] && !pipeline.dispatch_base {
+            return c.violation("VUID-vkCmdDispatchBase-baseGroupX-00427", name, &format!("base {base:?} needs a pipeline created with VK_PIPELINE_CREATE_DISPATCH_BASE_BIT"));
+        }
+    }
     let max_groups = super::physical_device::limits().max_compute_work_group_count;
     c.record_custom(Box::new(Dispatch { name, pipeline, sets: state.sets, push_constants: state.push_constants, size, max_groups }));
 }
@@ -395,7 +400,7 @@ unsafe extern "system" fn cmd_dispatch_indirect(cb: vk::CommandBuffer, buffer: v
         if !b.usage.contains(vk::BufferUsageFlags::INDIRECT_BUFFER) {
             return c.violation("VUID-vkCmdDispatchIndirect-buffer-02709", CMD, "the buffer lacks INDIRECT_BUFFER usage");
         }
-        if offset % 4 != 0 || offset.checked_add(12).is_none_or(|end| end > b.size) {
+        if !offset.is_multiple_of(4) || offset.checked_add(12).is_none_or(|end| end > b.size) {
             return c.violation("VUID-vkCmdDispatchIndirect-offset-00407", CMD, &format!("offset {offset}: the 12-byte record must be 4-aligned and inside the buffer (size {})", b.size));
         }
         record_dispatch(cb, CMD, DispatchSize::Indirect { buffer: b, offset });

@@ -42,11 +42,14 @@ pub enum Unresolved {
     PastEnd { offset: u64, size: u64 },
 }
 
+/// The bindings a dispatch uses that did not resolve, and why.
+pub type Missing = Vec<((u32, u32), Unresolved)>;
+
 impl<'a> DispatchMemory<'a> {
     /// Resolve every (set, binding) the pipeline uses against the bound sets. Bindings that do
     /// not resolve are returned beside the memory: the shader sees them as unbound (each access
     /// a contained fault).
-    pub fn new(space: &'a AddressSpace, sets: &[Option<BoundSet>], used: &[(u32, u32)]) -> (Self, Vec<((u32, u32), Unresolved)>) {
+    pub fn new(space: &'a AddressSpace, sets: &[Option<BoundSet>], used: &[(u32, u32)]) -> (Self, Missing) {
         let mut m = DispatchMemory { space, regions: Vec::new(), buffers: Vec::new() };
         let mut missing = Vec::new();
         for &(set, binding) in used {

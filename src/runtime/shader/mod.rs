@@ -36,6 +36,8 @@ impl ShaderModule {
 pub struct ComputePipeline {
     pub pipeline: lib::Pipeline,
     pub layout: Arc<PipelineLayout>,
+    /// Created with VK_PIPELINE_CREATE_DISPATCH_BASE_BIT (vkCmdDispatchBase may use a base).
+    pub dispatch_base: bool,
 }
 
 /// Why a compute pipeline could not be created.
@@ -67,6 +69,7 @@ impl ComputePipeline {
         entry_point: &str,
         specialization: &[(u32, Vec<u8>)],
         layout: Arc<PipelineLayout>,
+        flags: vk::PipelineCreateFlags,
         limits: &ComputeLimits,
     ) -> Result<ComputePipeline, PipelineError> {
         let parsed = module.parsed.as_ref().map_err(|e| PipelineError::Shader(e.clone()))?;
@@ -108,7 +111,7 @@ impl ComputePipeline {
                 format!("{} bytes of shared memory exceed maxComputeSharedMemorySize {}", pipeline.workgroup_memory_size(), limits.max_shared_memory),
             ));
         }
-        Ok(ComputePipeline { pipeline, layout })
+        Ok(ComputePipeline { pipeline, layout, dispatch_base: flags.contains(vk::PipelineCreateFlags::DISPATCH_BASE) })
     }
 }
 
