@@ -188,3 +188,29 @@ fn pipeline_cache_data_is_a_valid_header() {
     }
     gpu.assert_quiet();
 }
+
+#[test]
+fn subgroup_operations_on_64_bit_integers_and_doubles_match_the_cpu() {
+    let n = 128usize;
+    let input: Vec<u64> = (0..n as u64).map(|i| i.wrapping_mul(0x9E37_79B9_7F4A_7C15) >> 9).collect();
+    let bytes: Vec<u8> = input.iter().flat_map(|x| x.to_le_bytes()).collect();
+    let shaders = both_compilers("vk_subgroup64.comp");
+    on_every_driver(|gpu| {
+        for (name, spirv) in &shaders {
+            let job = Job::new(spirv.clone(), vec![Binding::storage(bytes.clone()), Binding::storage(vec![0; 40 * n])], Size::Direct([n as u32 / 32, 1, 1]));
+            let out = run(gpu, &job).unwrap_or_else(|e| panic!("{name} on {:?}: {e:?}", gpu.driver));
+            let r: Vec<u64> = out[1].chunks(8).map(|c| u64::from_le_bytes(c.try_into().unwrap())).collect();
+            for i in 0..n {
+                let members: Vec<usize> = (0..n).filter(|&j| r[j * 5] == r[i * 5]).collect();
+                let sum = members.iter().fold(0u64, |a, &j| a.wrapping_add(input[j]));
+                let max = members.iter().map(|&j| input[j]).max().unwrap();
+                // Doubles of 20-bit integers halved: every partial sum is exact.
+                let dsum: f64 = members.iter().map(|&j| (input[j] & 0xFFFFF) as f64 * 0.5).sum();
+                assert_eq!(r[i * 5 + 1], sum, "{name} on {:?}: subgroupAdd(uint64) at {i}", gpu.driver);
+                assert_eq!(r[i * 5 + 2], max, "{name} on {:?}: subgroupMax(uint64) at {i}", gpu.driver);
+                assert!(members.iter().any(|&j| input[j] == r[i * 5 + 3]), "{name} on {:?}: subgroupBroadcastFirst at {i}", gpu.driver);
+                assert_eq!(r[i * 5 + 4], (dsum * 2.0) as u64, "{name} on {:?}: subgroupAdd(double) at {i}", gpu.driver);
+            }
+        }
+    });
+}

@@ -167,7 +167,10 @@ impl Gpu {
             let prio = [1.0f32];
             let qci = [vk::DeviceQueueCreateInfo::default().queue_family_index(0).queue_priorities(&prio)];
             let features = vk::PhysicalDeviceFeatures::default().shader_int64(true).shader_float64(true);
-            let mut v12 = vk::PhysicalDeviceVulkan12Features::default().buffer_device_address(true).shader_buffer_int64_atomics(true);
+            let mut v12 = vk::PhysicalDeviceVulkan12Features::default()
+                .buffer_device_address(true)
+                .shader_buffer_int64_atomics(true)
+                .shader_subgroup_extended_types(true);
             let dci = vk::DeviceCreateInfo::default().queue_create_infos(&qci).enabled_features(&features).push_next(&mut v12);
             let device = instance.create_device(physical, &dci, None).expect("vkCreateDevice");
             let queue = device.get_device_queue(0, 0);

@@ -65,8 +65,9 @@ impl<'a> DispatchMemory<'a> {
         (m, missing)
     }
 
-    fn buffer(&self, id: u64) -> Option<(&Buffer, u64)> {
-        self.buffers.get(usize::try_from(id).ok()?).map(|b| (&**b, 0))
+    /// The buffer of a descriptor region (offsets the library passes are buffer-relative).
+    fn buffer(&self, id: u64) -> Option<&Buffer> {
+        self.buffers.get(usize::try_from(id).ok()?).map(|b| &**b)
     }
 }
 
@@ -114,14 +115,14 @@ impl Memory for DispatchMemory<'_> {
         if buffer & ADDRESS_TAG != 0 {
             return self.space.read((buffer & !ADDRESS_TAG) + offset, out).is_ok();
         }
-        self.buffer(buffer).is_some_and(|(b, base)| b.read(base + offset, out).is_ok())
+        self.buffer(buffer).is_some_and(|b| b.read(offset, out).is_ok())
     }
 
     fn write(&self, buffer: u64, offset: u64, data: &[u8]) -> bool {
         if buffer & ADDRESS_TAG != 0 {
             return self.space.write((buffer & !ADDRESS_TAG) + offset, data).is_ok();
         }
-        self.buffer(buffer).is_some_and(|(b, base)| b.write(base + offset, data).is_ok())
+        self.buffer(buffer).is_some_and(|b| b.write(offset, data).is_ok())
     }
 
     fn atomic(&self, buffer: u64, offset: u64, size: usize, update: &dyn Fn(u64) -> u64) -> Option<u64> {
@@ -130,7 +131,6 @@ impl Memory for DispatchMemory<'_> {
             let r = self.space.resolve(address, size as u64).ok()?;
             return r.buffer.atomic(r.offset, size, update).ok();
         }
-        let (b, base) = self.buffer(buffer)?;
-        b.atomic(base + offset, size, update).ok()
+        self.buffer(buffer)?.atomic(offset, size, update).ok()
     }
 }
