@@ -30,8 +30,9 @@ fn push_constants_dynamic_uniform_and_storage_offsets_and_spec_constants() {
     let mut ubo = vec![0xEEu8; 256];
     ubo.extend(u32s(&[10, 20, 30, 40]));
     ubo.extend(f32s(&[0.5, 1.5, 2.5, 3.5]));
-    // The output starts 256 bytes into its buffer (a dynamic storage offset).
-    let out_len = 256 + 8 * n as usize;
+    // The output starts 512 bytes into its buffer (a dynamic storage offset): a different
+    // offset from the uniform's, so the order in which dynamic offsets apply is checked too.
+    let out_len = 512 + 8 * n as usize;
     let mut push = u32s(&[5]);
     push.extend(f32s(&[0.5]));
     let mut want = vec![0u32; 2 * n as usize];
@@ -44,14 +45,14 @@ fn push_constants_dynamic_uniform_and_storage_offsets_and_spec_constants() {
         for (name, spirv) in &shaders {
             let mut job = Job::new(
                 spirv.clone(),
-                vec![Binding::uniform(ubo.clone()).dynamic(256, 32), Binding::storage(vec![0; out_len]).dynamic(256, 8 * n as u64)],
+                vec![Binding::uniform(ubo.clone()).dynamic(256, 32), Binding::storage(vec![0; out_len]).dynamic(512, 8 * n as u64)],
                 Size::Direct([groups, 1, 1]),
             );
             job.push = push.clone();
             job.spec = vec![(0, u32s(&[local])), (1, u32s(&[3])), (2, u32s(&[1]))];
             let out = run(gpu, &job).unwrap_or_else(|e| panic!("{name} on {:?}: {e:?}", gpu.driver));
-            assert!(out[1][..256].iter().all(|&b| b == 0), "{name} on {:?}: wrote before the dynamic offset", gpu.driver);
-            assert_eq!(as_u32(&out[1][256..]), want, "{name} on {:?}", gpu.driver);
+            assert!(out[1][..512].iter().all(|&b| b == 0), "{name} on {:?}: wrote before the dynamic offset", gpu.driver);
+            assert_eq!(as_u32(&out[1][512..]), want, "{name} on {:?}", gpu.driver);
         }
     });
 }
