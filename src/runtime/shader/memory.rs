@@ -6,10 +6,11 @@
 //!
 //! This module only maps; it reports nothing (the dispatch turns faults into diagnostics).
 //!
-//! Image bindings: `resolve_binding` is the one place a descriptor becomes something the shader
-//! can reach. Storage images are exposed to the library through their own interface, so an
-//! image descriptor resolves to no buffer region here (`None`, see the `Descriptor::Image` arm);
-//! the images work adds its resolution beside it, collected in `DispatchMemory::new` the same way.
+//! Image bindings plug in here: `resolve_binding` is the one place a descriptor becomes something
+//! the shader can reach, and `DispatchMemory::new` the one loop that collects them. Storage
+//! images reach the library through their own interface, not as buffer regions, so an image
+//! descriptor resolves to `Unresolved::Image` for now (the `Descriptor::Image` arm); the images
+//! work resolves it there into its image view and keeps it beside `regions`.
 use std::sync::Arc;
 
 use crate::memory::{AddressSpace, Buffer};
@@ -40,6 +41,8 @@ pub enum Unresolved {
     Empty,
     /// A dynamic offset moves the range past the buffer's end.
     PastEnd { offset: u64, size: u64 },
+    /// An image descriptor: not a buffer region (see the module docs).
+    Image,
 }
 
 /// The bindings a dispatch uses that did not resolve, and why.
@@ -91,8 +94,8 @@ fn resolve_binding(sets: &[Option<BoundSet>], set: u32, binding: u32) -> Result<
                 _ => Err(Unresolved::PastEnd { offset, size: buffer.size }),
             }
         }
-        // Storage images reach the shader through the image interface, not as buffer regions.
-        Descriptor::Image { .. } => Err(Unresolved::Empty),
+        // The image hook (module docs): storage images are resolved here by the images work.
+        Descriptor::Image { .. } => Err(Unresolved::Image),
         _ => Err(Unresolved::Empty),
     }
 }
