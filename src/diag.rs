@@ -93,5 +93,5 @@ pub fn vuid(vuid: &str, what: &str, message: &str) {
 
 /// A command Arbor does not implement was called.
 pub fn unsupported(command: &str) {
-    report(Level::Warn, command, "not supported by Arbor (no graphics/compute pipeline support yet)");
+    report(Level::Warn, command, "not supported by Arbor (no graphics, no images yet)");
 }

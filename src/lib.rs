@@ -18,8 +18,9 @@ pub mod threads;
 /// The loader's magic word for dispatchable handles (vk_icd.h `ICD_LOADER_MAGIC`).
 pub const ICD_LOADER_MAGIC: usize = 0x01CD_C0DE;
 
-/// Vulkan version Arbor implements (honestly: the lowest its extensions need).
-pub const API_VERSION: u32 = ash::vk::make_api_version(0, 1, 1, ash::vk::HEADER_VERSION);
+/// Vulkan version Arbor implements: 1.2, whose requirements for a compute-only device it meets
+/// (`dispatch::core_caps` lists them and the graphics ones that do not apply).
+pub const API_VERSION: u32 = ash::vk::make_api_version(0, 1, 2, ash::vk::HEADER_VERSION);
 /// Driver version reported in VkPhysicalDeviceProperties.
 pub const DRIVER_VERSION: u32 = ash::vk::make_api_version(0, 0, 1, 0);
 /// Stable identity. driverUUID names the driver build family; deviceUUID the (one) device.

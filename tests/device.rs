@@ -11,7 +11,7 @@ fn device_properties_through_loader() {
         let p = ctx.instance.get_physical_device_properties(ctx.physical);
         assert_eq!(p.device_name_as_c_str().unwrap().to_str().unwrap(), "Arbor (software)");
         assert_eq!(p.device_type, vk::PhysicalDeviceType::CPU);
-        assert_eq!(vk::api_version_minor(p.api_version), 1);
+        assert_eq!(vk::api_version_minor(p.api_version), 2);
         let q = ctx.instance.get_physical_device_queue_family_properties(ctx.physical);
         assert_eq!(q.len(), 1);
         assert!(q[0].queue_flags.contains(vk::QueueFlags::COMPUTE | vk::QueueFlags::TRANSFER));

@@ -12,7 +12,7 @@ import re
 import sys
 import xml.etree.ElementTree as ET
 
-VERSIONS = ["1_0", "1_1"]
+VERSIONS = ["1_0", "1_1", "1_2"]
 INSTANCE_EXTENSIONS = ["VK_KHR_get_physical_device_properties2"]
 DEVICE_EXTENSIONS = [
     "VK_KHR_buffer_device_address",

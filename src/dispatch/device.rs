@@ -67,6 +67,14 @@ unsafe fn enabled_features(info: &vk::DeviceCreateInfo) -> EnabledFeatures {
                     let s = &*(p as *const vk::PhysicalDeviceHostQueryResetFeatures);
                     f.host_query_reset |= s.host_query_reset != 0;
                 }
+                vk::StructureType::PHYSICAL_DEVICE_VULKAN_1_2_FEATURES => {
+                    // The 1.2 aggregate enables the promoted features it contains.
+                    let s = &*(p as *const vk::PhysicalDeviceVulkan12Features);
+                    f.buffer_device_address |= s.buffer_device_address != 0;
+                    f.buffer_device_address_capture_replay |= s.buffer_device_address_capture_replay != 0;
+                    f.timeline_semaphore |= s.timeline_semaphore != 0;
+                    f.host_query_reset |= s.host_query_reset != 0;
+                }
                 vk::StructureType::PHYSICAL_DEVICE_ACCELERATION_STRUCTURE_FEATURES_KHR => {
                     let s = &*(p as *const vk::PhysicalDeviceAccelerationStructureFeaturesKHR);
                     f.acceleration_structure |= s.acceleration_structure != 0;
@@ -157,7 +165,7 @@ unsafe extern "system" fn create_device(
         let device = Arc::new(Device {
             physical,
             enabled_extensions: exts.into_iter().collect::<HashSet<_>>(),
-            api_minor: 1,
+            api_minor: vk::api_version_minor(crate::API_VERSION),
             features,
             memory,
             queues: OnceLock::new(),

@@ -4,6 +4,7 @@
 //! No panic crosses this boundary: every entry point runs inside [`guard`].
 pub mod accel;
 pub mod command;
+pub mod core_caps;
 pub mod deferred;
 pub mod descriptor;
 pub mod device;
@@ -11,6 +12,7 @@ pub mod handle;
 pub mod instance;
 pub mod memory;
 pub mod physical_device;
+pub mod pipeline;
 pub mod query;
 pub mod queue;
 pub mod registry;
@@ -46,6 +48,7 @@ pub fn implemented() -> Vec<Implemented> {
     v.extend(device::commands());
     v.extend(memory::commands());
     v.extend(descriptor::commands());
+    v.extend(pipeline::commands());
     v.extend(command::commands());
     v.extend(queue::commands());
     v.extend(sync::commands());

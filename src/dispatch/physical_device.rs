@@ -76,9 +76,26 @@ pub fn physical_from(h: vk::PhysicalDevice) -> Option<Arc<PhysicalDevice>> {
     unsafe { dispatchable::<PhysicalDevice>(vk::Handle::as_raw(h) as PhysicalDeviceHandle) }
 }
 
-/// Core 1.0 features. Only what Arbor really does; robustBufferAccess is required by the spec.
+/// Subgroup operations the shader library implements (not clustered, not quad).
+pub const SUBGROUP_OPERATIONS: vk::SubgroupFeatureFlags = vk::SubgroupFeatureFlags::from_raw(
+    vk::SubgroupFeatureFlags::BASIC.as_raw()
+        | vk::SubgroupFeatureFlags::VOTE.as_raw()
+        | vk::SubgroupFeatureFlags::BALLOT.as_raw()
+        | vk::SubgroupFeatureFlags::ARITHMETIC.as_raw()
+        | vk::SubgroupFeatureFlags::SHUFFLE.as_raw()
+        | vk::SubgroupFeatureFlags::SHUFFLE_RELATIVE.as_raw(),
+);
+
+/// Core 1.0 features. Only what Arbor really does; robustBufferAccess is required by the spec
+/// (the shader library contains out-of-range accesses); shaderInt64/shaderFloat64 are
+/// capabilities the shader library runs.
 pub fn features() -> vk::PhysicalDeviceFeatures {
-    vk::PhysicalDeviceFeatures { robust_buffer_access: vk::TRUE, ..Default::default() }
+    vk::PhysicalDeviceFeatures {
+        robust_buffer_access: vk::TRUE,
+        shader_int64: vk::TRUE,
+        shader_float64: vk::TRUE,
+        ..Default::default()
+    }
 }
 
 unsafe extern "system" fn get_physical_device_features(pd: vk::PhysicalDevice, p: *mut vk::PhysicalDeviceFeatures) {
@@ -172,7 +189,7 @@ pub unsafe fn fill_feature_struct(s_type: vk::StructureType, p: *mut c_void) -> 
             vk::StructureType::PHYSICAL_DEVICE_SHADER_DRAW_PARAMETERS_FEATURES => {
                 util::write_keep_chain(p, vk::PhysicalDeviceShaderDrawParametersFeatures::default())
             }
-            _ => return false,
+            _ => return super::core_caps::fill_feature_struct(s_type, p),
         }
     }
     true
@@ -341,9 +358,9 @@ pub unsafe fn fill_property_struct(s_type: vk::StructureType, p: *mut c_void) ->
             vk::StructureType::PHYSICAL_DEVICE_SUBGROUP_PROPERTIES => util::write_keep_chain(
                 p,
                 vk::PhysicalDeviceSubgroupProperties {
-                    subgroup_size: 1,
+                    subgroup_size: crate::shader::LANES as u32,
                     supported_stages: vk::ShaderStageFlags::COMPUTE,
-                    supported_operations: vk::SubgroupFeatureFlags::BASIC,
+                    supported_operations: SUBGROUP_OPERATIONS,
                     quad_operations_in_all_stages: vk::FALSE,
                     ..Default::default()
                 },
@@ -416,7 +433,7 @@ pub unsafe fn fill_property_struct(s_type: vk::StructureType, p: *mut c_void) ->
                     ..Default::default()
                 },
             ),
-            _ => return false,
+            _ => return super::core_caps::fill_property_struct(s_type, p),
         }
     }
     true

@@ -21,6 +21,7 @@ pub static REGISTRY: &[RegistryEntry] = &[
     RegistryEntry { name: "vkBuildAccelerationStructuresKHR", canonical: "vkBuildAccelerationStructuresKHR", level: Level::Device, origin: Origin::Extension("VK_KHR_acceleration_structure"), fallback: void_fn!(PFN_vkBuildAccelerationStructuresKHR => fallback::build_acceleration_structures_khr) },
     RegistryEntry { name: "vkCmdBeginQuery", canonical: "vkCmdBeginQuery", level: Level::Device, origin: Origin::Core(0), fallback: void_fn!(PFN_vkCmdBeginQuery => fallback::cmd_begin_query) },
     RegistryEntry { name: "vkCmdBeginRenderPass", canonical: "vkCmdBeginRenderPass", level: Level::Device, origin: Origin::Core(0), fallback: void_fn!(PFN_vkCmdBeginRenderPass => fallback::cmd_begin_render_pass) },
+    RegistryEntry { name: "vkCmdBeginRenderPass2", canonical: "vkCmdBeginRenderPass2", level: Level::Device, origin: Origin::Core(2), fallback: void_fn!(PFN_vkCmdBeginRenderPass2 => fallback::cmd_begin_render_pass2) },
     RegistryEntry { name: "vkCmdBindDescriptorSets", canonical: "vkCmdBindDescriptorSets", level: Level::Device, origin: Origin::Core(0), fallback: void_fn!(PFN_vkCmdBindDescriptorSets => fallback::cmd_bind_descriptor_sets) },
     RegistryEntry { name: "vkCmdBindIndexBuffer", canonical: "vkCmdBindIndexBuffer", level: Level::Device, origin: Origin::Core(0), fallback: void_fn!(PFN_vkCmdBindIndexBuffer => fallback::cmd_bind_index_buffer) },
     RegistryEntry { name: "vkCmdBindPipeline", canonical: "vkCmdBindPipeline", level: Level::Device, origin: Origin::Core(0), fallback: void_fn!(PFN_vkCmdBindPipeline => fallback::cmd_bind_pipeline) },
@@ -50,12 +51,16 @@ pub static REGISTRY: &[RegistryEntry] = &[
     RegistryEntry { name: "vkCmdDraw", canonical: "vkCmdDraw", level: Level::Device, origin: Origin::Core(0), fallback: void_fn!(PFN_vkCmdDraw => fallback::cmd_draw) },
     RegistryEntry { name: "vkCmdDrawIndexed", canonical: "vkCmdDrawIndexed", level: Level::Device, origin: Origin::Core(0), fallback: void_fn!(PFN_vkCmdDrawIndexed => fallback::cmd_draw_indexed) },
     RegistryEntry { name: "vkCmdDrawIndexedIndirect", canonical: "vkCmdDrawIndexedIndirect", level: Level::Device, origin: Origin::Core(0), fallback: void_fn!(PFN_vkCmdDrawIndexedIndirect => fallback::cmd_draw_indexed_indirect) },
+    RegistryEntry { name: "vkCmdDrawIndexedIndirectCount", canonical: "vkCmdDrawIndexedIndirectCount", level: Level::Device, origin: Origin::Core(2), fallback: void_fn!(PFN_vkCmdDrawIndexedIndirectCount => fallback::cmd_draw_indexed_indirect_count) },
     RegistryEntry { name: "vkCmdDrawIndirect", canonical: "vkCmdDrawIndirect", level: Level::Device, origin: Origin::Core(0), fallback: void_fn!(PFN_vkCmdDrawIndirect => fallback::cmd_draw_indirect) },
+    RegistryEntry { name: "vkCmdDrawIndirectCount", canonical: "vkCmdDrawIndirectCount", level: Level::Device, origin: Origin::Core(2), fallback: void_fn!(PFN_vkCmdDrawIndirectCount => fallback::cmd_draw_indirect_count) },
     RegistryEntry { name: "vkCmdEndQuery", canonical: "vkCmdEndQuery", level: Level::Device, origin: Origin::Core(0), fallback: void_fn!(PFN_vkCmdEndQuery => fallback::cmd_end_query) },
     RegistryEntry { name: "vkCmdEndRenderPass", canonical: "vkCmdEndRenderPass", level: Level::Device, origin: Origin::Core(0), fallback: void_fn!(PFN_vkCmdEndRenderPass => fallback::cmd_end_render_pass) },
+    RegistryEntry { name: "vkCmdEndRenderPass2", canonical: "vkCmdEndRenderPass2", level: Level::Device, origin: Origin::Core(2), fallback: void_fn!(PFN_vkCmdEndRenderPass2 => fallback::cmd_end_render_pass2) },
     RegistryEntry { name: "vkCmdExecuteCommands", canonical: "vkCmdExecuteCommands", level: Level::Device, origin: Origin::Core(0), fallback: void_fn!(PFN_vkCmdExecuteCommands => fallback::cmd_execute_commands) },
     RegistryEntry { name: "vkCmdFillBuffer", canonical: "vkCmdFillBuffer", level: Level::Device, origin: Origin::Core(0), fallback: void_fn!(PFN_vkCmdFillBuffer => fallback::cmd_fill_buffer) },
     RegistryEntry { name: "vkCmdNextSubpass", canonical: "vkCmdNextSubpass", level: Level::Device, origin: Origin::Core(0), fallback: void_fn!(PFN_vkCmdNextSubpass => fallback::cmd_next_subpass) },
+    RegistryEntry { name: "vkCmdNextSubpass2", canonical: "vkCmdNextSubpass2", level: Level::Device, origin: Origin::Core(2), fallback: void_fn!(PFN_vkCmdNextSubpass2 => fallback::cmd_next_subpass2) },
     RegistryEntry { name: "vkCmdPipelineBarrier", canonical: "vkCmdPipelineBarrier", level: Level::Device, origin: Origin::Core(0), fallback: void_fn!(PFN_vkCmdPipelineBarrier => fallback::cmd_pipeline_barrier) },
     RegistryEntry { name: "vkCmdPipelineBarrier2KHR", canonical: "vkCmdPipelineBarrier2", level: Level::Device, origin: Origin::Extension("VK_KHR_synchronization2"), fallback: void_fn!(PFN_vkCmdPipelineBarrier2 => fallback::cmd_pipeline_barrier2) },
     RegistryEntry { name: "vkCmdPushConstants", canonical: "vkCmdPushConstants", level: Level::Device, origin: Origin::Core(0), fallback: void_fn!(PFN_vkCmdPushConstants => fallback::cmd_push_constants) },
@@ -106,6 +111,7 @@ pub static REGISTRY: &[RegistryEntry] = &[
     RegistryEntry { name: "vkCreatePipelineLayout", canonical: "vkCreatePipelineLayout", level: Level::Device, origin: Origin::Core(0), fallback: void_fn!(PFN_vkCreatePipelineLayout => fallback::create_pipeline_layout) },
     RegistryEntry { name: "vkCreateQueryPool", canonical: "vkCreateQueryPool", level: Level::Device, origin: Origin::Core(0), fallback: void_fn!(PFN_vkCreateQueryPool => fallback::create_query_pool) },
     RegistryEntry { name: "vkCreateRenderPass", canonical: "vkCreateRenderPass", level: Level::Device, origin: Origin::Core(0), fallback: void_fn!(PFN_vkCreateRenderPass => fallback::create_render_pass) },
+    RegistryEntry { name: "vkCreateRenderPass2", canonical: "vkCreateRenderPass2", level: Level::Device, origin: Origin::Core(2), fallback: void_fn!(PFN_vkCreateRenderPass2 => fallback::create_render_pass2) },
     RegistryEntry { name: "vkCreateSampler", canonical: "vkCreateSampler", level: Level::Device, origin: Origin::Core(0), fallback: void_fn!(PFN_vkCreateSampler => fallback::create_sampler) },
     RegistryEntry { name: "vkCreateSamplerYcbcrConversion", canonical: "vkCreateSamplerYcbcrConversion", level: Level::Device, origin: Origin::Core(1), fallback: void_fn!(PFN_vkCreateSamplerYcbcrConversion => fallback::create_sampler_ycbcr_conversion) },
     RegistryEntry { name: "vkCreateSemaphore", canonical: "vkCreateSemaphore", level: Level::Device, origin: Origin::Core(0), fallback: void_fn!(PFN_vkCreateSemaphore => fallback::create_semaphore) },
@@ -150,10 +156,12 @@ pub static REGISTRY: &[RegistryEntry] = &[
     RegistryEntry { name: "vkFreeMemory", canonical: "vkFreeMemory", level: Level::Device, origin: Origin::Core(0), fallback: void_fn!(PFN_vkFreeMemory => fallback::free_memory) },
     RegistryEntry { name: "vkGetAccelerationStructureBuildSizesKHR", canonical: "vkGetAccelerationStructureBuildSizesKHR", level: Level::Device, origin: Origin::Extension("VK_KHR_acceleration_structure"), fallback: void_fn!(PFN_vkGetAccelerationStructureBuildSizesKHR => fallback::get_acceleration_structure_build_sizes_khr) },
     RegistryEntry { name: "vkGetAccelerationStructureDeviceAddressKHR", canonical: "vkGetAccelerationStructureDeviceAddressKHR", level: Level::Device, origin: Origin::Extension("VK_KHR_acceleration_structure"), fallback: void_fn!(PFN_vkGetAccelerationStructureDeviceAddressKHR => fallback::get_acceleration_structure_device_address_khr) },
+    RegistryEntry { name: "vkGetBufferDeviceAddress", canonical: "vkGetBufferDeviceAddress", level: Level::Device, origin: Origin::Core(2), fallback: void_fn!(PFN_vkGetBufferDeviceAddress => fallback::get_buffer_device_address) },
     RegistryEntry { name: "vkGetBufferDeviceAddressKHR", canonical: "vkGetBufferDeviceAddress", level: Level::Device, origin: Origin::Extension("VK_KHR_buffer_device_address"), fallback: void_fn!(PFN_vkGetBufferDeviceAddress => fallback::get_buffer_device_address) },
     RegistryEntry { name: "vkGetBufferMemoryRequirements", canonical: "vkGetBufferMemoryRequirements", level: Level::Device, origin: Origin::Core(0), fallback: void_fn!(PFN_vkGetBufferMemoryRequirements => fallback::get_buffer_memory_requirements) },
     RegistryEntry { name: "vkGetBufferMemoryRequirements2", canonical: "vkGetBufferMemoryRequirements2", level: Level::Device, origin: Origin::Core(1), fallback: void_fn!(PFN_vkGetBufferMemoryRequirements2 => fallback::get_buffer_memory_requirements2) },
     RegistryEntry { name: "vkGetBufferMemoryRequirements2KHR", canonical: "vkGetBufferMemoryRequirements2", level: Level::Device, origin: Origin::Extension("VK_KHR_get_memory_requirements2"), fallback: void_fn!(PFN_vkGetBufferMemoryRequirements2 => fallback::get_buffer_memory_requirements2) },
+    RegistryEntry { name: "vkGetBufferOpaqueCaptureAddress", canonical: "vkGetBufferOpaqueCaptureAddress", level: Level::Device, origin: Origin::Core(2), fallback: void_fn!(PFN_vkGetBufferOpaqueCaptureAddress => fallback::get_buffer_opaque_capture_address) },
     RegistryEntry { name: "vkGetBufferOpaqueCaptureAddressKHR", canonical: "vkGetBufferOpaqueCaptureAddress", level: Level::Device, origin: Origin::Extension("VK_KHR_buffer_device_address"), fallback: void_fn!(PFN_vkGetBufferOpaqueCaptureAddress => fallback::get_buffer_opaque_capture_address) },
     RegistryEntry { name: "vkGetDeferredOperationMaxConcurrencyKHR", canonical: "vkGetDeferredOperationMaxConcurrencyKHR", level: Level::Device, origin: Origin::Extension("VK_KHR_deferred_host_operations"), fallback: void_fn!(PFN_vkGetDeferredOperationMaxConcurrencyKHR => fallback::get_deferred_operation_max_concurrency_khr) },
     RegistryEntry { name: "vkGetDeferredOperationResultKHR", canonical: "vkGetDeferredOperationResultKHR", level: Level::Device, origin: Origin::Extension("VK_KHR_deferred_host_operations"), fallback: void_fn!(PFN_vkGetDeferredOperationResultKHR => fallback::get_deferred_operation_result_khr) },
@@ -162,6 +170,7 @@ pub static REGISTRY: &[RegistryEntry] = &[
     RegistryEntry { name: "vkGetDeviceAccelerationStructureCompatibilityKHR", canonical: "vkGetDeviceAccelerationStructureCompatibilityKHR", level: Level::Device, origin: Origin::Extension("VK_KHR_acceleration_structure"), fallback: void_fn!(PFN_vkGetDeviceAccelerationStructureCompatibilityKHR => fallback::get_device_acceleration_structure_compatibility_khr) },
     RegistryEntry { name: "vkGetDeviceGroupPeerMemoryFeatures", canonical: "vkGetDeviceGroupPeerMemoryFeatures", level: Level::Device, origin: Origin::Core(1), fallback: void_fn!(PFN_vkGetDeviceGroupPeerMemoryFeatures => fallback::get_device_group_peer_memory_features) },
     RegistryEntry { name: "vkGetDeviceMemoryCommitment", canonical: "vkGetDeviceMemoryCommitment", level: Level::Device, origin: Origin::Core(0), fallback: void_fn!(PFN_vkGetDeviceMemoryCommitment => fallback::get_device_memory_commitment) },
+    RegistryEntry { name: "vkGetDeviceMemoryOpaqueCaptureAddress", canonical: "vkGetDeviceMemoryOpaqueCaptureAddress", level: Level::Device, origin: Origin::Core(2), fallback: void_fn!(PFN_vkGetDeviceMemoryOpaqueCaptureAddress => fallback::get_device_memory_opaque_capture_address) },
     RegistryEntry { name: "vkGetDeviceMemoryOpaqueCaptureAddressKHR", canonical: "vkGetDeviceMemoryOpaqueCaptureAddress", level: Level::Device, origin: Origin::Extension("VK_KHR_buffer_device_address"), fallback: void_fn!(PFN_vkGetDeviceMemoryOpaqueCaptureAddress => fallback::get_device_memory_opaque_capture_address) },
     RegistryEntry { name: "vkGetDeviceProcAddr", canonical: "vkGetDeviceProcAddr", level: Level::Device, origin: Origin::Core(0), fallback: void_fn!(PFN_vkGetDeviceProcAddr => fallback::get_device_proc_addr) },
     RegistryEntry { name: "vkGetDeviceQueue", canonical: "vkGetDeviceQueue", level: Level::Device, origin: Origin::Core(0), fallback: void_fn!(PFN_vkGetDeviceQueue => fallback::get_device_queue) },
@@ -203,6 +212,7 @@ pub static REGISTRY: &[RegistryEntry] = &[
     RegistryEntry { name: "vkGetPipelineCacheData", canonical: "vkGetPipelineCacheData", level: Level::Device, origin: Origin::Core(0), fallback: void_fn!(PFN_vkGetPipelineCacheData => fallback::get_pipeline_cache_data) },
     RegistryEntry { name: "vkGetQueryPoolResults", canonical: "vkGetQueryPoolResults", level: Level::Device, origin: Origin::Core(0), fallback: void_fn!(PFN_vkGetQueryPoolResults => fallback::get_query_pool_results) },
     RegistryEntry { name: "vkGetRenderAreaGranularity", canonical: "vkGetRenderAreaGranularity", level: Level::Device, origin: Origin::Core(0), fallback: void_fn!(PFN_vkGetRenderAreaGranularity => fallback::get_render_area_granularity) },
+    RegistryEntry { name: "vkGetSemaphoreCounterValue", canonical: "vkGetSemaphoreCounterValue", level: Level::Device, origin: Origin::Core(2), fallback: void_fn!(PFN_vkGetSemaphoreCounterValue => fallback::get_semaphore_counter_value) },
     RegistryEntry { name: "vkGetSemaphoreCounterValueKHR", canonical: "vkGetSemaphoreCounterValue", level: Level::Device, origin: Origin::Extension("VK_KHR_timeline_semaphore"), fallback: void_fn!(PFN_vkGetSemaphoreCounterValue => fallback::get_semaphore_counter_value) },
     RegistryEntry { name: "vkInvalidateMappedMemoryRanges", canonical: "vkInvalidateMappedMemoryRanges", level: Level::Device, origin: Origin::Core(0), fallback: void_fn!(PFN_vkInvalidateMappedMemoryRanges => fallback::invalidate_mapped_memory_ranges) },
     RegistryEntry { name: "vkMapMemory", canonical: "vkMapMemory", level: Level::Device, origin: Origin::Core(0), fallback: void_fn!(PFN_vkMapMemory => fallback::map_memory) },
@@ -216,8 +226,10 @@ pub static REGISTRY: &[RegistryEntry] = &[
     RegistryEntry { name: "vkResetDescriptorPool", canonical: "vkResetDescriptorPool", level: Level::Device, origin: Origin::Core(0), fallback: void_fn!(PFN_vkResetDescriptorPool => fallback::reset_descriptor_pool) },
     RegistryEntry { name: "vkResetEvent", canonical: "vkResetEvent", level: Level::Device, origin: Origin::Core(0), fallback: void_fn!(PFN_vkResetEvent => fallback::reset_event) },
     RegistryEntry { name: "vkResetFences", canonical: "vkResetFences", level: Level::Device, origin: Origin::Core(0), fallback: void_fn!(PFN_vkResetFences => fallback::reset_fences) },
+    RegistryEntry { name: "vkResetQueryPool", canonical: "vkResetQueryPool", level: Level::Device, origin: Origin::Core(2), fallback: void_fn!(PFN_vkResetQueryPool => fallback::reset_query_pool) },
     RegistryEntry { name: "vkResetQueryPoolEXT", canonical: "vkResetQueryPool", level: Level::Device, origin: Origin::Extension("VK_EXT_host_query_reset"), fallback: void_fn!(PFN_vkResetQueryPool => fallback::reset_query_pool) },
     RegistryEntry { name: "vkSetEvent", canonical: "vkSetEvent", level: Level::Device, origin: Origin::Core(0), fallback: void_fn!(PFN_vkSetEvent => fallback::set_event) },
+    RegistryEntry { name: "vkSignalSemaphore", canonical: "vkSignalSemaphore", level: Level::Device, origin: Origin::Core(2), fallback: void_fn!(PFN_vkSignalSemaphore => fallback::signal_semaphore) },
     RegistryEntry { name: "vkSignalSemaphoreKHR", canonical: "vkSignalSemaphore", level: Level::Device, origin: Origin::Extension("VK_KHR_timeline_semaphore"), fallback: void_fn!(PFN_vkSignalSemaphore => fallback::signal_semaphore) },
     RegistryEntry { name: "vkTrimCommandPool", canonical: "vkTrimCommandPool", level: Level::Device, origin: Origin::Core(1), fallback: void_fn!(PFN_vkTrimCommandPool => fallback::trim_command_pool) },
     RegistryEntry { name: "vkTrimCommandPoolKHR", canonical: "vkTrimCommandPool", level: Level::Device, origin: Origin::Extension("VK_KHR_maintenance1"), fallback: void_fn!(PFN_vkTrimCommandPool => fallback::trim_command_pool) },
@@ -225,6 +237,7 @@ pub static REGISTRY: &[RegistryEntry] = &[
     RegistryEntry { name: "vkUpdateDescriptorSetWithTemplate", canonical: "vkUpdateDescriptorSetWithTemplate", level: Level::Device, origin: Origin::Core(1), fallback: void_fn!(PFN_vkUpdateDescriptorSetWithTemplate => fallback::update_descriptor_set_with_template) },
     RegistryEntry { name: "vkUpdateDescriptorSets", canonical: "vkUpdateDescriptorSets", level: Level::Device, origin: Origin::Core(0), fallback: void_fn!(PFN_vkUpdateDescriptorSets => fallback::update_descriptor_sets) },
     RegistryEntry { name: "vkWaitForFences", canonical: "vkWaitForFences", level: Level::Device, origin: Origin::Core(0), fallback: void_fn!(PFN_vkWaitForFences => fallback::wait_for_fences) },
+    RegistryEntry { name: "vkWaitSemaphores", canonical: "vkWaitSemaphores", level: Level::Device, origin: Origin::Core(2), fallback: void_fn!(PFN_vkWaitSemaphores => fallback::wait_semaphores) },
     RegistryEntry { name: "vkWaitSemaphoresKHR", canonical: "vkWaitSemaphores", level: Level::Device, origin: Origin::Extension("VK_KHR_timeline_semaphore"), fallback: void_fn!(PFN_vkWaitSemaphores => fallback::wait_semaphores) },
     RegistryEntry { name: "vkWriteAccelerationStructuresPropertiesKHR", canonical: "vkWriteAccelerationStructuresPropertiesKHR", level: Level::Device, origin: Origin::Extension("VK_KHR_acceleration_structure"), fallback: void_fn!(PFN_vkWriteAccelerationStructuresPropertiesKHR => fallback::write_acceleration_structures_properties_khr) },
 ];
@@ -274,6 +287,9 @@ pub mod fallback {
     }
     pub unsafe extern "system" fn cmd_begin_render_pass(_command_buffer: vk::CommandBuffer, _p_render_pass_begin: *const vk::RenderPassBeginInfo, _contents: vk::SubpassContents) {
         crate::diag::unsupported("vkCmdBeginRenderPass");
+    }
+    pub unsafe extern "system" fn cmd_begin_render_pass2(_command_buffer: vk::CommandBuffer, _p_render_pass_begin: *const vk::RenderPassBeginInfo, _p_subpass_begin_info: *const vk::SubpassBeginInfo) {
+        crate::diag::unsupported("vkCmdBeginRenderPass2");
     }
     pub unsafe extern "system" fn cmd_bind_descriptor_sets(_command_buffer: vk::CommandBuffer, _pipeline_bind_point: vk::PipelineBindPoint, _layout: vk::PipelineLayout, _first_set: u32, _descriptor_set_count: u32, _p_descriptor_sets: *const vk::DescriptorSet, _dynamic_offset_count: u32, _p_dynamic_offsets: *const u32) {
         crate::diag::unsupported("vkCmdBindDescriptorSets");
@@ -362,14 +378,23 @@ pub mod fallback {
     pub unsafe extern "system" fn cmd_draw_indexed_indirect(_command_buffer: vk::CommandBuffer, _buffer: vk::Buffer, _offset: vk::DeviceSize, _draw_count: u32, _stride: u32) {
         crate::diag::unsupported("vkCmdDrawIndexedIndirect");
     }
+    pub unsafe extern "system" fn cmd_draw_indexed_indirect_count(_command_buffer: vk::CommandBuffer, _buffer: vk::Buffer, _offset: vk::DeviceSize, _count_buffer: vk::Buffer, _count_buffer_offset: vk::DeviceSize, _max_draw_count: u32, _stride: u32) {
+        crate::diag::unsupported("vkCmdDrawIndexedIndirectCount");
+    }
     pub unsafe extern "system" fn cmd_draw_indirect(_command_buffer: vk::CommandBuffer, _buffer: vk::Buffer, _offset: vk::DeviceSize, _draw_count: u32, _stride: u32) {
         crate::diag::unsupported("vkCmdDrawIndirect");
+    }
+    pub unsafe extern "system" fn cmd_draw_indirect_count(_command_buffer: vk::CommandBuffer, _buffer: vk::Buffer, _offset: vk::DeviceSize, _count_buffer: vk::Buffer, _count_buffer_offset: vk::DeviceSize, _max_draw_count: u32, _stride: u32) {
+        crate::diag::unsupported("vkCmdDrawIndirectCount");
     }
     pub unsafe extern "system" fn cmd_end_query(_command_buffer: vk::CommandBuffer, _query_pool: vk::QueryPool, _query: u32) {
         crate::diag::unsupported("vkCmdEndQuery");
     }
     pub unsafe extern "system" fn cmd_end_render_pass(_command_buffer: vk::CommandBuffer) {
         crate::diag::unsupported("vkCmdEndRenderPass");
+    }
+    pub unsafe extern "system" fn cmd_end_render_pass2(_command_buffer: vk::CommandBuffer, _p_subpass_end_info: *const vk::SubpassEndInfo) {
+        crate::diag::unsupported("vkCmdEndRenderPass2");
     }
     pub unsafe extern "system" fn cmd_execute_commands(_command_buffer: vk::CommandBuffer, _command_buffer_count: u32, _p_command_buffers: *const vk::CommandBuffer) {
         crate::diag::unsupported("vkCmdExecuteCommands");
@@ -379,6 +404,9 @@ pub mod fallback {
     }
     pub unsafe extern "system" fn cmd_next_subpass(_command_buffer: vk::CommandBuffer, _contents: vk::SubpassContents) {
         crate::diag::unsupported("vkCmdNextSubpass");
+    }
+    pub unsafe extern "system" fn cmd_next_subpass2(_command_buffer: vk::CommandBuffer, _p_subpass_begin_info: *const vk::SubpassBeginInfo, _p_subpass_end_info: *const vk::SubpassEndInfo) {
+        crate::diag::unsupported("vkCmdNextSubpass2");
     }
     pub unsafe extern "system" fn cmd_pipeline_barrier(_command_buffer: vk::CommandBuffer, _src_stage_mask: vk::PipelineStageFlags, _dst_stage_mask: vk::PipelineStageFlags, _dependency_flags: vk::DependencyFlags, _memory_barrier_count: u32, _p_memory_barriers: *const vk::MemoryBarrier, _buffer_memory_barrier_count: u32, _p_buffer_memory_barriers: *const vk::BufferMemoryBarrier, _image_memory_barrier_count: u32, _p_image_memory_barriers: *const vk::ImageMemoryBarrier) {
         crate::diag::unsupported("vkCmdPipelineBarrier");
@@ -552,6 +580,10 @@ pub mod fallback {
     }
     pub unsafe extern "system" fn create_render_pass(_device: vk::Device, _p_create_info: *const vk::RenderPassCreateInfo, _p_allocator: *const vk::AllocationCallbacks, _p_render_pass: *mut vk::RenderPass) -> vk::Result {
         crate::diag::unsupported("vkCreateRenderPass");
+        vk::Result::ERROR_FEATURE_NOT_PRESENT
+    }
+    pub unsafe extern "system" fn create_render_pass2(_device: vk::Device, _p_create_info: *const vk::RenderPassCreateInfo2, _p_allocator: *const vk::AllocationCallbacks, _p_render_pass: *mut vk::RenderPass) -> vk::Result {
+        crate::diag::unsupported("vkCreateRenderPass2");
         vk::Result::ERROR_FEATURE_NOT_PRESENT
     }
     pub unsafe extern "system" fn create_sampler(_device: vk::Device, _p_create_info: *const vk::SamplerCreateInfo, _p_allocator: *const vk::AllocationCallbacks, _p_sampler: *mut vk::Sampler) -> vk::Result {

@@ -1,5 +1,5 @@
 //! The object model: plain Rust types with Arc-shared state, the queues that execute recorded
-//! commands, and the acceleration-structure commands (`accel`). No raw application pointers
+//! commands, the acceleration-structure commands (`accel`) and compute pipelines (`shader`). No raw application pointers
 //! and no `unsafe` here, and nothing of the dispatch layer: handles, their type tags and the
 //! handle registry are `dispatch`'s, and memory views are `memory`'s.
 #![forbid(unsafe_code)]
@@ -12,6 +12,7 @@ pub mod in_use;
 pub mod instance;
 pub mod query;
 pub mod queue;
+pub mod shader;
 pub mod stall;
 pub mod sync;
 

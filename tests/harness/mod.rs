@@ -9,6 +9,8 @@
 
 pub mod accel;
 pub mod child;
+pub mod compute;
+pub mod compute_run;
 pub mod vuid;
 
 use std::ffi::{c_void, CStr, CString};
@@ -47,7 +49,7 @@ pub fn use_arbor_manifest() -> PathBuf {
             std::fs::create_dir_all(&dir).unwrap();
             let path = dir.join("icd.json");
             let json = format!(
-                "{{\"file_format_version\":\"1.0.1\",\"ICD\":{{\"library_path\":\"{}\",\"api_version\":\"1.1.281\",\"library_arch\":\"64\"}}}}",
+                "{{\"file_format_version\":\"1.0.1\",\"ICD\":{{\"library_path\":\"{}\",\"api_version\":\"1.2.281\",\"library_arch\":\"64\"}}}}",
                 lib.display()
             );
             // Every test process writes the same manifest: write a private file and rename it
@@ -178,7 +180,7 @@ fn lifecycle() -> std::sync::MutexGuard<'static, ()> {
 /// The instance: validation layer (if asked for), debug utils and the options' extensions, with
 /// a messenger into `sink` that also covers vkCreateInstance itself.
 fn create_instance(entry: &ash::Entry, opts: &Options, sink: *mut c_void) -> ash::Instance {
-    let app = vk::ApplicationInfo::default().api_version(vk::API_VERSION_1_1);
+    let app = vk::ApplicationInfo::default().api_version(vk::API_VERSION_1_2);
     let layer = CString::new("VK_LAYER_KHRONOS_validation").unwrap();
     let ext_debug = ash::ext::debug_utils::NAME;
     let layers: Vec<*const i8> = if opts.validation {

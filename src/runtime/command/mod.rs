@@ -161,6 +161,8 @@ struct CbState {
     recorded: Option<Arc<Recording>>,
     /// Bumped by every reset/begin: lets a primary detect that a secondary it recorded changed.
     generation: u64,
+    /// Bound compute pipeline, descriptor sets and push constants.
+    compute: crate::runtime::shader::BindState,
 }
 
 impl CbState {
@@ -173,6 +175,7 @@ impl CbState {
         self.violations = 0;
         self.recorded = None;
         self.generation += 1;
+        self.compute = Default::default();
     }
 }
 
@@ -299,6 +302,17 @@ impl CommandBuffer {
             return false;
         }
         true
+    }
+
+    /// Read or change the bound compute state (only while recording; None otherwise).
+    pub fn compute_state<R>(&self, command: &str, f: impl FnOnce(&mut crate::runtime::shader::BindState) -> R) -> Option<R> {
+        let mut s = self.state();
+        if s.lifecycle != Lifecycle::Recording {
+            drop(s);
+            not_recording(command);
+            return None;
+        }
+        Some(f(&mut s.compute))
     }
 
     /// Record a command implemented elsewhere (see the module docs).
