@@ -51,7 +51,7 @@ pub fn vulkan12_features() -> vk::PhysicalDeviceVulkan12Features<'static> {
 /// `p` points to a writable struct of type `s_type`.
 pub unsafe fn fill_feature_struct(s_type: vk::StructureType, p: *mut c_void) -> bool {
     let f = vulkan12_features();
-    // SAFETY (each arm): the sType identifies the struct; write_keep_chain preserves pNext.
+    // SAFETY: (each arm) the sType identifies the struct; write_keep_chain preserves pNext.
     unsafe {
         match s_type {
             vk::StructureType::PHYSICAL_DEVICE_VULKAN_1_1_FEATURES => util::write_keep_chain(
@@ -175,7 +175,7 @@ pub fn vulkan12_properties() -> vk::PhysicalDeviceVulkan12Properties<'static> {
 /// `p` points to a writable struct of type `s_type`.
 pub unsafe fn fill_property_struct(s_type: vk::StructureType, p: *mut c_void) -> bool {
     let v12 = vulkan12_properties();
-    // SAFETY (each arm): the sType identifies the struct; write_keep_chain preserves pNext.
+    // SAFETY: (each arm) the sType identifies the struct; write_keep_chain preserves pNext.
     unsafe {
         match s_type {
             vk::StructureType::PHYSICAL_DEVICE_VULKAN_1_1_PROPERTIES => util::write_keep_chain(p, vulkan11_properties()),
