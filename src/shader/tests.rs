@@ -11,7 +11,7 @@ fn compile(name: &str) -> Vec<(String, Vec<u32>)> {
     compile_with(name, &[])
 }
 
-fn compile_with(name: &str, defines: &[&str]) -> Vec<(String, Vec<u32>)> {
+pub(super) fn compile_with(name: &str, defines: &[&str]) -> Vec<(String, Vec<u32>)> {
     let src = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("tests/shaders").join(name);
     let dir = std::env::temp_dir().join(format!("arbor-shader-tests-{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();
@@ -457,8 +457,8 @@ fn unsupported_modules_fail_at_parse_naming_what_and_where() {
     for (what, words) in compile("image.comp") {
         match Module::parse(&words) {
             Err(ShaderError::UnsupportedOpcode { opcode, offset }) => {
-                assert_eq!(opcode, "OpTypeImage", "{what}");
-                assert_eq!(opcode_at(&words, offset), spirv::Op::TypeImage as u32, "{what}");
+                assert_eq!(opcode, "OpTypeSampledImage", "{what}");
+                assert_eq!(opcode_at(&words, offset), spirv::Op::TypeSampledImage as u32, "{what}");
             }
             other => panic!("{what}: expected an unsupported opcode, got {other:?}"),
         }
