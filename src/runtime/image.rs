@@ -226,3 +226,99 @@ pub fn storage_image_binding(descriptor: &Descriptor, id: u64) -> Option<(Arc<Im
     }
     Some((view.image.clone(), view.shader_binding(id)?))
 }
+
+#[cfg(test)]
+mod tests {
+    //! The path a compute dispatch takes to a storage image: descriptor → `storage_image_binding`
+    //! → a `shader::Memory` that serves texels from the image's storage → the library's
+    //! executor writing through it. Checked against the subresource layout, not the executor.
+    use super::*;
+    use crate::memory::AddressSpace;
+    use crate::runtime::descriptor::storage_image_descriptor;
+    use crate::shader::{dispatch, Memory, Module, Pipeline, Region, Watchdog};
+
+    struct ImageMemory {
+        image: Arc<Image>,
+        binding: ImageBinding,
+    }
+
+    impl Memory for ImageMemory {
+        fn binding(&self, _: u32, _: u32) -> Option<Region> {
+            None
+        }
+        fn address(&self, _: u64, _: u64) -> Option<Region> {
+            None
+        }
+        fn read(&self, _: u64, offset: u64, out: &mut [u8]) -> bool {
+            self.image.storage.read(offset, out).is_ok()
+        }
+        fn write(&self, _: u64, offset: u64, data: &[u8]) -> bool {
+            self.image.storage.write(offset, data).is_ok()
+        }
+        fn atomic(&self, _: u64, _: u64, _: usize, _: &dyn Fn(u64) -> u64) -> Option<u64> {
+            None
+        }
+        fn image(&self, set: u32, binding: u32) -> Option<ImageBinding> {
+            ((set, binding) == (0, 0)).then_some(self.binding)
+        }
+    }
+
+    fn compile(src: &str) -> Vec<u32> {
+        let dir = std::env::temp_dir().join(format!("arbor-runtime-image-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let (glsl, spv) = (dir.join("w.comp"), dir.join("w.spv"));
+        std::fs::write(&glsl, src).unwrap();
+        let out = std::process::Command::new("glslangValidator").args(["-V", "--target-env", "vulkan1.2", "-o"]).arg(&spv).arg(&glsl).output().unwrap();
+        assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stdout));
+        std::fs::read(&spv).unwrap().chunks(4).map(|c| u32::from_le_bytes(c.try_into().unwrap())).collect()
+    }
+
+    #[test]
+    fn a_storage_image_descriptor_serves_a_dispatch() {
+        let desc = ImageDesc {
+            flags: vk::ImageCreateFlags::empty(),
+            image_type: vk::ImageType::TYPE_2D,
+            format: vk::Format::R32_UINT,
+            extent: [4, 4, 1],
+            mip_levels: 2,
+            array_layers: 3,
+            samples: vk::SampleCountFlags::TYPE_1,
+            tiling: vk::ImageTiling::OPTIMAL,
+            usage: SUPPORTED_USAGE,
+            initial_layout: vk::ImageLayout::UNDEFINED,
+        };
+        let image = Arc::new(Image::new(&desc).unwrap());
+        let space = AddressSpace::new(1 << 24);
+        let memory = space.allocate(image.storage.requirements().0, false, None).unwrap();
+        image.storage.bind(memory, 0).unwrap();
+        // Level 1 (2x2), layers 1 and 2.
+        let range = vk::ImageSubresourceRange { aspect_mask: vk::ImageAspectFlags::COLOR, base_mip_level: 1, level_count: 1, base_array_layer: 1, layer_count: 2 };
+        let view = Arc::new(ImageView::new(image.clone(), vk::ImageViewType::TYPE_2D_ARRAY, desc.format, range).unwrap());
+        let d = storage_image_descriptor(Some(view.clone()), 0x10, vk::ImageLayout::GENERAL).unwrap();
+        let (img, binding) = storage_image_binding(&d, 7).unwrap();
+        assert_eq!((binding.buffer, binding.extent, binding.layers), (7, [2, 2, 1], 2));
+        let words = compile(
+            "#version 450\nlayout(local_size_x = 1) in;\nlayout(set = 0, binding = 0, r32ui) uniform writeonly uimage2DArray img;\n\
+             void main() { uvec3 g = gl_GlobalInvocationID; imageStore(img, ivec3(g), uvec4(1 + g.x + 10 * g.y + 100 * g.z)); }\n",
+        );
+        let p = Pipeline::compute(&Module::parse(&words).unwrap(), "main", &[]).unwrap();
+        let mem = ImageMemory { image: img, binding };
+        let report = dispatch(&p, &mem, &[], [2, 2, 2], [0; 3], &Watchdog::default());
+        assert!(report.is_clean(), "{report:?}");
+        let read = |level, layer| {
+            let s = image.storage.subresource(level, layer).unwrap();
+            let mut b = vec![0u8; s.size as usize];
+            image.storage.read(s.offset, &mut b).unwrap();
+            b.chunks(4).map(|c| u32::from_le_bytes(c.try_into().unwrap())).collect::<Vec<_>>()
+        };
+        for layer in 0..3 {
+            assert_eq!(read(0, layer), vec![0; 16], "level 0 is outside the view");
+        }
+        assert_eq!(read(1, 0), vec![0; 4], "layer 0 is outside the view");
+        assert_eq!(read(1, 1), vec![1, 2, 11, 12]);
+        assert_eq!(read(1, 2), vec![101, 102, 111, 112]);
+        // A destroyed view leaves nothing to bind.
+        drop(view);
+        assert!(storage_image_binding(&d, 7).is_none());
+    }
+}
