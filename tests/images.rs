@@ -451,6 +451,8 @@ fn invalid_use_is_reported_and_not_executed() {
             .subresource_range(whole(1, 1));
         assert_eq!(d.create_image_view(&v, None), Err(vk::Result::ERROR_VALIDATION_FAILED_EXT));
     }
+    // SAFETY: valid create info; the image stays unbound on purpose.
+    let unbound = unsafe { d.create_image(&info(vk::Format::R32_UINT, ALL_USAGE), None) }.unwrap();
     run(&ctx, |cb| {
         let clear = vk::ClearColorValue { uint32: [1, 2, 3, 4] };
         let full = vk::BufferImageCopy { image_subresource: layers_of(0, 1), image_extent: vk::Extent3D { width: 4, height: 4, depth: 1 }, ..Default::default() };
@@ -463,6 +465,7 @@ fn invalid_use_is_reported_and_not_executed() {
             d.cmd_copy_image_to_buffer(cb, dst.image, vk::ImageLayout::GENERAL, down.buffer, &[vk::BufferImageCopy { image_offset: vk::Offset3D { x: 0, y: 3, z: 0 }, ..full }]);
             let r = vk::ImageCopy { src_subresource: layers_of(1, 1), dst_subresource: layers_of(0, 1), extent: vk::Extent3D { width: 1, height: 1, depth: 1 }, ..Default::default() };
             d.cmd_copy_image(cb, src.image, vk::ImageLayout::GENERAL, dst.image, vk::ImageLayout::GENERAL, &[r]);
+            d.cmd_copy_image_to_buffer(cb, unbound, vk::ImageLayout::GENERAL, down.buffer, &[full]);
         }
     });
     assert!(down.bytes().iter().all(|&b| b == 0x5A), "an invalid copy was executed");
@@ -476,13 +479,50 @@ fn invalid_use_is_reported_and_not_executed() {
         "VUID-vkCmdCopyBufferToImage-pRegions-06218",
         "VUID-vkCmdCopyImageToBuffer-pRegions-06221",
         "VUID-vkCmdCopyImage-srcSubresource-07967",
+        "VUID-vkCmdCopyImageToBuffer-srcImage-07966",
     ] {
         assert!(log.contains(vuid), "{vuid} not reported; diagnostics:\n{log}");
     }
     assert!(log.contains("R16_UINT"), "the unsupported format is named:\n{log}");
+    // SAFETY: idle device; destroyed once.
+    unsafe { d.destroy_image(unbound, None) };
     up.destroy(&ctx);
     down.destroy(&ctx);
     destroy(&ctx, src);
     destroy(&ctx, dst);
+    ctx.finish();
+}
+
+#[test]
+fn copy_commands2_round_trip() {
+    let ctx = harness::context();
+    let (w, h, layers) = (5u32, 3u32, 2u32);
+    let a = image(&ctx, vk::Format::R32G32B32A32_SINT, vk::ImageType::TYPE_2D, [w, h, 1], 1, layers, vk::ImageTiling::OPTIMAL, ALL_USAGE);
+    let b = image(&ctx, vk::Format::R32G32B32A32_UINT, vk::ImageType::TYPE_2D, [w, h, 1], 1, layers, vk::ImageTiling::OPTIMAL, ALL_USAGE);
+    let data = pattern((w * h * layers * 16) as usize, 99);
+    let up = Buf::new(&ctx, &data);
+    let down = Buf::new(&ctx, &vec![0u8; data.len()]);
+    let extent = vk::Extent3D { width: w, height: h, depth: 1 };
+    run(&ctx, |cb| {
+        let (undef, src, dst) = (vk::ImageLayout::UNDEFINED, vk::ImageLayout::TRANSFER_SRC_OPTIMAL, vk::ImageLayout::TRANSFER_DST_OPTIMAL);
+        let region = [vk::BufferImageCopy2::default().image_subresource(layers_of(0, layers)).image_extent(extent)];
+        let copy = [vk::ImageCopy2::default().src_subresource(layers_of(0, layers)).dst_subresource(layers_of(0, layers)).extent(extent)];
+        barrier(&ctx, cb, &[(a.image, undef, dst), (b.image, undef, dst)], 1, layers);
+        // SAFETY: recording; regions inside the objects.
+        unsafe {
+            let d = ash::khr::copy_commands2::Device::new(&ctx.instance, &ctx.device);
+            d.cmd_copy_buffer_to_image2(cb, &vk::CopyBufferToImageInfo2::default().src_buffer(up.buffer).dst_image(a.image).dst_image_layout(dst).regions(&region));
+            barrier(&ctx, cb, &[(a.image, dst, src)], 1, layers);
+            // Size-compatible formats copy bit for bit.
+            d.cmd_copy_image2(cb, &vk::CopyImageInfo2::default().src_image(a.image).src_image_layout(src).dst_image(b.image).dst_image_layout(dst).regions(&copy));
+            barrier(&ctx, cb, &[(b.image, dst, src)], 1, layers);
+            d.cmd_copy_image_to_buffer2(cb, &vk::CopyImageToBufferInfo2::default().src_image(b.image).src_image_layout(src).dst_buffer(down.buffer).regions(&region));
+        }
+    });
+    assert_eq!(down.bytes(), data);
+    up.destroy(&ctx);
+    down.destroy(&ctx);
+    destroy(&ctx, a);
+    destroy(&ctx, b);
     ctx.finish();
 }

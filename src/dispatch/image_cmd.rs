@@ -36,6 +36,8 @@ const TO_IMAGE: Vuids = Vuids {
     subresource: "VUID-vkCmdCopyBufferToImage-imageSubresource-07967",
     bounds: "VUID-vkCmdCopyBufferToImage-pRegions-06218",
     buffer_range: "VUID-vkCmdCopyBufferToImage-pRegions-00171",
+    unbound: "VUID-vkCmdCopyBufferToImage-dstImage-07966",
+    unbound_dst: "VUID-vkCmdCopyBufferToImage-dstImage-07966",
 };
 const TO_IMAGE2: Vuids = Vuids {
     command: "vkCmdCopyBufferToImage2",
@@ -44,6 +46,8 @@ const TO_IMAGE2: Vuids = Vuids {
     subresource: "VUID-VkCopyBufferToImageInfo2-imageSubresource-07967",
     bounds: "VUID-VkCopyBufferToImageInfo2-pRegions-06223",
     buffer_range: "VUID-VkCopyBufferToImageInfo2-pRegions-00171",
+    unbound: "VUID-VkCopyBufferToImageInfo2-dstImage-07966",
+    unbound_dst: "VUID-VkCopyBufferToImageInfo2-dstImage-07966",
 };
 const TO_BUFFER: Vuids = Vuids {
     command: "vkCmdCopyImageToBuffer",
@@ -52,6 +56,8 @@ const TO_BUFFER: Vuids = Vuids {
     subresource: "VUID-vkCmdCopyImageToBuffer-imageSubresource-07967",
     bounds: "VUID-vkCmdCopyImageToBuffer-pRegions-06221",
     buffer_range: "VUID-vkCmdCopyImageToBuffer-pRegions-00183",
+    unbound: "VUID-vkCmdCopyImageToBuffer-srcImage-07966",
+    unbound_dst: "VUID-vkCmdCopyImageToBuffer-srcImage-07966",
 };
 const TO_BUFFER2: Vuids = Vuids {
     command: "vkCmdCopyImageToBuffer2",
@@ -60,6 +66,8 @@ const TO_BUFFER2: Vuids = Vuids {
     subresource: "VUID-VkCopyImageToBufferInfo2-imageSubresource-07967",
     bounds: "VUID-VkCopyImageToBufferInfo2-pRegions-06224",
     buffer_range: "VUID-VkCopyImageToBufferInfo2-pRegions-00183",
+    unbound: "VUID-VkCopyImageToBufferInfo2-srcImage-07966",
+    unbound_dst: "VUID-VkCopyImageToBufferInfo2-srcImage-07966",
 };
 const COPY_IMAGE: Vuids = Vuids {
     command: "vkCmdCopyImage",
@@ -68,6 +76,8 @@ const COPY_IMAGE: Vuids = Vuids {
     subresource: "VUID-vkCmdCopyImage-srcSubresource-07967",
     bounds: "VUID-vkCmdCopyImage-srcOffset-00144",
     buffer_range: "VUID-vkCmdCopyImage-srcImage-01548",
+    unbound: "VUID-vkCmdCopyImage-srcImage-07966",
+    unbound_dst: "VUID-vkCmdCopyImage-dstImage-07966",
 };
 const COPY_IMAGE2: Vuids = Vuids {
     command: "vkCmdCopyImage2",
@@ -76,6 +86,8 @@ const COPY_IMAGE2: Vuids = Vuids {
     subresource: "VUID-VkCopyImageInfo2-srcSubresource-07967",
     bounds: "VUID-VkCopyImageInfo2-srcOffset-00144",
     buffer_range: "VUID-VkCopyImageInfo2-srcImage-01548",
+    unbound: "VUID-VkCopyImageInfo2-srcImage-07966",
+    unbound_dst: "VUID-VkCopyImageInfo2-dstImage-07966",
 };
 
 fn region(s: vk::ImageSubresourceLayers, o: vk::Offset3D, e: vk::Extent3D) -> ImageRegion {

@@ -49,6 +49,9 @@ pub struct Vuids {
     pub subresource: &'static str,
     pub bounds: &'static str,
     pub buffer_range: &'static str,
+    /// The image (for vkCmdCopyImage: the source; `unbound_dst` the destination) has no memory.
+    pub unbound: &'static str,
+    pub unbound_dst: &'static str,
 }
 
 /// Checks that `r` lies inside `image`; the message of the first failure.
@@ -149,6 +152,9 @@ pub fn cmd_copy_buffer_image(cb: &CommandBuffer, v: &Vuids, buffer: Arc<Buffer>,
     if !image.usage.contains(need) {
         return cb.violation(v.usage, cmd, &format!("the image lacks {need:?} usage"));
     }
+    if !image.storage.is_bound() {
+        return cb.violation(v.unbound, cmd, "the image is not bound to memory");
+    }
     if !buffer.usage.contains(buffer_need) {
         return cb.violation(v.buffer_usage, cmd, &format!("the buffer lacks {buffer_need:?} usage"));
     }
@@ -207,6 +213,12 @@ pub fn cmd_copy_image(cb: &CommandBuffer, v: &Vuids, src: Arc<Image>, dst: Arc<I
     }
     if !dst.usage.contains(vk::ImageUsageFlags::TRANSFER_DST) {
         return cb.violation(v.buffer_usage, cmd, "dstImage lacks TRANSFER_DST usage");
+    }
+    if !src.storage.is_bound() {
+        return cb.violation(v.unbound, cmd, "srcImage is not bound to memory");
+    }
+    if !dst.storage.is_bound() {
+        return cb.violation(v.unbound_dst, cmd, "dstImage is not bound to memory");
     }
     if src.info.texel_size != dst.info.texel_size {
         return cb.violation(v.buffer_range, cmd, &format!("formats {:?} and {:?} are not size-compatible", src.format, dst.format));
@@ -273,6 +285,9 @@ pub fn cmd_clear_color_image(cb: &CommandBuffer, image: Arc<Image>, color: [u32;
     const CMD: &str = "vkCmdClearColorImage";
     if !image.usage.contains(vk::ImageUsageFlags::TRANSFER_DST) {
         return cb.violation("VUID-vkCmdClearColorImage-image-00002", CMD, "image lacks TRANSFER_DST usage");
+    }
+    if !image.storage.is_bound() {
+        return cb.violation("VUID-vkCmdClearColorImage-image-00003", CMD, "image is not bound to memory");
     }
     let s = &image.storage;
     let mut out = Vec::new();
