@@ -163,6 +163,50 @@ const SHAPES: &[(vk::ImageType, [u32; 3], u32, u32)] = &[
     (vk::ImageType::TYPE_3D, [5, 4, 3], 1, 2),
 ];
 
+/// The box a round trip uploads into level 0: offset 1 in every dimension the image has, the
+/// rest of the extent, from a buffer with padded rows (the copy must honour bufferRowLength).
+struct Upload {
+    offset: [u32; 3],
+    extent: [u32; 3],
+    row_length: u32,
+    texel: usize,
+    image_extent: [u32; 3],
+    layers: u32,
+    bytes: Vec<u8>,
+}
+
+impl Upload {
+    fn of(format: vk::Format, texel: usize, image_extent: [u32; 3], layers: u32) -> Upload {
+        let offset: [u32; 3] = std::array::from_fn(|k| u32::from(image_extent[k] > 1));
+        let extent: [u32; 3] = std::array::from_fn(|k| image_extent[k] - offset[k]);
+        let row_length = extent[0] + 2;
+        let bytes = pattern((row_length * extent[1] * extent[2] * layers) as usize * texel, format.as_raw() as u32);
+        Upload { offset, extent, row_length, texel, image_extent, layers, bytes }
+    }
+
+    /// The CPU model after clear + upload: per level, layers × depth × height × width texels.
+    fn model(&self, clear_texel: &[u8], levels: u32) -> Vec<Vec<u8>> {
+        let (e, o, b, t) = (self.image_extent, self.offset, self.extent, self.texel);
+        let mut model: Vec<Vec<u8>> = (0..levels)
+            .map(|l| {
+                let le = e.map(|x| (x >> l).max(1));
+                clear_texel.repeat((le[0] * le[1] * le[2] * self.layers) as usize)
+            })
+            .collect();
+        for layer in 0..self.layers {
+            for z in 0..b[2] {
+                for y in 0..b[1] {
+                    let src = ((((layer * b[2] + z) * b[1] + y) * self.row_length) as usize) * t;
+                    let dst = ((((layer * e[2] + o[2] + z) * e[1] + o[1] + y) * e[0] + o[0]) as usize) * t;
+                    let n = b[0] as usize * t;
+                    model[0][dst..dst + n].copy_from_slice(&self.bytes[src..src + n]);
+                }
+            }
+        }
+        model
+    }
+}
+
 /// Clear everything, upload a box of level 0 at an offset (padded buffer rows), copy the
 /// image to a second one, read every level of that back; compare with the CPU model.
 fn round_trip(ctx: &harness::Context, format: vk::Format, texel: usize, shape: (vk::ImageType, [u32; 3], u32, u32), tiling: vk::ImageTiling) {
@@ -170,31 +214,10 @@ fn round_trip(ctx: &harness::Context, format: vk::Format, texel: usize, shape: (
     let a = image(ctx, format, ty, extent, levels, layers, tiling, ALL_USAGE);
     let b = image(ctx, format, ty, extent, levels, layers, vk::ImageTiling::OPTIMAL, ALL_USAGE);
     let (clear, clear_texel) = clear_value(format);
-    // Level sizes and the CPU model: per level, layers × depth × height × width texels.
     let level_extent = |l: u32| extent.map(|e| (e >> l).max(1));
-    let mut model: Vec<Vec<u8>> = (0..levels)
-        .map(|l| {
-            let e = level_extent(l);
-            clear_texel.repeat((e[0] * e[1] * e[2] * layers) as usize)
-        })
-        .collect();
-    // The uploaded box: offset 1 in every dimension the image has, extent the rest (min 1).
-    let has = |k: usize| extent[k] > 1;
-    let off: [u32; 3] = std::array::from_fn(|k| u32::from(has(k)));
-    let bx: [u32; 3] = std::array::from_fn(|k| extent[k] - off[k]);
-    let row_length = bx[0] + 2; // padded rows: the copy must honour bufferRowLength
-    let upload_len = (row_length * bx[1] * bx[2] * layers) as usize * texel;
-    let upload = pattern(upload_len, format.as_raw() as u32);
-    for layer in 0..layers {
-        for z in 0..bx[2] {
-            for y in 0..bx[1] {
-                let src = ((((layer * bx[2] + z) * bx[1] + y) * row_length) as usize) * texel;
-                let dst = ((((layer * extent[2] + off[2] + z) * extent[1] + off[1] + y) * extent[0] + off[0]) as usize) * texel;
-                let n = bx[0] as usize * texel;
-                model[0][dst..dst + n].copy_from_slice(&upload[src..src + n]);
-            }
-        }
-    }
+    let upload = Upload::of(format, texel, extent, layers);
+    let model = upload.model(&clear_texel, levels);
+    let (off, bx, row_length, upload) = (upload.offset, upload.extent, upload.row_length, upload.bytes);
     let up = Buf::new(ctx, &upload);
     let total: usize = model.iter().map(Vec::len).sum();
     let down = Buf::new(ctx, &vec![0u8; total]);
