@@ -55,17 +55,18 @@ fn access(ctx: &Ctx, group: &Group, wg: &mut Wg, image: u16, coord: [Reg; 4], l:
     };
     let Some(at) = b.texel_offset(c[0], c[1], c[2], c[3]) else {
         // Where the texel would be, for the report (coordinates may be negative).
-        let would = c[3] * b.layer_pitch as i64 + c[2] * b.slice_pitch as i64 + c[1] * b.row_pitch as i64 + c[0] * b.format.texel_size() as i64;
-        fault(ctx, group, wg, image, FaultKind::OutOfBounds, would as u64, write.is_some(), l);
+        let pitches = [b.format.texel_size() as u64, b.row_pitch, b.slice_pitch, b.layer_pitch];
+        let would = c.iter().zip(pitches).fold(0u64, |acc, (&v, p)| acc.wrapping_add((v as u64).wrapping_mul(p)));
+        fault(ctx, group, wg, image, FaultKind::OutOfBounds, would, write.is_some(), l);
         return None;
     };
     let size = b.format.texel_size() as usize;
     let mut bytes = [0u8; 16];
     let ok = match write {
-        None => ctx.mem.read(b.buffer, b.offset + at, &mut bytes[..size]),
+        None => ctx.mem.read(b.buffer, b.offset.wrapping_add(at), &mut bytes[..size]),
         Some((ty, v)) => {
             encode(b.format, ty, v, &mut bytes);
-            ctx.mem.write(b.buffer, b.offset + at, &bytes[..size])
+            ctx.mem.write(b.buffer, b.offset.wrapping_add(at), &bytes[..size])
         }
     };
     if !ok {
