@@ -14,8 +14,9 @@ use super::table::{imp, Implemented};
 use super::{guard, util};
 use crate::diag;
 use crate::runtime::accel::AccelerationStructure;
+use crate::runtime::image::ImageView;
 use crate::runtime::descriptor::{
-    acceleration_structure_descriptor, buffer_descriptor, type_class, AllocateError, BufferLimits, Descriptor, DescriptorPool, DescriptorSet, DescriptorSetLayout,
+    acceleration_structure_descriptor, buffer_descriptor, storage_image_descriptor, type_class, AllocateError, BufferLimits, Descriptor, DescriptorPool, DescriptorSet, DescriptorSetLayout,
     DescriptorUpdateTemplate, LayoutBinding, PipelineLayout, TemplateEntry, TypeClass, Violation,
 };
 
@@ -407,6 +408,10 @@ unsafe fn convert(t: vk::DescriptorType, count: u32, at: impl Fn(usize) -> *cons
                 TypeClass::Image => {
                     // SAFETY: see above; a VkDescriptorImageInfo.
                     let im = unsafe { std::ptr::read_unaligned(p as *const vk::DescriptorImageInfo) };
+                    if t == vk::DescriptorType::STORAGE_IMAGE {
+                        let h = im.image_view.as_raw();
+                        return storage_image_descriptor(get::<ImageView>(h), h, im.image_layout);
+                    }
                     Ok(Descriptor::Image { sampler: im.sampler.as_raw(), image_view: im.image_view.as_raw(), layout: im.image_layout })
                 }
                 TypeClass::TexelBuffer => {

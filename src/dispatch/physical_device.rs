@@ -1,4 +1,5 @@
-//! Physical-device queries: features, properties, queues, memory, formats, extensions.
+//! Physical-device queries: features, properties, queues, memory, extensions (formats are
+//! `format`'s).
 //! Every `*2` query walks its pNext chain and fills the structs Arbor knows; unknown ones are
 //! skipped untouched.
 use std::ffi::{c_char, c_void};
@@ -57,12 +58,6 @@ pub fn commands() -> Vec<Implemented> {
         imp!(PFN_vkGetPhysicalDeviceQueueFamilyProperties2 => get_physical_device_queue_family_properties2),
         imp!(PFN_vkGetPhysicalDeviceMemoryProperties => get_physical_device_memory_properties),
         imp!(PFN_vkGetPhysicalDeviceMemoryProperties2 => get_physical_device_memory_properties2),
-        imp!(PFN_vkGetPhysicalDeviceFormatProperties => get_physical_device_format_properties),
-        imp!(PFN_vkGetPhysicalDeviceFormatProperties2 => get_physical_device_format_properties2),
-        imp!(PFN_vkGetPhysicalDeviceImageFormatProperties => get_physical_device_image_format_properties),
-        imp!(PFN_vkGetPhysicalDeviceImageFormatProperties2 => get_physical_device_image_format_properties2),
-        imp!(PFN_vkGetPhysicalDeviceSparseImageFormatProperties => get_physical_device_sparse_image_format_properties),
-        imp!(PFN_vkGetPhysicalDeviceSparseImageFormatProperties2 => get_physical_device_sparse_image_format_properties2),
         imp!(PFN_vkGetPhysicalDeviceExternalBufferProperties => get_physical_device_external_buffer_properties),
         imp!(PFN_vkGetPhysicalDeviceExternalFenceProperties => get_physical_device_external_fence_properties),
         imp!(PFN_vkGetPhysicalDeviceExternalSemaphoreProperties => get_physical_device_external_semaphore_properties),
@@ -524,113 +519,6 @@ unsafe extern "system" fn get_physical_device_memory_properties2(pd: vk::Physica
             }
         }
     })
-}
-
-/// Vertex formats Arbor decodes for acceleration-structure builds (the spec's mandatory six
-/// and the optional ones src/accel offers).
-pub const AS_VERTEX_FORMATS: &[vk::Format] = &[
-    vk::Format::R32G32_SFLOAT,
-    vk::Format::R32G32B32_SFLOAT,
-    vk::Format::R32G32B32A32_SFLOAT,
-    vk::Format::R16G16_SFLOAT,
-    vk::Format::R16G16B16_SFLOAT,
-    vk::Format::R16G16B16A16_SFLOAT,
-    vk::Format::R16G16_SNORM,
-    vk::Format::R16G16B16A16_SNORM,
-    vk::Format::R16G16_UNORM,
-    vk::Format::R16G16B16A16_UNORM,
-    vk::Format::R8G8_SNORM,
-    vk::Format::R8G8B8A8_SNORM,
-    vk::Format::R8G8_UNORM,
-    vk::Format::R8G8B8A8_UNORM,
-    vk::Format::A2B10G10R10_UNORM_PACK32,
-];
-
-/// Buffer features only: Arbor has no images or texel access yet. Vertex formats that builds
-/// decode report ACCELERATION_STRUCTURE_VERTEX_BUFFER.
-pub fn format_properties(format: vk::Format) -> vk::FormatProperties {
-    let mut buffer = vk::FormatFeatureFlags::empty();
-    if AS_VERTEX_FORMATS.contains(&format) {
-        buffer |= vk::FormatFeatureFlags::ACCELERATION_STRUCTURE_VERTEX_BUFFER_KHR;
-    }
-    vk::FormatProperties { buffer_features: buffer, ..Default::default() }
-}
-
-unsafe extern "system" fn get_physical_device_format_properties(pd: vk::PhysicalDevice, format: vk::Format, p: *mut vk::FormatProperties) {
-    guard("vkGetPhysicalDeviceFormatProperties", (), || {
-        if physical_from(pd).is_some() {
-            // SAFETY: valid output pointer per the spec.
-            unsafe { util::out(p, format_properties(format)) };
-        }
-    })
-}
-
-unsafe extern "system" fn get_physical_device_format_properties2(pd: vk::PhysicalDevice, format: vk::Format, p: *mut vk::FormatProperties2) {
-    guard("vkGetPhysicalDeviceFormatProperties2", (), || {
-        if physical_from(pd).is_some() && !p.is_null() {
-            // SAFETY: valid output struct per the spec.
-            unsafe {
-                (*p).format_properties = format_properties(format);
-                util::for_each_out((*p).p_next, |s, q| {
-                    if s == vk::StructureType::FORMAT_PROPERTIES_3 {
-                        let props = format_properties(format);
-                        util::write_keep_chain(
-                            q,
-                            vk::FormatProperties3 {
-                                buffer_features: vk::FormatFeatureFlags2::from_raw(props.buffer_features.as_raw() as u64),
-                                ..Default::default()
-                            },
-                        );
-                    }
-                });
-            }
-        }
-    })
-}
-
-unsafe extern "system" fn get_physical_device_image_format_properties(
-    _pd: vk::PhysicalDevice,
-    _format: vk::Format,
-    _ty: vk::ImageType,
-    _tiling: vk::ImageTiling,
-    _usage: vk::ImageUsageFlags,
-    _flags: vk::ImageCreateFlags,
-    _p: *mut vk::ImageFormatProperties,
-) -> vk::Result {
-    // No image support yet: every combination is unsupported.
-    vk::Result::ERROR_FORMAT_NOT_SUPPORTED
-}
-
-unsafe extern "system" fn get_physical_device_image_format_properties2(
-    _pd: vk::PhysicalDevice,
-    _info: *const vk::PhysicalDeviceImageFormatInfo2,
-    _p: *mut vk::ImageFormatProperties2,
-) -> vk::Result {
-    vk::Result::ERROR_FORMAT_NOT_SUPPORTED
-}
-
-unsafe extern "system" fn get_physical_device_sparse_image_format_properties(
-    _pd: vk::PhysicalDevice,
-    _format: vk::Format,
-    _ty: vk::ImageType,
-    _samples: vk::SampleCountFlags,
-    _usage: vk::ImageUsageFlags,
-    _tiling: vk::ImageTiling,
-    p_count: *mut u32,
-    _p: *mut vk::SparseImageFormatProperties,
-) {
-    // SAFETY: valid pointer per the spec.
-    unsafe { util::out(p_count, 0) };
-}
-
-unsafe extern "system" fn get_physical_device_sparse_image_format_properties2(
-    _pd: vk::PhysicalDevice,
-    _info: *const vk::PhysicalDeviceSparseImageFormatInfo2,
-    p_count: *mut u32,
-    _p: *mut vk::SparseImageFormatProperties2,
-) {
-    // SAFETY: valid pointer per the spec.
-    unsafe { util::out(p_count, 0) };
 }
 
 unsafe extern "system" fn get_physical_device_external_buffer_properties(

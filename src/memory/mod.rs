@@ -16,11 +16,13 @@
 //! outlives the call that made it, except the writable regions a command claims for as long as
 //! it runs ([`region`], which holds the argument for them).
 //!
-//! Submodules: `backing` (the host bytes of an allocation), [`view`] (shared views and reads
+//! Submodules: `backing` (the host bytes of an allocation), [`image`] (image storage: texels
+//! laid out linearly in the memory an image is bound to), [`view`] (shared views and reads
 //! that follow device addresses), [`region`] (writable regions and application host memory).
 //! This module imports nothing from the rest of the driver: what the bytes mean (acceleration
 //! structures, commands) is for the layers above.
 mod backing;
+pub mod image;
 pub mod region;
 pub mod sparse;
 pub mod view;

@@ -8,6 +8,8 @@ pub mod command;
 pub mod descriptor;
 pub mod deferred;
 pub mod device;
+pub mod image;
+pub mod image_copy;
 pub mod in_use;
 pub mod instance;
 pub mod query;

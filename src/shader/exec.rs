@@ -17,7 +17,7 @@ use rayon::prelude::*;
 
 use super::alu;
 use super::ir::{builtin_offset as bo, BallotOp, BinOp, Block, Op, Program, Sc, SgOp, Term, UnOp};
-use super::memory::{Fault, Memory, Region};
+use super::memory::{Fault, ImageBinding, Memory, Region};
 use super::{Pipeline, LANES};
 
 /// Faults kept in a report; later ones are only counted.
@@ -83,6 +83,7 @@ pub(super) struct Ctx<'a> {
     pub prog: &'a Program,
     pub mem: &'a dyn Memory,
     pub regions: Vec<Option<Region>>,
+    pub images: Vec<Option<ImageBinding>>,
     pub push: &'a [u8],
     local: [u32; 3],
     num_groups: [u32; 3],
@@ -115,6 +116,7 @@ pub fn dispatch(
         prog,
         mem: memory,
         regions: prog.bindings.iter().map(|&(s, b)| memory.binding(s, b)).collect(),
+        images: prog.images.iter().map(|&(s, b)| memory.image(s, b)).collect(),
         push: push_constants,
         local: pipeline.local_size,
         // NumWorkgroups is the dispatch's group count, base or not (vkCmdDispatchBase).
@@ -381,6 +383,7 @@ fn exec_op(ctx: &Ctx, group: &mut Group, wg: &mut Wg, op: &Op, mask: u32) {
             lanes(regs, dst, mask, |l| a[l].wrapping_add(imm));
         }
         Op::Load { .. } | Op::Store { .. } | Op::Atomic { .. } => super::exec_mem::exec_mem(ctx, group, wg, op, mask),
+        Op::ImageRead { .. } | Op::ImageWrite { .. } | Op::ImageSize { .. } => super::exec_image::exec_image(ctx, group, wg, op, mask),
         Op::Subgroup { op, ty, dst, a, b } => {
             let (a, b) = (regs[a as usize], regs[b as usize]);
             let v = subgroup(op, ty, mask, &a, &b);

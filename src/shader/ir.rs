@@ -149,6 +149,15 @@ pub enum Op {
     /// Operations on a ballot (four words): InverseBallot / BitExtract / BitCount / FindLSB /
     /// FindMSB.
     BallotOp { op: BallotOp, dst: Reg, ballot: [Reg; 4], b: Reg },
+    /// OpImageRead of storage image `image` (index into [`Program::images`]) at `coord`
+    /// (x, y, z, layer; I32, unused ones a zero constant): `n` components of type `ty` (I32 or
+    /// F32) into `dst`, the texel converted from the view's format.
+    ImageRead { image: u16, ty: Sc, n: u8, dst: [Reg; 4], coord: [Reg; 4] },
+    /// OpImageWrite: `src` (four components of `ty`) converted to the view's format.
+    ImageWrite { image: u16, ty: Sc, coord: [Reg; 4], src: [Reg; 4] },
+    /// OpImageQuerySize: width, height, depth, layers of the view, those of the image's
+    /// dimensionality (`dims`: which of them, in order) into `dst`.
+    ImageSize { image: u16, n: u8, dims: [u8; 4], dst: [Reg; 4] },
 }
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -229,4 +238,6 @@ pub struct Program {
     pub workgroup_bytes: u32,
     /// Descriptor (set, binding) for each `Space::Buffer` index.
     pub bindings: Vec<(u32, u32)>,
+    /// Descriptor (set, binding) of each storage image the image ops name.
+    pub images: Vec<(u32, u32)>,
 }

@@ -64,7 +64,7 @@ impl Layout<'_> {
                     self.components_into(m, out, depth + 1)?;
                 }
             }
-            Type::Void | Type::RuntimeArray { .. } | Type::Function => {
+            Type::Void | Type::RuntimeArray { .. } | Type::Function | Type::Image { .. } => {
                 return Err(self.m.malformed(ty, "type has no register value"))
             }
             _ => out.push(self.scalar(ty)?),
@@ -129,7 +129,7 @@ impl Layout<'_> {
                 }
                 (end.div_ceil(align) * align, align)
             }
-            Type::Void | Type::Function => return Err(self.m.malformed(ty, "type has no size")),
+            Type::Void | Type::Function | Type::Image { .. } => return Err(self.m.malformed(ty, "type has no size")),
         })
     }
 

@@ -29,6 +29,9 @@ const MAX_INLINE_DEPTH: u32 = 64;
 pub enum Val {
     Regs(Vec<Reg>),
     Ptr(Ptr),
+    /// A storage image (its variable or a load of it): index into `Program::images` and the
+    /// OpTypeImage id.
+    Image { slot: u16, ty: u32 },
 }
 
 #[derive(Clone, Copy, Debug)]
@@ -80,6 +83,7 @@ pub struct Lowerer<'a> {
     lane_frame: Vec<u8>,
     workgroup_bytes: u32,
     bindings: Vec<(u32, u32)>,
+    pub(super) images: Vec<(u32, u32)>,
     push_size: u32,
 }
 
@@ -100,6 +104,7 @@ pub fn lower(m: &Module, consts: &Constants, e: &EntryPoint) -> Result<Lowered, 
         lane_frame: vec![0; bo::END as usize],
         workgroup_bytes: 0,
         bindings: Vec::new(),
+        images: Vec::new(),
         push_size: 0,
     };
     lw.inline(e.function, Vec::new(), true)?;
@@ -110,6 +115,7 @@ pub fn lower(m: &Module, consts: &Constants, e: &EntryPoint) -> Result<Lowered, 
         lane_frame: lw.lane_frame,
         workgroup_bytes: lw.workgroup_bytes,
         bindings: lw.bindings,
+        images: lw.images,
     };
     Ok(Lowered { program, push_size: lw.push_size })
 }
@@ -198,7 +204,7 @@ impl<'a> Lowerer<'a> {
     pub fn regs(&mut self, id: u32) -> Result<Vec<Reg>, ShaderError> {
         match self.val(id)? {
             Val::Regs(r) => Ok(r),
-            Val::Ptr(_) => Err(self.m.malformed(id, "a logical pointer used as a value")),
+            Val::Ptr(_) | Val::Image { .. } => Err(self.m.malformed(id, "a logical pointer or image used as a value")),
         }
     }
 
@@ -211,6 +217,7 @@ impl<'a> Lowerer<'a> {
     pub fn ptr(&mut self, id: u32, ty_of_id: Option<u32>) -> Result<Ptr, ShaderError> {
         match self.val(id)? {
             Val::Ptr(p) => Ok(p),
+            Val::Image { .. } => Err(self.m.malformed(id, "an image used as a pointer")),
             Val::Regs(r) => {
                 let ty = ty_of_id.ok_or_else(|| self.m.malformed(id, "pointer of unknown type"))?;
                 match self.m.ty(ty)? {
@@ -231,6 +238,9 @@ impl<'a> Lowerer<'a> {
         let pointee = self.pointee(inst.result_type.unwrap_or(0))?;
         let class = super::parse::storage_class(inst, 0)?;
         let deco = self.m.decorations.get(&id).cloned().unwrap_or_default();
+        if class == StorageClass::UniformConstant {
+            return self.image_variable(id, pointee, (deco.set.unwrap_or(0), deco.binding.unwrap_or(0)));
+        }
         let (space, addr) = match class {
             StorageClass::StorageBuffer | StorageClass::Uniform => {
                 let key = (deco.set.unwrap_or(0), deco.binding.unwrap_or(0));
@@ -484,7 +494,7 @@ impl Lowerer<'_> {
             };
             let src_regs = match self.val(src)? {
                 Val::Regs(r) => r,
-                Val::Ptr(_) => return Err(self.err(src, "OpPhi of a logical pointer (VariablePointers)")),
+                Val::Ptr(_) | Val::Image { .. } => return Err(self.err(src, "OpPhi of a logical pointer or image (VariablePointers)")),
             };
             for (&dst, &src) in temps.iter().zip(&src_regs) {
                 self.blocks[pb as usize].edge_moves.push(EdgeMove { target: tb, dst, src });
@@ -597,6 +607,11 @@ impl Lowerer<'_> {
                 }
                 self.define(id, Val::Ptr(p));
             }
+            Op::Load | Op::CopyObject if matches!(self.val(id_op(inst, 0)?)?, Val::Image { .. }) => {
+                let v = self.val(id_op(inst, 0)?)?;
+                self.define(id, v);
+            }
+            Op::ImageRead | Op::ImageWrite | Op::ImageQuerySize => self.lower_image(inst)?,
             Op::Load => {
                 let src = id_op(inst, 0)?;
                 let p = self.ptr(src, self.type_of(src))?;

@@ -6,6 +6,10 @@
 //! [`Memory::read`] / [`Memory::write`] / [`Memory::atomic`]. Device addresses
 //! (PhysicalStorageBuffer64) are resolved per access through [`Memory::address`]. A failed
 //! check is a [`Fault`]: the load reads zero, the store or atomic is dropped, execution goes on.
+//! Storage images ([`Memory::image`], [`ImageBinding`]) are resolved once per dispatch too;
+//! their texels are read and written through the same `read`/`write`, after the executor has
+//! checked the coordinates against the view (robustness: an outside read gives zero, an
+//! outside write is dropped, both are faults).
 use std::sync::atomic::{AtomicU64, Ordering};
 
 /// A range of one buffer, as a descriptor or an address resolves to.
@@ -36,6 +40,75 @@ pub trait Memory: Sync {
     /// Atomically replaces the `size`-byte (4 or 8) little-endian value at `offset` with
     /// `update(old)` and returns `old`.
     fn atomic(&self, buffer: u64, offset: u64, size: usize, update: &dyn Fn(u64) -> u64) -> Option<u64>;
+    /// The storage image bound at (set, binding): its format and geometry, with texel reads
+    /// and writes going through `read`/`write` at `ImageBinding::buffer`. None when nothing is
+    /// bound (the default, for implementations without images).
+    fn image(&self, set: u32, binding: u32) -> Option<ImageBinding> {
+        let _ = (set, binding);
+        None
+    }
+}
+
+/// Texel formats of storage images the executor converts to and from.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum ImageFormat {
+    R32Uint,
+    R32Sint,
+    R32Sfloat,
+    Rgba32Uint,
+    Rgba32Sint,
+    Rgba32Sfloat,
+    /// Four bytes, each `round(clamp(v, 0, 1) * 255)`.
+    Rgba8Unorm,
+}
+
+impl ImageFormat {
+    /// Bytes of one texel.
+    pub fn texel_size(self) -> u32 {
+        match self {
+            ImageFormat::R32Uint | ImageFormat::R32Sint | ImageFormat::R32Sfloat | ImageFormat::Rgba8Unorm => 4,
+            _ => 16,
+        }
+    }
+}
+
+/// One storage-image view as a shader sees it: a linear array of texels inside one buffer-like
+/// allocation. Texel (x, y, z, layer) is at `offset + layer * layer_pitch + z * slice_pitch +
+/// y * row_pitch + x * texel_size`; coordinates outside `extent`/`layers` are out of bounds.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct ImageBinding {
+    /// The implementation's name for the memory holding the texels (passed back to
+    /// `read`/`write` unchanged).
+    pub buffer: u64,
+    /// Where texel (0, 0, 0) of the view's first layer is.
+    pub offset: u64,
+    pub format: ImageFormat,
+    /// Width, height, depth of the view's level (1 for dimensions the image lacks).
+    pub extent: [u32; 3],
+    /// Array layers of the view (1 when not arrayed).
+    pub layers: u32,
+    pub row_pitch: u64,
+    pub slice_pitch: u64,
+    pub layer_pitch: u64,
+}
+
+impl ImageBinding {
+    /// A tightly packed image at `offset` of `buffer` (what tests and [`HostMemory`] use).
+    pub fn packed(buffer: u64, offset: u64, format: ImageFormat, extent: [u32; 3], layers: u32) -> ImageBinding {
+        let row_pitch = extent[0] as u64 * format.texel_size() as u64;
+        let slice_pitch = row_pitch * extent[1] as u64;
+        ImageBinding { buffer, offset, format, extent, layers, row_pitch, slice_pitch, layer_pitch: slice_pitch * extent[2] as u64 }
+    }
+
+    /// Byte offset of texel (x, y, z, layer) from `offset`, None when outside the view.
+    pub fn texel_offset(&self, x: i64, y: i64, z: i64, layer: i64) -> Option<u64> {
+        let inside = |v: i64, n: u32| v >= 0 && v < n as i64;
+        if !(inside(x, self.extent[0]) && inside(y, self.extent[1]) && inside(z, self.extent[2]) && inside(layer, self.layers)) {
+            return None;
+        }
+        let t = self.format.texel_size() as u64;
+        Some(layer as u64 * self.layer_pitch + z as u64 * self.slice_pitch + y as u64 * self.row_pitch + x as u64 * t)
+    }
 }
 
 /// What went wrong with one access.
@@ -89,6 +162,7 @@ impl std::fmt::Display for Fault {
 pub struct HostMemory {
     buffers: Vec<HostBuffer>,
     bindings: Vec<((u32, u32), Region)>,
+    images: Vec<((u32, u32), ImageBinding)>,
 }
 
 struct HostBuffer {
@@ -129,6 +203,12 @@ impl HostMemory {
         self.bindings.push(((set, binding), Region { buffer: index as u64, offset, len }));
     }
 
+    /// Binds a storage image at (set, binding); its texels live in buffer `image.buffer`.
+    pub fn bind_image(&mut self, set: u32, binding: u32, image: ImageBinding) {
+        self.images.retain(|(k, _)| *k != (set, binding));
+        self.images.push(((set, binding), image));
+    }
+
     pub fn device_address(&self, index: usize) -> u64 {
         self.buffers[index].address
     }
@@ -159,6 +239,10 @@ fn merge_word(word: &AtomicU64, shift: u32, n: u32, value: u64) {
 impl Memory for HostMemory {
     fn binding(&self, set: u32, binding: u32) -> Option<Region> {
         self.bindings.iter().find(|(k, _)| *k == (set, binding)).map(|(_, r)| *r)
+    }
+
+    fn image(&self, set: u32, binding: u32) -> Option<ImageBinding> {
+        self.images.iter().find(|(k, _)| *k == (set, binding)).map(|(_, r)| *r)
     }
 
     fn address(&self, address: u64, len: u64) -> Option<Region> {

@@ -12,7 +12,9 @@
 //!   cursors, always the lowest block index first (blocks are in structured order, so lanes
 //!   reconverge at merge blocks); `dispatch`: workgroups over rayon, barriers, faults, watchdog;
 //! - `alu`: scalar semantics shared by the executor and the constant folder;
-//! - `memory`: the [`Memory`] trait, [`Fault`]s, and [`HostMemory`] for tests.
+//! - `memory`: the [`Memory`] trait, [`Fault`]s, and [`HostMemory`] for tests;
+//! - `lower_image`/`exec_image`: storage images (OpImageRead/Write/QuerySize on 1D/2D/3D,
+//!   arrayed or not), texels converted from the [`ImageFormat`] of the bound view.
 //!
 //! Where ray queries and ray-tracing stages fit (not built yet): a ray query becomes a per-lane
 //! slot in the lane group (an opaque traversal state next to the registers, indexed by the
@@ -31,7 +33,8 @@
 //!   [`Pipeline::local_size`] are what the pipeline layout checks need.
 //! - Implement [`Memory`] over src/memory: `binding` returns the descriptor's buffer range with
 //!   dynamic offsets applied (uniform and storage buffers alike); `address` resolves a device
-//!   address to the one live buffer containing it. The executor bounds-checks every access
+//!   address to the one live buffer containing it; `image` returns a bound storage image's
+//!   [`ImageBinding`] (format, extent, pitches, and the id `read`/`write` get). The executor bounds-checks every access
 //!   against those regions itself, so `read`/`write` may assume in-range offsets.
 //! - [`dispatch`] returns a [`DispatchReport`]: each [`Fault`] (kind, binding or address, byte
 //!   offset, workgroup, invocation) is one robustness diagnostic; `stopped` means the
@@ -41,21 +44,25 @@
 //!   basic, vote, ballot, arithmetic, shuffle, shuffle-relative (not clustered, not quad).
 pub mod alu;
 mod exec;
+mod exec_image;
 mod exec_mem;
 pub mod ir;
 mod layout;
 mod lower;
+mod lower_image;
 mod lower_ops;
 mod memory;
 mod parse;
 mod specialize;
+#[cfg(test)]
+mod image_tests;
 #[cfg(test)]
 mod tests;
 
 use std::sync::Arc;
 
 pub use exec::{dispatch, DispatchReport, Stop, Watchdog};
-pub use memory::{Fault, FaultKind, FaultSpace, HostMemory, Memory, Region};
+pub use memory::{Fault, FaultKind, FaultSpace, HostMemory, ImageBinding, ImageFormat, Memory, Region};
 pub use parse::Module;
 
 /// Invocations a lane group runs together; also the subgroup size Arbor reports.

@@ -27,6 +27,9 @@ pub enum Type {
     Struct { members: Vec<u32> },
     Pointer { class: StorageClass, pointee: u32 },
     Function,
+    /// A storage image (Sampled = 2): `sampled` is the component type id; the texel format
+    /// comes from the bound view, so `Unknown` formats work too.
+    Image { sampled: u32, dim: spirv::Dim, arrayed: bool },
 }
 
 /// Decorations `lower` needs, per id.
@@ -84,6 +87,10 @@ const CAPABILITIES: &[Capability] = &[
     Capability::GroupNonUniformArithmetic,
     Capability::GroupNonUniformShuffle,
     Capability::GroupNonUniformShuffleRelative,
+    Capability::Image1D,
+    Capability::ImageQuery,
+    Capability::StorageImageReadWithoutFormat,
+    Capability::StorageImageWriteWithoutFormat,
 ];
 
 const EXTENSIONS: &[&str] = &[
@@ -136,7 +143,8 @@ const OPCODES: &[Op] = {
         GroupNonUniformSMin, GroupNonUniformUMin, GroupNonUniformFMin, GroupNonUniformSMax,
         GroupNonUniformUMax, GroupNonUniformFMax, GroupNonUniformBitwiseAnd,
         GroupNonUniformBitwiseOr, GroupNonUniformBitwiseXor, GroupNonUniformLogicalAnd,
-        GroupNonUniformLogicalOr, GroupNonUniformLogicalXor,
+        GroupNonUniformLogicalOr, GroupNonUniformLogicalXor, TypeImage, ImageRead, ImageWrite,
+        ImageQuerySize,
     ]
 };
 
@@ -214,6 +222,7 @@ impl Module {
                 },
                 Op::TypePointer => Type::Pointer { class: storage_class(inst, 0)?, pointee: id_op(inst, 1)? },
                 Op::TypeFunction => Type::Function,
+                Op::TypeImage => image_type(inst, self.offset_of(id))?,
                 _ => {
                     self.globals.insert(id, i);
                     continue;
@@ -421,6 +430,21 @@ fn check_instruction(op: Op, operands: &[u32], at: usize, s: &mut Scan) -> Resul
         _ => {}
     }
     Ok(())
+}
+
+/// OpTypeImage operands: sampled type, Dim, Depth, Arrayed, MS, Sampled, Format. Only storage
+/// images (Sampled = 2, single-sampled) of Dim 1D/2D/3D are run.
+fn image_type(inst: &Instruction, offset: usize) -> Result<Type, ShaderError> {
+    let dim = match inst.operands.get(1) {
+        Some(Operand::Dim(d)) => *d,
+        _ => return Err(bad(inst, "operand 1 (expected a Dim)")),
+    };
+    let (arrayed, ms, sampled) = (lit(inst, 3)?, lit(inst, 4)?, lit(inst, 5)?);
+    if !matches!(dim, spirv::Dim::Dim1D | spirv::Dim::Dim2D | spirv::Dim::Dim3D) || ms != 0 || sampled != 2 || (arrayed != 0 && dim == spirv::Dim::Dim3D) {
+        let what = format!("image type (Dim {dim:?}, arrayed {arrayed}, MS {ms}, Sampled {sampled}): only single-sampled 1D/2D/3D storage images");
+        return Err(ShaderError::Unsupported { what, offset });
+    }
+    Ok(Type::Image { sampled: id_op(inst, 0)?, dim, arrayed: arrayed != 0 })
 }
 
 fn literal_string(words: &[u32]) -> String {

@@ -11,7 +11,7 @@ fn compile(name: &str) -> Vec<(String, Vec<u32>)> {
     compile_with(name, &[])
 }
 
-fn compile_with(name: &str, defines: &[&str]) -> Vec<(String, Vec<u32>)> {
+pub(super) fn compile_with(name: &str, defines: &[&str]) -> Vec<(String, Vec<u32>)> {
     let src = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("tests/shaders").join(name);
     let dir = std::env::temp_dir().join(format!("arbor-shader-tests-{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();
@@ -323,9 +323,9 @@ fn push_constants_uniform_buffer_and_specialization() {
         };
     }
     let push: Vec<u8> = [5u32, 1.5f32.to_bits(), count].iter().flat_map(|x| x.to_le_bytes()).collect();
-    // (specialization, expected constant, expected flag, expected local size)
-    #[allow(clippy::type_complexity)] // a table of four-column test cases, read once below
-    let cases: [(Vec<(u32, Vec<u8>)>, u32, bool, u32); 2] = [
+    // (specialization data, then the values it gives the shader).
+    type Case = (Vec<(u32, Vec<u8>)>, u32, bool, u32);
+    let cases: [Case; 2] = [
         (vec![], 3, false, 1),
         (vec![(0, 5u32.to_le_bytes().to_vec()), (1, 1u32.to_le_bytes().to_vec()), (2, 16u32.to_le_bytes().to_vec())], 5, true, 16),
     ];
@@ -471,8 +471,8 @@ fn unsupported_modules_fail_at_parse_naming_what_and_where() {
     for (what, words) in compile("image.comp") {
         match Module::parse(&words) {
             Err(ShaderError::UnsupportedOpcode { opcode, offset }) => {
-                assert_eq!(opcode, "OpTypeImage", "{what}");
-                assert_eq!(opcode_at(&words, offset), spirv::Op::TypeImage as u32, "{what}");
+                assert_eq!(opcode, "OpTypeSampledImage", "{what}");
+                assert_eq!(opcode_at(&words, offset), spirv::Op::TypeSampledImage as u32, "{what}");
             }
             other => panic!("{what}: expected an unsupported opcode, got {other:?}"),
         }

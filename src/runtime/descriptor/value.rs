@@ -11,6 +11,7 @@ use ash::vk;
 
 use crate::memory::Buffer;
 use crate::runtime::accel::AccelerationStructure;
+use crate::runtime::image::ImageView;
 
 /// Descriptors Arbor can store. Types Arbor has no objects for yet (samplers, images, texel
 /// buffers) are kept as raw handles so that writes and copies still round-trip.
@@ -20,8 +21,10 @@ pub enum Descriptor {
     Empty,
     /// Uniform/storage buffer (also _DYNAMIC): `range` as written (may be VK_WHOLE_SIZE).
     Buffer { buffer: Weak<Buffer>, handle: u64, offset: u64, range: u64 },
-    /// Sampler / image descriptors: raw handles and the layout.
+    /// Sampler / sampled-image descriptors (not run): raw handles and the layout.
     Image { sampler: u64, image_view: u64, layout: vk::ImageLayout },
+    /// VK_DESCRIPTOR_TYPE_STORAGE_IMAGE: the view, held weakly like buffers.
+    StorageImage { view: Weak<ImageView>, handle: u64, layout: vk::ImageLayout },
     /// Uniform/storage texel buffer: the raw buffer-view handle.
     TexelBuffer { view: u64 },
     /// VK_DESCRIPTOR_TYPE_ACCELERATION_STRUCTURE_KHR.
@@ -56,7 +59,15 @@ impl Descriptor {
                 }
             }
             Descriptor::TexelBuffer { view } => *view,
-            Descriptor::AccelerationStructure { handle, .. } => *handle,
+            Descriptor::AccelerationStructure { handle, .. } | Descriptor::StorageImage { handle, .. } => *handle,
+        }
+    }
+
+    /// The view of a storage-image descriptor (None for other kinds or when it was destroyed).
+    pub fn storage_image(&self) -> Option<Arc<ImageView>> {
+        match self {
+            Descriptor::StorageImage { view, .. } => view.upgrade(),
+            _ => None,
         }
     }
 
@@ -84,6 +95,10 @@ impl PartialEq for Descriptor {
             ) => sa == sb && va == vb && la == lb,
             (Descriptor::TexelBuffer { view: a }, Descriptor::TexelBuffer { view: b }) => a == b,
             (
+                Descriptor::StorageImage { view: a, handle: ha, layout: la },
+                Descriptor::StorageImage { view: b, handle: hb, layout: lb },
+            ) => a.ptr_eq(b) && ha == hb && la == lb,
+            (
                 Descriptor::AccelerationStructure { structure: a, handle: ha },
                 Descriptor::AccelerationStructure { structure: b, handle: hb },
             ) => a.ptr_eq(b) && ha == hb,
@@ -105,6 +120,11 @@ impl fmt::Debug for Descriptor {
                 write!(f, "Image(sampler {sampler:#x}, view {image_view:#x}, {layout:?})")
             }
             Descriptor::TexelBuffer { view } => write!(f, "TexelBuffer({view:#x})"),
+            Descriptor::StorageImage { view, handle, layout } => write!(
+                f,
+                "StorageImage({handle:#x}, {layout:?}{})",
+                if view.strong_count() == 0 { ", destroyed" } else { "" }
+            ),
             Descriptor::AccelerationStructure { handle, structure } => write!(
                 f,
                 "AccelerationStructure({handle:#x}{})",
@@ -250,4 +270,22 @@ pub fn acceleration_structure_descriptor(structure: Option<Arc<AccelerationStruc
         ));
     }
     Ok(Descriptor::AccelerationStructure { structure: Arc::downgrade(&s), handle })
+}
+
+/// Check and build a storage-image descriptor. `view` is the looked-up object (None when the
+/// handle is not a live view).
+pub fn storage_image_descriptor(view: Option<Arc<ImageView>>, handle: u64, layout: vk::ImageLayout) -> Result<Descriptor, Violation> {
+    let Some(v) = view else {
+        return Err(violation("VUID-VkWriteDescriptorSet-descriptorType-02997", format!("imageView {handle:#x} is not a live VkImageView (nullDescriptor is not offered)")));
+    };
+    if !v.image.usage.contains(vk::ImageUsageFlags::STORAGE) {
+        return Err(violation("VUID-VkWriteDescriptorSet-descriptorType-00339", "the view's image lacks VK_IMAGE_USAGE_STORAGE_BIT"));
+    }
+    if v.level_count != 1 {
+        return Err(violation("VUID-VkWriteDescriptorSet-descriptorType-00336", format!("a storage-image view must select one mip level, not {}", v.level_count)));
+    }
+    if layout != vk::ImageLayout::GENERAL {
+        return Err(violation("VUID-VkWriteDescriptorSet-descriptorType-04152", format!("imageLayout {layout:?}: storage images must be in VK_IMAGE_LAYOUT_GENERAL")));
+    }
+    Ok(Descriptor::StorageImage { view: Arc::downgrade(&v), handle, layout })
 }
