@@ -80,6 +80,7 @@ pub struct Lowerer<'a> {
     lane_frame: Vec<u8>,
     workgroup_bytes: u32,
     bindings: Vec<(u32, u32)>,
+    accel_bindings: Vec<(Reg, (u32, u32))>,
     push_size: u32,
 }
 
@@ -100,6 +101,7 @@ pub fn lower(m: &Module, consts: &Constants, e: &EntryPoint) -> Result<Lowered, 
         lane_frame: vec![0; bo::END as usize],
         workgroup_bytes: 0,
         bindings: Vec::new(),
+        accel_bindings: Vec::new(),
         push_size: 0,
     };
     lw.inline(e.function, Vec::new(), true)?;
@@ -110,6 +112,7 @@ pub fn lower(m: &Module, consts: &Constants, e: &EntryPoint) -> Result<Lowered, 
         lane_frame: lw.lane_frame,
         workgroup_bytes: lw.workgroup_bytes,
         bindings: lw.bindings,
+        accel_bindings: lw.accel_bindings,
     };
     Ok(Lowered { program, push_size: lw.push_size })
 }
@@ -231,6 +234,9 @@ impl<'a> Lowerer<'a> {
         let pointee = self.pointee(inst.result_type.unwrap_or(0))?;
         let class = super::parse::storage_class(inst, 0)?;
         let deco = self.m.decorations.get(&id).cloned().unwrap_or_default();
+        if class == StorageClass::UniformConstant && matches!(self.m.ty(pointee)?, Type::AccelerationStructure) {
+            return Ok(self.accel_descriptor(deco.set.unwrap_or(0), deco.binding.unwrap_or(0)));
+        }
         let (space, addr) = match class {
             StorageClass::StorageBuffer | StorageClass::Uniform => {
                 let key = (deco.set.unwrap_or(0), deco.binding.unwrap_or(0));
@@ -265,6 +271,25 @@ impl<'a> Lowerer<'a> {
         };
         let addr = self.konst(addr as u64);
         Ok(Val::Ptr(Ptr { space, addr, pointee, matrix_stride: None }))
+    }
+
+    /// An acceleration-structure descriptor variable: a register the executor fills with the
+    /// bound structure's device address, standing for the variable itself (OpLoad of it
+    /// yields the same register, since the descriptor cannot change during a dispatch).
+    fn accel_descriptor(&mut self, set: u32, binding: u32) -> Val {
+        let key = (set, binding);
+        if !self.bindings.contains(&key) {
+            self.bindings.push(key);
+        }
+        let r = match self.accel_bindings.iter().find(|(_, k)| *k == key) {
+            Some(&(r, _)) => r,
+            None => {
+                let r = self.reg();
+                self.accel_bindings.push((r, key));
+                r
+            }
+        };
+        Val::Regs(vec![r])
     }
 
     fn builtin_offset(&self, id: u32, b: Option<BuiltIn>) -> Result<u32, ShaderError> {
@@ -597,6 +622,10 @@ impl Lowerer<'_> {
                 }
                 self.define(id, Val::Ptr(p));
             }
+            Op::Load if matches!(self.m.ty(rty)?, Type::AccelerationStructure) => {
+                let r = self.regs(id_op(inst, 0)?)?;
+                self.define(id, Val::Regs(r));
+            }
             Op::Load => {
                 let src = id_op(inst, 0)?;
                 let p = self.ptr(src, self.type_of(src))?;
@@ -626,6 +655,7 @@ impl Lowerer<'_> {
                 self.define(id, Val::Regs(r));
             }
             Op::ExtInst if Some(id_op(inst, 0)?) != self.m.glsl_ext => {} // non-semantic info
+            op if super::lower_rq::is_ray_query(op) => self.lower_ray_query(inst)?,
             _ => self.lower_op(inst)?,
         }
         Ok(())

@@ -42,10 +42,12 @@
 pub mod alu;
 mod exec;
 mod exec_mem;
+mod exec_rq;
 pub mod ir;
 mod layout;
 mod lower;
 mod lower_ops;
+mod lower_rq;
 mod memory;
 mod parse;
 mod specialize;

@@ -27,6 +27,10 @@ pub enum Type {
     Struct { members: Vec<u32> },
     Pointer { class: StorageClass, pointee: u32 },
     Function,
+    /// OpTypeAccelerationStructureKHR: a value is the structure's 64-bit device address.
+    AccelerationStructure,
+    /// OpTypeRayQueryKHR: only ever behind a pointer; the executor keeps its state per lane.
+    RayQuery,
 }
 
 /// Decorations `lower` needs, per id.
@@ -82,6 +86,8 @@ const CAPABILITIES: &[Capability] = &[
     Capability::GroupNonUniformArithmetic,
     Capability::GroupNonUniformShuffle,
     Capability::GroupNonUniformShuffleRelative,
+    Capability::RayQueryKHR,
+    Capability::RayQueryPositionFetchKHR,
 ];
 
 const EXTENSIONS: &[&str] = &[
@@ -91,6 +97,8 @@ const EXTENSIONS: &[&str] = &[
     "SPV_KHR_vulkan_memory_model",
     "SPV_KHR_non_semantic_info",
     "SPV_KHR_shader_ballot",
+    "SPV_KHR_ray_query",
+    "SPV_KHR_ray_tracing_position_fetch",
 ];
 
 /// Opcodes the lowering handles; anything else is rejected with its word offset.
@@ -135,6 +143,19 @@ const OPCODES: &[Op] = {
         GroupNonUniformUMax, GroupNonUniformFMax, GroupNonUniformBitwiseAnd,
         GroupNonUniformBitwiseOr, GroupNonUniformBitwiseXor, GroupNonUniformLogicalAnd,
         GroupNonUniformLogicalOr, GroupNonUniformLogicalXor,
+        // SPV_KHR_ray_query (lowered in `lower_rq`) and SPV_KHR_ray_tracing_position_fetch.
+        TypeAccelerationStructureKHR, TypeRayQueryKHR, ConvertUToAccelerationStructureKHR,
+        RayQueryInitializeKHR, RayQueryTerminateKHR, RayQueryGenerateIntersectionKHR,
+        RayQueryConfirmIntersectionKHR, RayQueryProceedKHR, RayQueryGetIntersectionTypeKHR,
+        RayQueryGetRayTMinKHR, RayQueryGetRayFlagsKHR, RayQueryGetIntersectionTKHR,
+        RayQueryGetIntersectionInstanceCustomIndexKHR, RayQueryGetIntersectionInstanceIdKHR,
+        RayQueryGetIntersectionInstanceShaderBindingTableRecordOffsetKHR,
+        RayQueryGetIntersectionGeometryIndexKHR, RayQueryGetIntersectionPrimitiveIndexKHR,
+        RayQueryGetIntersectionBarycentricsKHR, RayQueryGetIntersectionFrontFaceKHR,
+        RayQueryGetIntersectionCandidateAABBOpaqueKHR, RayQueryGetIntersectionObjectRayDirectionKHR,
+        RayQueryGetIntersectionObjectRayOriginKHR, RayQueryGetWorldRayDirectionKHR,
+        RayQueryGetWorldRayOriginKHR, RayQueryGetIntersectionObjectToWorldKHR,
+        RayQueryGetIntersectionWorldToObjectKHR, RayQueryGetIntersectionTriangleVertexPositionsKHR,
     ]
 };
 
@@ -211,6 +232,8 @@ impl Module {
                 },
                 Op::TypePointer => Type::Pointer { class: storage_class(inst, 0)?, pointee: id_op(inst, 1)? },
                 Op::TypeFunction => Type::Function,
+                Op::TypeAccelerationStructureKHR => Type::AccelerationStructure,
+                Op::TypeRayQueryKHR => Type::RayQuery,
                 _ => {
                     self.globals.insert(id, i);
                     continue;

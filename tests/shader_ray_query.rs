@@ -1,0 +1,335 @@
+//! Ray queries in the shader library (`arbor::shader`), no Vulkan device: the milestone shaders
+//! (tests/shaders/rq_*.comp, compiled by glslang and again through `spirv-opt -O`, and their
+//! WGSL twins through the `naga` command when it is installed) run over structures built with
+//! `arbor::accel::build` in host memory, and every record is compared with the brute-force
+//! reference of the Vulkan traversal rules in tests/reference (written from the specification,
+//! not from the library's traversal).
+mod reference;
+
+use std::collections::HashMap;
+use std::path::PathBuf;
+use std::process::Command;
+
+use arbor::accel::{self, AsType, DeviceView, Geometry, GeometryData, GeometryFlags, Hit, HitKind, MapView, Ray};
+use arbor::shader::{dispatch, DispatchReport, FaultKind, FaultSpace, HostMemory, Memory, Module, Pipeline, Region, Watchdog};
+use arbor_scene::{self as scene, InstanceRecord, Mesh, Rng};
+use glam::Vec3;
+use reference::brute_force::*;
+use reference::*;
+
+// ---------------------------------------------------------------------------------------------
+// Shaders
+
+fn words_of(path: &std::path::Path) -> Vec<u32> {
+    let bytes = std::fs::read(path).unwrap();
+    bytes.chunks(4).map(|c| u32::from_le_bytes([c[0], c[1], c[2], c[3]])).collect()
+}
+
+fn scratch_dir() -> PathBuf {
+    let dir = std::env::temp_dir().join(format!("arbor-rq-tests-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    dir
+}
+
+/// tests/shaders/`name`.comp through glslang (`defines` as -D), then through `spirv-opt -O`.
+fn glsl(name: &str, defines: &[&str]) -> Vec<(String, Vec<u32>)> {
+    let src = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("tests/shaders").join(format!("{name}.comp"));
+    let dir = scratch_dir();
+    let tag = defines.join("_");
+    let (spv, opt) = (dir.join(format!("{name}{tag}.spv")), dir.join(format!("{name}{tag}.opt.spv")));
+    let mut cmd = Command::new("glslangValidator");
+    cmd.args(["-V", "--target-env", "vulkan1.2"]);
+    for d in defines {
+        cmd.arg(format!("-D{d}"));
+    }
+    let out = cmd.arg("-o").arg(&spv).arg(&src).output().expect("glslangValidator (Debian: glslang-tools)");
+    assert!(out.status.success(), "glslang failed on {name}: {}", String::from_utf8_lossy(&out.stdout));
+    let out = Command::new("spirv-opt").arg("-O").arg(&spv).arg("-o").arg(&opt).output().expect("spirv-opt (Debian: spirv-tools)");
+    assert!(out.status.success(), "spirv-opt failed on {name}: {}", String::from_utf8_lossy(&out.stderr));
+    vec![(format!("{name} (glslang)"), words_of(&spv)), (format!("{name} (spirv-opt -O)"), words_of(&opt))]
+}
+
+/// tests/shaders/`name`.wgsl through the `naga` command, when it is installed (it is not a
+/// dependency: naga is only a second front end here).
+fn wgsl(name: &str) -> Option<(String, Vec<u32>)> {
+    let src = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("tests/shaders").join(format!("{name}.wgsl"));
+    let spv = scratch_dir().join(format!("{name}.naga.spv"));
+    match Command::new("naga").arg(&src).arg(&spv).output() {
+        Ok(out) if out.status.success() => Some((format!("{name} (naga)"), words_of(&spv))),
+        Ok(out) => panic!("naga failed on {name}: {}", String::from_utf8_lossy(&out.stderr)),
+        Err(_) => {
+            eprintln!("naga not installed: skipping the WGSL twin of {name}");
+            None
+        }
+    }
+}
+
+fn pipeline(what: &str, words: &[u32]) -> Pipeline {
+    let module = Module::parse(words).unwrap_or_else(|e| panic!("{what}: parse: {e}"));
+    Pipeline::compute(&module, "main", &[]).unwrap_or_else(|e| panic!("{what}: pipeline: {e}"))
+}
+
+// ---------------------------------------------------------------------------------------------
+// Memory: host buffers plus structures in a MapView
+
+/// The test's device memory: buffers in `HostMemory`, structures (and instance buffers) in a
+/// `MapView` at their device addresses, one structure descriptor at (0, 0).
+struct RqMemory {
+    host: HostMemory,
+    view: MapView,
+    tlas: Option<u64>,
+}
+
+impl Memory for RqMemory {
+    fn binding(&self, set: u32, binding: u32) -> Option<Region> {
+        self.host.binding(set, binding)
+    }
+    fn address(&self, address: u64, len: u64) -> Option<Region> {
+        self.host.address(address, len)
+    }
+    fn read(&self, buffer: u64, offset: u64, out: &mut [u8]) -> bool {
+        self.host.read(buffer, offset, out)
+    }
+    fn write(&self, buffer: u64, offset: u64, data: &[u8]) -> bool {
+        self.host.write(buffer, offset, data)
+    }
+    fn atomic(&self, buffer: u64, offset: u64, size: usize, update: &dyn Fn(u64) -> u64) -> Option<u64> {
+        self.host.atomic(buffer, offset, size, update)
+    }
+    fn acceleration_structure(&self, set: u32, binding: u32) -> Option<u64> {
+        ((set, binding) == (0, 0)).then_some(self.tlas).flatten()
+    }
+    fn acceleration_structures(&self) -> Option<&dyn DeviceView> {
+        Some(&self.view)
+    }
+}
+
+/// Binds `buffers` at set 0, bindings `first..`, dispatches, returns the report and the final
+/// contents of the buffers.
+fn run(p: &Pipeline, mem: &mut RqMemory, first: u32, buffers: &[Vec<u8>], push: &[u8], groups: [u32; 3]) -> (DispatchReport, Vec<Vec<u8>>) {
+    let idx: Vec<usize> = buffers.iter().map(|b| mem.host.add_buffer(b)).collect();
+    for (k, &i) in idx.iter().enumerate() {
+        mem.host.bind(0, first + k as u32, i);
+    }
+    let report = dispatch(p, mem, push, groups, [0; 3], &Watchdog::default());
+    (report, idx.iter().map(|&i| mem.host.bytes(i)).collect())
+}
+
+fn u32s(b: &[u8]) -> Vec<u32> {
+    b.chunks(4).map(|c| u32::from_le_bytes([c[0], c[1], c[2], c[3]])).collect()
+}
+
+fn bytes_of(words: &[u32]) -> Vec<u8> {
+    words.iter().flat_map(|w| w.to_le_bytes()).collect()
+}
+
+fn ray_bytes(rays: &[Ray]) -> Vec<u8> {
+    let mut out = Vec::new();
+    for r in rays {
+        for v in [r.origin.x, r.origin.y, r.origin.z, r.tmin, r.direction.x, r.direction.y, r.direction.z, r.tmax] {
+            out.extend_from_slice(&v.to_le_bytes());
+        }
+    }
+    out
+}
+
+// ---------------------------------------------------------------------------------------------
+// Scenes
+
+const BLAS_BASE: u64 = 0x10_0000_0000;
+const TLAS_ADDRESS: u64 = 0x40_0000_0000;
+
+/// A TLAS over several BLASes in a `MapView`, with what the reference needs.
+struct Scene {
+    view: MapView,
+    instances: Vec<InstanceRecord>,
+    blas_geoms: Vec<(u64, Vec<TriData>, Vec<AabbData>)>,
+    bounds: [f32; 6],
+}
+
+impl Scene {
+    /// BLASes: each entry's triangle and AABB geometries; `n` instances over them with random
+    /// transforms, instance flags, masks, custom indices and SBT offsets (some inactive).
+    fn new(blases: Vec<(Vec<TriData>, Vec<AabbData>)>, n: usize, seed: u64) -> Scene {
+        let mut view = MapView::new();
+        let mut blas_geoms = Vec::new();
+        let mut blas_bounds = HashMap::new();
+        for (k, (tris, boxes)) in blases.into_iter().enumerate() {
+            let address = BLAS_BASE * (k as u64 + 1);
+            let geoms: Vec<Geometry> = tris.iter().map(|d| d.geometry()).chain(boxes.iter().map(|b| b.geometry())).collect();
+            let built = build_blas(0, &geoms);
+            blas_bounds.insert(address, accel::header(&built.bytes).unwrap().bounds);
+            view.insert(address, built.bytes);
+            blas_geoms.push((address, tris, boxes));
+        }
+        let refs: Vec<u64> = blas_geoms.iter().map(|b| b.0).collect();
+        let mut instances = scene::instance_records(n, &refs, seed);
+        let mut rng = Rng::new(seed);
+        let flag_combos = all_instance_flag_combinations();
+        for (i, inst) in instances.iter_mut().enumerate() {
+            inst.flags = flag_combos[rng.below(flag_combos.len() as u32) as usize];
+            inst.mask = [0xFF, 0x01, 0x02, 0x80, 0x0F, 0xF0][rng.below(6) as usize];
+            inst.custom_index = rng.next_u32() & 0xFF_FFFF;
+            inst.sbt_offset = rng.next_u32() & 0xFF_FFFF;
+            if i % 11 == 5 {
+                inst.reference = 0;
+            }
+        }
+        let mut corners = Vec::new();
+        for inst in instances.iter().filter(|i| i.reference != 0) {
+            let b = blas_bounds[&inst.reference];
+            let m: [f64; 12] = inst.transform.map(|x| x as f64);
+            for c in 0..8 {
+                let p = [b[if c & 1 == 0 { 0 } else { 3 }], b[if c & 2 == 0 { 1 } else { 4 }], b[if c & 4 == 0 { 2 } else { 5 }]];
+                corners.push(xform_point(&m, p.map(|x| x as f64)).map(|x| x as f32));
+            }
+        }
+        let mut s = Scene { view, instances, blas_geoms, bounds: union_bounds(corners) };
+        let packed = InstanceRecord::pack(&s.instances);
+        let g = [Geometry {
+            flags: GeometryFlags(0),
+            primitive_count: s.instances.len() as u32,
+            data: GeometryData::Instances { array_of_pointers: false, data: &packed },
+        }];
+        let tlas = build(AsType::TopLevel, 0, &g, &s.view);
+        s.view.insert(TLAS_ADDRESS, tlas.bytes);
+        s
+    }
+
+    fn geoms(&self) -> Vec<(u64, Vec<Geometry<'_>>)> {
+        self.blas_geoms
+            .iter()
+            .map(|(a, t, b)| (*a, t.iter().map(|d| d.geometry()).chain(b.iter().map(|x| x.geometry())).collect()))
+            .collect()
+    }
+
+    /// The memory a dispatch sees: a copy of the structures, the TLAS bound at (0, 0).
+    fn memory(&self) -> RqMemory {
+        let mut view = MapView::new();
+        for a in self.blas_geoms.iter().map(|b| b.0).chain([TLAS_ADDRESS]) {
+            view.insert(a, self.view.acceleration_structure(a).unwrap().to_vec());
+        }
+        RqMemory { host: HostMemory::new(), view, tlas: Some(TLAS_ADDRESS) }
+    }
+}
+
+fn bunny() -> Mesh {
+    let m = scene::load(data_path("bunny.ply")).expect("data/bunny.ply");
+    // Into the unit cube, where `instance_records` expects objects.
+    let b = m.bounds();
+    let s = 1.0 / (b[3] - b[0]).max(b[4] - b[1]).max(b[5] - b[2]);
+    let positions = m.positions.iter().map(|p| [(p[0] - b[0]) * s, (p[1] - b[1]) * s, (p[2] - b[2]) * s]).collect();
+    Mesh { positions, ..m }
+}
+
+/// Bunny (non-opaque and opaque), a triangle soup with a geometry transform, soup boxes
+/// (opaque and not), and a unit box around the origin (the any-hit shader's sphere).
+fn mixed_scene(seed: u64) -> Scene {
+    let bunny = bunny();
+    let soup = scene::random_soup(300, seed);
+    let mut soup_tris = TriData::from_mesh(&soup, 0);
+    soup_tris.transform = Some([1.0, 0.0, 0.0, 0.1, 0.0, 0.8, 0.0, 0.0, 0.0, 0.0, 1.0, 0.2]);
+    let boxes = boxes_of(&scene::random_soup(150, seed + 1));
+    let blases = vec![
+        (vec![TriData::from_mesh(&bunny, 0)], vec![]),
+        (vec![TriData::from_mesh(&bunny, GEOMETRY_OPAQUE)], vec![]),
+        (vec![soup_tris, TriData::from_mesh(&scene::random_soup(100, seed + 2), GEOMETRY_OPAQUE)], vec![]),
+        (vec![], vec![AabbData::new(&boxes, 24, GEOMETRY_OPAQUE), AabbData::new(&boxes[..60], 32, 0)]),
+        (vec![], vec![AabbData::new(&[[-1.0, -1.0, -1.0, 1.0, 1.0, 1.0]], 24, 0)]),
+    ];
+    Scene::new(blases, 24, seed)
+}
+
+fn reference_scene<'a>(s: &Scene, geoms: &'a [(u64, Vec<Geometry<'a>>)]) -> RefScene<'a> {
+    let blases = geoms.iter().map(|(a, g)| (*a, g.as_slice())).collect();
+    RefScene::Tlas { instances: s.instances.clone(), blases }
+}
+
+// ---------------------------------------------------------------------------------------------
+// Comparing records with the reference
+
+/// A hit the shader may commit, from the reference.
+#[derive(Clone, Copy, Debug)]
+struct Expect {
+    id: PrimId,
+    t: f32,
+    /// Committed type: 1 triangle, 2 generated.
+    kind: u32,
+    /// Distance from a decision flipping; below `AMBIGUOUS` a disagreement is rounding.
+    margin: f64,
+}
+
+const AMBIGUOUS: f64 = 1e-5;
+
+fn t_close(a: f32, b: f32) -> bool {
+    (a - b).abs() <= 1e-4 * a.abs().max(b.abs()).max(1.0)
+}
+
+/// One record: (kind, t, identity). `geometry: None` when the shader does not write it.
+/// With `any`, any acceptable hit will do (TERMINATE_ON_FIRST_HIT); else the nearest, up to
+/// ties and rounding-ambiguous decisions.
+fn check_record(kind: u32, t: f32, inst: u32, geometry: Option<u32>, prim: u32, ok: &[Expect], near: &[(PrimId, bool)], any: bool, ctx: &str) -> bool {
+    let same = |id: &PrimId| id.instance == inst && id.primitive == prim && geometry.is_none_or(|g| g == id.geometry);
+    let forgivable = |e: &Expect| e.margin < AMBIGUOUS;
+    if kind == 0 {
+        assert!(ok.iter().all(forgivable), "{ctx}: nothing committed, reference accepts {:?}", ok.iter().find(|e| !forgivable(e)));
+        return false;
+    }
+    let found = ok.iter().find(|e| same(&e.id));
+    match found {
+        Some(e) => {
+            assert_eq!(kind, e.kind, "{ctx}: committed type of {:?}", e.id);
+            assert!(t_close(t, e.t) || forgivable(e), "{ctx}: t {t} vs reference {} for {:?}", e.t, e.id);
+        }
+        None => assert!(near.iter().any(|(id, _)| same(id)), "{ctx}: committed inst {inst} prim {prim} (t {t}) is no reference hit"),
+    }
+    if !any {
+        let best = ok.iter().min_by(|a, b| a.t.total_cmp(&b.t)).expect("a committed hit with no reference hit");
+        let tie = found.is_some_and(|e| t_close(e.t, best.t) || forgivable(e));
+        assert!(t_close(t, best.t) || forgivable(best) || tie, "{ctx}: committed t {t} ({inst}/{prim}), reference nearest {:?} at {}", best.id, best.t);
+    }
+    true
+}
+
+/// Flag sets the milestone closest-hit shader can take (it adds OPAQUE itself, and the spec
+/// allows one opacity flag only).
+fn closest_flag_sets() -> Vec<u32> {
+    let mut v: Vec<u32> = all_ray_flag_combinations().into_iter().filter(|f| f & (OPAQUE | NO_OPAQUE | CULL_OPAQUE | CULL_NO_OPAQUE) == 0).collect();
+    v.retain(|f| f & SKIP_CLOSEST_HIT == 0 || f & CULL_BACK != 0);
+    v
+}
+
+#[test]
+fn rq_closest_matches_brute_force() {
+    let s = mixed_scene(3);
+    let geoms = s.geoms();
+    let rscene = reference_scene(&s, &geoms);
+    let rays = random_rays(s.bounds, 96, 41);
+    let mut shaders = glsl("rq_closest", &[]);
+    shaders.extend(wgsl("rq_closest"));
+    let flag_sets = closest_flag_sets();
+    let mut hits = 0;
+    for (what, words) in &shaders {
+        let p = pipeline(what, words);
+        for &flags in &flag_sets {
+            let mut mem = s.memory();
+            let push = bytes_of(&[rays.len() as u32, flags]);
+            let out = vec![0xEEu8; 16 * rays.len()];
+            let (report, bufs) = run(&p, &mut mem, 1, &[ray_bytes(&rays), out], &push, [rays.len().div_ceil(64) as u32, 1, 1]);
+            assert!(report.is_clean(), "{what}: {report:?}");
+            let rec = u32s(&bufs[1]);
+            for (i, ray) in rays.iter().enumerate() {
+                let r = reference(&rscene, ray, flags | OPAQUE, 0xFF);
+                // Opaque traversal: AABB candidates are never generated by this shader.
+                let ok: Vec<Expect> = r.hits.iter().filter(|h| h.triangle).map(|h| Expect { id: h.id, t: h.t, kind: 1, margin: h.margin }).collect();
+                let [t, prim, inst, kind] = [0, 1, 2, 3].map(|k| rec[4 * i + k]);
+                let ctx = format!("{what} flags {flags:#x} ray {i}");
+                if kind == 0 {
+                    assert_eq!((f32::from_bits(t), prim, inst), (-1.0, !0, !0), "{ctx}: miss record");
+                }
+                hits += check_record(kind, f32::from_bits(t), inst, None, prim, &ok, &r.near_misses, flags & TERMINATE_ON_FIRST_HIT != 0, &ctx) as u32;
+            }
+        }
+    }
+    assert!(hits > 200, "only {hits} committed hits: the rays miss the scene");
+}
