@@ -127,7 +127,11 @@ impl Layout<'_> {
             Type::Struct { members } => {
                 let (mut end, mut align) = (0u32, 1u32);
                 for (k, &member) in members.iter().enumerate() {
-                    let (s, a) = self.size_align(member)?;
+                    let (mut s, a) = self.size_align(member)?;
+                    // A matrix member's MatrixStride (naga writes 16 for mat4x3) sets its size.
+                    if let (Type::Matrix { n, .. }, Some(&ms)) = (self.m.ty(member)?, self.m.member_matrix_stride.get(&(ty, k as u32))) {
+                        s = s.max(ms.saturating_mul(*n));
+                    }
                     end = end.max(self.member_offset(ty, k as u32)? + s);
                     align = align.max(a);
                 }
