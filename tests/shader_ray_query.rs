@@ -14,7 +14,7 @@ use arbor::accel::{self, AsType, DeviceView, Geometry, GeometryData, GeometryFla
 use arbor::shader::{dispatch, DispatchReport, FaultKind, FaultSpace, HostMemory, Memory, Module, Pipeline, Region, Watchdog};
 use arbor_scene::{self as scene, InstanceRecord, Mesh, Rng};
 use glam::Vec3;
-use reference::brute_force::*;
+use reference::brute_force::{check_closest, reference, PrimId, RefResult, RefScene, Tolerance};
 use reference::*;
 
 // ---------------------------------------------------------------------------------------------
@@ -332,4 +332,121 @@ fn rq_closest_matches_brute_force() {
         }
     }
     assert!(hits > 200, "only {hits} committed hits: the rays miss the scene");
+}
+
+/// Triangles (non-opaque, and opaque with a geometry transform) and boxes (opaque and not)
+/// without the bunny: small enough for every ray flag combination.
+fn small_scene(seed: u64) -> Scene {
+    let mut opaque = TriData::from_mesh(&scene::random_soup(150, seed + 3), GEOMETRY_OPAQUE);
+    opaque.transform = Some([0.9, 0.1, 0.0, 0.0, 0.0, 1.0, 0.0, 0.1, 0.0, 0.0, 1.1, 0.0]);
+    let boxes = boxes_of(&scene::random_soup(80, seed + 4));
+    let blases = vec![
+        (vec![TriData::from_mesh(&scene::random_soup(150, seed), 0), opaque], vec![]),
+        (vec![], vec![AabbData::new(&boxes[..40], 24, GEOMETRY_OPAQUE), AabbData::new(&boxes[40..], 24, 0)]),
+    ];
+    Scene::new(blases, 16, seed)
+}
+
+fn f32_at(rec: &[u32], k: usize) -> f32 {
+    f32::from_bits(rec[k])
+}
+
+fn vec3_at(rec: &[u32], k: usize) -> Vec3 {
+    Vec3::new(f32_at(rec, k), f32_at(rec, k + 1), f32_at(rec, k + 2))
+}
+
+/// The committed hit of one rq_getters record as an `accel::Hit`, for the reference's own
+/// comparison; opacity is what the shader saw (a confirmed triangle was a candidate, so not
+/// opaque; a generated box reports its candidate opacity).
+fn hit_of(rec: &[u32]) -> Option<Hit> {
+    let kind = match rec[0] {
+        0 => return None,
+        1 => HitKind::Triangle,
+        _ => HitKind::Aabb,
+    };
+    let opaque = if kind == HitKind::Triangle { rec[19] == 0 } else { rec[20] != 0 };
+    let mut o2w = [0f32; 12];
+    let mut w2o = [0f32; 12];
+    for c in 0..4 {
+        for r in 0..3 {
+            o2w[4 * r + c] = f32_at(rec, 27 + 3 * c + r);
+            w2o[4 * r + c] = f32_at(rec, 39 + 3 * c + r);
+        }
+    }
+    Some(Hit {
+        t: f32_at(rec, 10),
+        kind,
+        barycentrics: [f32_at(rec, 17), f32_at(rec, 18)],
+        front_face: rec[16] != 0,
+        opaque,
+        instance_index: rec[11],
+        instance_custom_index: rec[14],
+        sbt_record_offset: rec[15],
+        geometry_index: rec[12],
+        primitive_index: rec[13],
+        object_ray_origin: vec3_at(rec, 21),
+        object_ray_direction: vec3_at(rec, 24),
+        object_to_world: o2w,
+        world_to_object: w2o,
+    })
+}
+
+fn close3(a: Vec3, b: [f64; 3], scale: f64) -> bool {
+    (0..3).all(|k| (a[k] as f64 - b[k]).abs() <= 1e-4 * scale.max(b[k].abs()).max(1.0))
+}
+
+/// The getters of the ray itself, and the instance-derived ones of a committed hit.
+fn check_ray_and_instance(rec: &[u32], ray: &Ray, flags: u32, s: &Scene, hit: Option<&Hit>, ctx: &str) {
+    assert_eq!(rec[2], flags, "{ctx}: ray flags");
+    assert_eq!(f32_at(rec, 3), ray.tmin, "{ctx}: tmin");
+    assert_eq!((vec3_at(rec, 4), vec3_at(rec, 7)), (ray.origin, ray.direction), "{ctx}: world ray");
+    let Some(h) = hit else {
+        assert_eq!(f32_at(rec, 10), ray.tmax, "{ctx}: committed t with nothing committed is tmax");
+        return;
+    };
+    let inst = &s.instances[h.instance_index as usize];
+    assert_eq!(h.object_to_world, inst.transform, "{ctx}: object-to-world");
+    let inv = invert_3x4(&inst.transform).expect("invertible instance transform");
+    for k in 0..12 {
+        assert!((h.world_to_object[k] as f64 - inv[k]).abs() <= 1e-4 * inv[k].abs().max(1.0), "{ctx}: world-to-object {k}");
+    }
+    let f = |v: Vec3| [v.x as f64, v.y as f64, v.z as f64];
+    let scale = ray.origin.abs().max_element() as f64 * 4.0;
+    assert!(close3(h.object_ray_origin, xform_point(&inv, f(ray.origin)), scale), "{ctx}: object ray origin");
+    assert!(close3(h.object_ray_direction, xform_vector(&inv, f(ray.direction)), 1.0), "{ctx}: object ray direction");
+}
+
+#[test]
+fn rq_getters_every_flag_and_cull_mask_match_brute_force() {
+    let s = small_scene(7);
+    let geoms = s.geoms();
+    let rscene = reference_scene(&s, &geoms);
+    let rays = random_rays(s.bounds, 16, 23);
+    let shaders: Vec<(String, Pipeline)> = glsl("rq_getters", &[]).into_iter().map(|(w, words)| {
+        let p = pipeline(&w, &words);
+        (w, p)
+    }).collect();
+    let mut hits = 0;
+    for flags in all_ray_flag_combinations() {
+        for cull in [0xFFu32, 0x01, 0x70, 0x100] {
+            let refs: Vec<RefResult> = rays.iter().map(|ray| reference(&rscene, ray, flags, cull as u8)).collect();
+            for (what, p) in &shaders {
+                let mut mem = s.memory();
+                let push = bytes_of(&[rays.len() as u32, flags, cull]);
+                let out = vec![0u8; 256 * rays.len()];
+                let (report, bufs) = run(p, &mut mem, 1, &[ray_bytes(&rays), out], &push, [rays.len().div_ceil(16) as u32, 1, 1]);
+                assert!(report.is_clean(), "{what}: {report:?}");
+                let recs = u32s(&bufs[1]);
+                for (i, ray) in rays.iter().enumerate() {
+                    let rec = &recs[64 * i..64 * (i + 1)];
+                    let ctx = format!("{what} flags {flags:#x} cull {cull:#x} ray {i}");
+                    let hit = hit_of(rec);
+                    check_closest(hit.as_ref(), &refs[i], flags, Tolerance { exact: false }, &ctx);
+                    check_ray_and_instance(rec, ray, flags, &s, hit.as_ref(), &ctx);
+                    hits += hit.is_some() as u32;
+                }
+            }
+        }
+    }
+    assert!(hits > 1000, "only {hits} committed hits");
 }
