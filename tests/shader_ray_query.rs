@@ -137,7 +137,8 @@ fn ray_bytes(rays: &[Ray]) -> Vec<u8> {
 // Scenes
 
 const BLAS_BASE: u64 = 0x10_0000_0000;
-const TLAS_ADDRESS: u64 = 0x40_0000_0000;
+/// Above every BLAS address (BLAS_BASE * (k + 1) for the few BLASes of a scene).
+const TLAS_ADDRESS: u64 = 0x7F_0000_0000;
 
 /// A TLAS over several BLASes in a `MapView`, with what the reference needs.
 struct Scene {
@@ -449,4 +450,158 @@ fn rq_getters_every_flag_and_cull_mask_match_brute_force() {
         }
     }
     assert!(hits > 1000, "only {hits} committed hits");
+}
+
+/// The any-hit shader's camera: origin (w = tmin), lower-left corner of the image plane (w =
+/// tmax), pixel steps, image size; and the world-space ray of each pixel as the shader
+/// computes it.
+struct Camera {
+    origin: Vec3,
+    lower_left: Vec3,
+    du: Vec3,
+    dv: Vec3,
+    tmin: f32,
+    tmax: f32,
+    size: [u32; 2],
+}
+
+impl Camera {
+    fn looking_at(b: [f32; 6], size: [u32; 2]) -> Camera {
+        let centre = Vec3::new(b[0] + b[3], b[1] + b[4], b[2] + b[5]) * 0.5;
+        let ext = Vec3::new(b[3] - b[0], b[4] - b[1], b[5] - b[2]);
+        let origin = centre + Vec3::new(0.1 * ext.x, 0.2 * ext.y, 1.5 * ext.x.max(ext.y).max(ext.z));
+        let forward = (centre - origin).normalize();
+        let right = forward.cross(Vec3::Y).normalize();
+        let up = right.cross(forward);
+        let half = 0.45 * ext.x.max(ext.y);
+        let (du, dv) = (right * (2.0 * half / size[0] as f32), up * (2.0 * half / size[1] as f32));
+        let lower_left = centre - right * half - up * half;
+        Camera { origin, lower_left, du, dv, tmin: 0.01, tmax: 1e4, size }
+    }
+
+    fn ubo(&self, mask_address: u64) -> Vec<u8> {
+        let mut out = Vec::new();
+        for (v, w) in [(self.origin, self.tmin), (self.lower_left, self.tmax), (self.du, 0.0), (self.dv, 0.0)] {
+            for x in [v.x, v.y, v.z, w] {
+                out.extend_from_slice(&x.to_le_bytes());
+            }
+        }
+        out.extend_from_slice(&self.size[0].to_le_bytes());
+        out.extend_from_slice(&self.size[1].to_le_bytes());
+        out.extend_from_slice(&mask_address.to_le_bytes());
+        out
+    }
+
+    fn ray(&self, x: u32, y: u32) -> Ray {
+        let p = self.lower_left + (x as f32 + 0.5) * self.du + (y as f32 + 0.5) * self.dv - self.origin;
+        Ray { origin: self.origin, direction: p.normalize(), tmin: self.tmin, tmax: self.tmax }
+    }
+}
+
+/// What rq_anyhit may commit for `ray`: opaque triangles, non-opaque ones passing its alpha
+/// test (mask bit, or barycentric x < 0.5), and boxes whose object-space unit sphere the ray
+/// enters within [tmin, tmax] (generated at the sphere's t). Also an upper bound on the
+/// candidates Proceed may stop at.
+fn anyhit_reference(r: &RefResult, s: &Scene, ray: &Ray, mask: &[u32]) -> (Vec<Expect>, usize) {
+    let mut ok = Vec::new();
+    let mut candidates = r.near_misses.len();
+    for h in &r.hits {
+        if h.triangle {
+            let bit = (mask[(h.id.primitive >> 5) as usize] >> (h.id.primitive & 31)) & 1 != 0;
+            if h.opaque {
+                ok.push(Expect { id: h.id, t: h.t, kind: 1, margin: h.margin });
+                continue;
+            }
+            candidates += 1;
+            let alpha_margin = if bit { f64::INFINITY } else { (h.uv[0] as f64 - 0.5).abs() };
+            if bit || h.uv[0] < 0.5 || alpha_margin < AMBIGUOUS {
+                ok.push(Expect { id: h.id, t: h.t, kind: 1, margin: h.margin.min(alpha_margin) });
+            }
+            continue;
+        }
+        candidates += 1;
+        let inv = invert_3x4(&s.instances[h.id.instance as usize].transform).expect("invertible");
+        let f = |v: Vec3| [v.x as f64, v.y as f64, v.z as f64];
+        let (o, d) = (xform_point(&inv, f(ray.origin)), xform_vector(&inv, f(ray.direction)));
+        let dot = |a: [f64; 3], b: [f64; 3]| a[0] * b[0] + a[1] * b[1] + a[2] * b[2];
+        let (a, b, c) = (dot(d, d), dot(o, d), dot(o, o) - 1.0);
+        let disc = b * b - a * c;
+        let t = (-b - disc.max(0.0).sqrt()) / a;
+        let margin = h.margin.min(disc.abs() / (b * b).max(a)).min((t - ray.tmin as f64).abs() / t.abs().max(1.0));
+        if (disc >= 0.0 && t >= ray.tmin as f64 && t <= ray.tmax as f64) || margin < AMBIGUOUS {
+            ok.push(Expect { id: h.id, t: t as f32, kind: 2, margin });
+        }
+    }
+    (ok, candidates)
+}
+
+#[test]
+fn rq_anyhit_alpha_mask_spheres_generate_confirm_terminate() {
+    let s = mixed_scene(5);
+    let geoms = s.geoms();
+    let rscene = reference_scene(&s, &geoms);
+    let cam = Camera::looking_at(s.bounds, [24, 24]);
+    let mut rng = Rng::new(77);
+    let mask: Vec<u32> = (0..(bunny().indices.len() + 31) / 32 + 16).map(|_| rng.next_u32()).collect();
+    let mut shaders = glsl("rq_anyhit", &[]);
+    shaders.extend(wgsl("rq_anyhit"));
+    let n = (cam.size[0] * cam.size[1]) as usize;
+    let refs: Vec<(Ray, RefResult)> = (0..n as u32)
+        .map(|i| {
+            let ray = cam.ray(i % cam.size[0], i / cam.size[0]);
+            let r = reference(&rscene, &ray, 0, 0xFF);
+            (ray, r)
+        })
+        .collect();
+    let (mut generated, mut alpha) = (0, 0);
+    for (what, words) in &shaders {
+        let p = pipeline(what, words);
+        let mut mem = s.memory();
+        let naga = what.contains("naga");
+        let mask_buffer = mem.host.add_buffer(&bytes_of(&mask));
+        let ubo = cam.ubo(mem.host.device_address(mask_buffer));
+        let mut bufs = vec![ubo, vec![0u8; 32 * n]];
+        if naga {
+            bufs.push(bytes_of(&mask)); // WGSL has no buffer device address: a binding instead
+        }
+        let (report, out) = run(&p, &mut mem, 1, &bufs, &[], [cam.size[0] / 8, cam.size[1] / 8, 1]);
+        assert!(report.is_clean(), "{what}: {report:?}");
+        let rec = u32s(&out[1]);
+        for (i, (ray, r)) in refs.iter().enumerate() {
+            let o = &rec[8 * i..8 * i + 8];
+            let (t, prim, geom, custom, kind, candidates) = (f32::from_bits(o[0]), o[1], o[5], o[6], o[7], o[4] as usize);
+            let ctx = format!("{what} pixel {i}");
+            let (ok, max_candidates) = anyhit_reference(r, &s, ray, &mask);
+            let inst = s.instances.iter().position(|x| x.custom_index == custom).unwrap_or(usize::MAX) as u32;
+            // naga's committed-intersection struct reads t only when something is committed
+            // (else 0), so the WGSL twin generates a sphere hit only below an earlier commit:
+            // which spheres it keeps depends on traversal order. There, a sphere may be missed
+            // and any acceptable hit will do.
+            let spheres = naga && ok.iter().any(|e| e.kind == 2);
+            let committed = if spheres && kind == 0 {
+                assert!(ok.iter().all(|e| e.kind == 2 || e.margin < AMBIGUOUS), "{ctx}: nothing committed, reference accepts {ok:?}");
+                false
+            } else {
+                check_record(kind, t, inst, Some(geom), prim, &ok, &r.near_misses, spheres, &ctx)
+            };
+            if committed {
+                let h = ok.iter().find(|e| e.id.instance == inst && e.id.primitive == prim);
+                let was_candidate = kind == 2 || h.is_some_and(|h| r.hits.iter().any(|x| x.id == h.id && !x.opaque));
+                assert!(!was_candidate || candidates >= 1, "{ctx}: committed a candidate, counted none");
+                generated += (kind == 2) as u32;
+                alpha += (kind == 1 && was_candidate) as u32;
+            } else {
+                assert_eq!((t, prim, geom, custom), (-1.0, !0, !0, !0), "{ctx}: miss record");
+            }
+            assert!(candidates <= max_candidates, "{ctx}: {candidates} candidates, the reference has {max_candidates}");
+            if kind == 1 {
+                let bary = [f32::from_bits(o[2]), f32::from_bits(o[3])];
+                let e = r.hits.iter().find(|x| x.id.instance == inst && x.id.primitive == prim && x.id.geometry == geom);
+                if let Some(e) = e.filter(|e| e.margin > 1e-3) {
+                    assert!((bary[0] - e.uv[0]).abs() < 1e-3 && (bary[1] - e.uv[1]).abs() < 1e-3, "{ctx}: barycentrics {bary:?} vs {:?}", e.uv);
+                }
+            }
+        }
+    }
+    assert!(generated > 20 && alpha > 20, "generated {generated}, alpha-tested {alpha}: the camera misses the scene");
 }
