@@ -605,3 +605,94 @@ fn rq_anyhit_alpha_mask_spheres_generate_confirm_terminate() {
     }
     assert!(generated > 20 && alpha > 20, "generated {generated}, alpha-tested {alpha}: the camera misses the scene");
 }
+
+/// A unit quad in z = 0 over [0, 1]², non-opaque (so Proceed stops at it once).
+fn quad_blas() -> Vec<u8> {
+    let m = Mesh { positions: vec![[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [1.0, 1.0, 0.0], [0.0, 1.0, 0.0]], indices: vec![[0, 1, 2], [0, 2, 3]] };
+    build_blas(0, &[TriData::from_mesh(&m, 0).geometry()]).bytes
+}
+
+/// Runs rq_negative (8 invocations) with `address` pushed; returns the report and the
+/// records (type, t, primitive, candidates).
+fn run_negative(p: &Pipeline, mem: &mut RqMemory, address: u64) -> (DispatchReport, Vec<[u32; 4]>) {
+    let (report, out) = run(p, mem, 0, &[vec![0xEEu8; 128]], &address.to_le_bytes(), [1, 1, 1]);
+    let w = u32s(&out[0]);
+    (report, (0..8).map(|i| [w[4 * i], w[4 * i + 1], w[4 * i + 2], w[4 * i + 3]]).collect())
+}
+
+#[test]
+fn rq_on_garbage_destroyed_and_unbound_structures_faults_and_finds_nothing() {
+    const QUAD: u64 = 0x20_0000_0000;
+    const GARBAGE_BYTES: u64 = 0x30_0000_0000;
+    const DESTROYED: u64 = 0x31_0000_0000;
+    let mut view = MapView::new();
+    view.insert(QUAD, quad_blas());
+    view.insert(GARBAGE_BYTES, vec![0x55; 4096]);
+    let mut destroyed = quad_blas();
+    accel::mark_invalid(&mut destroyed);
+    view.insert(DESTROYED, destroyed);
+    let mut mem = RqMemory { host: HostMemory::new(), view, tlas: None };
+    for (what, words) in glsl("rq_negative", &[]) {
+        let p = pipeline(&what, &words);
+        // The structure named by a 64-bit address (OpConvertUToAccelerationStructureKHR).
+        let (report, recs) = run_negative(&p, &mut mem, QUAD);
+        assert!(report.is_clean(), "{what}: {report:?}");
+        for (i, r) in recs.iter().enumerate() {
+            assert_eq!((r[0], f32::from_bits(r[1]), r[3]), (1, 1.0, 1), "{what}: lane {i} hits the quad");
+        }
+        for (address, kind) in [
+            (0xDEAD_BEEF_0000u64, FaultKind::Unmapped),
+            (0, FaultKind::Unmapped),
+            (GARBAGE_BYTES, FaultKind::InvalidStructure),
+            (DESTROYED, FaultKind::InvalidStructure),
+        ] {
+            let (report, recs) = run_negative(&p, &mut mem, address);
+            assert_eq!(report.fault_count, 8, "{what} {address:#x}: one fault per invocation: {report:?}");
+            for f in &report.faults {
+                assert_eq!((f.kind, f.space, f.at), (kind, FaultSpace::RayQuery, address), "{what}: {f}");
+            }
+            for r in &recs {
+                // Nothing found: committed type none, t the ray's tmax, no candidates.
+                assert_eq!((r[0], f32::from_bits(r[1]), r[2], r[3]), (0, 100.0, 0, 0), "{what} {address:#x}");
+            }
+        }
+    }
+    // A memory without structures at all (the trait's defaults): faults, nothing found.
+    let words = &glsl("rq_negative", &[])[0].1;
+    let mut host = HostMemory::new();
+    let out = host.add_buffer(&[0xEE; 128]);
+    host.bind(0, 0, out);
+    let report = dispatch(&pipeline("rq_negative", words), &host, &QUAD.to_le_bytes(), [1, 1, 1], [0; 3], &Watchdog::default());
+    assert_eq!((report.fault_count, report.faults[0].kind), (8, FaultKind::Unmapped));
+    assert_eq!(u32s(&host.bytes(out))[..4], [0, 100f32.to_bits(), 0, 0]);
+}
+
+#[test]
+fn rq_getters_on_an_uninitialised_query_fault_and_read_zero() {
+    let mut mem = RqMemory { host: HostMemory::new(), view: MapView::new(), tlas: None };
+    for (what, words) in glsl("rq_negative", &["UNINITIALIZED"]) {
+        let p = pipeline(&what, &words);
+        let (report, recs) = run_negative(&p, &mut mem, 0);
+        // Three committed getters per invocation, each a fault naming the query variable.
+        assert_eq!(report.fault_count, 24, "{what}: {report:?}");
+        assert!(report.faults.iter().all(|f| f.kind == FaultKind::Uninitialized && f.space == FaultSpace::RayQuery), "{what}: {report:?}");
+        for r in &recs {
+            assert_eq!(r[..3], [0, 0, 0], "{what}");
+        }
+    }
+}
+
+#[test]
+fn rq_unbound_descriptor_faults_and_finds_nothing() {
+    let s = small_scene(1);
+    let mut mem = s.memory();
+    mem.tlas = None;
+    let rays = random_rays(s.bounds, 16, 3);
+    for (what, words) in glsl("rq_closest", &[]) {
+        let p = pipeline(&what, &words);
+        let (report, bufs) = run(&p, &mut mem, 1, &[ray_bytes(&rays), vec![0u8; 16 * rays.len()]], &bytes_of(&[16, 0]), [1, 1, 1]);
+        assert_eq!(report.fault_count, 16, "{what}: {report:?}");
+        assert!(report.faults.iter().all(|f| (f.kind, f.at) == (FaultKind::Unmapped, 0)), "{what}");
+        assert!(u32s(&bufs[1]).chunks(4).all(|r| r[3] == 0 && r[1] == !0), "{what}: records say nothing was hit");
+    }
+}
