@@ -389,6 +389,7 @@ fn hit_of(rec: &[u32]) -> Option<Hit> {
         object_ray_direction: vec3_at(rec, 24),
         object_to_world: o2w,
         world_to_object: w2o,
+        vertices: [Vec3::ZERO; 3], // not read by rq_getters (position fetch has its own test)
     })
 }
 
@@ -694,5 +695,76 @@ fn rq_unbound_descriptor_faults_and_finds_nothing() {
         assert_eq!(report.fault_count, 16, "{what}: {report:?}");
         assert!(report.faults.iter().all(|f| (f.kind, f.at) == (FaultKind::Unmapped, 0)), "{what}");
         assert!(u32s(&bufs[1]).chunks(4).all(|r| r[3] == 0 && r[1] == !0), "{what}: records say nothing was hit");
+    }
+}
+
+/// tests/shaders/rq_position_fetch.spvasm assembled, with the stand-in opcode patched to
+/// OpRayQueryGetIntersectionTriangleVertexPositionsKHR and the capability and extension added
+/// (see the file's header for why).
+fn position_fetch_module() -> Vec<u32> {
+    let src = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("tests/shaders/rq_position_fetch.spvasm");
+    let spv = scratch_dir().join("rq_position_fetch.spv");
+    let out = Command::new("spirv-as").args(["--target-env", "vulkan1.2"]).arg(&src).arg("-o").arg(&spv).output().expect("spirv-as (Debian: spirv-tools)");
+    assert!(out.status.success(), "spirv-as: {}", String::from_utf8_lossy(&out.stderr));
+    let words = words_of(&spv);
+    let (mut body, mut at) = (Vec::new(), 5);
+    let mut patched = 0;
+    while at < words.len() {
+        let n = (words[at] >> 16) as usize;
+        let mut inst = words[at..at + n].to_vec();
+        if inst[0] & 0xFFFF == spirv::Op::RayQueryGetIntersectionBarycentricsKHR as u32 {
+            inst[0] = (inst[0] & 0xFFFF_0000) | spirv::Op::RayQueryGetIntersectionTriangleVertexPositionsKHR as u32;
+            patched += 1;
+        }
+        if inst[0] & 0xFFFF == spirv::Op::Extension as u32 && !body.iter().any(|&w: &u32| w & 0xFFFF == spirv::Op::Extension as u32) {
+            let mut name = b"SPV_KHR_ray_tracing_position_fetch".to_vec();
+            name.resize(name.len() / 4 * 4 + 4, 0);
+            body.push(((1 + name.len() / 4) as u32) << 16 | spirv::Op::Extension as u32);
+            body.extend(name.chunks(4).map(|c| u32::from_le_bytes([c[0], c[1], c[2], c[3]])));
+        }
+        body.extend(inst);
+        at += n;
+    }
+    assert_eq!(patched, 1);
+    let cap = [2 << 16 | spirv::Op::Capability as u32, spirv::Capability::RayQueryPositionFetchKHR as u32];
+    words[..5].iter().chain(&cap).chain(&body).copied().collect()
+}
+
+#[test]
+fn rq_position_fetch_returns_the_object_space_vertices_in_application_order() {
+    // Eight quads over [0, 1]² split along alternating diagonals, with a geometry transform;
+    // one instance that moves them (positions stay in object space).
+    let mut positions = Vec::new();
+    let mut indices = Vec::new();
+    for q in 0..8u32 {
+        let (x0, x1) = (q as f32 / 8.0, (q + 1) as f32 / 8.0);
+        positions.extend([[x0, 0.0, 0.0], [x1, 0.0, 0.1 * q as f32], [x1, 1.0, 0.0], [x0, 1.0, 0.05]]);
+        let b = 4 * q;
+        indices.extend(if q % 2 == 0 { [[b, b + 1, b + 2], [b + 2, b + 3, b]] } else { [[b + 1, b + 2, b + 3], [b, b + 1, b + 3]] });
+    }
+    let mut tri = TriData::from_mesh(&Mesh { positions, indices }, GEOMETRY_OPAQUE);
+    tri.transform = Some([1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.25, 1.0, 0.5]);
+    let geoms = [tri.geometry()];
+    let blas = build(AsType::BottomLevel, accel::BuildFlags::ALLOW_DATA_ACCESS, &geoms, &accel::NoDevice);
+    let mut view = MapView::new();
+    view.insert(BLAS_BASE, blas.bytes);
+    let inst = InstanceRecord { transform: [1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 2.0], custom_index: 0, mask: 0xFF, sbt_offset: 0, flags: 0, reference: BLAS_BASE };
+    let packed = InstanceRecord::pack(&[inst]);
+    let g = [Geometry { flags: GeometryFlags(0), primitive_count: 1, data: GeometryData::Instances { array_of_pointers: false, data: &packed } }];
+    let tlas = build(AsType::TopLevel, 0, &g, &view);
+    view.insert(TLAS_ADDRESS, tlas.bytes);
+    let rscene = RefScene::Tlas { instances: vec![inst], blases: HashMap::from([(BLAS_BASE, &geoms[..])]) };
+    let p = pipeline("rq_position_fetch", &position_fetch_module());
+    let mut mem = RqMemory { host: HostMemory::new(), view, tlas: None };
+    let (report, out) = run(&p, &mut mem, 0, &[vec![0u8; 9 * 4 * 8]], &TLAS_ADDRESS.to_le_bytes(), [1, 1, 1]);
+    assert!(report.is_clean(), "{report:?}");
+    let got: Vec<f32> = u32s(&out[0]).into_iter().map(f32::from_bits).collect();
+    for i in 0..8 {
+        let ray = Ray { origin: Vec3::new(0.0625 + 0.125 * i as f32, 0.3, -1.0), direction: Vec3::Z, tmin: 0.0, tmax: 100.0 };
+        let r = reference(&rscene, &ray, 0, 0xFF);
+        let best = r.hits.iter().min_by(|a, b| a.t.total_cmp(&b.t)).expect("every ray hits a quad");
+        let want = accel::fetch_triangle(&geoms[0], best.id.primitive).unwrap();
+        let want: Vec<f32> = want.iter().flat_map(|v| v.to_array()).collect();
+        assert_eq!(got[9 * i..9 * i + 9], want[..], "lane {i}: primitive {}", best.id.primitive);
     }
 }

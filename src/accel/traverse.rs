@@ -68,6 +68,9 @@ pub struct Hit {
     pub object_ray_direction: Vec3,
     pub object_to_world: [f32; 12],
     pub world_to_object: [f32; 12],
+    /// Triangles: the stored vertices v0, v1, v2 (object space, geometry transform applied,
+    /// application order), for VK_KHR_ray_tracing_position_fetch. AABBs: zero.
+    pub vertices: [Vec3; 3],
 }
 
 const IDENTITY: [f32; 12] = [1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0];
@@ -442,7 +445,7 @@ impl<'a> RayQuery<'a> {
             }
         };
         let data = l.s.prim(slot)?;
-        let (t, kind, bary, front) = match gkind {
+        let (t, kind, bary, front, vertices) = match gkind {
             layout::KIND_TRIANGLES => {
                 if f & RayFlags::SKIP_TRIANGLES != 0 {
                     return None;
@@ -457,7 +460,7 @@ impl<'a> RayQuery<'a> {
                         return None;
                     }
                 }
-                (t, HitKind::Triangle, [u, v], front)
+                (t, HitKind::Triangle, [u, v], front, [v0, v1, v2].map(Vec3::from_array))
             }
             layout::KIND_AABBS => {
                 if f & RayFlags::SKIP_AABBS != 0 {
@@ -465,7 +468,7 @@ impl<'a> RayQuery<'a> {
                 }
                 let b = [data[0], data[1], data[2], data[3], data[4], data[5]];
                 let t = ray_box_exact(l.org, l.dir, &b, self.ray.tmin, self.tmax)?;
-                (t, HitKind::Aabb, [0.0, 0.0], false)
+                (t, HitKind::Aabb, [0.0, 0.0], false, [Vec3::ZERO; 3])
             }
             _ => return None,
         };
@@ -496,6 +499,7 @@ impl<'a> RayQuery<'a> {
             object_ray_direction: l.dir,
             object_to_world: o2w,
             world_to_object: w2o,
+            vertices,
         })
     }
 

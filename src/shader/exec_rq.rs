@@ -174,7 +174,10 @@ fn get(slot: &Slot<'_>, value: RqValue, committed: bool, out: &mut [u64; 12]) {
         RqValue::ObjectRayDirection => f32s(out, &h.object_ray_direction.to_array()),
         RqValue::ObjectToWorld => f32s(out, &columns(&h.object_to_world)),
         RqValue::WorldToObject => f32s(out, &columns(&h.world_to_object)),
-        RqValue::TriangleVertexPositions => {}
+        RqValue::TriangleVertexPositions => {
+            let v = h.vertices;
+            f32s(out, &[v[0].x, v[0].y, v[0].z, v[1].x, v[1].y, v[1].z, v[2].x, v[2].y, v[2].z]);
+        }
         RqValue::TMin | RqValue::RayFlags | RqValue::WorldRayOrigin | RqValue::WorldRayDirection | RqValue::Type => {}
     }
 }
