@@ -266,10 +266,20 @@ fn t_close(a: f32, b: f32) -> bool {
     (a - b).abs() <= 1e-4 * a.abs().max(b.abs()).max(1.0)
 }
 
-/// One record: (kind, t, identity). `geometry: None` when the shader does not write it.
-/// With `any`, any acceptable hit will do (TERMINATE_ON_FIRST_HIT); else the nearest, up to
-/// ties and rounding-ambiguous decisions.
-fn check_record(kind: u32, t: f32, inst: u32, geometry: Option<u32>, prim: u32, ok: &[Expect], near: &[(PrimId, bool)], any: bool, ctx: &str) -> bool {
+/// What a shader wrote about its committed hit. `geometry: None` when it does not write it.
+struct Record {
+    kind: u32,
+    t: f32,
+    inst: u32,
+    geometry: Option<u32>,
+    prim: u32,
+}
+
+/// One record against the hits the reference accepts. With `any`, any acceptable hit will do
+/// (TERMINATE_ON_FIRST_HIT); else the nearest, up to ties and rounding-ambiguous decisions.
+/// Returns whether something was committed.
+fn check_record(rec: Record, ok: &[Expect], near: &[(PrimId, bool)], any: bool, ctx: &str) -> bool {
+    let Record { kind, t, inst, geometry, prim } = rec;
     let same = |id: &PrimId| id.instance == inst && id.primitive == prim && geometry.is_none_or(|g| g == id.geometry);
     let forgivable = |e: &Expect| e.margin < AMBIGUOUS;
     if kind == 0 {
@@ -328,7 +338,7 @@ fn rq_closest_matches_brute_force() {
                 if kind == 0 {
                     assert_eq!((f32::from_bits(t), prim, inst), (-1.0, !0, !0), "{ctx}: miss record");
                 }
-                hits += check_record(kind, f32::from_bits(t), inst, None, prim, &ok, &r.near_misses, flags & TERMINATE_ON_FIRST_HIT != 0, &ctx) as u32;
+                hits += check_record(Record { kind, t: f32::from_bits(t), inst, geometry: None, prim }, &ok, &r.near_misses, flags & TERMINATE_ON_FIRST_HIT != 0, &ctx) as u32;
             }
         }
     }
@@ -409,8 +419,8 @@ fn check_ray_and_instance(rec: &[u32], ray: &Ray, flags: u32, s: &Scene, hit: Op
     let inst = &s.instances[h.instance_index as usize];
     assert_eq!(h.object_to_world, inst.transform, "{ctx}: object-to-world");
     let inv = invert_3x4(&inst.transform).expect("invertible instance transform");
-    for k in 0..12 {
-        assert!((h.world_to_object[k] as f64 - inv[k]).abs() <= 1e-4 * inv[k].abs().max(1.0), "{ctx}: world-to-object {k}");
+    for (k, (&got, &want)) in h.world_to_object.iter().zip(&inv).enumerate() {
+        assert!((got as f64 - want).abs() <= 1e-4 * want.abs().max(1.0), "{ctx}: world-to-object {k}");
     }
     let f = |v: Vec3| [v.x as f64, v.y as f64, v.z as f64];
     let scale = ray.origin.abs().max_element() as f64 * 4.0;
@@ -543,7 +553,7 @@ fn rq_anyhit_alpha_mask_spheres_generate_confirm_terminate() {
     let rscene = reference_scene(&s, &geoms);
     let cam = Camera::looking_at(s.bounds, [24, 24]);
     let mut rng = Rng::new(77);
-    let mask: Vec<u32> = (0..(bunny().indices.len() + 31) / 32 + 16).map(|_| rng.next_u32()).collect();
+    let mask: Vec<u32> = (0..bunny().indices.len().div_ceil(32) + 16).map(|_| rng.next_u32()).collect();
     let mut shaders = glsl("rq_anyhit", &[]);
     shaders.extend(wgsl("rq_anyhit"));
     let n = (cam.size[0] * cam.size[1]) as usize;
@@ -583,7 +593,7 @@ fn rq_anyhit_alpha_mask_spheres_generate_confirm_terminate() {
                 assert!(ok.iter().all(|e| e.kind == 2 || e.margin < AMBIGUOUS), "{ctx}: nothing committed, reference accepts {ok:?}");
                 false
             } else {
-                check_record(kind, t, inst, Some(geom), prim, &ok, &r.near_misses, spheres, &ctx)
+                check_record(Record { kind, t, inst, geometry: Some(geom), prim }, &ok, &r.near_misses, spheres, &ctx)
             };
             if committed {
                 let h = ok.iter().find(|e| e.id.instance == inst && e.id.primitive == prim);

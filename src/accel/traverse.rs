@@ -455,10 +455,9 @@ impl<'a> RayQuery<'a> {
                 let v2 = [data[6], data[7], data[8]];
                 let (t, u, v, front_raw) = intersect_sheared(&l.sh, l.org.to_array(), self.ray.tmin, self.tmax, v0, v1, v2)?;
                 let front = front_raw ^ (inst_flags & INSTANCE_FLIP_FACING != 0);
-                if inst_flags & INSTANCE_FACING_CULL_DISABLE == 0 {
-                    if (f & RayFlags::CULL_BACK_FACING_TRIANGLES != 0 && !front) || (f & RayFlags::CULL_FRONT_FACING_TRIANGLES != 0 && front) {
-                        return None;
-                    }
+                let culls = (f & RayFlags::CULL_BACK_FACING_TRIANGLES != 0 && !front) || (f & RayFlags::CULL_FRONT_FACING_TRIANGLES != 0 && front);
+                if inst_flags & INSTANCE_FACING_CULL_DISABLE == 0 && culls {
+                    return None;
                 }
                 (t, HitKind::Triangle, [u, v], front, [v0, v1, v2].map(Vec3::from_array))
             }

@@ -138,28 +138,34 @@ fn columns(m: &[f32; 12]) -> [f32; 12] {
 }
 
 fn get(slot: &Slot<'_>, value: RqValue, committed: bool, out: &mut [u64; 12]) {
-    let committed_hit = slot.q.committed();
-    let hit = if committed { committed_hit } else { slot.candidate };
+    let hit = if committed { slot.q.committed() } else { slot.candidate };
     match value {
-        RqValue::TMin => return f32s(out, &[slot.ray.tmin]),
-        RqValue::RayFlags => return out[0] = slot.flags as u64,
-        RqValue::WorldRayOrigin => return f32s(out, &slot.ray.origin.to_array()),
-        RqValue::WorldRayDirection => return f32s(out, &slot.ray.direction.to_array()),
+        RqValue::TMin => f32s(out, &[slot.ray.tmin]),
+        RqValue::RayFlags => out[0] = slot.flags as u64,
+        RqValue::WorldRayOrigin => f32s(out, &slot.ray.origin.to_array()),
+        RqValue::WorldRayDirection => f32s(out, &slot.ray.direction.to_array()),
+        // Committed: 0 none, 1 triangle, 2 generated. Candidate: 0 triangle, 1 AABB.
         RqValue::Type => {
-            // Committed: 0 none, 1 triangle, 2 generated. Candidate: 0 triangle, 1 AABB.
             out[0] = match (committed, hit.map(|h| h.kind)) {
                 (true, None) => 0,
                 (true, Some(HitKind::Triangle)) => 1,
                 (true, Some(HitKind::Aabb)) => 2,
                 (false, Some(HitKind::Aabb)) => 1,
                 (false, _) => 0,
-            };
-            return;
+            }
         }
-        RqValue::T if hit.is_none() && committed => return f32s(out, &[slot.ray.tmax]),
-        _ => {}
+        // Nothing committed: the committed t is the ray's tmax (what traversal still accepts).
+        RqValue::T if committed && hit.is_none() => f32s(out, &[slot.ray.tmax]),
+        _ => {
+            if let Some(h) = hit {
+                hit_value(&h, value, out);
+            }
+        }
     }
-    let Some(h) = hit else { return };
+}
+
+/// The getters that read an intersection.
+fn hit_value(h: &Hit, value: RqValue, out: &mut [u64; 12]) {
     match value {
         RqValue::T => f32s(out, &[h.t]),
         RqValue::InstanceCustomIndex => out[0] = h.instance_custom_index as u64,

@@ -1,4 +1,5 @@
-//! One entry point → [`Program`]: control flow, calls, variables and memory access. ALU,
+//! One entry point → [`Program`]: control flow, calls, variables and memory access (ray queries
+//! are in `lower_rq`). ALU,
 //! composite, atomic and subgroup instructions are in `lower_ops`.
 //!
 //! Every call is inlined: the caller's block ends with a jump to the callee's first block, the

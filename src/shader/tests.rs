@@ -311,7 +311,9 @@ fn push_constants_uniform_buffer_and_specialization() {
         };
     }
     let push: Vec<u8> = [5u32, 1.5f32.to_bits(), count].iter().flat_map(|x| x.to_le_bytes()).collect();
-    let cases: [(Vec<(u32, Vec<u8>)>, u32, bool, u32); 2] = [
+    // (specialization data, expected k, flag, workgroup size x)
+    type Case = (Vec<(u32, Vec<u8>)>, u32, bool, u32);
+    let cases: [Case; 2] = [
         (vec![], 3, false, 1),
         (vec![(0, 5u32.to_le_bytes().to_vec()), (1, 1u32.to_le_bytes().to_vec()), (2, 16u32.to_le_bytes().to_vec())], 5, true, 16),
     ];
@@ -379,10 +381,10 @@ fn subgroup_reference(x: &[u32]) -> Vec<[u32; 16]> {
         let g = &x[s..s + lanes];
         let ballot = (0..lanes).filter(|&l| g[l] & 1 == 1).fold(0u32, |a, l| a | 1 << l);
         let sum = g.iter().fold(0u32, |a, &v| a.wrapping_add(v));
-        let then: Vec<usize> = (0..lanes).filter(|&l| g[l] % 3 == 0).collect();
+        let then: Vec<usize> = (0..lanes).filter(|&l| g[l].is_multiple_of(3)).collect();
         let then_ballot = then.iter().fold(0u32, |a, &l| a | 1 << l);
         let then_sum = then.iter().fold(0u32, |a, &l| a.wrapping_add(g[l]));
-        let others: Vec<usize> = (0..lanes).filter(|&l| g[l] % 3 != 0).collect();
+        let others: Vec<usize> = (0..lanes).filter(|&l| !g[l].is_multiple_of(3)).collect();
         let prod = others.iter().fold(1u32, |a, &l| a.wrapping_mul(g[l] % 4 + 1));
         let fsum = g.iter().fold(0f32, |a, &v| a + v as f32 * 0.5);
         for l in 0..lanes {
@@ -402,7 +404,7 @@ fn subgroup_reference(x: &[u32]) -> Vec<[u32; 16]> {
             o[9] = g[..=l].iter().fold(0u32, |a, &v| a.wrapping_add(v));
             o[10] = g[..l].iter().fold(0u32, |a, &v| a.wrapping_add(v));
             o[11] = fsum.to_bits();
-            if g[l] % 3 == 0 {
+            if g[l].is_multiple_of(3) {
                 o[12] = then_sum + (then[0] == l) as u32;
                 o[13] = then_ballot;
             } else {
