@@ -1,6 +1,5 @@
-//! One entry point → [`Program`]: control flow, calls, variables and memory access (ray queries
-//! are in `lower_rq`). ALU,
-//! composite, atomic and subgroup instructions are in `lower_ops`.
+//! One entry point → [`Program`]: control flow, calls, variables and memory access. ALU,
+//! composite, atomic and subgroup instructions are in `lower_ops`, ray queries in `lower_rq`.
 //!
 //! Every call is inlined: the caller's block ends with a jump to the callee's first block, the
 //! callee's blocks follow, and its returns jump to a continuation block after them, so the
