@@ -777,3 +777,40 @@ fn rq_position_fetch_returns_the_object_space_vertices_in_application_order() {
         assert_eq!(got[9 * i..9 * i + 9], want[..], "lane {i}: primitive {}", best.id.primitive);
     }
 }
+
+#[test]
+fn compacted_and_deserialized_structures_trace_identically() {
+    let s = small_scene(9);
+    let rays = random_rays(s.bounds, 32, 8);
+    let (what, words) = &glsl("rq_getters", &[])[1];
+    let p = pipeline(what, words);
+    let trace = |mem: &mut RqMemory, flags: u32| {
+        let push = bytes_of(&[rays.len() as u32, flags, 0xFF]);
+        let (report, bufs) = run(&p, mem, 1, &[ray_bytes(&rays), vec![0u8; 256 * rays.len()]], &push, [2, 1, 1]);
+        assert!(report.is_clean(), "{report:?}");
+        bufs[1].clone()
+    };
+    // Every structure compacted (exactly its used bytes), and the TLAS also serialized and
+    // deserialized to another address.
+    let mut compact = s.memory();
+    for a in s.blas_geoms.iter().map(|b| b.0).chain([TLAS_ADDRESS]) {
+        let src = s.view.acceleration_structure(a).unwrap();
+        let mut dst = vec![0u8; accel::compacted_size(src).unwrap() as usize];
+        accel::compact_into(src, &mut dst).unwrap();
+        compact.view.insert(a, dst);
+    }
+    let mut copied = s.memory();
+    let tlas = s.view.acceleration_structure(TLAS_ADDRESS).unwrap();
+    let mut ser = vec![0u8; accel::serialized_size(tlas).unwrap() as usize];
+    accel::serialize(tlas, [7; 16], &mut ser).unwrap();
+    let mut de = vec![0u8; tlas.len()];
+    accel::deserialize(&ser, [7; 16], &mut de).unwrap();
+    copied.view.insert(TLAS_ADDRESS + 0x1000_0000, de);
+    copied.tlas = Some(TLAS_ADDRESS + 0x1000_0000);
+    for flags in [0, CULL_BACK | SKIP_AABBS, NO_OPAQUE, TERMINATE_ON_FIRST_HIT | CULL_FRONT] {
+        let original = trace(&mut s.memory(), flags);
+        assert!(u32s(&original).chunks(64).filter(|r| r[0] != 0).count() > 4, "flags {flags:#x}: the rays miss the scene");
+        assert!(trace(&mut compact, flags) == original, "flags {flags:#x}: compacted structures trace differently");
+        assert!(trace(&mut copied, flags) == original, "flags {flags:#x}: the deserialized TLAS traces differently");
+    }
+}
