@@ -68,6 +68,9 @@ pub struct Hit {
     pub object_ray_direction: Vec3,
     pub object_to_world: [f32; 12],
     pub world_to_object: [f32; 12],
+    /// Triangles: the stored vertices v0, v1, v2 (object space, geometry transform applied,
+    /// application order), for VK_KHR_ray_tracing_position_fetch. AABBs: zero.
+    pub vertices: [Vec3; 3],
 }
 
 /// Pending traversal items at most (a valid BVH4 needs 3 per level of depth).
@@ -458,7 +461,7 @@ impl<'a> RayQuery<'a> {
             }
         };
         let data = l.s.prim(slot)?;
-        let (t, kind, bary, front) = match gkind {
+        let (t, kind, bary, front, vertices) = match gkind {
             layout::KIND_TRIANGLES => {
                 if f & RayFlags::SKIP_TRIANGLES != 0 {
                     return None;
@@ -472,7 +475,7 @@ impl<'a> RayQuery<'a> {
                 if inst_flags & INSTANCE_FACING_CULL_DISABLE == 0 && culled {
                     return None;
                 }
-                (t, HitKind::Triangle, [u, v], front)
+                (t, HitKind::Triangle, [u, v], front, [v0, v1, v2].map(Vec3::from_array))
             }
             layout::KIND_AABBS => {
                 if f & RayFlags::SKIP_AABBS != 0 {
@@ -480,7 +483,7 @@ impl<'a> RayQuery<'a> {
                 }
                 let b = [data[0], data[1], data[2], data[3], data[4], data[5]];
                 let t = ray_box_exact(l.org, l.dir, &b, self.ray.tmin, self.tmax)?;
-                (t, HitKind::Aabb, [0.0, 0.0], false)
+                (t, HitKind::Aabb, [0.0, 0.0], false, [Vec3::ZERO; 3])
             }
             _ => return None,
         };
@@ -511,6 +514,7 @@ impl<'a> RayQuery<'a> {
             object_ray_direction: l.dir,
             object_to_world: o2w,
             world_to_object: w2o,
+            vertices,
         })
     }
 

@@ -68,14 +68,16 @@ enum Lane {
 
 type Regs = [u64; LANES];
 
-/// One lane group: registers, cursors and per-lane memory — plain data.
-pub(super) struct Group {
+/// One lane group: registers, cursors, per-lane memory and ray queries — plain data (the
+/// queries borrow structure bytes from the dispatch's memory, `'a`).
+pub(super) struct Group<'a> {
     /// Index of this lane group in its workgroup (first invocation = index * LANES).
     pub index: u32,
     pub regs: Vec<Regs>,
     cursor: [u32; LANES],
     lane: [Lane; LANES],
     pub frame: Vec<u8>,
+    pub queries: super::exec_rq::Queries<'a>,
 }
 
 /// Per-dispatch, read-only context.
@@ -85,6 +87,8 @@ pub(super) struct Ctx<'a> {
     pub regions: Vec<Option<Region>>,
     pub images: Vec<Option<ImageBinding>>,
     pub push: &'a [u8],
+    /// Device addresses of `Program::accel_bindings` (0 when nothing is bound).
+    accel: Vec<u64>,
     local: [u32; 3],
     num_groups: [u32; 3],
     watchdog: &'a Watchdog,
@@ -118,6 +122,7 @@ pub fn dispatch(
         regions: prog.bindings.iter().map(|&(s, b)| memory.binding(s, b)).collect(),
         images: prog.images.iter().map(|&(s, b)| memory.image(s, b)).collect(),
         push: push_constants,
+        accel: prog.accel_bindings.iter().map(|&(_, (s, b))| memory.acceleration_structure(s, b).unwrap_or(0)).collect(),
         local: pipeline.local_size,
         // NumWorkgroups is the dispatch's group count, base or not (vkCmdDispatchBase).
         num_groups: group_count,
@@ -150,7 +155,7 @@ pub fn dispatch(
     report
 }
 
-fn new_groups(ctx: &Ctx) -> Vec<Group> {
+fn new_groups<'a>(ctx: &Ctx<'a>) -> Vec<Group<'a>> {
     let n = ctx.local.iter().product::<u32>() as usize;
     let frame = ctx.prog.lane_frame.len();
     (0..n.div_ceil(LANES))
@@ -161,11 +166,12 @@ fn new_groups(ctx: &Ctx) -> Vec<Group> {
             cursor: [0; LANES],
             lane: [Lane::Done; LANES],
             frame: vec![0; frame * LANES],
+            queries: super::exec_rq::Queries::new(),
         })
         .collect()
 }
 
-fn run_workgroup(ctx: &Ctx, groups: &mut [Group], id: [u32; 3]) -> (Vec<Fault>, u64, Option<Stop>) {
+fn run_workgroup<'a>(ctx: &Ctx<'a>, groups: &mut [Group<'a>], id: [u32; 3]) -> (Vec<Fault>, u64, Option<Stop>) {
     if ctx.stop.load(Ordering::Relaxed) {
         return (Vec::new(), 0, None);
     }
@@ -208,6 +214,10 @@ fn init_group(ctx: &Ctx, group: &mut Group, wg: &Wg, g: u32, n: u32) {
     for &(r, v) in &prog.consts {
         group.regs[r as usize] = [v; LANES];
     }
+    for (&(r, _), &address) in prog.accel_bindings.iter().zip(&ctx.accel) {
+        group.regs[r as usize] = [address; LANES];
+    }
+    group.queries.clear();
     let fs = prog.lane_frame.len();
     let [lx, ly, lz] = ctx.local;
     let groups = n.div_ceil(LANES as u32);
@@ -247,7 +257,7 @@ fn init_group(ctx: &Ctx, group: &mut Group, wg: &Wg, g: u32, n: u32) {
 }
 
 /// Runs a lane group until none of its lanes is running (all done or at a barrier).
-fn run_group(ctx: &Ctx, group: &mut Group, wg: &mut Wg) {
+fn run_group<'a>(ctx: &Ctx<'a>, group: &mut Group<'a>, wg: &mut Wg) {
     loop {
         // One pass: the lowest cursor among running lanes, and which lanes are there.
         let (mut min, mut mask) = (u32::MAX, 0u32);
@@ -293,7 +303,7 @@ fn on(mask: u32, l: usize) -> bool {
     (mask >> l) & 1 != 0
 }
 
-fn exec_block(ctx: &Ctx, group: &mut Group, wg: &mut Wg, block: &Block, mask: u32) {
+fn exec_block<'a>(ctx: &Ctx<'a>, group: &mut Group<'a>, wg: &mut Wg, block: &Block, mask: u32) {
     let regs = &mut group.regs;
     for &(dst, tmp) in &block.phi_in {
         let t = regs[tmp as usize];
@@ -346,7 +356,7 @@ fn lanes(regs: &mut [Regs], dst: u32, mask: u32, f: impl Fn(usize) -> u64) {
     regs[dst as usize] = out;
 }
 
-fn exec_op(ctx: &Ctx, group: &mut Group, wg: &mut Wg, op: &Op, mask: u32) {
+fn exec_op<'a>(ctx: &Ctx<'a>, group: &mut Group<'a>, wg: &mut Wg, op: &Op, mask: u32) {
     let regs = &mut group.regs;
     match *op {
         Op::Mov { dst, src } => {
@@ -384,6 +394,7 @@ fn exec_op(ctx: &Ctx, group: &mut Group, wg: &mut Wg, op: &Op, mask: u32) {
         }
         Op::Load { .. } | Op::Store { .. } | Op::Atomic { .. } => super::exec_mem::exec_mem(ctx, group, wg, op, mask),
         Op::ImageRead { .. } | Op::ImageWrite { .. } | Op::ImageSize { .. } => super::exec_image::exec_image(ctx, group, wg, op, mask),
+        Op::RayQuery(ref rq) => super::exec_rq::exec_ray_query(ctx, group, wg, rq, mask),
         Op::Subgroup { op, ty, dst, a, b } => {
             let (a, b) = (regs[a as usize], regs[b as usize]);
             let v = subgroup(op, ty, mask, &a, &b);

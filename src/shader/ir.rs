@@ -158,6 +158,73 @@ pub enum Op {
     /// OpImageQuerySize: width, height, depth, layers of the view, those of the image's
     /// dimensionality (`dims`: which of them, in order) into `dst`.
     ImageSize { image: u16, n: u8, dims: [u8; 4], dst: [Reg; 4] },
+    /// A ray-query instruction (boxed: rare, and larger than every other op).
+    RayQuery(Box<RayQueryOp>),
+}
+
+/// One `OpRayQuery*` instruction. `query` holds the lane-frame address of the ray-query
+/// variable, which is the query's identity: the executor keeps each lane's traversal state
+/// keyed by it.
+#[derive(Clone, Debug, PartialEq)]
+pub struct RayQueryOp {
+    pub kind: RqKind,
+    pub query: Reg,
+    /// Initialize: structure address (I64), flags, cull mask, origin xyz, tmin, direction xyz,
+    /// tmax. GenerateIntersection: t. Others: none.
+    pub args: Vec<Reg>,
+    /// Proceed: the Bool result. Getters: the result's scalars in component order.
+    pub dst: Vec<Reg>,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum RqKind {
+    Initialize,
+    Proceed,
+    Terminate,
+    Confirm,
+    Generate,
+    /// A getter; `committed` selects the committed or the candidate intersection (ignored by
+    /// the getters of the ray itself: tmin, flags, world origin/direction).
+    Get { value: RqValue, committed: bool },
+}
+
+/// What a ray-query getter returns.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum RqValue {
+    Type,
+    T,
+    TMin,
+    RayFlags,
+    WorldRayOrigin,
+    WorldRayDirection,
+    InstanceCustomIndex,
+    InstanceId,
+    SbtRecordOffset,
+    GeometryIndex,
+    PrimitiveIndex,
+    Barycentrics,
+    FrontFace,
+    CandidateAabbOpaque,
+    ObjectRayOrigin,
+    ObjectRayDirection,
+    /// 4 columns of 3 floats (column-major mat4x3).
+    ObjectToWorld,
+    WorldToObject,
+    /// Three vertices of 3 floats (VK_KHR_ray_tracing_position_fetch).
+    TriangleVertexPositions,
+}
+
+impl RqValue {
+    /// Scalars in the result.
+    pub fn count(self) -> usize {
+        match self {
+            RqValue::Barycentrics => 2,
+            RqValue::WorldRayOrigin | RqValue::WorldRayDirection | RqValue::ObjectRayOrigin | RqValue::ObjectRayDirection => 3,
+            RqValue::TriangleVertexPositions => 9,
+            RqValue::ObjectToWorld | RqValue::WorldToObject => 12,
+            _ => 1,
+        }
+    }
 }
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -236,8 +303,12 @@ pub struct Program {
     /// (Private initializers); built-ins are written over it per lane.
     pub lane_frame: Vec<u8>,
     pub workgroup_bytes: u32,
-    /// Descriptor (set, binding) for each `Space::Buffer` index.
+    /// Descriptor (set, binding) for each `Space::Buffer` index (and every acceleration
+    /// structure descriptor, which is in `accel_bindings` too).
     pub bindings: Vec<(u32, u32)>,
     /// Descriptor (set, binding) of each storage image the image ops name.
     pub images: Vec<(u32, u32)>,
+    /// Registers holding the device address of the acceleration structure bound at (set,
+    /// binding): resolved once per dispatch, filled for every lane when a lane group starts.
+    pub accel_bindings: Vec<(Reg, (u32, u32))>,
 }

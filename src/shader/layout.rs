@@ -24,6 +24,7 @@ impl Layout<'_> {
             Type::Float { bits: 64 } => Sc::F64,
             Type::Float { .. } => Sc::F32,
             Type::Pointer { class: spirv::StorageClass::PhysicalStorageBuffer, .. } => Sc::I64,
+            Type::AccelerationStructure => Sc::I64,
             _ => return Err(self.m.malformed(ty, "expected a scalar type")),
         })
     }
@@ -64,7 +65,7 @@ impl Layout<'_> {
                     self.components_into(m, out, depth + 1)?;
                 }
             }
-            Type::Void | Type::RuntimeArray { .. } | Type::Function | Type::Image { .. } => {
+            Type::Void | Type::RuntimeArray { .. } | Type::Function | Type::Image { .. } | Type::RayQuery => {
                 return Err(self.m.malformed(ty, "type has no register value"))
             }
             _ => out.push(self.scalar(ty)?),
@@ -106,7 +107,10 @@ impl Layout<'_> {
         Ok(match self.m.ty(ty)?.clone() {
             Type::Bool => (4, 4),
             Type::Int { bits, .. } | Type::Float { bits } => (bits / 8, bits / 8),
-            Type::Pointer { .. } => (8, 8),
+            Type::Pointer { .. } | Type::AccelerationStructure => (8, 8),
+            // A ray query's bytes in the lane frame only give it an address (its identity for
+            // the executor's per-lane traversal state); nothing reads or writes them.
+            Type::RayQuery => (4, 4),
             Type::Vector { elem, n } => {
                 let (s, a) = self.size_align(elem)?;
                 (s * n, a)
@@ -123,7 +127,11 @@ impl Layout<'_> {
             Type::Struct { members } => {
                 let (mut end, mut align) = (0u32, 1u32);
                 for (k, &member) in members.iter().enumerate() {
-                    let (s, a) = self.size_align(member)?;
+                    let (mut s, a) = self.size_align(member)?;
+                    // A matrix member's MatrixStride (naga writes 16 for mat4x3) sets its size.
+                    if let (Type::Matrix { n, .. }, Some(&ms)) = (self.m.ty(member)?, self.m.member_matrix_stride.get(&(ty, k as u32))) {
+                        s = s.max(ms.saturating_mul(*n));
+                    }
                     end = end.max(self.member_offset(ty, k as u32)? + s);
                     align = align.max(a);
                 }

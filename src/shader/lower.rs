@@ -1,5 +1,5 @@
 //! One entry point → [`Program`]: control flow, calls, variables and memory access. ALU,
-//! composite, atomic and subgroup instructions are in `lower_ops`.
+//! composite, atomic and subgroup instructions are in `lower_ops`, ray queries in `lower_rq`.
 //!
 //! Every call is inlined: the caller's block ends with a jump to the callee's first block, the
 //! callee's blocks follow, and its returns jump to a continuation block after them, so the
@@ -84,6 +84,7 @@ pub struct Lowerer<'a> {
     workgroup_bytes: u32,
     bindings: Vec<(u32, u32)>,
     pub(super) images: Vec<(u32, u32)>,
+    accel_bindings: Vec<(Reg, (u32, u32))>,
     push_size: u32,
 }
 
@@ -105,6 +106,7 @@ pub fn lower(m: &Module, consts: &Constants, e: &EntryPoint) -> Result<Lowered, 
         workgroup_bytes: 0,
         bindings: Vec::new(),
         images: Vec::new(),
+        accel_bindings: Vec::new(),
         push_size: 0,
     };
     lw.inline(e.function, Vec::new(), true)?;
@@ -116,6 +118,7 @@ pub fn lower(m: &Module, consts: &Constants, e: &EntryPoint) -> Result<Lowered, 
         workgroup_bytes: lw.workgroup_bytes,
         bindings: lw.bindings,
         images: lw.images,
+        accel_bindings: lw.accel_bindings,
     };
     Ok(Lowered { program, push_size: lw.push_size })
 }
@@ -238,6 +241,9 @@ impl<'a> Lowerer<'a> {
         let pointee = self.pointee(inst.result_type.unwrap_or(0))?;
         let class = super::parse::storage_class(inst, 0)?;
         let deco = self.m.decorations.get(&id).cloned().unwrap_or_default();
+        if class == StorageClass::UniformConstant && matches!(self.m.ty(pointee)?, Type::AccelerationStructure) {
+            return Ok(self.accel_descriptor(deco.set.unwrap_or(0), deco.binding.unwrap_or(0)));
+        }
         if class == StorageClass::UniformConstant {
             return self.image_variable(id, pointee, (deco.set.unwrap_or(0), deco.binding.unwrap_or(0)));
         }
@@ -275,6 +281,25 @@ impl<'a> Lowerer<'a> {
         };
         let addr = self.konst(addr as u64);
         Ok(Val::Ptr(Ptr { space, addr, pointee, matrix_stride: None }))
+    }
+
+    /// An acceleration-structure descriptor variable: a register the executor fills with the
+    /// bound structure's device address, standing for the variable itself (OpLoad of it
+    /// yields the same register, since the descriptor cannot change during a dispatch).
+    fn accel_descriptor(&mut self, set: u32, binding: u32) -> Val {
+        let key = (set, binding);
+        if !self.bindings.contains(&key) {
+            self.bindings.push(key);
+        }
+        let r = match self.accel_bindings.iter().find(|(_, k)| *k == key) {
+            Some(&(r, _)) => r,
+            None => {
+                let r = self.reg();
+                self.accel_bindings.push((r, key));
+                r
+            }
+        };
+        Val::Regs(vec![r])
     }
 
     fn builtin_offset(&self, id: u32, b: Option<BuiltIn>) -> Result<u32, ShaderError> {
@@ -607,6 +632,10 @@ impl Lowerer<'_> {
                 }
                 self.define(id, Val::Ptr(p));
             }
+            Op::Load if matches!(self.m.ty(rty)?, Type::AccelerationStructure) => {
+                let r = self.regs(id_op(inst, 0)?)?;
+                self.define(id, Val::Regs(r));
+            }
             Op::Load | Op::CopyObject if matches!(self.val(id_op(inst, 0)?)?, Val::Image { .. }) => {
                 let v = self.val(id_op(inst, 0)?)?;
                 self.define(id, v);
@@ -641,6 +670,7 @@ impl Lowerer<'_> {
                 self.define(id, Val::Regs(r));
             }
             Op::ExtInst if Some(id_op(inst, 0)?) != self.m.glsl_ext => {} // non-semantic info
+            op if super::lower_rq::is_ray_query(op) => self.lower_ray_query(inst)?,
             _ => self.lower_op(inst)?,
         }
         Ok(())

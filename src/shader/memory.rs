@@ -10,7 +10,12 @@
 //! their texels are read and written through the same `read`/`write`, after the executor has
 //! checked the coordinates against the view (robustness: an outside read gives zero, an
 //! outside write is dropped, both are faults).
+//! Ray queries reach acceleration structures through the two provided methods at the end of
+//! the trait; a structure that cannot be resolved or parsed is a fault too, and the query
+//! finds nothing.
 use std::sync::atomic::{AtomicU64, Ordering};
+
+use crate::accel::DeviceView;
 
 /// A range of one buffer, as a descriptor or an address resolves to.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -40,6 +45,24 @@ pub trait Memory: Sync {
     /// Atomically replaces the `size`-byte (4 or 8) little-endian value at `offset` with
     /// `update(old)` and returns `old`.
     fn atomic(&self, buffer: u64, offset: u64, size: usize, update: &dyn Fn(u64) -> u64) -> Option<u64>;
+
+    /// Ray queries: the device address of the acceleration structure bound at (set, binding)
+    /// (an `accelerationStructureEXT` descriptor), resolved once per dispatch; None when
+    /// nothing is bound (a query on it then faults and finds nothing). The default binds none.
+    fn acceleration_structure(&self, _set: u32, _binding: u32) -> Option<u64> {
+        None
+    }
+
+    /// Ray queries: where traversal finds structures, keyed by device address.
+    /// `DeviceView::acceleration_structure(address)` must give the bytes of the live structure
+    /// starting exactly at `address` (the one a query is initialised with, from a descriptor
+    /// or `OpConvertUToAccelerationStructureKHR`, and every BLAS its instances reference), and
+    /// None for an address that is not one; `bytes` serves instances stored by pointer. The
+    /// default has no structures: every ray query faults and finds nothing.
+    fn acceleration_structures(&self) -> Option<&dyn DeviceView> {
+        None
+    }
+
     /// The storage image bound at (set, binding): its format and geometry, with texel reads
     /// and writes going through `read`/`write` at `ImageBinding::buffer`. None when nothing is
     /// bound (the default, for implementations without images).
@@ -122,6 +145,11 @@ pub enum FaultKind {
     Unmapped,
     /// The memory refused an in-range access.
     Refused,
+    /// A ray query was initialised with bytes that fail the structure's header check (never
+    /// built, a failed build, another driver's format, a destroyed structure).
+    InvalidStructure,
+    /// A ray-query instruction other than Initialize on a query never initialised.
+    Uninitialized,
 }
 
 /// Which memory a faulting access went to.
@@ -132,6 +160,9 @@ pub enum FaultSpace {
     PushConstant,
     Workgroup,
     Invocation,
+    /// A ray query: `at` is the structure's device address (Unmapped, InvalidStructure) or
+    /// the query variable's lane-frame offset (Uninitialized).
+    RayQuery,
 }
 
 /// One contained memory fault: what, where, and which invocation.

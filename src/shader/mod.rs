@@ -16,15 +16,17 @@
 //! - `lower_image`/`exec_image`: storage images (OpImageRead/Write/QuerySize on 1D/2D/3D,
 //!   arrayed or not), texels converted from the [`ImageFormat`] of the bound view.
 //!
-//! Where ray queries and ray-tracing stages fit (not built yet): a ray query becomes a per-lane
-//! slot in the lane group (an opaque traversal state next to the registers, indexed by the
-//! query variable's id), and each `OpRayQuery*` an IR op that calls native traversal through a
-//! small trait keyed by the structure's device address, for the lanes in the mask — Proceed is
-//! resumable, so it is an ordinary op returning a Bool register, and the shader's own loop does
-//! the rest. Ray-tracing stages (raygen/hit/miss/callable) fit the same scheduler: a trace call
-//! ends a block; the lanes in the mask run the chosen shader's program as a function-like call
-//! on a subset of lanes (their own cursors and registers, the caller's state kept as data), and
-//! resume at the continuation block — no coroutines, as with barriers.
+//! Ray queries (SPV_KHR_ray_query, and position fetch): `lower_rq` turns each `OpRayQuery*`
+//! into an IR op naming the query by its variable's lane-frame address; `exec_rq` keeps a
+//! per-lane slot of native traversal state ([`crate::accel::RayQuery`]) in the lane group
+//! (plain data, so barriers still work) and runs each op for the lanes in the mask — Proceed
+//! is resumable, so it is an ordinary op returning a Bool register, and the shader's own loop
+//! does the rest. Structures are reached by device address through [`Memory`].
+//!
+//! Where ray-tracing stages fit (not built yet): raygen/hit/miss/callable use the same
+//! scheduler: a trace call ends a block; the lanes in the mask run the chosen shader's program
+//! as a function-like call on a subset of lanes (their own cursors and registers, the caller's
+//! state kept as data), and resume at the continuation block — no coroutines, as with barriers.
 //!
 //! For the Vulkan wiring:
 //! - Create a [`Module`] at vkCreateShaderModule (or when a stage chains the create info) and a
@@ -34,8 +36,17 @@
 //! - Implement [`Memory`] over src/memory: `binding` returns the descriptor's buffer range with
 //!   dynamic offsets applied (uniform and storage buffers alike); `address` resolves a device
 //!   address to the one live buffer containing it; `image` returns a bound storage image's
-//!   [`ImageBinding`] (format, extent, pitches, and the id `read`/`write` get). The executor bounds-checks every access
-//!   against those regions itself, so `read`/`write` may assume in-range offsets.
+//!   [`ImageBinding`] (format, extent, pitches, and the id `read`/`write` get). The executor
+//!   bounds-checks every access against those regions itself, so `read`/`write` may assume
+//!   in-range offsets. For ray queries, `acceleration_structure(set, binding)` returns the
+//!   bound structure's device address and `acceleration_structures()` a
+//!   [`crate::accel::DeviceView`] resolving a structure's device address to its bytes (and
+//!   instance pointers to theirs); the pipeline's [`Pipeline::bindings`] list
+//!   acceleration-structure descriptors too.
+//! - Ray-query faults ([`FaultSpace::RayQuery`]): an address that is no live structure
+//!   (`Unmapped`, null included, as for an unbound descriptor), bytes failing the header check
+//!   (`InvalidStructure`: destroyed, failed build), a query used before Initialize
+//!   (`Uninitialized`); the query finds nothing.
 //! - [`dispatch`] returns a [`DispatchReport`]: each [`Fault`] (kind, binding or address, byte
 //!   offset, workgroup, invocation) is one robustness diagnostic; `stopped` means the
 //!   [`Watchdog`] fired (give it the submission's deadline and a device-lost flag) and the
@@ -46,11 +57,13 @@ pub mod alu;
 mod exec;
 mod exec_image;
 mod exec_mem;
+mod exec_rq;
 pub mod ir;
 mod layout;
 mod lower;
 mod lower_image;
 mod lower_ops;
+mod lower_rq;
 mod memory;
 mod parse;
 mod specialize;

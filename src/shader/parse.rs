@@ -30,6 +30,10 @@ pub enum Type {
     /// A storage image (Sampled = 2): `sampled` is the component type id; the texel format
     /// comes from the bound view, so `Unknown` formats work too.
     Image { sampled: u32, dim: spirv::Dim, arrayed: bool },
+    /// OpTypeAccelerationStructureKHR: a value is the structure's 64-bit device address.
+    AccelerationStructure,
+    /// OpTypeRayQueryKHR: only ever behind a pointer; the executor keeps its state per lane.
+    RayQuery,
 }
 
 /// Decorations `lower` needs, per id.
@@ -91,6 +95,8 @@ const CAPABILITIES: &[Capability] = &[
     Capability::ImageQuery,
     Capability::StorageImageReadWithoutFormat,
     Capability::StorageImageWriteWithoutFormat,
+    Capability::RayQueryKHR,
+    Capability::RayQueryPositionFetchKHR,
 ];
 
 const EXTENSIONS: &[&str] = &[
@@ -100,6 +106,8 @@ const EXTENSIONS: &[&str] = &[
     "SPV_KHR_vulkan_memory_model",
     "SPV_KHR_non_semantic_info",
     "SPV_KHR_shader_ballot",
+    "SPV_KHR_ray_query",
+    "SPV_KHR_ray_tracing_position_fetch",
 ];
 
 /// Opcodes the lowering handles; anything else is rejected with its word offset.
@@ -145,6 +153,19 @@ const OPCODES: &[Op] = {
         GroupNonUniformBitwiseOr, GroupNonUniformBitwiseXor, GroupNonUniformLogicalAnd,
         GroupNonUniformLogicalOr, GroupNonUniformLogicalXor, TypeImage, ImageRead, ImageWrite,
         ImageQuerySize,
+        // SPV_KHR_ray_query (lowered in `lower_rq`) and SPV_KHR_ray_tracing_position_fetch.
+        TypeAccelerationStructureKHR, TypeRayQueryKHR, ConvertUToAccelerationStructureKHR,
+        RayQueryInitializeKHR, RayQueryTerminateKHR, RayQueryGenerateIntersectionKHR,
+        RayQueryConfirmIntersectionKHR, RayQueryProceedKHR, RayQueryGetIntersectionTypeKHR,
+        RayQueryGetRayTMinKHR, RayQueryGetRayFlagsKHR, RayQueryGetIntersectionTKHR,
+        RayQueryGetIntersectionInstanceCustomIndexKHR, RayQueryGetIntersectionInstanceIdKHR,
+        RayQueryGetIntersectionInstanceShaderBindingTableRecordOffsetKHR,
+        RayQueryGetIntersectionGeometryIndexKHR, RayQueryGetIntersectionPrimitiveIndexKHR,
+        RayQueryGetIntersectionBarycentricsKHR, RayQueryGetIntersectionFrontFaceKHR,
+        RayQueryGetIntersectionCandidateAABBOpaqueKHR, RayQueryGetIntersectionObjectRayDirectionKHR,
+        RayQueryGetIntersectionObjectRayOriginKHR, RayQueryGetWorldRayDirectionKHR,
+        RayQueryGetWorldRayOriginKHR, RayQueryGetIntersectionObjectToWorldKHR,
+        RayQueryGetIntersectionWorldToObjectKHR, RayQueryGetIntersectionTriangleVertexPositionsKHR,
     ]
 };
 
@@ -223,6 +244,8 @@ impl Module {
                 Op::TypePointer => Type::Pointer { class: storage_class(inst, 0)?, pointee: id_op(inst, 1)? },
                 Op::TypeFunction => Type::Function,
                 Op::TypeImage => image_type(inst, self.offset_of(id))?,
+                Op::TypeAccelerationStructureKHR => Type::AccelerationStructure,
+                Op::TypeRayQueryKHR => Type::RayQuery,
                 _ => {
                     self.globals.insert(id, i);
                     continue;

@@ -1,0 +1,189 @@
+//! Ray-query instructions of the lane executor: each lane's queries are slots of native
+//! traversal state ([`accel::RayQuery`]) in its lane group, keyed by the query variable's
+//! lane-frame address, and every op runs the traversal for the lanes in the mask.
+//!
+//! Owns the Vulkan-visible semantics on top of `accel`'s traversal (which owns intersection,
+//! flags, culling, masks and the commit rules): what each getter returns for the candidate and
+//! the committed intersection, the intersection-type encodings, and the faults. A query on an
+//! address that is no structure, on bytes that fail the header check, or any use of a query
+//! never initialised is a [`Fault`]; such a query finds nothing and execution goes on.
+//! Committed getters with nothing committed are not faults (shaders legitimately read the
+//! committed t as the current tmax): t is tmax, everything else zero.
+use glam::Vec3;
+
+use super::alu;
+use super::exec::{Ctx, Group, Wg};
+use super::ir::{RayQueryOp, RqKind, RqValue, Sc};
+use super::memory::{Fault, FaultKind, FaultSpace};
+use super::LANES;
+use crate::accel::{self, DeviceView, Hit, HitKind, NoDevice, Ray, RayFlags, RayQuery};
+
+/// One lane's initialised ray query.
+pub(super) struct Slot<'a> {
+    q: RayQuery<'a>,
+    ray: Ray,
+    flags: u32,
+    /// The intersection the last Proceed stopped at (kept after Confirm/Generate, for getters).
+    candidate: Option<Hit>,
+}
+
+/// The ray queries of one lane group: per lane, (query address, state). Shaders use one or
+/// two queries, so a short list beats a map.
+pub(super) struct Queries<'a>([Vec<(u64, Slot<'a>)>; LANES]);
+
+impl<'a> Queries<'a> {
+    pub fn new() -> Self {
+        Queries(std::array::from_fn(|_| Vec::new()))
+    }
+
+    /// Forgets every query (a new workgroup starts with none initialised).
+    pub fn clear(&mut self) {
+        for lane in &mut self.0 {
+            lane.clear();
+        }
+    }
+
+    fn get(&mut self, lane: usize, at: u64) -> Option<&mut Slot<'a>> {
+        self.0[lane].iter_mut().find(|(a, _)| *a == at).map(|(_, s)| s)
+    }
+
+    fn set(&mut self, lane: usize, at: u64, slot: Slot<'a>) {
+        match self.get(lane, at) {
+            Some(s) => *s = slot,
+            None => self.0[lane].push((at, slot)),
+        }
+    }
+}
+
+fn fault(wg: &mut Wg, group_index: u32, lane: usize, kind: FaultKind, at: u64) {
+    wg.fault_count += 1;
+    if wg.faults.len() < 16 {
+        let invocation = group_index * LANES as u32 + lane as u32;
+        wg.faults.push(Fault { kind, space: FaultSpace::RayQuery, at, len: 0, write: false, workgroup: wg.id, invocation });
+    }
+}
+
+pub(super) fn exec_ray_query<'a>(ctx: &Ctx<'a>, group: &mut Group<'a>, wg: &mut Wg, op: &RayQueryOp, mask: u32) {
+    for l in (0..LANES).filter(|&l| (mask >> l) & 1 != 0) {
+        let at = group.regs[op.query as usize][l];
+        if op.kind == RqKind::Initialize {
+            let slot = initialize(ctx, group, wg, op, l);
+            group.queries.set(l, at, slot);
+            continue;
+        }
+        let Some(slot) = group.queries.get(l, at) else {
+            fault(wg, group.index, l, FaultKind::Uninitialized, at);
+            for &d in &op.dst {
+                group.regs[d as usize][l] = 0;
+            }
+            continue;
+        };
+        match op.kind {
+            RqKind::Initialize => {}
+            RqKind::Proceed => {
+                slot.candidate = slot.q.proceed();
+                group.regs[op.dst[0] as usize][l] = slot.candidate.is_some() as u64;
+            }
+            RqKind::Terminate => slot.q.terminate(),
+            RqKind::Confirm => slot.q.confirm(),
+            RqKind::Generate => {
+                let t = f32::from_bits(group.regs[op.args[0] as usize][l] as u32);
+                slot.q.generate_intersection(t);
+            }
+            RqKind::Get { value, committed } => {
+                let mut out = [0u64; 12];
+                get(slot, value, committed, &mut out);
+                for (k, &d) in op.dst.iter().enumerate() {
+                    group.regs[d as usize][l] = out[k];
+                }
+            }
+        }
+    }
+}
+
+/// OpRayQueryInitializeKHR for lane `l`: resolves the structure (faulting when it cannot) and
+/// starts a traversal, which finds nothing when the structure is missing.
+fn initialize<'a>(ctx: &Ctx<'a>, group: &Group<'a>, wg: &mut Wg, op: &RayQueryOp, l: usize) -> Slot<'a> {
+    let a = |k: usize| group.regs[op.args[k] as usize][l];
+    let f = |k: usize| f32::from_bits(a(k) as u32);
+    let address = a(0);
+    let flags = a(1) as u32;
+    // Only the 8 low bits of the cull mask take part (SPIR-V).
+    let cull = a(2) as u8;
+    let ray = Ray { origin: Vec3::new(f(3), f(4), f(5)), tmin: f(6), direction: Vec3::new(f(7), f(8), f(9)), tmax: f(10) };
+    let view: &'a dyn DeviceView = ctx.mem.acceleration_structures().unwrap_or(&NoDevice);
+    let bytes: &'a [u8] = match view.acceleration_structure(address) {
+        None => {
+            fault(wg, group.index, l, FaultKind::Unmapped, address);
+            &[]
+        }
+        Some(b) if accel::header(b).is_none() => {
+            fault(wg, group.index, l, FaultKind::InvalidStructure, address);
+            &[]
+        }
+        Some(b) => b,
+    };
+    Slot { q: RayQuery::new(bytes, view, ray, RayFlags(flags), cull), ray, flags, candidate: None }
+}
+
+fn f32s(out: &mut [u64], v: &[f32]) {
+    for (o, x) in out.iter_mut().zip(v) {
+        *o = alu::norm(Sc::F32, x.to_bits() as u64);
+    }
+}
+
+/// Column-major mat4x3 from a row-major 3x4 (VkTransformMatrixKHR order).
+fn columns(m: &[f32; 12]) -> [f32; 12] {
+    std::array::from_fn(|k| m[(k % 3) * 4 + k / 3])
+}
+
+fn get(slot: &Slot<'_>, value: RqValue, committed: bool, out: &mut [u64; 12]) {
+    let hit = if committed { slot.q.committed() } else { slot.candidate };
+    match value {
+        RqValue::TMin => f32s(out, &[slot.ray.tmin]),
+        RqValue::RayFlags => out[0] = slot.flags as u64,
+        RqValue::WorldRayOrigin => f32s(out, &slot.ray.origin.to_array()),
+        RqValue::WorldRayDirection => f32s(out, &slot.ray.direction.to_array()),
+        // Committed: 0 none, 1 triangle, 2 generated. Candidate: 0 triangle, 1 AABB.
+        RqValue::Type => {
+            out[0] = match (committed, hit.map(|h| h.kind)) {
+                (true, None) => 0,
+                (true, Some(HitKind::Triangle)) => 1,
+                (true, Some(HitKind::Aabb)) => 2,
+                (false, Some(HitKind::Aabb)) => 1,
+                (false, _) => 0,
+            }
+        }
+        // Nothing committed: the committed t is the ray's tmax (what traversal still accepts).
+        RqValue::T if committed && hit.is_none() => f32s(out, &[slot.ray.tmax]),
+        _ => {
+            if let Some(h) = hit {
+                hit_value(&h, value, out);
+            }
+        }
+    }
+}
+
+/// The getters that read an intersection.
+fn hit_value(h: &Hit, value: RqValue, out: &mut [u64; 12]) {
+    match value {
+        RqValue::T => f32s(out, &[h.t]),
+        RqValue::InstanceCustomIndex => out[0] = h.instance_custom_index as u64,
+        RqValue::InstanceId => out[0] = h.instance_index as u64,
+        RqValue::SbtRecordOffset => out[0] = h.sbt_record_offset as u64,
+        RqValue::GeometryIndex => out[0] = h.geometry_index as u64,
+        RqValue::PrimitiveIndex => out[0] = h.primitive_index as u64,
+        RqValue::Barycentrics => f32s(out, &h.barycentrics),
+        RqValue::FrontFace => out[0] = h.front_face as u64,
+        RqValue::CandidateAabbOpaque => out[0] = (h.kind == HitKind::Aabb && h.opaque) as u64,
+        RqValue::ObjectRayOrigin => f32s(out, &h.object_ray_origin.to_array()),
+        RqValue::ObjectRayDirection => f32s(out, &h.object_ray_direction.to_array()),
+        RqValue::ObjectToWorld => f32s(out, &columns(&h.object_to_world)),
+        RqValue::WorldToObject => f32s(out, &columns(&h.world_to_object)),
+        RqValue::TriangleVertexPositions => {
+            let v = h.vertices;
+            f32s(out, &[v[0].x, v[0].y, v[0].z, v[1].x, v[1].y, v[1].z, v[2].x, v[2].y, v[2].z]);
+        }
+        RqValue::TMin | RqValue::RayFlags | RqValue::WorldRayOrigin | RqValue::WorldRayDirection | RqValue::Type => {}
+    }
+}
