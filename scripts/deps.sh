@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Installs what Arbor's tests and tools need on Debian/Ubuntu: the Vulkan loader, vulkaninfo,
 # the Khronos validation layer, glslang + SPIRV-Tools (the shader tests compile GLSL at test
-# time) and valgrind. As root it uses apt-get; otherwise it says what to install.
+# time), lavapipe and valgrind. As root it uses apt-get; otherwise it says what to install.
 set -euo pipefail
 need=()
 ldconfig -p 2>/dev/null | grep -q 'libvulkan.so.1 ' || need+=(libvulkan1)
@@ -9,6 +9,8 @@ command -v vulkaninfo >/dev/null 2>&1 || need+=(vulkan-tools)
 ls /usr/share/vulkan/explicit_layer.d/VkLayer_khronos_validation.json >/dev/null 2>&1 || need+=(vulkan-validationlayers)
 command -v glslangValidator >/dev/null 2>&1 || need+=(glslang-tools)
 command -v spirv-opt >/dev/null 2>&1 || need+=(spirv-tools)
+# The compute tests run every shader on lavapipe (Mesa's CPU driver) too, as a second driver.
+ls /usr/share/vulkan/icd.d/lvp_icd*.json >/dev/null 2>&1 || need+=(mesa-vulkan-drivers)
 # tests/teardown.rs runs a create/build/destroy program under valgrind's leak checker.
 command -v valgrind >/dev/null 2>&1 || need+=(valgrind)
 if [ ${#need[@]} -eq 0 ]; then
