@@ -162,14 +162,24 @@ fn check_tree(p: &Parsed) -> Result<(), Reason> {
     Ok(())
 }
 
-/// The whole verdict: Ok with the parsed structure, or the first check that failed.
-pub fn check(bytes: &[u8]) -> Result<Parsed<'_>, Reason> {
+/// The integrity verdict: header, counts, sections and checksum. Bytes that pass were written
+/// by Arbor's builder, refit or a checked copy and not changed since (the checksum is parallel
+/// and cheap); what only passes this may still be forged with a recomputed checksum, which is
+/// why data from outside the device (deserialization) gets the whole `check`.
+pub fn check_integrity(bytes: &[u8]) -> Result<Parsed<'_>, Reason> {
     let raw = raw_header(bytes)?;
     check_counts(&raw)?;
     let p = layout::parse(bytes).ok_or("sections")?;
     if !checksum::verify(&p.raw, p.bytes) {
         return Err("checksum");
     }
+    Ok(p)
+}
+
+/// The whole verdict: integrity, then the structure itself (records, tree links, leaf
+/// coverage); Ok with the parsed structure, or the first check that failed.
+pub fn check(bytes: &[u8]) -> Result<Parsed<'_>, Reason> {
+    let p = check_integrity(bytes)?;
     check_geometries(&p)?;
     check_records(&p)?;
     check_tree(&p)?;

@@ -1,9 +1,11 @@
 //! Clone, compaction, serialization. The blob is position-independent, so all of these are
 //! byte copies; serialization adds the Vulkan header and takes BLAS addresses from its list.
-//! Every copy verifies its source first (`check`: checksum and structure), so a structure the
-//! application wrote over, or serialized data it corrupted, is rejected with the check that
-//! failed and nothing is copied.
-use super::check::{check, Reason};
+//! Every copy verifies its source first, so a structure the application wrote over, or
+//! serialized data it corrupted, is rejected with the check that failed and nothing is copied:
+//! a structure in device memory by its integrity (`check_integrity`: header and checksum, which
+//! keeps compaction a byte copy in time), serialized data from the application by every check
+//! (`check`: integrity and the structure itself).
+use super::check::{check, check_integrity, Reason};
 use super::layout::parse;
 
 /// Identifies this format version in serialized data; change with layout::FORMAT_VERSION.
@@ -42,11 +44,11 @@ pub fn compacted_size(src: &[u8]) -> Option<u64> {
     parse(src).map(|p| p.raw.used_size)
 }
 
-/// The source's parsed header, once it passed every check (`InvalidSource` when it is not a
-/// structure at all: never built, or marked invalid).
+/// The source's parsed header, once its integrity checked out (`InvalidSource` when it is not
+/// a structure at all: never built, or marked invalid).
 fn checked(src: &[u8]) -> Result<super::layout::Parsed<'_>, CopyError> {
     parse(src).ok_or(CopyError::InvalidSource)?;
-    check(src).map_err(CopyError::Corrupt)
+    check_integrity(src).map_err(CopyError::Corrupt)
 }
 
 fn copy_used(src: &[u8], dst: &mut [u8]) -> Result<usize, CopyError> {
