@@ -83,10 +83,13 @@ pub const SUBGROUP_OPERATIONS: vk::SubgroupFeatureFlags = vk::SubgroupFeatureFla
 
 /// Core 1.0 features. Only what Arbor really does; robustBufferAccess is required by the spec
 /// (the shader library contains out-of-range accesses); shaderInt64/shaderFloat64 are
-/// capabilities the shader library runs.
+/// capabilities the shader library runs; storage images without a declared format are read
+/// and written through the view's format, which the library knows.
 pub fn features() -> vk::PhysicalDeviceFeatures {
     vk::PhysicalDeviceFeatures {
         robust_buffer_access: vk::TRUE,
+        shader_storage_image_read_without_format: vk::TRUE,
+        shader_storage_image_write_without_format: vk::TRUE,
         shader_int64: vk::TRUE,
         shader_float64: vk::TRUE,
         ..Default::default()
