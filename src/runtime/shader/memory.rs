@@ -12,7 +12,9 @@
 //! reads and writes arrive with an id tagged `IMAGE_TAG`.
 use std::sync::Arc;
 
+use crate::accel::DeviceView;
 use crate::memory::{AddressSpace, Buffer};
+use crate::runtime::accel::inputs::DeviceInputs;
 use crate::runtime::descriptor::{is_dynamic, Descriptor};
 use crate::runtime::image::{storage_image_binding, Image};
 use crate::shader::{ImageBinding, Memory, Region};
@@ -38,12 +40,18 @@ pub struct DispatchMemory<'a> {
     /// ((set, binding), image, its view for the library) for every storage image that resolved;
     /// the binding's id is `IMAGE_TAG | index`.
     images: Vec<((u32, u32), Arc<Image>, ImageBinding)>,
+    /// ((set, binding), device address) for every acceleration-structure descriptor.
+    structures: Vec<((u32, u32), u64)>,
+    /// Ray queries follow structure addresses (and each TLAS's BLAS references) through the
+    /// same view builds use, which pins the buffers it hands out for the dispatch.
+    device: DeviceInputs<'a>,
 }
 
 /// What a used binding resolved to.
 enum Resolved {
     Buffer(Arc<Buffer>, u64, u64),
     Image(Arc<Image>, ImageBinding),
+    Structure(u64),
 }
 
 /// Where a binding the shader uses points, for the diagnostics of an unbound binding.
@@ -68,7 +76,8 @@ impl<'a> DispatchMemory<'a> {
     /// not resolve are returned beside the memory: the shader sees them as unbound (each access
     /// a contained fault).
     pub fn new(space: &'a AddressSpace, sets: &[Option<BoundSet>], used: &[(u32, u32)]) -> (Self, Missing) {
-        let mut m = DispatchMemory { space, regions: Vec::new(), buffers: Vec::new(), images: Vec::new() };
+        let device = DeviceInputs::new(space, "vkCmdDispatch");
+        let mut m = DispatchMemory { space, regions: Vec::new(), buffers: Vec::new(), images: Vec::new(), structures: Vec::new(), device };
         let mut missing = Vec::new();
         for &(set, binding) in used {
             match resolve_binding(sets, set, binding, IMAGE_TAG | m.images.len() as u64) {
@@ -78,6 +87,7 @@ impl<'a> DispatchMemory<'a> {
                     m.regions.push(((set, binding), region));
                 }
                 Ok(Resolved::Image(image, view)) => m.images.push(((set, binding), image, view)),
+                Ok(Resolved::Structure(address)) => m.structures.push(((set, binding), address)),
                 Err(e) => missing.push(((set, binding), e)),
             }
         }
@@ -119,6 +129,10 @@ fn resolve_binding(sets: &[Option<BoundSet>], set: u32, binding: u32, image_id: 
         d @ Descriptor::StorageImage { .. } => {
             let (image, view) = storage_image_binding(&d, image_id).ok_or(Unresolved::Image)?;
             Ok(Resolved::Image(image, view))
+        }
+        d @ Descriptor::AccelerationStructure { .. } => {
+            let address = d.acceleration_structure().and_then(|s| s.address()).ok_or(Unresolved::Empty)?;
+            Ok(Resolved::Structure(address))
         }
         // Samplers and sampled images: the library has no sampling.
         Descriptor::Image { .. } => Err(Unresolved::Image),
@@ -171,6 +185,14 @@ impl Memory for DispatchMemory<'_> {
             return None;
         }
         self.buffer(buffer)?.atomic(offset, size, update).ok()
+    }
+
+    fn acceleration_structure(&self, set: u32, binding: u32) -> Option<u64> {
+        self.structures.iter().find(|(k, _)| *k == (set, binding)).map(|(_, a)| *a)
+    }
+
+    fn acceleration_structures(&self) -> Option<&dyn DeviceView> {
+        Some(&self.device)
     }
 
     fn image(&self, set: u32, binding: u32) -> Option<ImageBinding> {
