@@ -27,6 +27,7 @@ pub const DEVICE_EXTENSIONS: &[(&str, u32)] = &[
     ("VK_KHR_maintenance1", 2),
     ("VK_KHR_maintenance2", 1),
     ("VK_KHR_maintenance3", 1),
+    ("VK_KHR_ray_query", 1),
     ("VK_KHR_ray_tracing_maintenance1", 1),
     ("VK_KHR_synchronization2", 1),
     ("VK_KHR_timeline_semaphore", 2),
@@ -153,6 +154,9 @@ pub unsafe fn fill_feature_struct(s_type: vk::StructureType, p: *mut c_void) -> 
                     ..Default::default()
                 },
             ),
+            vk::StructureType::PHYSICAL_DEVICE_RAY_QUERY_FEATURES_KHR => {
+                util::write_keep_chain(p, vk::PhysicalDeviceRayQueryFeaturesKHR { ray_query: vk::TRUE, ..Default::default() })
+            }
             vk::StructureType::PHYSICAL_DEVICE_RAY_TRACING_MAINTENANCE_1_FEATURES_KHR => util::write_keep_chain(
                 // No ray-tracing pipelines, so no vkCmdTraceRaysIndirect2KHR.
                 p,
