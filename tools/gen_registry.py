@@ -24,6 +24,7 @@ DEVICE_EXTENSIONS = [
     "VK_KHR_deferred_host_operations",
     "VK_KHR_acceleration_structure",
     "VK_KHR_ray_tracing_maintenance1",
+    "VK_KHR_ray_query",
     "VK_KHR_maintenance1",
     "VK_KHR_maintenance2",
     "VK_KHR_maintenance3",

@@ -27,6 +27,7 @@ pub const DEVICE_EXTENSIONS: &[(&str, u32)] = &[
     ("VK_KHR_maintenance1", 2),
     ("VK_KHR_maintenance2", 1),
     ("VK_KHR_maintenance3", 1),
+    ("VK_KHR_ray_query", 1),
     ("VK_KHR_ray_tracing_maintenance1", 1),
     ("VK_KHR_synchronization2", 1),
     ("VK_KHR_timeline_semaphore", 2),
@@ -83,10 +84,13 @@ pub const SUBGROUP_OPERATIONS: vk::SubgroupFeatureFlags = vk::SubgroupFeatureFla
 
 /// Core 1.0 features. Only what Arbor really does; robustBufferAccess is required by the spec
 /// (the shader library contains out-of-range accesses); shaderInt64/shaderFloat64 are
-/// capabilities the shader library runs.
+/// capabilities the shader library runs; storage images without a declared format are read
+/// and written through the view's format, which the library knows.
 pub fn features() -> vk::PhysicalDeviceFeatures {
     vk::PhysicalDeviceFeatures {
         robust_buffer_access: vk::TRUE,
+        shader_storage_image_read_without_format: vk::TRUE,
+        shader_storage_image_write_without_format: vk::TRUE,
         shader_int64: vk::TRUE,
         shader_float64: vk::TRUE,
         ..Default::default()
@@ -150,6 +154,9 @@ pub unsafe fn fill_feature_struct(s_type: vk::StructureType, p: *mut c_void) -> 
                     ..Default::default()
                 },
             ),
+            vk::StructureType::PHYSICAL_DEVICE_RAY_QUERY_FEATURES_KHR => {
+                util::write_keep_chain(p, vk::PhysicalDeviceRayQueryFeaturesKHR { ray_query: vk::TRUE, ..Default::default() })
+            }
             vk::StructureType::PHYSICAL_DEVICE_RAY_TRACING_MAINTENANCE_1_FEATURES_KHR => util::write_keep_chain(
                 // No ray-tracing pipelines, so no vkCmdTraceRaysIndirect2KHR.
                 p,

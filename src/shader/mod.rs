@@ -153,9 +153,10 @@ impl Pipeline {
         Ok(Pipeline { program: Arc::new(lowered.program), local_size, push_constant_size: lowered.push_size })
     }
 
-    /// Descriptor bindings the entry point uses, in first-use order.
+    /// Descriptor bindings the entry point uses: buffers and acceleration structures in
+    /// first-use order, then storage images in first-use order.
     pub fn bindings(&self) -> Vec<BindingUse> {
-        self.program.bindings.iter().map(|&(set, binding)| BindingUse { set, binding }).collect()
+        self.program.bindings.iter().chain(&self.program.images).map(|&(set, binding)| BindingUse { set, binding }).collect()
     }
 
     /// Bytes of workgroup shared memory one workgroup needs.

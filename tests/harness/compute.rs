@@ -212,11 +212,14 @@ impl Drop for Gpu {
     }
 }
 
-/// A buffer a job binds: its initial bytes and how it is bound.
+/// A buffer (or storage image) a job binds: its initial bytes and how it is bound.
 #[derive(Clone)]
 pub struct Binding {
+    /// The buffer's bytes, or the image's texels tightly packed (row after row).
     pub data: Vec<u8>,
     pub kind: vk::DescriptorType,
+    /// For STORAGE_IMAGE: the 2D image's format and extent (optimal tiling, GENERAL layout).
+    pub image: Option<(vk::Format, [u32; 2])>,
     /// For the _DYNAMIC kinds: the dynamic offset.
     pub dynamic_offset: u32,
     /// Descriptor range (WHOLE_SIZE by default).
@@ -225,10 +228,15 @@ pub struct Binding {
 
 impl Binding {
     pub fn storage(data: Vec<u8>) -> Binding {
-        Binding { data, kind: vk::DescriptorType::STORAGE_BUFFER, dynamic_offset: 0, range: vk::WHOLE_SIZE }
+        Binding { data, kind: vk::DescriptorType::STORAGE_BUFFER, image: None, dynamic_offset: 0, range: vk::WHOLE_SIZE }
     }
     pub fn uniform(data: Vec<u8>) -> Binding {
-        Binding { data, kind: vk::DescriptorType::UNIFORM_BUFFER, dynamic_offset: 0, range: vk::WHOLE_SIZE }
+        Binding { data, kind: vk::DescriptorType::UNIFORM_BUFFER, image: None, dynamic_offset: 0, range: vk::WHOLE_SIZE }
+    }
+    /// A 2D storage image of `format` and `extent` holding `texels` (tightly packed); the job
+    /// returns its texels after the dispatch, packed the same way.
+    pub fn storage_image(format: vk::Format, extent: [u32; 2], texels: Vec<u8>) -> Binding {
+        Binding { data: texels, kind: vk::DescriptorType::STORAGE_IMAGE, image: Some((format, extent)), dynamic_offset: 0, range: vk::WHOLE_SIZE }
     }
     pub fn dynamic(mut self, offset: u32, range: u64) -> Binding {
         self.kind = match self.kind {

@@ -1,5 +1,7 @@
 //! Running a compute [`Job`](super::compute::Job): every Vulkan object it needs is created,
-//! used once and destroyed here, so a test reads as data in, buffers out.
+//! used once and destroyed here, so a test reads as data in, buffers out. A storage-image
+//! binding is an image plus a staging buffer: texels are copied in before the dispatch and out
+//! after it, so the staging buffer is what the job returns for that binding.
 use ash::vk;
 
 use super::compute::{Gpu, Job, JobError, Size};
@@ -30,6 +32,70 @@ fn buffer(gpu: &Gpu, data: &[u8], usage: vk::BufferUsageFlags) -> Buffer {
     }
 }
 
+/// A storage-image binding's image, its memory and its view.
+struct Image {
+    image: vk::Image,
+    memory: vk::DeviceMemory,
+    view: vk::ImageView,
+    extent: [u32; 2],
+}
+
+/// A 2D single-level storage image (optimal tiling) with a view of the whole of it.
+pub fn storage_image(gpu: &Gpu, format: vk::Format, extent: [u32; 2]) -> (vk::Image, vk::DeviceMemory, vk::ImageView) {
+    let d = &gpu.device;
+    let usage = vk::ImageUsageFlags::STORAGE | vk::ImageUsageFlags::TRANSFER_SRC | vk::ImageUsageFlags::TRANSFER_DST;
+    let info = vk::ImageCreateInfo::default()
+        .image_type(vk::ImageType::TYPE_2D)
+        .format(format)
+        .extent(vk::Extent3D { width: extent[0], height: extent[1], depth: 1 })
+        .mip_levels(1)
+        .array_layers(1)
+        .samples(vk::SampleCountFlags::TYPE_1)
+        .tiling(vk::ImageTiling::OPTIMAL)
+        .usage(usage)
+        .initial_layout(vk::ImageLayout::UNDEFINED);
+    // SAFETY: valid create infos; the caller destroys all three.
+    unsafe {
+        let image = d.create_image(&info, None).unwrap();
+        let req = d.get_image_memory_requirements(image);
+        let ai = vk::MemoryAllocateInfo::default().allocation_size(req.size).memory_type_index(gpu_memory_type(gpu, req.memory_type_bits));
+        let memory = d.allocate_memory(&ai, None).unwrap();
+        d.bind_image_memory(image, memory, 0).unwrap();
+        let vi = vk::ImageViewCreateInfo::default().image(image).view_type(vk::ImageViewType::TYPE_2D).format(format).subresource_range(color_range());
+        let view = d.create_image_view(&vi, None).unwrap();
+        (image, memory, view)
+    }
+}
+
+fn color_range() -> vk::ImageSubresourceRange {
+    vk::ImageSubresourceRange { aspect_mask: vk::ImageAspectFlags::COLOR, base_mip_level: 0, level_count: 1, base_array_layer: 0, layer_count: 1 }
+}
+
+/// A layout transition of a whole single-level color image.
+pub fn image_barrier(image: vk::Image, from: (vk::ImageLayout, vk::AccessFlags), to: (vk::ImageLayout, vk::AccessFlags)) -> vk::ImageMemoryBarrier<'static> {
+    vk::ImageMemoryBarrier::default()
+        .old_layout(from.0)
+        .src_access_mask(from.1)
+        .new_layout(to.0)
+        .dst_access_mask(to.1)
+        .src_queue_family_index(vk::QUEUE_FAMILY_IGNORED)
+        .dst_queue_family_index(vk::QUEUE_FAMILY_IGNORED)
+        .image(image)
+        .subresource_range(color_range())
+}
+
+/// The buffer ↔ image copy region of a whole, tightly packed 2D image.
+pub fn whole_image_copy(extent: [u32; 2]) -> vk::BufferImageCopy {
+    vk::BufferImageCopy {
+        buffer_offset: 0,
+        buffer_row_length: 0,
+        buffer_image_height: 0,
+        image_subresource: vk::ImageSubresourceLayers { aspect_mask: vk::ImageAspectFlags::COLOR, mip_level: 0, base_array_layer: 0, layer_count: 1 },
+        image_offset: vk::Offset3D::default(),
+        image_extent: vk::Extent3D { width: extent[0], height: extent[1], depth: 1 },
+    }
+}
+
 fn gpu_memory_type(gpu: &Gpu, bits: u32) -> u32 {
     let want = vk::MemoryPropertyFlags::HOST_VISIBLE | vk::MemoryPropertyFlags::HOST_COHERENT;
     // SAFETY: plain query.
@@ -47,7 +113,7 @@ struct Objects {
     pipeline: vk::Pipeline,
 }
 
-fn objects(gpu: &Gpu, job: &Job, buffers: &[Buffer]) -> Result<Objects, JobError> {
+fn objects(gpu: &Gpu, job: &Job, buffers: &[Buffer], images: &[Option<Image>]) -> Result<Objects, JobError> {
     let d = &gpu.device;
     let lb: Vec<_> = job
         .bindings
@@ -72,12 +138,23 @@ fn objects(gpu: &Gpu, job: &Job, buffers: &[Buffer]) -> Result<Objects, JobError
         };
         let infos: Vec<[vk::DescriptorBufferInfo; 1]> =
             job.bindings.iter().zip(buffers).map(|(b, buf)| [vk::DescriptorBufferInfo { buffer: buf.buffer, offset: 0, range: b.range }]).collect();
+        let image_infos: Vec<[vk::DescriptorImageInfo; 1]> = images
+            .iter()
+            .map(|i| [vk::DescriptorImageInfo { sampler: vk::Sampler::null(), image_view: i.as_ref().map_or(vk::ImageView::null(), |i| i.view), image_layout: vk::ImageLayout::GENERAL }])
+            .collect();
         let writes: Vec<_> = job
             .bindings
             .iter()
-            .zip(&infos)
+            .zip(infos.iter().zip(&image_infos))
             .enumerate()
-            .map(|(i, (b, info))| vk::WriteDescriptorSet::default().dst_set(set).dst_binding(i as u32).descriptor_type(b.kind).buffer_info(info))
+            .map(|(i, (b, (info, image_info)))| {
+                let w = vk::WriteDescriptorSet::default().dst_set(set).dst_binding(i as u32).descriptor_type(b.kind);
+                if b.image.is_some() {
+                    w.image_info(image_info)
+                } else {
+                    w.buffer_info(info)
+                }
+            })
             .collect();
         d.update_descriptor_sets(&writes, &[]);
         let push_size = (job.push.len() as u32).next_multiple_of(4);
@@ -124,13 +201,22 @@ fn destroy(gpu: &Gpu, o: &Objects) {
 }
 
 /// Record and submit the dispatch; wait for its fence.
-fn submit(gpu: &Gpu, job: &Job, o: &Objects, indirect: &Buffer) -> Result<(), JobError> {
+fn submit(gpu: &Gpu, job: &Job, o: &Objects, indirect: &Buffer, buffers: &[Buffer], images: &[Option<Image>]) -> Result<(), JobError> {
     let d = &gpu.device;
     // SAFETY: valid objects; the command pool and fence are destroyed before returning.
     unsafe {
         let cmd_pool = d.create_command_pool(&vk::CommandPoolCreateInfo::default().queue_family_index(0), None).unwrap();
         let cb = d.allocate_command_buffers(&vk::CommandBufferAllocateInfo::default().command_pool(cmd_pool).command_buffer_count(1)).unwrap()[0];
         d.begin_command_buffer(cb, &vk::CommandBufferBeginInfo::default()).unwrap();
+        let staged = || images.iter().zip(buffers).filter_map(|(i, b)| Some((i.as_ref()?, b)));
+        for (image, staging) in staged() {
+            let (none, dst, general) = (vk::AccessFlags::empty(), vk::AccessFlags::TRANSFER_WRITE, vk::AccessFlags::SHADER_READ | vk::AccessFlags::SHADER_WRITE);
+            let to_dst = [image_barrier(image.image, (vk::ImageLayout::UNDEFINED, none), (vk::ImageLayout::TRANSFER_DST_OPTIMAL, dst))];
+            d.cmd_pipeline_barrier(cb, vk::PipelineStageFlags::TOP_OF_PIPE, vk::PipelineStageFlags::TRANSFER, vk::DependencyFlags::empty(), &[], &[], &to_dst);
+            d.cmd_copy_buffer_to_image(cb, staging.buffer, image.image, vk::ImageLayout::TRANSFER_DST_OPTIMAL, &[whole_image_copy(image.extent)]);
+            let to_general = [image_barrier(image.image, (vk::ImageLayout::TRANSFER_DST_OPTIMAL, dst), (vk::ImageLayout::GENERAL, general))];
+            d.cmd_pipeline_barrier(cb, vk::PipelineStageFlags::TRANSFER, vk::PipelineStageFlags::COMPUTE_SHADER, vk::DependencyFlags::empty(), &[], &[], &to_general);
+        }
         d.cmd_bind_pipeline(cb, vk::PipelineBindPoint::COMPUTE, o.pipeline);
         if o.set != vk::DescriptorSet::null() {
             let dynamic: Vec<u32> = job.bindings.iter().filter(|b| b.kind == vk::DescriptorType::UNIFORM_BUFFER_DYNAMIC || b.kind == vk::DescriptorType::STORAGE_BUFFER_DYNAMIC).map(|b| b.dynamic_offset).collect();
@@ -146,8 +232,15 @@ fn submit(gpu: &Gpu, job: &Job, o: &Objects, indirect: &Buffer) -> Result<(), Jo
             Size::Base { base, groups } => d.cmd_dispatch_base(cb, base[0], base[1], base[2], groups[0], groups[1], groups[2]),
             Size::Indirect(_) => d.cmd_dispatch_indirect(cb, indirect.buffer, 16),
         }
-        let barrier = [vk::MemoryBarrier::default().src_access_mask(vk::AccessFlags::SHADER_WRITE).dst_access_mask(vk::AccessFlags::HOST_READ)];
-        d.cmd_pipeline_barrier(cb, vk::PipelineStageFlags::COMPUTE_SHADER, vk::PipelineStageFlags::HOST, vk::DependencyFlags::empty(), &barrier, &[], &[]);
+        for (image, staging) in staged() {
+            let general = (vk::ImageLayout::GENERAL, vk::AccessFlags::SHADER_WRITE);
+            let to_src = [image_barrier(image.image, general, (vk::ImageLayout::TRANSFER_SRC_OPTIMAL, vk::AccessFlags::TRANSFER_READ))];
+            d.cmd_pipeline_barrier(cb, vk::PipelineStageFlags::COMPUTE_SHADER, vk::PipelineStageFlags::TRANSFER, vk::DependencyFlags::empty(), &[], &[], &to_src);
+            d.cmd_copy_image_to_buffer(cb, image.image, vk::ImageLayout::TRANSFER_SRC_OPTIMAL, staging.buffer, &[whole_image_copy(image.extent)]);
+        }
+        let barrier = [vk::MemoryBarrier::default().src_access_mask(vk::AccessFlags::SHADER_WRITE | vk::AccessFlags::TRANSFER_WRITE).dst_access_mask(vk::AccessFlags::HOST_READ)];
+        let from = vk::PipelineStageFlags::COMPUTE_SHADER | vk::PipelineStageFlags::TRANSFER;
+        d.cmd_pipeline_barrier(cb, from, vk::PipelineStageFlags::HOST, vk::DependencyFlags::empty(), &barrier, &[], &[]);
         d.end_command_buffer(cb).unwrap();
         let fence = d.create_fence(&vk::FenceCreateInfo::default(), None).unwrap();
         let cbs = [cb];
@@ -167,7 +260,17 @@ fn submit(gpu: &Gpu, job: &Job, o: &Objects, indirect: &Buffer) -> Result<(), Jo
 /// Run `job` on `gpu`; returns every binding's bytes afterwards.
 pub fn run(gpu: &Gpu, job: &Job) -> Result<Vec<Vec<u8>>, JobError> {
     let usage = vk::BufferUsageFlags::STORAGE_BUFFER | vk::BufferUsageFlags::UNIFORM_BUFFER;
-    let buffers: Vec<Buffer> = job.bindings.iter().map(|b| buffer(gpu, &b.data, usage)).collect();
+    let staging = vk::BufferUsageFlags::TRANSFER_SRC | vk::BufferUsageFlags::TRANSFER_DST;
+    let buffers: Vec<Buffer> = job.bindings.iter().map(|b| buffer(gpu, &b.data, if b.image.is_some() { staging } else { usage })).collect();
+    let images: Vec<Option<Image>> = job
+        .bindings
+        .iter()
+        .map(|b| {
+            let (format, extent) = b.image?;
+            let (image, memory, view) = storage_image(gpu, format, extent);
+            Some(Image { image, memory, view, extent })
+        })
+        .collect();
     let mut record = vec![0u8; 32];
     if let Size::Indirect(g) = job.size {
         for (i, v) in g.iter().enumerate() {
@@ -188,8 +291,8 @@ pub fn run(gpu: &Gpu, job: &Job) -> Result<Vec<Vec<u8>>, JobError> {
             }
         }
     }
-    let result = objects(gpu, &job, &buffers).and_then(|o| {
-        let r = submit(gpu, &job, &o, &indirect);
+    let result = objects(gpu, &job, &buffers, &images).and_then(|o| {
+        let r = submit(gpu, &job, &o, &indirect, &buffers, &images);
         destroy(gpu, &o);
         r
     });
@@ -199,6 +302,14 @@ pub fn run(gpu: &Gpu, job: &Job) -> Result<Vec<Vec<u8>>, JobError> {
         // SAFETY: mapped, coherent, and the dispatch finished (fence waited).
         .map(|(b, j)| unsafe { std::slice::from_raw_parts(b.ptr, b.size as usize)[..j.data.len()].to_vec() })
         .collect();
+    for i in images.iter().flatten() {
+        // SAFETY: idle and not used again.
+        unsafe {
+            gpu.device.destroy_image_view(i.view, None);
+            gpu.device.destroy_image(i.image, None);
+            gpu.device.free_memory(i.memory, None);
+        }
+    }
     for b in buffers.iter().chain([&indirect]) {
         // SAFETY: idle and not used again.
         unsafe {

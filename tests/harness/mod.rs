@@ -249,7 +249,11 @@ fn create_device(instance: &ash::Instance, physical: vk::PhysicalDevice, opts: &
         .acceleration_structure_host_commands(true)
         .descriptor_binding_acceleration_structure_update_after_bind(true);
     let mut rtm1 = vk::PhysicalDeviceRayTracingMaintenance1FeaturesKHR::default().ray_tracing_maintenance1(true);
+    let mut rq = vk::PhysicalDeviceRayQueryFeaturesKHR::default().ray_query(true);
     let has = |e: &str| dev_exts.contains(&e);
+    if has("VK_KHR_ray_query") {
+        dci = dci.push_next(&mut rq);
+    }
     if opts.acceleration_structure {
         dci = dci.push_next(&mut asf).push_next(&mut rtm1);
     }

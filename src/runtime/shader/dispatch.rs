@@ -75,7 +75,7 @@ impl Dispatch {
                 Unresolved::NotBound => ("VUID-vkCmdDispatch-None-08600", "no descriptor set bound there (or the set has no such binding)"),
                 Unresolved::Empty => ("VUID-vkCmdDispatch-None-08114", "the descriptor was never written or its buffer was destroyed"),
                 Unresolved::PastEnd { .. } => ("VUID-vkCmdBindDescriptorSets-pDynamicOffsets-01979", "the dynamic offset moves the range past the buffer's end"),
-                Unresolved::Image => ("VUID-vkCmdDispatch-None-08114", "an image descriptor, which Arbor's shaders cannot read yet"),
+                Unresolved::Image => ("VUID-vkCmdDispatch-None-08114", "an image descriptor that is no usable storage image (a sampler or sampled image, a destroyed view or image, or no memory bound)"),
             };
             diag::vuid(vuid, self.name, &format!("set {set} binding {binding}: {what}; the shader's accesses to it are contained"));
         }

@@ -6,22 +6,29 @@
 //!
 //! This module only maps; it reports nothing (the dispatch turns faults into diagnostics).
 //!
-//! Image bindings plug in here: `resolve_binding` is the one place a descriptor becomes something
-//! the shader can reach, and `DispatchMemory::new` the one loop that collects them. Storage
-//! images reach the library through their own interface, not as buffer regions, so an image
-//! descriptor resolves to `Unresolved::Image` for now (the `Descriptor::Image` arm); the images
-//! work resolves it there into its image view and keeps it beside `regions`.
+//! `resolve_binding` is the one place a descriptor becomes something the shader can reach, and
+//! `DispatchMemory::new` the one loop that collects them. Storage images reach the library
+//! through `Memory::image`, not as buffer regions: they are kept in `images`, and their texel
+//! reads and writes arrive with an id tagged `IMAGE_TAG`.
 use std::sync::Arc;
 
+use crate::accel::DeviceView;
 use crate::memory::{AddressSpace, Buffer};
+use crate::runtime::accel::inputs::DeviceInputs;
 use crate::runtime::descriptor::{is_dynamic, Descriptor};
-use crate::shader::{Memory, Region};
+use crate::runtime::image::{storage_image_binding, Image};
+use crate::shader::{ImageBinding, Memory, Region};
 
 use super::BoundSet;
 
 /// Buffer ids at or above this are device-address resolutions: the id is the buffer's device
 /// address with this bit set. Ids below it index `DispatchMemory::buffers` (descriptors).
 const ADDRESS_TAG: u64 = 1 << 63;
+
+/// Ids with this bit (and not `ADDRESS_TAG`) name a storage image: the low bits index
+/// `DispatchMemory::images`. Address ids always carry `ADDRESS_TAG` (checked first) and
+/// descriptor buffer ids are small indices, so the three kinds cannot collide.
+const IMAGE_TAG: u64 = 1 << 62;
 
 /// One dispatch's memory: the buffers its descriptors name, and the device's address space.
 pub struct DispatchMemory<'a> {
@@ -30,6 +37,21 @@ pub struct DispatchMemory<'a> {
     regions: Vec<((u32, u32), Region)>,
     /// The buffers `regions` refer to, by `Region::buffer`.
     buffers: Vec<Arc<Buffer>>,
+    /// ((set, binding), image, its view for the library) for every storage image that resolved;
+    /// the binding's id is `IMAGE_TAG | index`.
+    images: Vec<((u32, u32), Arc<Image>, ImageBinding)>,
+    /// ((set, binding), device address) for every acceleration-structure descriptor.
+    structures: Vec<((u32, u32), u64)>,
+    /// Ray queries follow structure addresses (and each TLAS's BLAS references) through the
+    /// same view builds use, which pins the buffers it hands out for the dispatch.
+    device: DeviceInputs<'a>,
+}
+
+/// What a used binding resolved to.
+enum Resolved {
+    Buffer(Arc<Buffer>, u64, u64),
+    Image(Arc<Image>, ImageBinding),
+    Structure(u64),
 }
 
 /// Where a binding the shader uses points, for the diagnostics of an unbound binding.
@@ -41,7 +63,8 @@ pub enum Unresolved {
     Empty,
     /// A dynamic offset moves the range past the buffer's end.
     PastEnd { offset: u64, size: u64 },
-    /// An image descriptor: not a buffer region (see the module docs).
+    /// An image descriptor that is not a usable storage image: a sampler or sampled image, a
+    /// view or image destroyed, no memory bound, or several levels in the view.
     Image,
 }
 
@@ -53,15 +76,18 @@ impl<'a> DispatchMemory<'a> {
     /// not resolve are returned beside the memory: the shader sees them as unbound (each access
     /// a contained fault).
     pub fn new(space: &'a AddressSpace, sets: &[Option<BoundSet>], used: &[(u32, u32)]) -> (Self, Missing) {
-        let mut m = DispatchMemory { space, regions: Vec::new(), buffers: Vec::new() };
+        let device = DeviceInputs::new(space, "vkCmdDispatch");
+        let mut m = DispatchMemory { space, regions: Vec::new(), buffers: Vec::new(), images: Vec::new(), structures: Vec::new(), device };
         let mut missing = Vec::new();
         for &(set, binding) in used {
-            match resolve_binding(sets, set, binding) {
-                Ok((buffer, offset, len)) => {
+            match resolve_binding(sets, set, binding, IMAGE_TAG | m.images.len() as u64) {
+                Ok(Resolved::Buffer(buffer, offset, len)) => {
                     let region = Region { buffer: m.buffers.len() as u64, offset, len };
                     m.buffers.push(buffer);
                     m.regions.push(((set, binding), region));
                 }
+                Ok(Resolved::Image(image, view)) => m.images.push(((set, binding), image, view)),
+                Ok(Resolved::Structure(address)) => m.structures.push(((set, binding), address)),
                 Err(e) => missing.push(((set, binding), e)),
             }
         }
@@ -72,11 +98,17 @@ impl<'a> DispatchMemory<'a> {
     fn buffer(&self, id: u64) -> Option<&Buffer> {
         self.buffers.get(usize::try_from(id).ok()?).map(|b| &**b)
     }
+
+    /// The image of a storage-image id (`IMAGE_TAG | index`).
+    fn image_of(&self, id: u64) -> Option<&Image> {
+        self.images.get(usize::try_from(id & !IMAGE_TAG).ok()?).map(|(_, image, _)| &**image)
+    }
 }
 
 /// The buffer range a bound descriptor gives the shader: element 0 of the binding, dynamic
-/// offset applied. Dynamic offsets are ordered by binding number, then array element.
-fn resolve_binding(sets: &[Option<BoundSet>], set: u32, binding: u32) -> Result<(Arc<Buffer>, u64, u64), Unresolved> {
+/// offset applied, or the storage image it names (its texels under id `image_id`). Dynamic
+/// offsets are ordered by binding number, then array element.
+fn resolve_binding(sets: &[Option<BoundSet>], set: u32, binding: u32, image_id: u64) -> Result<Resolved, Unresolved> {
     let bound = sets.get(set as usize).and_then(Option::as_ref).ok_or(Unresolved::NotBound)?;
     let layout = &bound.set.layout;
     let lb = layout.binding(binding).ok_or(Unresolved::NotBound)?;
@@ -90,11 +122,19 @@ fn resolve_binding(sets: &[Option<BoundSet>], set: u32, binding: u32) -> Result<
         d @ Descriptor::Buffer { .. } => {
             let (buffer, offset, len) = d.buffer_range(dynamic).ok_or(Unresolved::Empty)?;
             match offset.checked_add(len) {
-                Some(end) if end <= buffer.size => Ok((buffer, offset, len)),
+                Some(end) if end <= buffer.size => Ok(Resolved::Buffer(buffer, offset, len)),
                 _ => Err(Unresolved::PastEnd { offset, size: buffer.size }),
             }
         }
-        // The image hook (module docs): storage images are resolved here by the images work.
+        d @ Descriptor::StorageImage { .. } => {
+            let (image, view) = storage_image_binding(&d, image_id).ok_or(Unresolved::Image)?;
+            Ok(Resolved::Image(image, view))
+        }
+        d @ Descriptor::AccelerationStructure { .. } => {
+            let address = d.acceleration_structure().and_then(|s| s.address()).ok_or(Unresolved::Empty)?;
+            Ok(Resolved::Structure(address))
+        }
+        // Samplers and sampled images: the library has no sampling.
         Descriptor::Image { .. } => Err(Unresolved::Image),
         _ => Err(Unresolved::Empty),
     }
@@ -118,12 +158,18 @@ impl Memory for DispatchMemory<'_> {
         if buffer & ADDRESS_TAG != 0 {
             return self.space.read((buffer & !ADDRESS_TAG) + offset, out).is_ok();
         }
+        if buffer & IMAGE_TAG != 0 {
+            return self.image_of(buffer).is_some_and(|i| i.storage.read(offset, out).is_ok());
+        }
         self.buffer(buffer).is_some_and(|b| b.read(offset, out).is_ok())
     }
 
     fn write(&self, buffer: u64, offset: u64, data: &[u8]) -> bool {
         if buffer & ADDRESS_TAG != 0 {
             return self.space.write((buffer & !ADDRESS_TAG) + offset, data).is_ok();
+        }
+        if buffer & IMAGE_TAG != 0 {
+            return self.image_of(buffer).is_some_and(|i| i.storage.write(offset, data).is_ok());
         }
         self.buffer(buffer).is_some_and(|b| b.write(offset, data).is_ok())
     }
@@ -134,6 +180,22 @@ impl Memory for DispatchMemory<'_> {
             let r = self.space.resolve(address, size as u64).ok()?;
             return r.buffer.atomic(r.offset, size, update).ok();
         }
+        // Image atomics are not part of the library's image interface; an image id is no buffer.
+        if buffer & IMAGE_TAG != 0 {
+            return None;
+        }
         self.buffer(buffer)?.atomic(offset, size, update).ok()
+    }
+
+    fn acceleration_structure(&self, set: u32, binding: u32) -> Option<u64> {
+        self.structures.iter().find(|(k, _)| *k == (set, binding)).map(|(_, a)| *a)
+    }
+
+    fn acceleration_structures(&self) -> Option<&dyn DeviceView> {
+        Some(&self.device)
+    }
+
+    fn image(&self, set: u32, binding: u32) -> Option<ImageBinding> {
+        self.images.iter().find(|(k, _, _)| *k == (set, binding)).map(|(_, _, view)| *view)
     }
 }

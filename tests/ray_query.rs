@@ -1,0 +1,125 @@
+//! Ray queries in a compute dispatch through the loader (validation on, zero messages): a BLAS
+//! of the grid and a TLAS of two instances of it built with vkCmdBuildAccelerationStructuresKHR,
+//! tests/shaders/rq_closest.comp traces a handful of rays through the TLAS descriptor, and each
+//! committed hit matches `arbor::accel::closest_hit` on the structures read back.
+mod harness;
+
+use arbor::accel::{self, MapView, Ray, RayFlags};
+use ash::vk;
+use glam::Vec3;
+use harness::vuid::*;
+
+fn translated(x: f32) -> [f32; 12] {
+    [1.0, 0.0, 0.0, x, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0]
+}
+
+/// Instance k shows the grid at x in [2k, 2k + 1], custom index 10 + k.
+fn build_tlas(a: &Accel, blas: &Dst) -> Dst {
+    let reference = a.address_of(blas.s);
+    let records: Vec<u8> = (0..2).flat_map(|k| instance_record(translated(2.0 * k as f32), 10 + k, 0xFF, 0, 0, reference)).collect();
+    let insts = guarded_data(a, &records);
+    let geoms = [instances_geom(insts.address(a), false)];
+    let inf = info(TLAS, NO_FLAGS, &geoms);
+    let sizes = a.sizes(DEVICE, &inf, &[2]);
+    let tlas = guarded_structure(a, TLAS, sizes.acceleration_structure_size);
+    let scratch = guarded(a, sizes.build_scratch_size);
+    cmd_build(a, &[inf.dst_acceleration_structure(tlas.s).scratch_data(madr(scratch.address(a)))], &[&[range(2)]]);
+    tlas
+}
+
+/// Runs rq_closest.comp over `rays` against `tlas`; returns the hits buffer.
+fn trace(a: &Accel, tlas: vk::AccelerationStructureKHR, rays: &[Ray]) -> Vec<u8> {
+    let d = &a.ctx.device;
+    let ray_bytes: Vec<u8> = rays
+        .iter()
+        .flat_map(|r| [r.origin.x, r.origin.y, r.origin.z, r.tmin, r.direction.x, r.direction.y, r.direction.z, r.tmax])
+        .flat_map(f32::to_le_bytes)
+        .collect();
+    let (rb, hb) = (a.upload(&ray_bytes), a.buffer(16 * rays.len() as u64));
+    let spirv = harness::compute::glsl("rq_closest.comp");
+    let stage = vk::ShaderStageFlags::COMPUTE;
+    let bindings = [
+        vk::DescriptorSetLayoutBinding::default().binding(0).descriptor_type(vk::DescriptorType::ACCELERATION_STRUCTURE_KHR).descriptor_count(1).stage_flags(stage),
+        vk::DescriptorSetLayoutBinding::default().binding(1).descriptor_type(vk::DescriptorType::STORAGE_BUFFER).descriptor_count(1).stage_flags(stage),
+        vk::DescriptorSetLayoutBinding::default().binding(2).descriptor_type(vk::DescriptorType::STORAGE_BUFFER).descriptor_count(1).stage_flags(stage),
+    ];
+    // SAFETY: valid create infos; everything is destroyed before returning, after the wait.
+    unsafe {
+        let set_layout = d.create_descriptor_set_layout(&vk::DescriptorSetLayoutCreateInfo::default().bindings(&bindings), None).unwrap();
+        let sizes = [
+            vk::DescriptorPoolSize { ty: vk::DescriptorType::ACCELERATION_STRUCTURE_KHR, descriptor_count: 1 },
+            vk::DescriptorPoolSize { ty: vk::DescriptorType::STORAGE_BUFFER, descriptor_count: 2 },
+        ];
+        let pool = d.create_descriptor_pool(&vk::DescriptorPoolCreateInfo::default().max_sets(1).pool_sizes(&sizes), None).unwrap();
+        let layouts = [set_layout];
+        let set = d.allocate_descriptor_sets(&vk::DescriptorSetAllocateInfo::default().descriptor_pool(pool).set_layouts(&layouts)).unwrap()[0];
+        let structures = [tlas];
+        let mut as_info = vk::WriteDescriptorSetAccelerationStructureKHR::default().acceleration_structures(&structures);
+        let infos = [rb, hb].map(|b| [vk::DescriptorBufferInfo { buffer: a.buf(b).buffer, offset: 0, range: vk::WHOLE_SIZE }]);
+        let writes = [
+            vk::WriteDescriptorSet::default().dst_set(set).dst_binding(0).descriptor_count(1).descriptor_type(vk::DescriptorType::ACCELERATION_STRUCTURE_KHR).push_next(&mut as_info),
+            vk::WriteDescriptorSet::default().dst_set(set).dst_binding(1).descriptor_type(vk::DescriptorType::STORAGE_BUFFER).buffer_info(&infos[0]),
+            vk::WriteDescriptorSet::default().dst_set(set).dst_binding(2).descriptor_type(vk::DescriptorType::STORAGE_BUFFER).buffer_info(&infos[1]),
+        ];
+        d.update_descriptor_sets(&writes, &[]);
+        let ranges = [vk::PushConstantRange { stage_flags: stage, offset: 0, size: 8 }];
+        let layout = d.create_pipeline_layout(&vk::PipelineLayoutCreateInfo::default().set_layouts(&layouts).push_constant_ranges(&ranges), None).unwrap();
+        let module = d.create_shader_module(&vk::ShaderModuleCreateInfo::default().code(&spirv), None).unwrap();
+        let ci = [vk::ComputePipelineCreateInfo::default().stage(vk::PipelineShaderStageCreateInfo::default().stage(stage).module(module).name(c"main")).layout(layout)];
+        let pipeline = d.create_compute_pipelines(vk::PipelineCache::null(), &ci, None).map_err(|(_, e)| e).unwrap()[0];
+        let push: Vec<u8> = [rays.len() as u32, 0].iter().flat_map(|x| x.to_le_bytes()).collect();
+        a.submit(|cb| {
+            let barrier = [vk::MemoryBarrier::default().src_access_mask(vk::AccessFlags::ACCELERATION_STRUCTURE_WRITE_KHR).dst_access_mask(vk::AccessFlags::ACCELERATION_STRUCTURE_READ_KHR)];
+            d.cmd_pipeline_barrier(cb, vk::PipelineStageFlags::ACCELERATION_STRUCTURE_BUILD_KHR, vk::PipelineStageFlags::COMPUTE_SHADER, vk::DependencyFlags::empty(), &barrier, &[], &[]);
+            d.cmd_bind_pipeline(cb, vk::PipelineBindPoint::COMPUTE, pipeline);
+            d.cmd_bind_descriptor_sets(cb, vk::PipelineBindPoint::COMPUTE, layout, 0, &[set], &[]);
+            d.cmd_push_constants(cb, layout, stage, 0, &push);
+            d.cmd_dispatch(cb, (rays.len() as u32).div_ceil(64), 1, 1);
+            let barrier = [vk::MemoryBarrier::default().src_access_mask(vk::AccessFlags::SHADER_WRITE).dst_access_mask(vk::AccessFlags::HOST_READ)];
+            d.cmd_pipeline_barrier(cb, vk::PipelineStageFlags::COMPUTE_SHADER, vk::PipelineStageFlags::HOST, vk::DependencyFlags::empty(), &barrier, &[], &[]);
+        });
+        d.destroy_pipeline(pipeline, None);
+        d.destroy_shader_module(module, None);
+        d.destroy_pipeline_layout(layout, None);
+        d.destroy_descriptor_pool(pool, None);
+        d.destroy_descriptor_set_layout(set_layout, None);
+    }
+    a.buf(hb).read(0, 16 * rays.len())
+}
+
+#[test]
+fn rq_closest_through_a_tlas_descriptor_matches_closest_hit() {
+    let mut exts = harness::default_device_extensions();
+    exts.push("VK_KHR_ray_query");
+    let ctx = harness::Context::new(harness::Options { acceleration_structure: true, device_extensions: exts, ..Default::default() });
+    let a = Accel::new(&ctx);
+    let mesh = upload_grid(&a);
+    let (blas, _) = valid_blas(&a, &mesh, NO_FLAGS);
+    let tlas = build_tlas(&a, &blas);
+    // Down onto both instances, between them (a miss), slanted, and one stopped short by tmax.
+    let mut rays: Vec<Ray> = [(0.3, 0.4), (0.91, 0.07), (1.5, 0.5), (2.2, 0.8), (2.93, 0.31), (4.0, 0.5)]
+        .iter()
+        .map(|&(x, y)| Ray { origin: Vec3::new(x, y, 1.0), direction: Vec3::new(0.0, 0.0, -1.0), tmin: 0.0, tmax: 10.0 })
+        .collect();
+    rays.push(Ray { origin: Vec3::new(-1.0, 0.5, 1.0), direction: Vec3::new(1.7, 0.05, -1.0), tmin: 0.01, tmax: 10.0 });
+    rays.push(Ray { origin: Vec3::new(0.5, 0.5, 1.0), direction: Vec3::new(0.0, 0.0, -1.0), tmin: 0.0, tmax: 0.5 });
+    let out = trace(&a, tlas.s, &rays);
+    let mut view = MapView::new();
+    view.insert(a.address_of(blas.s), blas.r.read(&a));
+    let tlas_bytes = tlas.r.read(&a);
+    let mut hits = 0;
+    for (i, (ray, got)) in rays.iter().zip(out.chunks(16)).enumerate() {
+        let word = |k: usize| u32::from_le_bytes(got[4 * k..4 * k + 4].try_into().unwrap());
+        match accel::closest_hit(&tlas_bytes, &view, *ray, RayFlags(RayFlags::OPAQUE), 0xFF) {
+            Some(h) => {
+                hits += 1;
+                assert_eq!(word(3), 1, "ray {i}: committed kind (triangle)");
+                assert_eq!((f32::from_bits(word(0)), word(1), word(2)), (h.t, h.primitive_index, h.instance_index), "ray {i}: t, primitive, instance (InstanceId is the index)");
+            }
+            None => assert_eq!((word(3), word(1), word(2)), (0, u32::MAX, u32::MAX), "ray {i}: miss"),
+        }
+    }
+    assert!(hits >= 5 && hits < rays.len(), "the rays cover hits and misses ({hits} hits)");
+    a.destroy();
+    ctx.finish();
+}
