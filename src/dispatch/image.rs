@@ -117,8 +117,7 @@ unsafe extern "system" fn destroy_image(device: vk::Device, image: vk::Image, _p
 
 fn requirements(image: &Image) -> vk::MemoryRequirements {
     let (size, alignment) = image.storage.requirements();
-    // The one memory type of src/dispatch/memory.rs.
-    vk::MemoryRequirements { size, alignment, memory_type_bits: 1 }
+    vk::MemoryRequirements { size, alignment, memory_type_bits: (1 << super::memory::MEMORY_TYPE_COUNT) - 1 }
 }
 
 unsafe extern "system" fn get_image_memory_requirements(device: vk::Device, image: vk::Image, p_req: *mut vk::MemoryRequirements) {
@@ -157,15 +156,8 @@ unsafe extern "system" fn get_image_memory_requirements2(
             diag::vuid("VUID-VkImageMemoryRequirementsInfo2-image-parameter", CMD, "image is not a live VkImage");
             return;
         };
-        // SAFETY: valid output struct and chain per the spec; write_keep_chain keeps pNext.
-        unsafe {
-            (*p_req).memory_requirements = requirements(&i);
-            util::for_each_out((*p_req).p_next, |s, p| {
-                if s == vk::StructureType::MEMORY_DEDICATED_REQUIREMENTS {
-                    util::write_keep_chain(p, vk::MemoryDedicatedRequirements::default());
-                }
-            });
-        }
+        // SAFETY: valid output struct and chain per the spec.
+        unsafe { super::memory::write_requirements2(p_req, requirements(&i)) };
     })
 }
 

@@ -43,7 +43,7 @@ pub fn commands() -> Vec<Implemented> {
 }
 
 /// The one memory type Arbor exposes.
-const MEMORY_TYPE_COUNT: u32 = 1;
+pub(super) const MEMORY_TYPE_COUNT: u32 = 1;
 
 /// Report a valid-usage violation and return the code Vulkan 1.4 defines for invalid usage
 /// detected by the implementation.
@@ -503,6 +503,23 @@ fn requirements(buffer: &Buffer) -> vk::MemoryRequirements {
     vk::MemoryRequirements { size, alignment, memory_type_bits: (1 << MEMORY_TYPE_COUNT) - 1 }
 }
 
+/// Writes `reqs` into a `VkMemoryRequirements2` and answers the structs chained to it (buffers
+/// and images alike): a dedicated allocation gains nothing on a CPU device.
+///
+/// # Safety
+/// `p_req` is a valid `VkMemoryRequirements2` whose pNext chain is valid (the spec's rule).
+pub(super) unsafe fn write_requirements2(p_req: *mut vk::MemoryRequirements2, reqs: vk::MemoryRequirements) {
+    // SAFETY: the caller's contract; write_keep_chain keeps pNext.
+    unsafe {
+        (*p_req).memory_requirements = reqs;
+        util::for_each_out((*p_req).p_next, |s, p| {
+            if s == vk::StructureType::MEMORY_DEDICATED_REQUIREMENTS {
+                util::write_keep_chain(p, vk::MemoryDedicatedRequirements::default());
+            }
+        });
+    }
+}
+
 unsafe extern "system" fn get_buffer_memory_requirements(device: vk::Device, buffer: vk::Buffer, p_req: *mut vk::MemoryRequirements) {
     const CMD: &str = "vkGetBufferMemoryRequirements";
     guard(CMD, (), || {
@@ -539,23 +556,8 @@ unsafe extern "system" fn get_buffer_memory_requirements2(
             diag::vuid("VUID-VkBufferMemoryRequirementsInfo2-buffer-parameter", CMD, "buffer is not a live VkBuffer");
             return;
         };
-        // SAFETY: valid output struct and chain per the spec; write_keep_chain keeps pNext.
-        unsafe {
-            (*p_req).memory_requirements = requirements(&b);
-            util::for_each_out((*p_req).p_next, |s, p| {
-                if s == vk::StructureType::MEMORY_DEDICATED_REQUIREMENTS {
-                    // A dedicated allocation gains nothing on a CPU device.
-                    util::write_keep_chain(
-                        p,
-                        vk::MemoryDedicatedRequirements {
-                            prefers_dedicated_allocation: vk::FALSE,
-                            requires_dedicated_allocation: vk::FALSE,
-                            ..Default::default()
-                        },
-                    );
-                }
-            });
-        }
+        // SAFETY: valid output struct and chain per the spec.
+        unsafe { write_requirements2(p_req, requirements(&b)) };
     })
 }
 
