@@ -110,6 +110,7 @@ unsafe extern "system" fn get_physical_device_features(pd: vk::PhysicalDevice, p
 ///
 /// # Safety
 /// `p` points to a writable struct of type `s_type`.
+// One function: a table, one match arm per feature struct of the chain.
 pub unsafe fn fill_feature_struct(s_type: vk::StructureType, p: *mut c_void) -> bool {
     // SAFETY: (each arm) the sType identifies the struct; write_keep_chain preserves pNext.
     unsafe {
@@ -212,6 +213,7 @@ unsafe extern "system" fn get_physical_device_features2(pd: vk::PhysicalDevice, 
     })
 }
 
+// One function: a table, one line per limit.
 pub fn limits() -> vk::PhysicalDeviceLimits {
     vk::PhysicalDeviceLimits {
         max_image_dimension1_d: 4096,
@@ -336,6 +338,7 @@ unsafe extern "system" fn get_physical_device_properties(pd: vk::PhysicalDevice,
 ///
 /// # Safety
 /// `p` points to a writable struct of type `s_type`.
+// One function: a table, one match arm per property struct of the chain.
 pub unsafe fn fill_property_struct(s_type: vk::StructureType, p: *mut c_void) -> bool {
     // SAFETY: (each arm) the sType identifies the struct; write_keep_chain preserves pNext.
     unsafe {
