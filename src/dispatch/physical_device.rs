@@ -388,35 +388,37 @@ pub unsafe fn fill_property_struct(s_type: vk::StructureType, p: *mut c_void) ->
             vk::StructureType::PHYSICAL_DEVICE_PROTECTED_MEMORY_PROPERTIES => {
                 util::write_keep_chain(p, vk::PhysicalDeviceProtectedMemoryProperties::default())
             }
-            vk::StructureType::PHYSICAL_DEVICE_DESCRIPTOR_INDEXING_PROPERTIES => util::write_keep_chain(
-                p,
-                vk::PhysicalDeviceDescriptorIndexingProperties {
-                    max_update_after_bind_descriptors_in_all_pools: 1 << 20,
-                    shader_uniform_buffer_array_non_uniform_indexing_native: vk::FALSE,
-                    shader_sampled_image_array_non_uniform_indexing_native: vk::FALSE,
-                    shader_storage_buffer_array_non_uniform_indexing_native: vk::FALSE,
-                    shader_storage_image_array_non_uniform_indexing_native: vk::FALSE,
-                    shader_input_attachment_array_non_uniform_indexing_native: vk::FALSE,
-                    robust_buffer_access_update_after_bind: vk::TRUE,
-                    quad_divergent_implicit_lod: vk::FALSE,
-                    max_per_stage_descriptor_update_after_bind_samplers: 16,
-                    max_per_stage_descriptor_update_after_bind_uniform_buffers: 12,
-                    max_per_stage_descriptor_update_after_bind_storage_buffers: 500_000,
-                    max_per_stage_descriptor_update_after_bind_sampled_images: 16,
-                    max_per_stage_descriptor_update_after_bind_storage_images: 4,
-                    max_per_stage_descriptor_update_after_bind_input_attachments: 4,
-                    max_per_stage_update_after_bind_resources: 500_000,
-                    max_descriptor_set_update_after_bind_samplers: 96,
-                    max_descriptor_set_update_after_bind_uniform_buffers: 72,
-                    max_descriptor_set_update_after_bind_uniform_buffers_dynamic: 8,
-                    max_descriptor_set_update_after_bind_storage_buffers: 500_000,
-                    max_descriptor_set_update_after_bind_storage_buffers_dynamic: 8,
-                    max_descriptor_set_update_after_bind_sampled_images: 96,
-                    max_descriptor_set_update_after_bind_storage_images: 24,
-                    max_descriptor_set_update_after_bind_input_attachments: 4,
+            // The promoted struct answers what VkPhysicalDeviceVulkan12Properties says (one table).
+            vk::StructureType::PHYSICAL_DEVICE_DESCRIPTOR_INDEXING_PROPERTIES => {
+                let v12 = super::core_caps::vulkan12_properties();
+                let q = vk::PhysicalDeviceDescriptorIndexingProperties {
+                    max_update_after_bind_descriptors_in_all_pools: v12.max_update_after_bind_descriptors_in_all_pools,
+                    shader_uniform_buffer_array_non_uniform_indexing_native: v12.shader_uniform_buffer_array_non_uniform_indexing_native,
+                    shader_sampled_image_array_non_uniform_indexing_native: v12.shader_sampled_image_array_non_uniform_indexing_native,
+                    shader_storage_buffer_array_non_uniform_indexing_native: v12.shader_storage_buffer_array_non_uniform_indexing_native,
+                    shader_storage_image_array_non_uniform_indexing_native: v12.shader_storage_image_array_non_uniform_indexing_native,
+                    shader_input_attachment_array_non_uniform_indexing_native: v12.shader_input_attachment_array_non_uniform_indexing_native,
+                    robust_buffer_access_update_after_bind: v12.robust_buffer_access_update_after_bind,
+                    quad_divergent_implicit_lod: v12.quad_divergent_implicit_lod,
+                    max_per_stage_descriptor_update_after_bind_samplers: v12.max_per_stage_descriptor_update_after_bind_samplers,
+                    max_per_stage_descriptor_update_after_bind_uniform_buffers: v12.max_per_stage_descriptor_update_after_bind_uniform_buffers,
+                    max_per_stage_descriptor_update_after_bind_storage_buffers: v12.max_per_stage_descriptor_update_after_bind_storage_buffers,
+                    max_per_stage_descriptor_update_after_bind_sampled_images: v12.max_per_stage_descriptor_update_after_bind_sampled_images,
+                    max_per_stage_descriptor_update_after_bind_storage_images: v12.max_per_stage_descriptor_update_after_bind_storage_images,
+                    max_per_stage_descriptor_update_after_bind_input_attachments: v12.max_per_stage_descriptor_update_after_bind_input_attachments,
+                    max_per_stage_update_after_bind_resources: v12.max_per_stage_update_after_bind_resources,
+                    max_descriptor_set_update_after_bind_samplers: v12.max_descriptor_set_update_after_bind_samplers,
+                    max_descriptor_set_update_after_bind_uniform_buffers: v12.max_descriptor_set_update_after_bind_uniform_buffers,
+                    max_descriptor_set_update_after_bind_uniform_buffers_dynamic: v12.max_descriptor_set_update_after_bind_uniform_buffers_dynamic,
+                    max_descriptor_set_update_after_bind_storage_buffers: v12.max_descriptor_set_update_after_bind_storage_buffers,
+                    max_descriptor_set_update_after_bind_storage_buffers_dynamic: v12.max_descriptor_set_update_after_bind_storage_buffers_dynamic,
+                    max_descriptor_set_update_after_bind_sampled_images: v12.max_descriptor_set_update_after_bind_sampled_images,
+                    max_descriptor_set_update_after_bind_storage_images: v12.max_descriptor_set_update_after_bind_storage_images,
+                    max_descriptor_set_update_after_bind_input_attachments: v12.max_descriptor_set_update_after_bind_input_attachments,
                     ..Default::default()
-                },
-            ),
+                };
+                util::write_keep_chain(p, q)
+            }
             vk::StructureType::PHYSICAL_DEVICE_ACCELERATION_STRUCTURE_PROPERTIES_KHR => util::write_keep_chain(
                 p,
                 vk::PhysicalDeviceAccelerationStructurePropertiesKHR {
