@@ -19,7 +19,7 @@ pub struct Counts {
 }
 
 impl Counts {
-    fn reject(&mut self, reason: String) {
+    pub fn reject(&mut self, reason: String) {
         *self.rejections.entry(reason).or_default() += 1;
     }
 }

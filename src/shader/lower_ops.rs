@@ -289,6 +289,9 @@ impl Lowerer<'_> {
                 let (a, b) = (id_op(inst, 0)?, id_op(inst, 1)?);
                 let ty = self.sc_of(a)?[0];
                 let (a, b) = (self.regs(a)?, self.regs(b)?);
+                if a.is_empty() || a.len() != b.len() {
+                    return Err(self.m.malformed(id, "OpDot of vectors of different sizes"));
+                }
                 vec![self.dot(ty, &a, &b)]
             }
             Op::VectorTimesScalar | Op::MatrixTimesScalar => {

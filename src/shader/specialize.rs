@@ -125,7 +125,8 @@ impl Constants {
                 let (obj, mut base) = (arg(1)?.to_vec(), arg(2)?.to_vec());
                 let idx = literals(3)?;
                 let (start, n, _) = l.sub_range(ty, &idx)?;
-                base.get_mut(start..start + n).ok_or_else(|| m.malformed(id, "insert"))?.copy_from_slice(&obj[..n]);
+                let part = obj.get(..n).ok_or_else(|| m.malformed(id, "insert"))?;
+                base.get_mut(start..start + n).ok_or_else(|| m.malformed(id, "insert"))?.copy_from_slice(part);
                 Ok(base)
             }
             Op::VectorShuffle => {
@@ -134,6 +135,9 @@ impl Constants {
             }
             Op::Select => {
                 let (c, a, b) = (arg(1)?, arg(2)?, arg(3)?);
+                if c.is_empty() || b.len() != a.len() || (c.len() != 1 && c.len() != a.len()) {
+                    return Err(m.malformed(id, "select operands of different sizes"));
+                }
                 Ok((0..a.len()).map(|i| if c[i.min(c.len() - 1)] != 0 { a[i] } else { b[i] }).collect())
             }
             _ => {
@@ -144,6 +148,10 @@ impl Constants {
                 let a_sc = l.components(arg_ty(1)?)?;
                 let b = if inst.operands.len() > 2 { Some(arg(2)?) } else { None };
                 let scalar_b = b.filter(|b| b.len() == 1 && a.len() > 1);
+                let n = out_sc.len();
+                if a.len() < n || a_sc.len() < n || b.is_some_and(|b| scalar_b.is_none() && b.len() < n) {
+                    return Err(m.malformed(id, "operands smaller than the result"));
+                }
                 Ok((0..out_sc.len())
                     .map(|i| match (kind, b) {
                         (Alu::Bin(op), Some(b)) => alu::bin(op, a_sc[i], a[i], scalar_b.map_or(b[i], |s| s[0])),
