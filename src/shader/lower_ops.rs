@@ -205,14 +205,18 @@ impl Lowerer<'_> {
                 let idx: Vec<u32> = (1..inst.operands.len()).map(|k| lit(inst, k)).collect::<Result<_, _>>()?;
                 let ty = self.type_of(src).unwrap_or(0);
                 let (start, n, _) = self.l.sub_range(ty, &idx)?;
-                Val::Regs(self.regs(src)?[start..start + n].to_vec())
+                let regs = self.regs(src)?;
+                Val::Regs(regs.get(start..start + n).ok_or_else(|| self.m.malformed(id, "extract outside the composite"))?.to_vec())
             }
             Op::CompositeInsert => {
                 let obj = self.regs(id_op(inst, 0)?)?;
                 let mut r = self.regs(id_op(inst, 1)?)?;
                 let idx: Vec<u32> = (2..inst.operands.len()).map(|k| lit(inst, k)).collect::<Result<_, _>>()?;
                 let (start, n, _) = self.l.sub_range(rty, &idx)?;
-                r[start..start + n].copy_from_slice(&obj);
+                if obj.len() != n {
+                    return Err(self.m.malformed(id, "inserted object of the wrong size"));
+                }
+                r.get_mut(start..start + n).ok_or_else(|| self.m.malformed(id, "insert outside the composite"))?.copy_from_slice(&obj);
                 Val::Regs(r)
             }
             Op::VectorShuffle => {
