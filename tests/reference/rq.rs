@@ -48,7 +48,7 @@ pub fn sphere_boxes(spheres: &[[f32; 4]]) -> Vec<[f32; 6]> {
 }
 
 /// One record of rq_api.comp.
-#[derive(Clone, Copy, Debug, PartialEq)]
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct Record {
     /// Committed type: 0 none, 1 triangle, 2 generated.
     pub kind: u32,
