@@ -211,6 +211,7 @@ pub fn compare_drivers(a: &[Record], b: &[Record], rays: &[RqRay], refs: &[RefRe
         };
         if !same {
             assert!(ambiguous(&refs[i]), "{ctx}: the drivers differ: {x:?} vs {y:?}");
+            println!("{ctx}: differs where the reference is ambiguous: {x:?} vs {y:?}");
             forgiven += 1;
         }
     }
@@ -266,8 +267,8 @@ impl RqScene {
             // Non-uniform scale after the rotation: object axes stretched differently.
             let s = [rng.range(0.6, 1.6), rng.range(0.6, 1.6), rng.range(0.6, 1.6)];
             for r in 0..3 {
-                for c in 0..3 {
-                    inst.transform[4 * r + c] *= s[c];
+                for (c, sc) in s.iter().enumerate() {
+                    inst.transform[4 * r + c] *= sc;
                 }
             }
             inst.flags = flag_sets[i % flag_sets.len()];
