@@ -19,12 +19,12 @@ use reference::*;
 /// Relative tolerance of t and barycentrics between the drivers.
 const REL: f32 = 1e-5;
 
-fn run(gpu: &RqGpu, s: &RqScene, rays: &[RqRay], spirv: &[u32]) -> Vec<Record> {
+fn run(gpu: RqGpu, s: &RqScene, rays: &[RqRay], spirv: &[u32]) -> Vec<Record> {
     let built = gpu.build(&Scene { blases: s.geoms(), instances: s.instances.clone() }, BuildPath::Device);
     let n = rays.len();
     let push: Vec<u8> = [n as u32, s.stride].iter().flat_map(|w| w.to_le_bytes()).collect();
     let out = gpu.trace(spirv, &built.tlas, &[ray_bytes(rays), vec![0xEE; 64 * n], sphere_bytes(&s.spheres)], &push, n.div_ceil(32) as u32);
-    gpu.assert_quiet();
+    gpu.finish();
     records(&out[1])
 }
 
@@ -40,9 +40,8 @@ fn compare(mesh: &str, instances: usize, flag_sets: &[u32], per_flags: usize) {
     let rays = s.rays(flag_sets, per_flags, 13);
     let refs = s.references(&rays);
     let spirv = glsl("rq_api.comp");
-    let theirs = run(&lvp, &s, &rays, &spirv);
-    drop(lvp);
-    let ours = run(&RqGpu::arbor(), &s, &rays, &spirv);
+    let theirs = run(lvp, &s, &rays, &spirv);
+    let ours = run(RqGpu::arbor(), &s, &rays, &spirv);
     check_all(&ours, &refs, &rays, &format!("{mesh} on Arbor"));
     check_all(&theirs, &refs, &rays, &format!("{mesh} on lavapipe"));
     let geoms = s.geoms();
@@ -73,15 +72,14 @@ fn naga_rq_closest_gives_the_same_records_on_lavapipe_and_arbor() {
     let bytes: Vec<u8> = rays.iter().flat_map(|r| [r.ray.origin.x, r.ray.origin.y, r.ray.origin.z, r.ray.tmin, r.ray.direction.x, r.ray.direction.y, r.ray.direction.z, r.ray.tmax]).flat_map(f32::to_le_bytes).collect();
     let push: Vec<u8> = [rays.len() as u32, 0].iter().flat_map(|w| w.to_le_bytes()).collect();
     let spirv = wgsl("rq_closest.wgsl");
-    let trace = |gpu: &RqGpu| {
+    let trace = |gpu: RqGpu| {
         let built = gpu.build(&Scene { blases: s.geoms(), instances: s.instances.clone() }, BuildPath::Device);
         let out = gpu.trace(&spirv, &built.tlas, &[bytes.clone(), vec![0xEE; 16 * rays.len()]], &push, rays.len().div_ceil(64) as u32);
-        gpu.assert_quiet();
+        gpu.finish();
         out[1].chunks(16).map(|h| h.chunks(4).map(|w| u32::from_le_bytes(w.try_into().unwrap())).collect::<Vec<u32>>()).collect::<Vec<_>>()
     };
-    let theirs = trace(&lvp);
-    drop(lvp);
-    let ours = trace(&RqGpu::arbor());
+    let theirs = trace(lvp);
+    let ours = trace(RqGpu::arbor());
     let refs = s.references(&rays.iter().map(|r| RqRay { flags: OPAQUE, cull: 0xFF, mode: 0, ..*r }).collect::<Vec<_>>());
     let mut hits = 0;
     for (i, ((a, b), r)) in ours.iter().zip(&theirs).zip(&refs).enumerate() {

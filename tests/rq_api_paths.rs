@@ -47,7 +47,7 @@ fn host_device_indirect_compacted_and_deserialized_structures_trace_bit_identica
             panic!("{path:?}: ray {i} traces differently from the device build: {:?} vs {:?}", other[i], recs[i]);
         }
     }
-    gpu.assert_quiet();
+    gpu.finish();
 }
 
 /// rq_closest.comp's rays buffer: origin, tmin, direction, tmax.
@@ -100,5 +100,5 @@ fn rq_closest_from_glslang_spirv_opt_and_naga_traces_identically_through_the_api
     for ((what, _), out) in shaders.iter().zip(&outs).skip(1) {
         assert!(*out == outs[0], "rq_closest from {what} traces differently from glslang's");
     }
-    gpu.assert_quiet();
+    gpu.finish();
 }

@@ -304,8 +304,15 @@ impl RqGpu {
     }
 }
 
-impl Drop for RqGpu {
-    fn drop(&mut self) {
+impl RqGpu {
+    /// Destroy everything, then fail if the validation layer said anything (destruction
+    /// included).
+    pub fn finish(mut self) {
+        self.teardown();
+        self.assert_quiet();
+    }
+
+    fn teardown(&mut self) {
         if let Some((du, m)) = self.messenger.take() {
             let _serial = lifecycle();
             // SAFETY: every submission was waited for; each object is destroyed once.
@@ -324,6 +331,12 @@ impl Drop for RqGpu {
                 self.instance.destroy_instance(None);
             }
         }
+    }
+}
+
+impl Drop for RqGpu {
+    fn drop(&mut self) {
+        self.teardown();
     }
 }
 
