@@ -1,9 +1,10 @@
 //! Ray queries in the shader library (`arbor::shader`), no Vulkan device: the milestone shaders
 //! (tests/shaders/rq_*.comp, compiled by glslang and again through `spirv-opt -O`, and their
-//! WGSL twins through the `naga` command when it is installed) run over structures built with
+//! WGSL twins through the naga crate) run over structures built with
 //! `arbor::accel::build` in host memory, and every record is compared with the brute-force
 //! reference of the Vulkan traversal rules in tests/reference (written from the specification,
 //! not from the library's traversal).
+mod harness;
 mod reference;
 
 use std::collections::HashMap;
@@ -49,19 +50,10 @@ fn glsl(name: &str, defines: &[&str]) -> Vec<(String, Vec<u32>)> {
     vec![(format!("{name} (glslang)"), words_of(&spv)), (format!("{name} (spirv-opt -O)"), words_of(&opt))]
 }
 
-/// tests/shaders/`name`.wgsl through the `naga` command, when it is installed (it is not a
-/// dependency: naga is only a second front end here).
-fn wgsl(name: &str) -> Option<(String, Vec<u32>)> {
-    let src = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("tests/shaders").join(format!("{name}.wgsl"));
-    let spv = scratch_dir().join(format!("{name}.naga.spv"));
-    match Command::new("naga").arg(&src).arg(&spv).output() {
-        Ok(out) if out.status.success() => Some((format!("{name} (naga)"), words_of(&spv))),
-        Ok(out) => panic!("naga failed on {name}: {}", String::from_utf8_lossy(&out.stderr)),
-        Err(_) => {
-            eprintln!("naga not installed: skipping the WGSL twin of {name}");
-            None
-        }
-    }
+/// tests/shaders/`name`.wgsl through the naga crate (WGSL in, SPIR-V out: the compute
+/// harness's compiler), a second front end beside glslang.
+fn wgsl(name: &str) -> (String, Vec<u32>) {
+    (format!("{name} (naga)"), harness::compute::wgsl(&format!("{name}.wgsl")))
 }
 
 fn pipeline(what: &str, words: &[u32]) -> Pipeline {
@@ -317,7 +309,7 @@ fn rq_closest_matches_brute_force() {
     let rscene = reference_scene(&s, &geoms);
     let rays = random_rays(s.bounds, 96, 41);
     let mut shaders = glsl("rq_closest", &[]);
-    shaders.extend(wgsl("rq_closest"));
+    shaders.push(wgsl("rq_closest"));
     let pipelines: Vec<(String, Pipeline)> = shaders.iter().map(|(w, words)| (w.clone(), pipeline(w, words))).collect();
     let mut hits = 0;
     for flags in closest_flag_sets() {
@@ -554,7 +546,7 @@ fn rq_anyhit_alpha_mask_spheres_generate_confirm_terminate() {
     let mut rng = Rng::new(77);
     let mask: Vec<u32> = (0..bunny().indices.len().div_ceil(32) + 16).map(|_| rng.next_u32()).collect();
     let mut shaders = glsl("rq_anyhit", &[]);
-    shaders.extend(wgsl("rq_anyhit"));
+    shaders.push(wgsl("rq_anyhit"));
     let n = (cam.size[0] * cam.size[1]) as usize;
     let refs: Vec<(Ray, RefResult)> = (0..n as u32)
         .map(|i| {

@@ -11,6 +11,7 @@ pub mod accel;
 pub mod child;
 pub mod compute;
 pub mod compute_run;
+pub mod rq;
 pub mod vuid;
 
 use std::ffi::{c_void, CStr, CString};

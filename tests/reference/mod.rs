@@ -18,6 +18,7 @@ use arbor_scene::Rng;
 use glam::Vec3;
 
 pub mod brute_force;
+pub mod rq;
 
 // SPIR-V ray flags.
 pub const OPAQUE: u32 = 0x1;
