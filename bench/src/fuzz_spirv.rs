@@ -114,7 +114,9 @@ fn reason(stage: &str, e: &ShaderError) -> String {
     let kind = match e {
         ShaderError::Malformed { reason, .. } => {
             let fixed: String = reason.chars().filter(|c| !c.is_ascii_digit()).collect();
-            format!("malformed: {}", fixed.split(['"', '%']).next().unwrap_or("").trim())
+            // rspirv's errors nest their variant names in parentheses: keep the first two.
+            let named = fixed.split(['"', '%']).next().unwrap_or("").splitn(4, '(').take(3).collect::<Vec<_>>().join("(");
+            format!("malformed: {}", named.trim_end_matches([',', ' ', ')', '(']).trim())
         }
         ShaderError::UnsupportedCapability { .. } => "unsupported capability".into(),
         ShaderError::UnsupportedExtension { .. } => "unsupported extension".into(),
