@@ -449,6 +449,32 @@ mod tests {
     }
 
     #[test]
+    fn sparse_binds_apply_after_their_waits_and_before_their_signals() {
+        use crate::memory::sparse::SPARSE_PAGE;
+        let dev = device();
+        let q = Queue::new(Arc::downgrade(&dev), 0, 2);
+        let memory = dev.memory.allocate_shareable(SPARSE_PAGE, true).unwrap();
+        memory.write(0, &[9u8; 4]).unwrap();
+        let b = Arc::new(Buffer::new(SPARSE_PAGE, vk::BufferUsageFlags::TRANSFER_SRC, vk::BufferCreateFlags::SPARSE_BINDING));
+        b.bind(dev.memory.reserve_sparse(SPARSE_PAGE).unwrap(), 0).unwrap();
+        let (gate, done) = (Arc::new(Semaphore::new(SemaphoreKind::Timeline, 0)), Arc::new(Semaphore::new(SemaphoreKind::Timeline, 0)));
+        let fence = Arc::new(sync::Fence::new(false));
+        let bind = SparseBind { buffer: b.clone(), offset: 0, size: SPARSE_PAGE, memory: Some((memory.clone(), 0)) };
+        let batch = BindBatchDesc { waits: vec![(gate.clone(), 1)], binds: vec![bind], signals: vec![(done.clone(), 1)] };
+        assert_eq!(q.bind_sparse("test", vec![batch], Some(fence.clone())), vk::Result::SUCCESS);
+        let mut out = [0u8; 4];
+        b.read(0, &mut out).unwrap();
+        assert_eq!(out, [0; 4], "the bind waits for its semaphore: the page is still unbound");
+        assert!(!fence.is_signalled() && done.value() == 0);
+        gate.signal(1);
+        assert_eq!(sync::wait_fences(&[fence], true, Deadline::Never), WaitOutcome::Ready);
+        assert_eq!(done.value(), 1);
+        b.read(0, &mut out).unwrap();
+        assert_eq!(out, [9; 4], "bound: the buffer shows the memory");
+        q.shutdown();
+    }
+
+    #[test]
     fn shutdown_cancels_a_blocked_worker_and_abandons_the_queue() {
         let dev = device();
         let q = Queue::new(Arc::downgrade(&dev), 0, 1);
