@@ -42,8 +42,10 @@ pub fn commands() -> Vec<Implemented> {
     ]
 }
 
-/// The one memory type Arbor exposes.
-pub(super) const MEMORY_TYPE_COUNT: u32 = 1;
+/// Arbor's memory types: 0 for everything, 1 the shareable memory sparse buffers bind
+/// (`memory::sparse`); both of the one heap.
+pub(super) const MEMORY_TYPE_COUNT: u32 = 2;
+pub(super) const SPARSE_MEMORY_TYPE: u32 = 1;
 
 /// Report a valid-usage violation and return the code Vulkan 1.4 defines for invalid usage
 /// detected by the implementation.
@@ -170,7 +172,12 @@ fn allocate(dev: &Device, size: u64, type_index: u32, req: &AllocateRequest) -> 
         ));
     }
     let capture = (req.capture_address != 0).then_some(req.capture_address);
-    dev.memory.allocate_with(size, device_address, capture_replay, capture).map_err(|e| match e {
+    let allocation = if type_index == SPARSE_MEMORY_TYPE {
+        dev.memory.allocate_shareable_with(size, device_address, capture_replay, capture)
+    } else {
+        dev.memory.allocate_with(size, device_address, capture_replay, capture)
+    };
+    allocation.map_err(|e| match e {
         AllocError::OutOfDeviceMemory => vk::Result::ERROR_OUT_OF_DEVICE_MEMORY,
         AllocError::OutOfHostMemory => vk::Result::ERROR_OUT_OF_HOST_MEMORY,
         AllocError::InvalidCaptureAddress => {
@@ -411,8 +418,10 @@ unsafe extern "system" fn get_device_memory_opaque_capture_address(
     })
 }
 
-/// Buffer creation flags Arbor supports (no sparse residency, no protected memory).
-const SUPPORTED_BUFFER_FLAGS: vk::BufferCreateFlags = vk::BufferCreateFlags::DEVICE_ADDRESS_CAPTURE_REPLAY;
+/// Buffer creation flags Arbor supports (sparse binding, but no sparse residency or aliasing,
+/// no protected memory).
+const SUPPORTED_BUFFER_FLAGS: vk::BufferCreateFlags =
+    vk::BufferCreateFlags::from_raw(vk::BufferCreateFlags::DEVICE_ADDRESS_CAPTURE_REPLAY.as_raw() | vk::BufferCreateFlags::SPARSE_BINDING.as_raw());
 
 unsafe extern "system" fn create_buffer(
     device: vk::Device,
@@ -449,7 +458,7 @@ unsafe extern "system" fn create_buffer(
             return invalid(
                 "VUID-VkBufferCreateInfo-flags-00915",
                 CMD,
-                &format!("flags {unsupported:?} need features Arbor does not offer (sparse binding, protected memory)"),
+                &format!("flags {unsupported:?} need features Arbor does not offer (sparse residency or aliasing, protected memory)"),
             );
         }
         if info.flags.contains(vk::BufferCreateFlags::DEVICE_ADDRESS_CAPTURE_REPLAY) && !dev.features.buffer_device_address_capture_replay {
@@ -468,8 +477,14 @@ unsafe extern "system" fn create_buffer(
         }
         let mut buffer = Buffer::new(info.size, info.usage, info.flags);
         buffer.capture_address = capture;
+        let buffer = Arc::new(buffer);
+        if info.flags.contains(vk::BufferCreateFlags::SPARSE_BINDING) {
+            if let Err(e) = super::queue::reserve_sparse_range(&dev, &buffer, CMD) {
+                return e;
+            }
+        }
         // SAFETY: checked non-null.
-        unsafe { *p_buffer = vk::Buffer::from_raw(register(Arc::new(buffer))) };
+        unsafe { *p_buffer = vk::Buffer::from_raw(register(buffer)) };
         vk::Result::SUCCESS
     })
 }
@@ -486,21 +501,34 @@ unsafe extern "system" fn destroy_buffer(device: vk::Device, buffer: vk::Buffer,
         }
         match unregister::<Buffer>(buffer.as_raw()) {
             None => diag::vuid("VUID-vkDestroyBuffer-buffer-parameter", CMD, "buffer is not a live VkBuffer"),
-            Some(b) => in_use::check_destroy(
-                Some(&dev),
-                &*b,
-                CMD,
-                "VUID-vkDestroyBuffer-buffer-00922",
-                &format!("buffer {:#x}", buffer.as_raw()),
-                "the pending commands keep the buffer alive and finish",
-            ),
+            Some(b) => {
+                in_use::check_destroy(
+                    Some(&dev),
+                    &*b,
+                    CMD,
+                    "VUID-vkDestroyBuffer-buffer-00922",
+                    &format!("buffer {:#x}", buffer.as_raw()),
+                    "the pending commands keep the buffer alive and finish",
+                );
+                // A sparse buffer's range is its own: its addresses go with it.
+                if let Some((range, _)) = b.memory().filter(|(m, _)| m.is_sparse()) {
+                    dev.memory.free(range);
+                }
+            }
         }
     })
 }
 
-fn requirements(buffer: &Buffer) -> vk::MemoryRequirements {
+/// A sparse buffer binds pages of the sparse memory type only; other buffers take the
+/// ordinary type, so their memory keeps its huge-page backing.
+pub(super) fn requirements(buffer: &Buffer) -> vk::MemoryRequirements {
+    if buffer.flags.contains(vk::BufferCreateFlags::SPARSE_BINDING) {
+        let page = crate::memory::sparse::SPARSE_PAGE;
+        let size = buffer.size.checked_next_multiple_of(page).unwrap_or(buffer.size);
+        return vk::MemoryRequirements { size, alignment: page, memory_type_bits: 1 << SPARSE_MEMORY_TYPE };
+    }
     let (size, alignment) = buffer.requirements();
-    vk::MemoryRequirements { size, alignment, memory_type_bits: (1 << MEMORY_TYPE_COUNT) - 1 }
+    vk::MemoryRequirements { size, alignment, memory_type_bits: 1 }
 }
 
 /// Writes `reqs` into a `VkMemoryRequirements2` and answers the structs chained to it (buffers
@@ -570,6 +598,16 @@ fn bind_one(command: &str, prefix: &str, buffer: vk::Buffer, memory: vk::DeviceM
     let Some(m) = memory_from(memory) else {
         return invalid(&format!("VUID-{prefix}-memory-parameter"), command, "memory is not a live VkDeviceMemory");
     };
+    if b.flags.contains(vk::BufferCreateFlags::SPARSE_BINDING) {
+        return invalid(&format!("VUID-{prefix}-buffer-01030"), command, "the buffer was created sparse: bind its pages with vkQueueBindSparse");
+    }
+    if m.is_shareable() {
+        return invalid(
+            &format!("VUID-{prefix}-memory-01035"),
+            command,
+            "the memory is of the sparse memory type, which is not in the buffer's memoryTypeBits",
+        );
+    }
     if offset >= m.size {
         return invalid(
             &format!("VUID-{prefix}-memoryOffset-01031"),

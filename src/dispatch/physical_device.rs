@@ -93,6 +93,8 @@ pub fn features() -> vk::PhysicalDeviceFeatures {
         shader_storage_image_write_without_format: vk::TRUE,
         shader_int64: vk::TRUE,
         shader_float64: vk::TRUE,
+        // Buffers only (docs/ROBUSTNESS.md, section 4): sparseResidency* and sparse images stay off.
+        sparse_binding: vk::TRUE,
         ..Default::default()
     }
 }
@@ -228,7 +230,8 @@ pub fn limits() -> vk::PhysicalDeviceLimits {
         max_memory_allocation_count: 1 << 20,
         max_sampler_allocation_count: 4000,
         buffer_image_granularity: 1,
-        sparse_address_space_size: 0,
+        // Sparse ranges count against the heap like allocations, so the heap bounds them too.
+        sparse_address_space_size: MAX_ALLOCATION_SIZE,
         max_bound_descriptor_sets: 8,
         max_per_stage_descriptor_samplers: 16,
         max_per_stage_descriptor_uniform_buffers: 12,
@@ -463,7 +466,7 @@ unsafe extern "system" fn get_physical_device_properties2(pd: vk::PhysicalDevice
 
 pub fn queue_family_properties() -> vk::QueueFamilyProperties {
     vk::QueueFamilyProperties {
-        queue_flags: vk::QueueFlags::COMPUTE | vk::QueueFlags::TRANSFER,
+        queue_flags: vk::QueueFlags::COMPUTE | vk::QueueFlags::TRANSFER | vk::QueueFlags::SPARSE_BINDING,
         queue_count: QUEUE_COUNT,
         timestamp_valid_bits: 64,
         min_image_transfer_granularity: vk::Extent3D { width: 1, height: 1, depth: 1 },
@@ -507,8 +510,10 @@ unsafe extern "system" fn get_physical_device_queue_family_properties2(
 }
 
 pub fn memory_properties(pd: &PhysicalDevice) -> vk::PhysicalDeviceMemoryProperties {
-    let mut m = vk::PhysicalDeviceMemoryProperties { memory_type_count: 1, memory_heap_count: 1, ..Default::default() };
+    let mut m = vk::PhysicalDeviceMemoryProperties { memory_type_count: super::memory::MEMORY_TYPE_COUNT, memory_heap_count: 1, ..Default::default() };
     m.memory_types[0] = vk::MemoryType { property_flags: MEMORY_TYPE_FLAGS, heap_index: 0 };
+    // The memory sparse buffers bind (shareable, `memory::sparse`): same properties, same heap.
+    m.memory_types[1] = vk::MemoryType { property_flags: MEMORY_TYPE_FLAGS, heap_index: 0 };
     m.memory_heaps[0] = vk::MemoryHeap { size: pd.heap_size, flags: vk::MemoryHeapFlags::DEVICE_LOCAL };
     m
 }

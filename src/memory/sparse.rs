@@ -11,7 +11,7 @@
 //! written to it reaches no memory.
 //!
 //! This module keeps the page table and does the checks; the mappings are `backing`'s. It is
-//! the layer under `vkQueueBindSparse`, which is not exposed yet (docs/ROBUSTNESS.md, section 4).
+//! the layer under `vkQueueBindSparse` (docs/ROBUSTNESS.md, section 4).
 use std::sync::{Arc, Mutex};
 
 use super::{AddressSpace, AllocError, Memory};
@@ -62,7 +62,19 @@ pub enum SparseError {
 impl AddressSpace {
     /// Memory that sparse buffers can bind (zeroed, shareable).
     pub fn allocate_shareable(&self, size: u64, device_address_flag: bool) -> Result<Arc<Memory>, AllocError> {
-        self.allocate_kind(size, device_address_flag, false, None, Kind::Shareable)
+        self.allocate_shareable_with(size, device_address_flag, false, None)
+    }
+
+    /// [`AddressSpace::allocate_shareable`] with the capture/replay options of
+    /// [`AddressSpace::allocate_with`].
+    pub fn allocate_shareable_with(
+        &self,
+        size: u64,
+        device_address_flag: bool,
+        capture_replay: bool,
+        capture_address: Option<u64>,
+    ) -> Result<Arc<Memory>, AllocError> {
+        self.allocate_kind(size, device_address_flag, capture_replay, capture_address, Kind::Shareable)
     }
 
     /// The range of a sparse buffer of `size` bytes (rounded up to [`SPARSE_PAGE`]), every page
@@ -78,6 +90,11 @@ impl Memory {
     /// Whether this is the range of a sparse buffer.
     pub fn is_sparse(&self) -> bool {
         self.sparse.is_some()
+    }
+
+    /// Whether this memory can be bound to sparse buffers (allocated shareable).
+    pub fn is_shareable(&self) -> bool {
+        self.backing.is_shared()
     }
 
     /// Bind `[offset, offset + size)` of this sparse range to `target` (memory, offset in it),

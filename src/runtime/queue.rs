@@ -1,6 +1,7 @@
 //! Queues: each has a worker thread (started on the first submission) that executes
-//! submissions in order: wait semaphores → command buffers → signal semaphores, batch after
-//! batch, then the fence. vkQueueSubmit only enqueues.
+//! submissions in order: wait semaphores → sparse binds or command buffers → signal
+//! semaphores, batch after batch, then the fence. vkQueueSubmit and vkQueueBindSparse only
+//! enqueue, so binds are ordered with command buffers on the same queue.
 //!
 //! Stopping: [`Queue::shutdown`] (vkDestroyDevice) raises the cancel flag, which ends any wait
 //! the worker is blocked in, closes the channel and joins the thread. Submissions still queued
@@ -22,6 +23,7 @@ use super::stall;
 use super::sync::{self, Deadline, Fence, Semaphore, SemaphoreKind, WaitOutcome};
 use super::Device;
 use crate::diag;
+use crate::memory::{Buffer, Memory};
 
 /// One batch of a submission, as the dispatch layer lowered it.
 pub struct BatchDesc {
@@ -30,8 +32,27 @@ pub struct BatchDesc {
     pub signals: Vec<(Arc<Semaphore>, u64)>,
 }
 
+/// One page-aligned bind of a sparse buffer's range: `[offset, offset + size)` of the buffer
+/// onto `memory` at its offset, or unbound (zero pages) when `memory` is `None`. Checked by
+/// the dispatch layer before it is enqueued.
+pub struct SparseBind {
+    pub buffer: Arc<Buffer>,
+    pub offset: u64,
+    pub size: u64,
+    pub memory: Option<(Arc<Memory>, u64)>,
+}
+
+/// One batch of vkQueueBindSparse, as the dispatch layer lowered it.
+pub struct BindBatchDesc {
+    pub waits: Vec<(Arc<Semaphore>, u64)>,
+    pub binds: Vec<SparseBind>,
+    pub signals: Vec<(Arc<Semaphore>, u64)>,
+}
+
 struct Batch {
     waits: Vec<(Arc<Semaphore>, u64)>,
+    /// Applied in order after the waits (a vkQueueBindSparse batch has no command buffers).
+    binds: Vec<SparseBind>,
     command_buffers: Vec<SubmittedBuffer>,
     signals: Vec<(Arc<Semaphore>, u64)>,
     /// What the command buffers use (`in_use`); released before the signals.
@@ -132,12 +153,43 @@ impl Queue {
             for c in command_buffers.iter().flat_map(|cb| &cb.recording.commands) {
                 c.uses(&mut uses);
             }
-            lowered.push(Batch { waits: b.waits, command_buffers, signals: b.signals, uses: uses.hold() });
+            lowered.push(Batch { waits: b.waits, binds: Vec::new(), command_buffers, signals: b.signals, uses: uses.hold() });
+        }
+        self.enqueue(Submission { batches: lowered, fence })
+    }
+
+    /// vkQueueBindSparse after lowering and checks: enqueue the binds as a submission.
+    pub fn bind_sparse(&self, command: &str, batches: Vec<BindBatchDesc>, fence: Option<Arc<Fence>>) -> vk::Result {
+        let Some(device) = self.device.upgrade() else { return vk::Result::ERROR_DEVICE_LOST };
+        if device.is_lost() {
+            return vk::Result::ERROR_DEVICE_LOST;
         }
         if let Some(f) = &fence {
+            if f.is_signalled() {
+                diag::vuid("VUID-vkQueueBindSparse-fence-01113", command, "the fence is already signalled (reset it before submitting)");
+            }
+            if f.is_pending() {
+                diag::vuid("VUID-vkQueueBindSparse-fence-01114", command, "the fence is already associated with an unfinished submission");
+            }
+        }
+        let lowered = batches
+            .into_iter()
+            .map(|b| {
+                let mut uses = Collector::new(&device.memory);
+                for bind in &b.binds {
+                    uses.buffer(&bind.buffer);
+                }
+                Batch { waits: b.waits, binds: b.binds, command_buffers: Vec::new(), signals: b.signals, uses: uses.hold() }
+            })
+            .collect();
+        self.enqueue(Submission { batches: lowered, fence })
+    }
+
+    /// Mark the fence pending and hand the submission to the worker (started if need be).
+    fn enqueue(&self, submission: Submission) -> vk::Result {
+        if let Some(f) = &submission.fence {
             f.mark_pending();
         }
-        let submission = Submission { batches: lowered, fence };
         let mut w = self.worker.lock().unwrap_or_else(|e| e.into_inner());
         if self.shared.stop.load(Ordering::Acquire) {
             drop(w);
@@ -278,6 +330,9 @@ fn run(device: &Arc<Device>, shared: &Shared, submission: Submission) {
                 }
             }
         }
+        if !stopped && !device.is_lost() {
+            apply_binds(&batch.binds);
+        }
         for cb in &batch.command_buffers {
             if !stopped && !device.is_lost() && execute_recording(&cb.recording, &ctx) == Flow::Stop {
                 stopped = true;
@@ -291,6 +346,26 @@ fn run(device: &Arc<Device>, shared: &Shared, submission: Submission) {
     }
     if let Some(f) = &submission.fence {
         f.signal_from_queue();
+    }
+}
+
+/// Apply a batch's sparse binds in order. The dispatch layer checked them; what can still
+/// fail here (the memory freed meanwhile, the system refusing a mapping) is reported and that
+/// bind skipped.
+fn apply_binds(binds: &[SparseBind]) {
+    for b in binds {
+        let Some((range, base)) = b.buffer.memory() else {
+            diag::report(diag::Level::Error, "vkQueueBindSparse", "the buffer has no sparse range; bind skipped");
+            continue;
+        };
+        let target = b.memory.as_ref().map(|(m, o)| (m, *o));
+        if let Err(e) = range.bind_sparse(base + b.offset, b.size, target) {
+            diag::report(
+                diag::Level::Error,
+                "vkQueueBindSparse",
+                &format!("bind of [{}, +{}) refused when applied ({e:?}); skipped", b.offset, b.size),
+            );
+        }
     }
 }
 
@@ -370,6 +445,32 @@ mod tests {
         assert_eq!(ran.load(Ordering::Relaxed), 1);
         assert!(!cb.is_pending());
         assert_eq!(q.wait_idle("test"), vk::Result::SUCCESS);
+        q.shutdown();
+    }
+
+    #[test]
+    fn sparse_binds_apply_after_their_waits_and_before_their_signals() {
+        use crate::memory::sparse::SPARSE_PAGE;
+        let dev = device();
+        let q = Queue::new(Arc::downgrade(&dev), 0, 2);
+        let memory = dev.memory.allocate_shareable(SPARSE_PAGE, true).unwrap();
+        memory.write(0, &[9u8; 4]).unwrap();
+        let b = Arc::new(Buffer::new(SPARSE_PAGE, vk::BufferUsageFlags::TRANSFER_SRC, vk::BufferCreateFlags::SPARSE_BINDING));
+        b.bind(dev.memory.reserve_sparse(SPARSE_PAGE).unwrap(), 0).unwrap();
+        let (gate, done) = (Arc::new(Semaphore::new(SemaphoreKind::Timeline, 0)), Arc::new(Semaphore::new(SemaphoreKind::Timeline, 0)));
+        let fence = Arc::new(sync::Fence::new(false));
+        let bind = SparseBind { buffer: b.clone(), offset: 0, size: SPARSE_PAGE, memory: Some((memory.clone(), 0)) };
+        let batch = BindBatchDesc { waits: vec![(gate.clone(), 1)], binds: vec![bind], signals: vec![(done.clone(), 1)] };
+        assert_eq!(q.bind_sparse("test", vec![batch], Some(fence.clone())), vk::Result::SUCCESS);
+        let mut out = [0u8; 4];
+        b.read(0, &mut out).unwrap();
+        assert_eq!(out, [0; 4], "the bind waits for its semaphore: the page is still unbound");
+        assert!(!fence.is_signalled() && done.value() == 0);
+        gate.signal(1);
+        assert_eq!(sync::wait_fences(&[fence], true, Deadline::Never), WaitOutcome::Ready);
+        assert_eq!(done.value(), 1);
+        b.read(0, &mut out).unwrap();
+        assert_eq!(out, [9; 4], "bound: the buffer shows the memory");
         q.shutdown();
     }
 

@@ -132,11 +132,13 @@ pub struct Options {
     /// Enable VK_KHR_acceleration_structure (+ deferred host operations, ray_tracing_maintenance1)
     /// with every optional feature.
     pub acceleration_structure: bool,
+    /// Enable the core sparseBinding feature.
+    pub sparse_binding: bool,
 }
 
 impl Default for Options {
     fn default() -> Self {
-        Options { validation: true, device_extensions: default_device_extensions(), instance_extensions: vec![], queue_count: 4, acceleration_structure: false }
+        Options { validation: true, device_extensions: default_device_extensions(), instance_extensions: vec![], queue_count: 4, acceleration_structure: false, sparse_binding: false }
     }
 }
 
@@ -242,7 +244,8 @@ fn create_device(instance: &ash::Instance, physical: vk::PhysicalDevice, opts: &
     let mut tl = vk::PhysicalDeviceTimelineSemaphoreFeatures::default().timeline_semaphore(true);
     let mut s2 = vk::PhysicalDeviceSynchronization2Features::default().synchronization2(true);
     let mut hqr = vk::PhysicalDeviceHostQueryResetFeatures::default().host_query_reset(true);
-    let mut dci = vk::DeviceCreateInfo::default().queue_create_infos(&qci).enabled_extension_names(&ext_p);
+    let core = vk::PhysicalDeviceFeatures::default().sparse_binding(opts.sparse_binding);
+    let mut dci = vk::DeviceCreateInfo::default().queue_create_infos(&qci).enabled_extension_names(&ext_p).enabled_features(&core);
     let mut asf = vk::PhysicalDeviceAccelerationStructureFeaturesKHR::default()
         .acceleration_structure(true)
         .acceleration_structure_capture_replay(true)
