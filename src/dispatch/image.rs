@@ -117,7 +117,9 @@ unsafe extern "system" fn destroy_image(device: vk::Device, image: vk::Image, _p
 
 fn requirements(image: &Image) -> vk::MemoryRequirements {
     let (size, alignment) = image.storage.requirements();
-    vk::MemoryRequirements { size, alignment, memory_type_bits: (1 << super::memory::MEMORY_TYPE_COUNT) - 1 }
+    // Like ordinary buffers, images take every type but the sparse one (memfd-backed, for sparse buffers).
+    let all = (1 << super::memory::MEMORY_TYPE_COUNT) - 1;
+    vk::MemoryRequirements { size, alignment, memory_type_bits: all & !(1 << super::memory::SPARSE_MEMORY_TYPE) }
 }
 
 unsafe extern "system" fn get_image_memory_requirements(device: vk::Device, image: vk::Image, p_req: *mut vk::MemoryRequirements) {
