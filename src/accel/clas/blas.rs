@@ -26,6 +26,11 @@ pub fn blas_size_bound(clusters: u64) -> u64 {
     bvh_offset(clusters, t).saturating_add(bvh_sizes(t).acceleration_structure_size)
 }
 
+/// The size a cluster BLAS over `clusters` CLASes of `triangles` triangles in all can take.
+pub fn blas_size_for(clusters: u64, triangles: u64) -> u64 {
+    bvh_offset(clusters, triangles).saturating_add(bvh_sizes(triangles).acceleration_structure_size)
+}
+
 /// BUILD_CLUSTERS_BOTTOM_LEVEL: one cluster BLAS over `clusters` (each CLAS's address and bytes,
 /// in reference order). Only the build-flag bits that steer the builder are passed on.
 pub fn build_cluster_blas(clusters: &[(u64, &[u8])], flags: u32, dst: &mut [u8]) -> Result<u64, ClusterError> {
@@ -36,7 +41,7 @@ pub fn build_cluster_blas(clusters: &[(u64, &[u8])], flags: u32, dst: &mut [u8])
     }
     let total: u64 = opened.iter().map(|b| b.header.triangle_count as u64).sum();
     let bvh_at = bvh_offset(clusters.len() as u64, total);
-    let bound = bvh_at + bvh_sizes(total).acceleration_structure_size;
+    let bound = blas_size_for(clusters.len() as u64, total);
     if (dst.len() as u64) < bound {
         return Err(ClusterError::DestinationTooSmall { needed: bound, got: dst.len() as u64 });
     }

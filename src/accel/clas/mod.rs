@@ -13,7 +13,7 @@ mod build;
 mod format;
 mod sizes;
 
-pub use blas::{blas_size_bound, build_cluster_blas, cluster_references, open_walkable, Side, SideEntry, FLAG_CULL_DISABLE};
+pub use blas::{blas_size_bound, blas_size_for, build_cluster_blas, cluster_references, open_walkable, Side, SideEntry, FLAG_CULL_DISABLE};
 pub use build::{build_clas, build_template, instantiate, object_size, template_indices, template_indices_size};
 pub use format::{clas_size, open, template_size, truncate, Blob, ClusterHeader, Kind, CLUSTER_FORMAT_VERSION, HEADER_SIZE};
 pub use sizes::{cluster_build_sizes, SizeInput};
