@@ -147,10 +147,16 @@ fn clusters(n: usize) -> Vec<(Vec<[f32; 3]>, Vec<u16>)> {
     out
 }
 
+/// Little-endian values read back from bytes.
+fn collect<T: bytemuck::Pod>(bytes: &[u8]) -> Vec<T> {
+    bytes.chunks_exact(std::mem::size_of::<T>()).map(bytemuck::pod_read_unaligned).collect()
+}
+
 fn bytes_of<T: bytemuck::Pod>(v: &[T]) -> Vec<u8> {
     bytemuck::cast_slice(v).to_vec()
 }
 
+// One function: each step reads what the one before wrote into device memory.
 #[test]
 fn cluster_commands_through_the_loader() {
     let mut opts = harness::Options { acceleration_structure: true, ..Default::default() };
@@ -231,8 +237,8 @@ fn cluster_commands_through_the_loader() {
         unsafe { (api.cmd_build)(cb, &info) };
         a.buf(count).write(0, &n.to_le_bytes());
     });
-    let got_addrs: Vec<u64> = bytemuck::pod_collect_to_vec(&a.buf(addrs).read(0, 8 * n as usize));
-    let got_sizes: Vec<u32> = bytemuck::pod_collect_to_vec(&a.buf(sizes).read(0, 4 * n as usize));
+    let got_addrs: Vec<u64> = collect(&a.buf(addrs).read(0, 8 * n as usize));
+    let got_sizes: Vec<u32> = collect(&a.buf(sizes).read(0, 4 * n as usize));
     // The library's build of the same records, from the same memory contents.
     let mut view = MapView::new();
     view.insert(ia, ib.clone());
@@ -251,7 +257,8 @@ fn cluster_commands_through_the_loader() {
     let bl_ptr = &bl_input as *const BottomLevelInput as *const c_void;
     let blas_size = query(OpType::BuildClustersBottomLevel, OpMode::ImplicitDestinations, 1, bl_ptr).acceleration_structure_size;
     let blas_buf = a.buffer(blas_size);
-    let bl_args = a.upload(bytemuck::bytes_of(&BuildClustersBottomLevelInfo { cluster_references_count: n, cluster_references_stride: 8, cluster_references: a.buf(addrs).address }));
+    let references = a.buf(addrs).address;
+    let bl_args = a.upload(bytemuck::bytes_of(&BuildClustersBottomLevelInfo { cluster_references_count: n, cluster_references_stride: 8, cluster_references: references }));
     let (blas_addr, blas_len) = (a.buffer(8), a.buffer(4));
     let mut info = commands(input(OpType::BuildClustersBottomLevel, OpMode::ImplicitDestinations, 1, bl_ptr));
     info.dst_implicit_data = a.buf(blas_buf).address;
@@ -316,7 +323,7 @@ fn cluster_commands_through_the_loader() {
     info.src_infos_array = region(a.buf(mv_args).address, 8, 8 * n as u64);
     // SAFETY: valid command buffer and info.
     a.submit(|cb| unsafe { (api.cmd_build)(cb, &info) });
-    let moved: Vec<u64> = bytemuck::pod_collect_to_vec(&a.buf(mv_addrs).read(0, 8 * n as usize));
+    let moved: Vec<u64> = collect(&a.buf(mv_addrs).read(0, 8 * n as usize));
     for (k, want) in lib_clases.iter().enumerate() {
         assert_eq!(a.buf(dst).read((moved[k] - dst_base) as usize, want.len()), *want, "moved CLAS {k}");
     }
@@ -332,11 +339,18 @@ fn cluster_commands_through_the_loader() {
     info.src_infos_array = region(a.buf(tsrc).address, 72, 72 * n as u64);
     // SAFETY: valid command buffer and info.
     a.submit(|cb| unsafe { (api.cmd_build)(cb, &info) });
-    let tpl_sizes: Vec<u32> = bytemuck::pod_collect_to_vec(&a.buf(tsizes).read(0, 4 * n as usize));
+    let tpl_sizes: Vec<u32> = collect(&a.buf(tsizes).read(0, 4 * n as usize));
     let tpl_total: u64 = tpl_sizes.iter().map(|&s| (s as u64).next_multiple_of(32)).sum();
     let tpl_buf = a.buffer(tpl_total);
     let mut at = a.buf(tpl_buf).address;
-    let tpl_addrs: Vec<u64> = tpl_sizes.iter().map(|&s| std::mem::replace(&mut at, at + (s as u64).next_multiple_of(32))).collect();
+    let tpl_addrs: Vec<u64> = tpl_sizes
+        .iter()
+        .map(|&s| {
+            let here = at;
+            at += (s as u64).next_multiple_of(32);
+            here
+        })
+        .collect();
     let tpl_addr_buf = a.upload(&bytes_of(&tpl_addrs));
     let mut info = commands(input(OpType::BuildTriangleClusterTemplate, OpMode::ExplicitDestinations, n, tri_ptr));
     info.scratch_data = a.buf(scratch).address;
@@ -393,10 +407,24 @@ fn cluster_commands_through_the_loader() {
     info.src_infos_array = region(a.buf(gsrc).address, 8, 8 * n as u64);
     // SAFETY: valid command buffer and info.
     a.submit(|cb| unsafe { (api.cmd_build)(cb, &info) });
-    let g: Vec<u64> = bytemuck::pod_collect_to_vec(&a.buf(gaddrs).read(0, 8 * n as usize));
+    let g: Vec<u64> = collect(&a.buf(gaddrs).read(0, 8 * n as usize));
     for (k, (_, idx)) in cl.iter().enumerate() {
         assert_eq!(a.buf(gbuf).read((g[k] - a.buf(gbuf).address) as usize, 2 * idx.len()), bytes_of(idx), "template indices {k}");
     }
     a.destroy();
+    forgive_unknown_extension(&ctx);
     ctx.finish();
+}
+
+/// The validation layer here (Vulkan header 239) predates the extension. It says exactly two
+/// things about it, both only that it does not know it, and they are removed: the warning that
+/// the device extension is not supported by the layer, and VUID-VkPhysicalDeviceProperties2-
+/// pNext-pNext naming the properties struct's sType 1000569001 as unknown. Every other message
+/// still fails the test.
+fn forgive_unknown_extension(ctx: &harness::Context) {
+    let unknown = |m: &String| {
+        m.contains("Device Extension VK_NV_cluster_acceleration_structure is not supported by this layer")
+            || (m.contains("VUID-VkPhysicalDeviceProperties2-pNext-pNext") && m.contains("unknown VkStructureType (1000569001)"))
+    };
+    ctx.messages.lock().unwrap().retain(|m| !unknown(m));
 }

@@ -143,6 +143,7 @@ fn global(e: &Expected, h: &Hit) -> usize {
     e.facts.iter().position(|f| f.0 == h.cluster_id && f.1 == h.primitive_index).expect("hit names a cluster triangle")
 }
 
+// One function: the two truncations and both ray-flag settings share the built inputs.
 #[test]
 fn cluster_blas_of_the_bunny_traverses_like_khr_blas_and_brute_force() {
     let mesh = arbor_scene::load(concat!(env!("CARGO_MANIFEST_DIR"), "/data/bunny.ply")).unwrap();
@@ -198,6 +199,7 @@ fn cluster_blas_of_the_bunny_traverses_like_khr_blas_and_brute_force() {
     }
 }
 
+// One function: each case builds on the template of the case before.
 #[test]
 fn templates_instantiated_with_new_vertices_equal_direct_builds() {
     let mesh = arbor_scene::load(concat!(env!("CARGO_MANIFEST_DIR"), "/data/bunny.ply")).unwrap();
@@ -351,4 +353,61 @@ fn moves_are_byte_copies_and_a_tlas_instances_a_cluster_blas() {
     }
     assert!(n_hits > 50);
     assert_eq!(accel::header(&blas).map(|h| (h.ty, h.used_size)), Some((AsType::BottomLevel, blas.len() as u64)));
+}
+
+/// Throughput figures (not a test of speed: it asserts nothing about time). Run with
+/// `cargo test --release --test clas_library -- --ignored --nocapture`.
+#[test]
+#[ignore]
+fn figures() {
+    let mesh = arbor_scene::load(concat!(env!("CARGO_MANIFEST_DIR"), "/data/bunny.ply")).unwrap();
+    let c = cut(&mesh);
+    let inp = inputs(&c, 0, 1.0);
+    let reps = 20;
+    let t = std::time::Instant::now();
+    let mut clases = Vec::new();
+    for _ in 0..reps {
+        clases = build_clases(&inp);
+    }
+    let clas_s = t.elapsed().as_secs_f64() / reps as f64;
+    let tpls: Vec<Vec<u8>> = inp
+        .records
+        .iter()
+        .map(|r| {
+            let mut d = vec![0u8; clas::template_size(r.triangle_count() as u64, false) as usize];
+            clas::build_template(&BuildTriangleClusterInfo { vertex_buffer: 0, ..*r }, accel::VertexFormat::R32G32B32Sfloat, None, &inp.view, &mut d).unwrap();
+            d
+        })
+        .collect();
+    let t = std::time::Instant::now();
+    for _ in 0..reps {
+        for (tpl, r) in tpls.iter().zip(&inp.records) {
+            let inst = InstantiateClusterInfo { vertex_buffer: StridedDeviceAddress { start_address: r.vertex_buffer, stride_in_bytes: 12 }, ..Default::default() };
+            let mut d = vec![0u8; clas::clas_size(r.triangle_count() as u64) as usize];
+            clas::instantiate(tpl, &inst, &inp.view, &mut d).unwrap();
+        }
+    }
+    let inst_s = t.elapsed().as_secs_f64() / reps as f64;
+    let addrs: Vec<(u64, &[u8])> = clases.iter().enumerate().map(|(k, b)| (0x1000 * (k as u64 + 1), b.as_slice())).collect();
+    let t = std::time::Instant::now();
+    for _ in 0..reps {
+        cluster_blas(&addrs);
+    }
+    let blas_s = t.elapsed().as_secs_f64() / reps as f64;
+    let khr_data = khr_of(&expected(&c, 0, 1.0));
+    let geoms = [khr_data.geometry()];
+    let sizes = accel::build_sizes(AsType::BottomLevel, accel::BuildFlags(0), &[reference::shape_of(&geoms[0])], &[khr_data.count]);
+    let (mut dst, mut scratch) = (vec![0u8; sizes.acceleration_structure_size as usize], vec![0u8; sizes.build_scratch_size as usize]);
+    let desc = accel::BuildDesc { ty: AsType::BottomLevel, flags: accel::BuildFlags(0), geometries: &geoms };
+    let t = std::time::Instant::now();
+    for _ in 0..reps {
+        accel::build(&desc, &accel::NoDevice, &mut dst, &mut scratch).unwrap();
+    }
+    let khr_s = t.elapsed().as_secs_f64() / reps as f64;
+    let n = clases.len() as f64;
+    println!("bunny: {} triangles in {} clusters (threads: {})", mesh.indices.len(), clases.len(), rayon::current_num_threads());
+    println!("CLAS builds: {:.0}/s ({:.2} ms for all, one thread)", n / clas_s, clas_s * 1e3);
+    println!("template instantiations: {:.0}/s ({:.2} ms for all, one thread)", n / inst_s, inst_s * 1e3);
+    println!("cluster BLAS over all CLASes: {:.2} ms; instantiate + cluster BLAS: {:.2} ms", blas_s * 1e3, (inst_s + blas_s) * 1e3);
+    println!("KHR BLAS build of the same triangles: {:.2} ms", khr_s * 1e3);
 }

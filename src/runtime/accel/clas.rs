@@ -113,6 +113,7 @@ impl ClusterCommand {
         view.bytes(address, size).ok_or(ClusterError::Unreadable { what: "srcInfosArray element", address })
     }
 
+    // One function: one arm per op type, each reading its record, sizing and building.
     fn produce(&self, view: &DeviceInputs<'_>, rec: &[u8]) -> Produced {
         let sizes_only = self.mode == OpMode::ComputeSizes;
         let format = || self.vertex_format.ok_or(ClusterError::NotA("supported vertex format"));
