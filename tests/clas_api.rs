@@ -412,19 +412,5 @@ fn cluster_commands_through_the_loader() {
         assert_eq!(a.buf(gbuf).read((g[k] - a.buf(gbuf).address) as usize, 2 * idx.len()), bytes_of(idx), "template indices {k}");
     }
     a.destroy();
-    forgive_unknown_extension(&ctx);
     ctx.finish();
-}
-
-/// The validation layer here (Vulkan header 239) predates the extension. It says exactly two
-/// things about it, both only that it does not know it, and they are removed: the warning that
-/// the device extension is not supported by the layer, and VUID-VkPhysicalDeviceProperties2-
-/// pNext-pNext naming the properties struct's sType 1000569001 as unknown. Every other message
-/// still fails the test.
-fn forgive_unknown_extension(ctx: &harness::Context) {
-    let unknown = |m: &String| {
-        m.contains("Device Extension VK_NV_cluster_acceleration_structure is not supported by this layer")
-            || (m.contains("VUID-VkPhysicalDeviceProperties2-pNext-pNext") && m.contains("unknown VkStructureType (1000569001)"))
-    };
-    ctx.messages.lock().unwrap().retain(|m| !unknown(m));
 }
