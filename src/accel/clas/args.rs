@@ -51,7 +51,7 @@ const _: () = assert!(std::mem::size_of::<BuildTriangleClusterInfo>() == 64);
 
 /// Packs the bitfield word at offset 8 (values wider than their fields are cut, as C does).
 pub fn pack_counts(triangle_count: u32, vertex_count: u32, truncate_bits: u32, index_type: u32, omm_index_type: u32) -> u32 {
-    (triangle_count & 0x1ff) | (vertex_count & 0x1ff) << 9 | (truncate_bits & 0x3f) << 18 | (index_type & 0xf) << 24 | (omm_index_type & 0xf) << 28
+    (triangle_count & 0x1ff) | ((vertex_count & 0x1ff) << 9) | ((truncate_bits & 0x3f) << 18) | ((index_type & 0xf) << 24) | ((omm_index_type & 0xf) << 28)
 }
 
 impl BuildTriangleClusterInfo {

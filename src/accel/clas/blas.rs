@@ -90,7 +90,7 @@ pub fn build_cluster_blas(clusters: &[(u64, &[u8])], flags: u32, dst: &mut [u8])
 /// The CLAS addresses a cluster BLAS was built over, in reference order.
 pub fn cluster_references(bytes: &[u8]) -> Option<Vec<u64>> {
     let b = open(bytes).filter(|b| b.kind == Kind::ClusterBlas)?;
-    Some((0..b.header.cluster_count as u64).map(|k| (rd_u32(b.bytes, HEADER_SIZE + 8 * k) as u64) | (rd_u32(b.bytes, HEADER_SIZE + 8 * k + 4) as u64) << 32).collect())
+    Some((0..b.header.cluster_count as u64).map(|k| (rd_u32(b.bytes, HEADER_SIZE + 8 * k) as u64) | ((rd_u32(b.bytes, HEADER_SIZE + 8 * k + 4) as u64) << 32)).collect())
 }
 
 /// A cluster BLAS's per-triangle facts, indexed by the embedded BVH's primitive index.
@@ -121,9 +121,8 @@ impl Side<'_> {
         }
         let w = super::args::GeometryIndexAndFlags(rd_u32(self.table, off + 4));
         let g = w.geometry_flags();
-        let flags = (g & 4 != 0) as u32 * GeometryFlags::OPAQUE
-            | (g & 2 != 0) as u32 * GeometryFlags::NO_DUPLICATE_ANY_HIT_INVOCATION
-            | (g & 1 != 0) as u32 * FLAG_CULL_DISABLE;
+        let bit = |cluster_bit: u32, traversal_bit: u32| if g & cluster_bit != 0 { traversal_bit } else { 0 };
+        let flags = bit(4, GeometryFlags::OPAQUE) | bit(2, GeometryFlags::NO_DUPLICATE_ANY_HIT_INVOCATION) | bit(1, FLAG_CULL_DISABLE);
         Some(SideEntry { cluster_id: rd_u32(self.table, off), geometry_index: w.geometry_index(), primitive_index: rd_u32(self.table, off + 8), flags })
     }
 }

@@ -61,7 +61,7 @@ fn gather(a: &BuildTriangleClusterInfo, format: VertexFormat, view: &dyn DeviceV
     let mut indices = Vec::with_capacity(3 * t as usize);
     for k in 0..3 * t as u64 {
         let b = read(view, a.index_buffer.wrapping_add(k * istride), isize as u64, "index")?;
-        indices.push(b.iter().rev().fold(0u32, |acc, &x| acc << 8 | x as u32));
+        indices.push(b.iter().rev().fold(0u32, |acc, &x| (acc << 8) | x as u32));
     }
     let base = a.base_geometry_index_and_geometry_flags;
     let gstride = if a.geometry_index_and_flags_buffer_stride == 0 { 4 } else { a.geometry_index_and_flags_buffer_stride as u64 };

@@ -22,7 +22,7 @@ fn record_layouts_match_the_registry() {
 fn bitfields_pack_like_c() {
     // triangleCount:9 vertexCount:9 positionTruncateBitCount:6 indexType:4 opacityMicromapIndexType:4
     let w = pack_counts(511, 256, 63, 4, 2);
-    assert_eq!(w, 0x1FF | 256 << 9 | 63 << 18 | 4 << 24 | 2 << 28);
+    assert_eq!(w, 0x1FF | (256 << 9) | (63 << 18) | (4 << 24) | (2 << 28));
     let r = BuildTriangleClusterInfo { counts: w, ..Default::default() };
     assert_eq!((r.triangle_count(), r.vertex_count(), r.position_truncate_bit_count(), r.index_type(), r.opacity_micromap_index_type()), (511, 256, 63, 4, 2));
     let g = GeometryIndexAndFlags::new(0x12_3456, 5);
