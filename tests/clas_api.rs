@@ -414,3 +414,86 @@ fn cluster_commands_through_the_loader() {
     a.destroy();
     ctx.finish();
 }
+
+/// A failing element is reported and skipped while the others complete, nothing is written
+/// outside the results (guard bytes), and the process lives; the source array is reached through
+/// an INDIRECTED_SRC_INFOS_ARRAY address.
+#[test]
+fn failing_elements_are_contained() {
+    let mut opts = harness::Options { acceleration_structure: true, ..Default::default() };
+    opts.device_extensions.push(EXT);
+    let ctx = harness::Context::new(opts);
+    let api = nv(&ctx);
+    let a = Accel::new(&ctx);
+    let cl = clusters(2);
+    let (v, i) = &cl[0];
+    let (ibuf, vbuf) = (a.upload(&bytes_of(i)), a.upload(&bytes_of(&v.iter().flatten().copied().collect::<Vec<f32>>())));
+    let (ia, va) = (a.buf(ibuf).address, a.buf(vbuf).address);
+    let good = BuildTriangleClusterInfo { cluster_id: 7, counts: pack_counts(i.len() as u32 / 3, v.len() as u32, 0, 2, 0), index_buffer: ia, vertex_buffer: va, ..Default::default() };
+    // 300 triangles: over maxTrianglesPerCluster (256), though it fits the 9-bit field.
+    let bad = BuildTriangleClusterInfo { counts: pack_counts(300, v.len() as u32, 0, 2, 0), ..good };
+    let src = a.upload(&bytes_of(&[good, bad]));
+    let src_at = a.buf(src).address;
+    let src_ptr = a.upload(&src_at.to_le_bytes());
+    let tri_input = TriangleInput {
+        s_type: 1_000_569_003,
+        p_next: std::ptr::null_mut(),
+        vertex_format: vk::Format::R32G32B32_SFLOAT.as_raw(),
+        max_geometry_index_value: 0,
+        max_cluster_unique_geometry_count: 1,
+        max_cluster_triangle_count: 256,
+        max_cluster_vertex_count: 256,
+        max_total_triangle_count: 512,
+        max_total_vertex_count: 512,
+        min_position_truncate_bit_count: 0,
+    };
+    let tri_ptr = &tri_input as *const TriangleInput as *const c_void;
+    let mut s = vk::AccelerationStructureBuildSizesInfoKHR::default();
+    // SAFETY: valid structs.
+    unsafe { (api.get_sizes)(ctx.device.handle(), &input(OpType::BuildTriangleCluster, OpMode::ImplicitDestinations, 2, tri_ptr), &mut s) };
+    let dst = a.buffer(s.acceleration_structure_size);
+    a.fill(dst, 0xAB);
+    let (addrs, sizes, scratch) = (a.buffer(16), a.buffer(8), a.buffer(s.build_scratch_size));
+    a.fill(sizes, 0xFF);
+    let mut info = commands(input(OpType::BuildTriangleCluster, OpMode::ImplicitDestinations, 2, tri_ptr));
+    info.dst_implicit_data = a.buf(dst).address;
+    info.scratch_data = a.buf(scratch).address;
+    info.dst_addresses_array = region(a.buf(addrs).address, 8, 16);
+    info.dst_sizes_array = region(a.buf(sizes).address, 4, 8);
+    info.src_infos_array = region(a.buf(src_ptr).address, 64, 128);
+    info.address_resolution_flags = 0x10;
+    // SAFETY: valid command buffer and info.
+    a.submit(|cb| unsafe { (api.cmd_build)(cb, &info) });
+    let got: Vec<u32> = collect(&a.buf(sizes).read(0, 8));
+    let mut view = MapView::new();
+    view.insert(ia, bytes_of(i));
+    view.insert(va, bytes_of(&v.iter().flatten().copied().collect::<Vec<f32>>()));
+    let mut want = vec![0u8; clas::clas_size(good.triangle_count() as u64) as usize];
+    clas::build_clas(&good, accel::VertexFormat::R32G32B32Sfloat, &view, &mut want).unwrap();
+    assert_eq!(got, [want.len() as u32, u32::MAX], "the failing element's size is not written");
+    let all = a.buf(dst).read(0, s.acceleration_structure_size as usize);
+    assert_eq!(all[..want.len()], want[..]);
+    assert!(all[want.len()..].iter().all(|&b| b == 0xAB), "nothing written past the one result");
+    assert!(harness::diagnostics().contains("element 1: triangleCount 300 exceeds maxTrianglesPerCluster 256"), "{}", harness::diagnostics());
+
+    // A cluster BLAS over an address that holds no CLAS: reported, nothing written.
+    let inside = a.buf(dst).address + 8;
+    let refs = a.upload(&inside.to_le_bytes());
+    let args = a.upload(bytemuck::bytes_of(&BuildClustersBottomLevelInfo { cluster_references_count: 1, cluster_references_stride: 8, cluster_references: 0 }));
+    let refs_at = a.buf(refs).address;
+    a.buf(args).write(8, &refs_at.to_le_bytes());
+    let bl_input = BottomLevelInput { s_type: 1_000_569_002, p_next: std::ptr::null_mut(), max_total_cluster_count: 1, max_cluster_count_per_acceleration_structure: 1 };
+    let bl_ptr = &bl_input as *const BottomLevelInput as *const c_void;
+    let out = a.buffer(1 << 16);
+    a.fill(out, 0xCD);
+    let mut info = commands(input(OpType::BuildClustersBottomLevel, OpMode::ImplicitDestinations, 1, bl_ptr));
+    info.dst_implicit_data = a.buf(out).address;
+    info.scratch_data = a.buf(scratch).address;
+    info.src_infos_array = region(a.buf(args).address, 16, 16);
+    // SAFETY: valid command buffer and info.
+    a.submit(|cb| unsafe { (api.cmd_build)(cb, &info) });
+    assert!(a.buf(out).read(0, 1 << 16).iter().all(|&b| b == 0xCD));
+    assert!(harness::diagnostics().contains("element 0: cluster reference"), "{}", harness::diagnostics());
+    a.destroy();
+    ctx.finish();
+}
