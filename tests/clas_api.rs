@@ -453,7 +453,7 @@ fn failing_elements_are_contained() {
     unsafe { (api.get_sizes)(ctx.device.handle(), &input(OpType::BuildTriangleCluster, OpMode::ImplicitDestinations, 2, tri_ptr), &mut s) };
     let dst = a.buffer(s.acceleration_structure_size);
     a.fill(dst, 0xAB);
-    let (addrs, sizes, scratch) = (a.buffer(16), a.buffer(8), a.buffer(s.build_scratch_size));
+    let (addrs, sizes, scratch) = (a.buffer(16), a.buffer(8), a.buffer(s.build_scratch_size + 16));
     a.fill(sizes, 0xFF);
     let mut info = commands(input(OpType::BuildTriangleCluster, OpMode::ImplicitDestinations, 2, tri_ptr));
     info.dst_implicit_data = a.buf(dst).address;
@@ -488,12 +488,15 @@ fn failing_elements_are_contained() {
     a.fill(out, 0xCD);
     let mut info = commands(input(OpType::BuildClustersBottomLevel, OpMode::ImplicitDestinations, 1, bl_ptr));
     info.dst_implicit_data = a.buf(out).address;
-    info.scratch_data = a.buf(scratch).address;
+    // Misaligned scratch: reported (10447); Arbor needs none of it, so the command runs.
+    info.scratch_data = a.buf(scratch).address + 4;
     info.src_infos_array = region(a.buf(args).address, 16, 16);
     // SAFETY: valid command buffer and info.
     a.submit(|cb| unsafe { (api.cmd_build)(cb, &info) });
     assert!(a.buf(out).read(0, 1 << 16).iter().all(|&b| b == 0xCD));
     assert!(harness::diagnostics().contains("element 0: cluster reference"), "{}", harness::diagnostics());
+    assert!(harness::diagnostics().contains("scratchData-10447"), "{}", harness::diagnostics());
+    assert!(!harness::diagnostics().contains("scratchData-10446"), "{}", harness::diagnostics());
     a.destroy();
     ctx.finish();
 }

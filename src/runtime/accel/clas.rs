@@ -219,6 +219,9 @@ impl ClusterCommand {
         ) else {
             return;
         };
+        if let Some(scratch) = r(resolution::SCRATCH_DATA, self.scratch_data) {
+            self.check_scratch(space, scratch);
+        }
         let count = match count_at {
             0 => self.max_count,
             at => match view.bytes(at, 4) {
@@ -231,6 +234,25 @@ impl ClusterCommand {
         };
         let produced: Vec<Produced> = (0..count as u64).into_par_iter().map(|i| self.record(&view, src, i).and_then(|rec| self.produce(&view, rec))).collect();
         self.write_outputs(space, &view, produced, dst_addresses, dst_sizes, implicit);
+    }
+
+    /// The scratch rules (10446, 10447). Arbor's working arrays live in host memory, so a
+    /// violation is reported and the command still runs.
+    fn check_scratch(&self, space: &AddressSpace, scratch: u64) {
+        if scratch % clas::SCRATCH_ALIGNMENT != 0 {
+            diag::vuid(
+                "VUID-vkCmdBuildClusterAccelerationStructureIndirectNV-scratchData-10447",
+                CMD,
+                &format!("scratchData {scratch:#x} is not a multiple of clusterScratchByteAlignment ({})", clas::SCRATCH_ALIGNMENT),
+            );
+        }
+        if let Err(e) = Region::of_device(space, scratch, clas::SCRATCH_SIZE) {
+            diag::vuid(
+                "VUID-vkCmdBuildClusterAccelerationStructureIndirectNV-scratchData-10446",
+                CMD,
+                &format!("scratchData {scratch:#x} does not hold the queried scratch size ({} bytes): {e}", clas::SCRATCH_SIZE),
+            );
+        }
     }
 
     fn write_outputs(&self, space: &AddressSpace, view: &DeviceInputs<'_>, produced: Vec<Produced>, dst_addresses: u64, dst_sizes: u64, implicit: u64) {
