@@ -239,7 +239,7 @@ impl ClusterCommand {
     /// The scratch rules (10446, 10447). Arbor's working arrays live in host memory, so a
     /// violation is reported and the command still runs.
     fn check_scratch(&self, space: &AddressSpace, scratch: u64) {
-        if scratch % clas::SCRATCH_ALIGNMENT != 0 {
+        if !scratch.is_multiple_of(clas::SCRATCH_ALIGNMENT) {
             diag::vuid(
                 "VUID-vkCmdBuildClusterAccelerationStructureIndirectNV-scratchData-10447",
                 CMD,
