@@ -391,6 +391,7 @@ fn hit_of(rec: &[u32]) -> Option<Hit> {
         object_to_world: o2w,
         world_to_object: w2o,
         vertices: [Vec3::ZERO; 3], // not read by rq_getters (position fetch has its own test)
+        cluster_id: -1,
     })
 }
 

@@ -31,7 +31,19 @@ DEVICE_EXTENSIONS = [
     "VK_KHR_bind_memory2",
     "VK_KHR_get_memory_requirements2",
     "VK_KHR_dedicated_allocation",
+    "VK_NV_cluster_acceleration_structure",
 ]
+
+# Types ash 0.38 lacks, defined where the extension's dispatch module lives.
+LOCAL_TYPES = {
+    "VkClusterAccelerationStructureInputInfoNV": "crate::dispatch::nv_cluster::ClusterAccelerationStructureInputInfoNV",
+    "VkClusterAccelerationStructureCommandsInfoNV": "crate::dispatch::nv_cluster::ClusterAccelerationStructureCommandsInfoNV",
+}
+# Commands whose PFN type ash 0.38 lacks: the module that defines it.
+LOCAL_PFN = {
+    "vkGetClusterAccelerationStructureBuildSizesNV": "crate::dispatch::nv_cluster",
+    "vkCmdBuildClusterAccelerationStructureIndirectNV": "crate::dispatch::nv_cluster",
+}
 
 root = ET.parse(sys.argv[1] if len(sys.argv) > 1 else "spec/vk.xml").getroot()
 have = set(INSTANCE_EXTENSIONS + DEVICE_EXTENSIONS)
@@ -114,6 +126,8 @@ def rust_type(ptype_text, full):
         "VkDeviceAddress": "vk::DeviceAddress", "VkSampleMask": "vk::SampleMask",
         "PFN_vkVoidFunction": "vk::PFN_vkVoidFunction",
     }.get(ptype_text)
+    if base is None and ptype_text in LOCAL_TYPES:
+        base = LOCAL_TYPES[ptype_text]
     if base is None:
         assert ptype_text.startswith("Vk"), ptype_text
         base = "vk::" + ptype_text[2:].replace("FlagBits", "Flags")
@@ -177,14 +191,15 @@ print("//! dispatch level and origin, and a fallback entry that reports \"not su
 print("use ash::vk;")
 print("use std::ffi::{c_char, c_void};")
 print()
-print("use super::table::{void_fn, Level, Origin, RegistryEntry};")
+print("use super::table::{void_fn, void_fn_at, Level, Origin, RegistryEntry};")
 print()
 print("pub static REGISTRY: &[RegistryEntry] = &[")
 for n in names:
     o = wanted[n]
     origin = f"Origin::Core({o[1]})" if o[0] == "core" else f'Origin::Extension("{o[1]}")'
     can = canonical(n)
-    print(f'    RegistryEntry {{ name: "{n}", canonical: "{can}", level: Level::{level(n)}, origin: {origin}, fallback: void_fn!(PFN_{can} => fallback::{snake(can)}) }},')
+    pfn = f"void_fn_at!({LOCAL_PFN[can]}::PFN_{can} => fallback::{snake(can)})" if can in LOCAL_PFN else f"void_fn!(PFN_{can} => fallback::{snake(can)})"
+    print(f'    RegistryEntry {{ name: "{n}", canonical: "{can}", level: Level::{level(n)}, origin: {origin}, fallback: {pfn} }},')
 print("];")
 print()
 print("/// One fallback per canonical command: reports the call through the diagnostics channel and")

@@ -4,7 +4,7 @@
 //!
 //! Owns: arithmetic on boxes and points. Must not touch: scratch layout, the stored format,
 //! tree building.
-use super::layout::{self, PRIMREF_SIZE};
+use super::layout::PRIMREF_SIZE;
 use super::DeviceView;
 use bytemuck::{Pod, Zeroable};
 use glam::{Vec3, Vec3A, Vec3Swizzles, Vec4};
@@ -128,7 +128,7 @@ pub fn instance_bounds(transform: &[f32; 12], reference: u64, view: &dyn DeviceV
 /// The bounds of the BLAS `reference` names, or None when it is empty or not a structure
 /// (the instance is then a point at its origin).
 pub fn blas_bounds(reference: u64, view: &dyn DeviceView) -> Option<[f32; 6]> {
-    view.acceleration_structure(reference).and_then(layout::parse).filter(|p| p.raw.primitive_count > 0).map(|p| p.raw.bounds)
+    view.acceleration_structure(reference).and_then(super::clas::open_walkable).map(|w| w.0).filter(|p| p.raw.primitive_count > 0).map(|p| p.raw.bounds)
 }
 
 /// `instance_bounds` from the BLAS bounds already looked up.

@@ -106,6 +106,12 @@ pub const KIND_TRIANGLES: u32 = 0;
 pub const KIND_AABBS: u32 = 1;
 pub const KIND_INSTANCES: u32 = 2;
 
+/// Header `ty` values of the cluster blobs (`accel::clas`, docs/CLUSTERS.md), which share the
+/// magic word: `parse` refuses them, `clas::open` accepts only them.
+pub const KIND_CLAS: u32 = 0x10;
+pub const KIND_CLUSTER_TEMPLATE: u32 = 0x11;
+pub const KIND_CLUSTER_BLAS: u32 = 0x12;
+
 /// Per-geometry facts traversal (flags) and update checks (everything else) need.
 #[repr(C)]
 #[derive(Clone, Copy, Pod, Zeroable, Debug, PartialEq, Eq)]
@@ -351,12 +357,14 @@ pub fn mark_invalid(dst: &mut [u8]) {
 
 /// None if not a valid Arbor structure.
 pub fn header(bytes: &[u8]) -> Option<Header> {
-    let p = parse(bytes)?;
+    // A cluster BLAS answers with its embedded BVH's header: instances may name it.
+    let (p, side) = super::clas::open_walkable(bytes)?;
     let r = p.raw;
+    let used_size = if side.is_some() { super::clas::open(bytes)?.header.used_size } else { r.used_size };
     Some(Header {
         ty: if r.ty == 0 { AsType::TopLevel } else { AsType::BottomLevel },
         flags: BuildFlags(r.flags),
-        used_size: r.used_size,
+        used_size,
         geometry_count: r.geometry_count,
         primitive_count: r.primitive_count,
         instance_count: r.instance_count,

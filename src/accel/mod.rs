@@ -15,6 +15,7 @@
 #![forbid(unsafe_code)]
 
 mod build;
+pub mod clas;
 mod check;
 mod checksum;
 mod copy;

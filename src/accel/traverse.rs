@@ -9,6 +9,7 @@
 //! TRIANGLE_FLIP_FACING (2, formerly FRONT_COUNTERCLOCKWISE) inverts it. Instance transforms do
 //! not change facing; geometry transforms (applied at build time) do.
 use super::input::{transform_dir, transform_point};
+use super::clas::{self, Side};
 use super::layout::{self, InstanceRecord, Parsed, CHILD_INTERNAL};
 use super::{DeviceView, GeometryFlags};
 use glam::{DVec3, Vec3, Vec4};
@@ -71,6 +72,8 @@ pub struct Hit {
     /// Triangles: the stored vertices v0, v1, v2 (object space, geometry transform applied,
     /// application order), for VK_KHR_ray_tracing_position_fetch. AABBs: zero.
     pub vertices: [Vec3; 3],
+    /// The CLAS's cluster ID for a triangle of a cluster BLAS; -1 for any other hit.
+    pub cluster_id: i32,
 }
 
 /// Pending traversal items at most (a valid BVH4 needs 3 per level of depth).
@@ -218,6 +221,8 @@ struct Level<'a> {
     sh: Shear,
     /// Some(flags) when every geometry of this BLAS is triangles with these same flags.
     uni_tri: Option<u32>,
+    /// A cluster BLAS: per-triangle cluster ID, geometry index, flags and index in cluster.
+    cluster: Option<Side<'a>>,
 }
 
 #[derive(Clone, Copy)]
@@ -275,13 +280,14 @@ fn uniform_triangles(s: &Parsed<'_>) -> Option<u32> {
     Some(g0.flags)
 }
 
-fn make_level(s: Parsed<'_>, org: Vec3, dir: Vec3) -> Level<'_> {
-    Level { s, org, dir, inv: Vec3::ONE / dir, sh: shear(dir), uni_tri: uniform_triangles(&s) }
+fn make_level<'a>((s, cluster): (Parsed<'a>, Option<Side<'a>>), org: Vec3, dir: Vec3) -> Level<'a> {
+    let uni_tri = if cluster.is_some() { None } else { uniform_triangles(&s) };
+    Level { s, org, dir, inv: Vec3::ONE / dir, sh: shear(dir), uni_tri, cluster }
 }
 
 impl<'a> RayQuery<'a> {
     pub fn new(structure: &'a [u8], view: &'a dyn DeviceView, ray: Ray, flags: RayFlags, cull_mask: u8) -> Self {
-        let top = layout::parse(structure).map(|s| make_level(s, ray.origin, ray.direction));
+        let top = clas::open_walkable(structure).map(|s| make_level(s, ray.origin, ray.direction));
         let mut q = RayQuery {
             top,
             view,
@@ -407,11 +413,11 @@ impl<'a> RayQuery<'a> {
         }
         let Some(addr) = l.s.blas_address(rec.blas_index) else { return };
         // A reference that resolves to no built BLAS is never followed: the instance is absent.
-        let Some(blas) = self.view.acceleration_structure(addr).and_then(layout::parse).filter(|b| !b.is_tlas()) else {
+        let Some(blas) = self.view.acceleration_structure(addr).and_then(clas::open_walkable).filter(|b| !b.0.is_tlas()) else {
             self.unresolved.get_or_insert(addr);
             return;
         };
-        if blas.raw.node_count == 0 {
+        if blas.0.raw.node_count == 0 {
             return;
         }
         let org = transform_point(&rec.world_to_object, self.ray.origin);
@@ -419,7 +425,7 @@ impl<'a> RayQuery<'a> {
         if org.is_nan() || dir.is_nan() || dir == Vec3::ZERO {
             return;
         }
-        self.budget_inner = blas.raw.node_count as u64 + blas.raw.primitive_count as u64;
+        self.budget_inner = blas.0.raw.node_count as u64 + blas.0.raw.primitive_count as u64;
         self.inst = Some(InstCtx { level: make_level(blas, org, dir), rec });
         self.stack.push(Item::ExitInstance);
         self.stack.push(Item::Node { node: 0, inner: true, tnear: self.ray.tmin });
@@ -452,12 +458,16 @@ impl<'a> RayQuery<'a> {
         let f = self.flags;
         // Every condition below is a pure conjunct, so with uniform triangle geometries the
         // record/geometry lookups (another cache line per primitive) move after the hit test.
-        let (rec, gkind, opaque) = match l.uni_tri {
-            Some(gflags) => (None, layout::KIND_TRIANGLES, self.opacity(gflags, inst_flags)?),
+        let (rec, gkind, opaque, gflags) = match l.uni_tri {
+            Some(gflags) => (None, layout::KIND_TRIANGLES, self.opacity(gflags, inst_flags)?, gflags),
             None => {
                 let rec = l.s.record(slot)?;
                 let geom = l.s.geometry(rec.geometry)?;
-                (Some(rec), geom.kind, self.opacity(geom.flags, inst_flags)?)
+                let gflags = match l.cluster {
+                    Some(c) => c.get(rec.primitive)?.flags,
+                    None => geom.flags,
+                };
+                (Some(rec), geom.kind, self.opacity(gflags, inst_flags)?, gflags)
             }
         };
         let data = l.s.prim(slot)?;
@@ -472,7 +482,7 @@ impl<'a> RayQuery<'a> {
                 let (t, u, v, front_raw) = intersect_sheared(&l.sh, l.org.to_array(), self.ray.tmin, self.tmax, v0, v1, v2)?;
                 let front = front_raw ^ (inst_flags & INSTANCE_FLIP_FACING != 0);
                 let culled = (f & RayFlags::CULL_BACK_FACING_TRIANGLES != 0 && !front) || (f & RayFlags::CULL_FRONT_FACING_TRIANGLES != 0 && front);
-                if inst_flags & INSTANCE_FACING_CULL_DISABLE == 0 && culled {
+                if inst_flags & INSTANCE_FACING_CULL_DISABLE == 0 && gflags & clas::FLAG_CULL_DISABLE == 0 && culled {
                     return None;
                 }
                 (t, HitKind::Triangle, [u, v], front, [v0, v1, v2].map(Vec3::from_array))
@@ -495,6 +505,10 @@ impl<'a> RayQuery<'a> {
                 r
             }
         };
+        let (geometry_index, primitive_index, cluster_id) = match l.cluster.and_then(|c| c.get(rec.primitive)) {
+            Some(e) => (e.geometry_index, e.primitive_index, e.cluster_id as i32),
+            None => (rec.geometry, rec.primitive, -1),
+        };
         let (ii, ci, sbt, o2w, w2o) = match self.inst {
             Some(i) => (i.rec.instance_index, i.rec.custom_index, i.rec.sbt_offset, i.rec.object_to_world, i.rec.world_to_object),
             None => (0, 0, 0, IDENTITY, IDENTITY),
@@ -508,13 +522,14 @@ impl<'a> RayQuery<'a> {
             instance_index: ii,
             instance_custom_index: ci,
             sbt_record_offset: sbt,
-            geometry_index: rec.geometry,
-            primitive_index: rec.primitive,
+            geometry_index,
+            primitive_index,
             object_ray_origin: l.org,
             object_ray_direction: l.dir,
             object_to_world: o2w,
             world_to_object: w2o,
             vertices,
+            cluster_id,
         })
     }
 

@@ -18,6 +18,7 @@ pub const DEVICE_EXTENSIONS: &[(&str, u32)] = &[
     ("VK_KHR_acceleration_structure", 13),
     ("VK_KHR_bind_memory2", 1),
     ("VK_KHR_buffer_device_address", 1),
+    (super::nv_cluster::EXTENSION_NAME, super::nv_cluster::SPEC_VERSION),
     ("VK_KHR_copy_commands2", 1),
     ("VK_KHR_dedicated_allocation", 3),
     ("VK_KHR_deferred_host_operations", 4),
@@ -194,6 +195,7 @@ pub unsafe fn fill_feature_struct(s_type: vk::StructureType, p: *mut c_void) -> 
             vk::StructureType::PHYSICAL_DEVICE_SHADER_DRAW_PARAMETERS_FEATURES => {
                 util::write_keep_chain(p, vk::PhysicalDeviceShaderDrawParametersFeatures::default())
             }
+            s if s == super::nv_cluster::STYPE_FEATURES => super::nv_cluster::write_features(p),
             _ => return super::core_caps::fill_feature_struct(s_type, p),
         }
     }
@@ -443,6 +445,7 @@ pub unsafe fn fill_property_struct(s_type: vk::StructureType, p: *mut c_void) ->
                     ..Default::default()
                 },
             ),
+            s if s == super::nv_cluster::STYPE_PROPERTIES => super::nv_cluster::write_properties(p),
             _ => return super::core_caps::fill_property_struct(s_type, p),
         }
     }

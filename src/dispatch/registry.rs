@@ -5,7 +5,7 @@
 use ash::vk;
 use std::ffi::{c_char, c_void};
 
-use super::table::{void_fn, Level, Origin, RegistryEntry};
+use super::table::{void_fn, void_fn_at, Level, Origin, RegistryEntry};
 
 pub static REGISTRY: &[RegistryEntry] = &[
     RegistryEntry { name: "vkAllocateCommandBuffers", canonical: "vkAllocateCommandBuffers", level: Level::Device, origin: Origin::Core(0), fallback: void_fn!(PFN_vkAllocateCommandBuffers => fallback::allocate_command_buffers) },
@@ -30,6 +30,7 @@ pub static REGISTRY: &[RegistryEntry] = &[
     RegistryEntry { name: "vkCmdBlitImage2KHR", canonical: "vkCmdBlitImage2", level: Level::Device, origin: Origin::Extension("VK_KHR_copy_commands2"), fallback: void_fn!(PFN_vkCmdBlitImage2 => fallback::cmd_blit_image2) },
     RegistryEntry { name: "vkCmdBuildAccelerationStructuresIndirectKHR", canonical: "vkCmdBuildAccelerationStructuresIndirectKHR", level: Level::Device, origin: Origin::Extension("VK_KHR_acceleration_structure"), fallback: void_fn!(PFN_vkCmdBuildAccelerationStructuresIndirectKHR => fallback::cmd_build_acceleration_structures_indirect_khr) },
     RegistryEntry { name: "vkCmdBuildAccelerationStructuresKHR", canonical: "vkCmdBuildAccelerationStructuresKHR", level: Level::Device, origin: Origin::Extension("VK_KHR_acceleration_structure"), fallback: void_fn!(PFN_vkCmdBuildAccelerationStructuresKHR => fallback::cmd_build_acceleration_structures_khr) },
+    RegistryEntry { name: "vkCmdBuildClusterAccelerationStructureIndirectNV", canonical: "vkCmdBuildClusterAccelerationStructureIndirectNV", level: Level::Device, origin: Origin::Extension("VK_NV_cluster_acceleration_structure"), fallback: void_fn_at!(crate::dispatch::nv_cluster::PFN_vkCmdBuildClusterAccelerationStructureIndirectNV => fallback::cmd_build_cluster_acceleration_structure_indirect_nv) },
     RegistryEntry { name: "vkCmdClearAttachments", canonical: "vkCmdClearAttachments", level: Level::Device, origin: Origin::Core(0), fallback: void_fn!(PFN_vkCmdClearAttachments => fallback::cmd_clear_attachments) },
     RegistryEntry { name: "vkCmdClearColorImage", canonical: "vkCmdClearColorImage", level: Level::Device, origin: Origin::Core(0), fallback: void_fn!(PFN_vkCmdClearColorImage => fallback::cmd_clear_color_image) },
     RegistryEntry { name: "vkCmdClearDepthStencilImage", canonical: "vkCmdClearDepthStencilImage", level: Level::Device, origin: Origin::Core(0), fallback: void_fn!(PFN_vkCmdClearDepthStencilImage => fallback::cmd_clear_depth_stencil_image) },
@@ -163,6 +164,7 @@ pub static REGISTRY: &[RegistryEntry] = &[
     RegistryEntry { name: "vkGetBufferMemoryRequirements2KHR", canonical: "vkGetBufferMemoryRequirements2", level: Level::Device, origin: Origin::Extension("VK_KHR_get_memory_requirements2"), fallback: void_fn!(PFN_vkGetBufferMemoryRequirements2 => fallback::get_buffer_memory_requirements2) },
     RegistryEntry { name: "vkGetBufferOpaqueCaptureAddress", canonical: "vkGetBufferOpaqueCaptureAddress", level: Level::Device, origin: Origin::Core(2), fallback: void_fn!(PFN_vkGetBufferOpaqueCaptureAddress => fallback::get_buffer_opaque_capture_address) },
     RegistryEntry { name: "vkGetBufferOpaqueCaptureAddressKHR", canonical: "vkGetBufferOpaqueCaptureAddress", level: Level::Device, origin: Origin::Extension("VK_KHR_buffer_device_address"), fallback: void_fn!(PFN_vkGetBufferOpaqueCaptureAddress => fallback::get_buffer_opaque_capture_address) },
+    RegistryEntry { name: "vkGetClusterAccelerationStructureBuildSizesNV", canonical: "vkGetClusterAccelerationStructureBuildSizesNV", level: Level::Device, origin: Origin::Extension("VK_NV_cluster_acceleration_structure"), fallback: void_fn_at!(crate::dispatch::nv_cluster::PFN_vkGetClusterAccelerationStructureBuildSizesNV => fallback::get_cluster_acceleration_structure_build_sizes_nv) },
     RegistryEntry { name: "vkGetDeferredOperationMaxConcurrencyKHR", canonical: "vkGetDeferredOperationMaxConcurrencyKHR", level: Level::Device, origin: Origin::Extension("VK_KHR_deferred_host_operations"), fallback: void_fn!(PFN_vkGetDeferredOperationMaxConcurrencyKHR => fallback::get_deferred_operation_max_concurrency_khr) },
     RegistryEntry { name: "vkGetDeferredOperationResultKHR", canonical: "vkGetDeferredOperationResultKHR", level: Level::Device, origin: Origin::Extension("VK_KHR_deferred_host_operations"), fallback: void_fn!(PFN_vkGetDeferredOperationResultKHR => fallback::get_deferred_operation_result_khr) },
     RegistryEntry { name: "vkGetDescriptorSetLayoutSupport", canonical: "vkGetDescriptorSetLayoutSupport", level: Level::Device, origin: Origin::Core(1), fallback: void_fn!(PFN_vkGetDescriptorSetLayoutSupport => fallback::get_descriptor_set_layout_support) },
@@ -314,6 +316,9 @@ pub mod fallback {
     }
     pub unsafe extern "system" fn cmd_build_acceleration_structures_khr(_command_buffer: vk::CommandBuffer, _info_count: u32, _p_infos: *const vk::AccelerationStructureBuildGeometryInfoKHR, _pp_build_range_infos: *const *const vk::AccelerationStructureBuildRangeInfoKHR) {
         crate::diag::unsupported("vkCmdBuildAccelerationStructuresKHR");
+    }
+    pub unsafe extern "system" fn cmd_build_cluster_acceleration_structure_indirect_nv(_command_buffer: vk::CommandBuffer, _p_command_infos: *const crate::dispatch::nv_cluster::ClusterAccelerationStructureCommandsInfoNV) {
+        crate::diag::unsupported("vkCmdBuildClusterAccelerationStructureIndirectNV");
     }
     pub unsafe extern "system" fn cmd_clear_attachments(_command_buffer: vk::CommandBuffer, _attachment_count: u32, _p_attachments: *const vk::ClearAttachment, _rect_count: u32, _p_rects: *const vk::ClearRect) {
         crate::diag::unsupported("vkCmdClearAttachments");
@@ -748,6 +753,9 @@ pub mod fallback {
     pub unsafe extern "system" fn get_buffer_opaque_capture_address(_device: vk::Device, _p_info: *const vk::BufferDeviceAddressInfo) -> u64 {
         crate::diag::unsupported("vkGetBufferOpaqueCaptureAddress");
         Default::default()
+    }
+    pub unsafe extern "system" fn get_cluster_acceleration_structure_build_sizes_nv(_device: vk::Device, _p_info: *const crate::dispatch::nv_cluster::ClusterAccelerationStructureInputInfoNV, _p_size_info: *mut vk::AccelerationStructureBuildSizesInfoKHR) {
+        crate::diag::unsupported("vkGetClusterAccelerationStructureBuildSizesNV");
     }
     pub unsafe extern "system" fn get_deferred_operation_max_concurrency_khr(_device: vk::Device, _operation: vk::DeferredOperationKHR) -> u32 {
         crate::diag::unsupported("vkGetDeferredOperationMaxConcurrencyKHR");

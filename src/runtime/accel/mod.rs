@@ -28,6 +28,7 @@ use crate::diag;
 use crate::memory::{AccessError, Buffer};
 use crate::runtime::Device;
 
+pub mod clas;
 pub mod build;
 pub mod command;
 pub mod copy;

@@ -1,0 +1,234 @@
+//! CLAS and template builds, instantiation and the template index fetch. Inputs are read through
+//! `DeviceView::bytes` at the addresses the argument records name; every read is checked and a
+//! failure is a typed `ClusterError`, never a panic. The bytes written depend on the input only.
+use super::args::{BuildTriangleClusterInfo, GeometryIndexAndFlags, InstantiateClusterInfo};
+use super::format::{self, clas_size, new_header, open, put_u32, template_size, truncate, ClusterHeader, Kind, HEADER_SIZE, TRIANGLE_SIZE};
+use super::{ClusterError, MAX_TRIANGLES, MAX_VERTICES};
+use crate::accel::input::decode_vertex;
+use crate::accel::{DeviceView, VertexFormat};
+
+/// What a CLAS or template build reads: indices, per-triangle geometry words and (if present)
+/// the truncated triangles.
+struct Gathered {
+    indices: Vec<u32>,
+    words: Vec<u32>,
+    triangles: Option<Vec<[f32; 9]>>,
+}
+
+fn read<'a>(view: &'a dyn DeviceView, address: u64, len: u64, what: &'static str) -> Result<&'a [u8], ClusterError> {
+    view.bytes(address, len).ok_or(ClusterError::Unreadable { what, address })
+}
+
+fn vertex(view: &dyn DeviceView, format: VertexFormat, start: u64, stride: u64, index: u32, bits: u32) -> Result<[f32; 3], ClusterError> {
+    let address = start.wrapping_add(index as u64 * stride);
+    let b = read(view, address, format.size() as u64, "vertex")?;
+    let v = decode_vertex(format, b).ok_or(ClusterError::Unreadable { what: "vertex", address })?;
+    Ok([truncate(v.x, bits), truncate(v.y, bits), truncate(v.z, bits)])
+}
+
+/// The triangles of `indices` read from `start` + index × `stride`, truncated.
+fn fetch_triangles(view: &dyn DeviceView, format: VertexFormat, start: u64, stride: u64, indices: &[u32], bits: u32) -> Result<Vec<[f32; 9]>, ClusterError> {
+    let stride = if stride == 0 { format.size() as u64 } else { stride & 0xffff_ffff };
+    indices
+        .chunks_exact(3)
+        .map(|t| {
+            let mut out = [0f32; 9];
+            for (k, &i) in t.iter().enumerate() {
+                out[3 * k..3 * k + 3].copy_from_slice(&vertex(view, format, start, stride, i, bits)?);
+            }
+            Ok(out)
+        })
+        .collect()
+}
+
+fn gather(a: &BuildTriangleClusterInfo, format: VertexFormat, view: &dyn DeviceView, need_vertices: bool) -> Result<Gathered, ClusterError> {
+    let t = a.triangle_count();
+    if t > MAX_TRIANGLES {
+        return Err(ClusterError::TooManyTriangles(t));
+    }
+    if a.vertex_count() > MAX_VERTICES {
+        return Err(ClusterError::TooManyVertices(a.vertex_count()));
+    }
+    let isize = a.index_type();
+    if !matches!(isize, 1 | 2 | 4) {
+        return Err(ClusterError::BadIndexType(isize));
+    }
+    let bits = a.position_truncate_bit_count();
+    if bits > 32 {
+        return Err(ClusterError::BadTruncation(bits));
+    }
+    let istride = if a.index_buffer_stride == 0 { isize as u64 } else { a.index_buffer_stride as u64 };
+    let mut indices = Vec::with_capacity(3 * t as usize);
+    for k in 0..3 * t as u64 {
+        let b = read(view, a.index_buffer.wrapping_add(k * istride), isize as u64, "index")?;
+        indices.push(b.iter().rev().fold(0u32, |acc, &x| (acc << 8) | x as u32));
+    }
+    let base = a.base_geometry_index_and_geometry_flags;
+    let gstride = if a.geometry_index_and_flags_buffer_stride == 0 { 4 } else { a.geometry_index_and_flags_buffer_stride as u64 };
+    let mut words = Vec::with_capacity(t as usize);
+    for i in 0..t as u64 {
+        let own = if a.geometry_index_and_flags_buffer == 0 {
+            GeometryIndexAndFlags(0)
+        } else {
+            let b = read(view, a.geometry_index_and_flags_buffer.wrapping_add(i * gstride), 4, "geometry index and flags")?;
+            GeometryIndexAndFlags(u32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+        };
+        // The cluster's base plus the triangle's own index; flags are the union (nv-usage.md).
+        let index = base.geometry_index().wrapping_add(own.geometry_index());
+        words.push(GeometryIndexAndFlags::new(index, base.geometry_flags() | own.geometry_flags()).0);
+    }
+    let triangles = match (need_vertices, a.vertex_buffer) {
+        (false, 0) => None,
+        _ => Some(fetch_triangles(view, format, a.vertex_buffer, a.vertex_buffer_stride as u64, &indices, bits)?),
+    };
+    Ok(Gathered { indices, words, triangles })
+}
+
+fn bounds(tris: &[[f32; 9]]) -> [f32; 6] {
+    if tris.is_empty() {
+        return [0.0; 6];
+    }
+    let mut b = [f32::INFINITY, f32::INFINITY, f32::INFINITY, f32::NEG_INFINITY, f32::NEG_INFINITY, f32::NEG_INFINITY];
+    for t in tris {
+        for v in t.chunks_exact(3) {
+            for a in 0..3 {
+                b[a] = b[a].min(v[a]);
+                b[a + 3] = b[a + 3].max(v[a]);
+            }
+        }
+    }
+    b
+}
+
+fn check_dst(dst: &[u8], needed: u64) -> Result<(), ClusterError> {
+    if (dst.len() as u64) < needed {
+        return Err(ClusterError::DestinationTooSmall { needed, got: dst.len() as u64 });
+    }
+    Ok(())
+}
+
+fn put_triangles(dst: &mut [u8], at: u64, tris: &[[f32; 9]]) {
+    for (i, t) in tris.iter().enumerate() {
+        for (k, x) in t.iter().enumerate() {
+            put_u32(dst, at + i as u64 * TRIANGLE_SIZE + 4 * k as u64, x.to_bits());
+        }
+    }
+}
+
+fn put_words(dst: &mut [u8], at: u64, words: &[u32]) {
+    for (i, w) in words.iter().enumerate() {
+        put_u32(dst, at + 4 * i as u64, *w);
+    }
+}
+
+/// Writes a CLAS of `tris` (geometry words `words`) at the start of `dst`; returns its size.
+fn write_clas(dst: &mut [u8], mut h: ClusterHeader, tris: &[[f32; 9]], words: &[u32]) -> Result<u64, ClusterError> {
+    let size = clas_size(tris.len() as u64);
+    check_dst(dst, size)?;
+    h.used_size = size;
+    h.triangle_count = tris.len() as u32;
+    h.bounds = bounds(tris);
+    format::write_header(dst, &h);
+    put_triangles(dst, HEADER_SIZE, tris);
+    put_words(dst, HEADER_SIZE + tris.len() as u64 * TRIANGLE_SIZE, words);
+    Ok(size)
+}
+
+/// BUILD_TRIANGLE_CLUSTER: one CLAS from its argument record; returns its size.
+pub fn build_clas(a: &BuildTriangleClusterInfo, format: VertexFormat, view: &dyn DeviceView, dst: &mut [u8]) -> Result<u64, ClusterError> {
+    check_dst(dst, clas_size(a.triangle_count() as u64))?;
+    let g = gather(a, format, view, true)?;
+    let mut h = new_header(Kind::Clas);
+    h.cluster_id = a.cluster_id;
+    h.cluster_flags = a.cluster_flags;
+    h.vertex_count = a.vertex_count();
+    h.truncate_bits = a.position_truncate_bit_count();
+    write_clas(dst, h, g.triangles.as_deref().unwrap_or(&[]), &g.words)
+}
+
+/// BUILD_TRIANGLE_CLUSTER_TEMPLATE: topology, geometry words, truncation and (with a vertex
+/// buffer) the truncated triangles; `limit` is the instantiation bounding box when given.
+pub fn build_template(a: &BuildTriangleClusterInfo, format: VertexFormat, limit: Option<[f32; 6]>, view: &dyn DeviceView, dst: &mut [u8]) -> Result<u64, ClusterError> {
+    let t = a.triangle_count() as u64;
+    check_dst(dst, template_size(t, a.vertex_buffer != 0))?;
+    let g = gather(a, format, view, false)?;
+    let size = template_size(t, g.triangles.is_some());
+    let mut h = new_header(Kind::Template);
+    h.used_size = size;
+    h.cluster_id = a.cluster_id;
+    h.cluster_flags = a.cluster_flags;
+    h.triangle_count = t as u32;
+    h.vertex_count = a.vertex_count();
+    h.truncate_bits = a.position_truncate_bit_count();
+    h.index_bytes = a.index_type();
+    h.vertex_format = format.to_vk();
+    h.has_vertices = g.triangles.is_some() as u32;
+    h.bounds = limit.unwrap_or([0.0; 6]);
+    format::write_header(dst, &h);
+    put_words(dst, HEADER_SIZE, &g.indices);
+    put_words(dst, HEADER_SIZE + 12 * t, &g.words);
+    if let Some(tris) = &g.triangles {
+        put_triangles(dst, HEADER_SIZE + 16 * t, tris);
+    }
+    Ok(size)
+}
+
+/// The template at the start of `bytes`.
+fn template(bytes: &[u8]) -> Result<format::Blob<'_>, ClusterError> {
+    open(bytes).filter(|b| b.kind == Kind::Template).ok_or(ClusterError::NotA("cluster template"))
+}
+
+/// INSTANTIATE_TRIANGLE_CLUSTER: a CLAS from the template in `template_bytes` with the vertices
+/// the record names (or, with vertexBuffer 0, the template's own); returns its size.
+pub fn instantiate(template_bytes: &[u8], a: &InstantiateClusterInfo, view: &dyn DeviceView, dst: &mut [u8]) -> Result<u64, ClusterError> {
+    let tp = template(template_bytes)?;
+    let th = tp.header;
+    let t = th.triangle_count;
+    check_dst(dst, clas_size(t as u64))?;
+    let tris: Vec<[f32; 9]> = if a.vertex_buffer.start_address != 0 {
+        let format = VertexFormat::from_vk(th.vertex_format).ok_or(ClusterError::NotA("cluster template"))?;
+        let indices: Vec<u32> = (0..3 * t).map(|k| tp.index(k)).collect();
+        fetch_triangles(view, format, a.vertex_buffer.start_address, a.vertex_buffer.stride_in_bytes, &indices, th.truncate_bits)?
+    } else if th.has_vertices != 0 {
+        (0..t).map(|i| tp.triangle(i)).collect()
+    } else {
+        return Err(ClusterError::NoVertices);
+    };
+    let offset = a.geometry_index_offset();
+    let words: Vec<u32> = (0..t)
+        .map(|i| {
+            let w = GeometryIndexAndFlags(tp.word(i));
+            GeometryIndexAndFlags::new(w.geometry_index().wrapping_add_signed(offset), w.geometry_flags()).0
+        })
+        .collect();
+    let mut h = new_header(Kind::Clas);
+    h.cluster_id = th.cluster_id.wrapping_add(a.cluster_id_offset);
+    h.cluster_flags = th.cluster_flags;
+    h.vertex_count = th.vertex_count;
+    h.truncate_bits = th.truncate_bits;
+    write_clas(dst, h, &tris, &words)
+}
+
+/// Bytes GET_CLUSTER_TEMPLATE_INDICES writes for a template: 3 × triangles × index size.
+pub fn template_indices_size(template_bytes: &[u8]) -> Result<u64, ClusterError> {
+    let h = template(template_bytes)?.header;
+    Ok(3 * h.triangle_count as u64 * h.index_bytes as u64)
+}
+
+/// GET_CLUSTER_TEMPLATE_INDICES: the template's raw indices in its index type; returns the size.
+pub fn template_indices(template_bytes: &[u8], dst: &mut [u8]) -> Result<u64, ClusterError> {
+    let tp = template(template_bytes)?;
+    let n = tp.header.index_bytes as usize;
+    let size = template_indices_size(template_bytes)?;
+    check_dst(dst, size)?;
+    for k in 0..3 * tp.header.triangle_count {
+        let v = tp.index(k).to_le_bytes();
+        dst[k as usize * n..(k as usize + 1) * n].copy_from_slice(&v[..n]);
+    }
+    Ok(size)
+}
+
+/// The size of the cluster object (CLAS, template or cluster BLAS) at the start of `bytes`.
+pub fn object_size(bytes: &[u8]) -> Option<(Kind, u64)> {
+    open(bytes).map(|b| (b.kind, b.header.used_size))
+}
