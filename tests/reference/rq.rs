@@ -160,6 +160,7 @@ pub fn hit_of(rec: &Record) -> Option<Hit> {
         object_to_world: [0.0; 12],
         world_to_object: [0.0; 12],
         vertices: [Vec3::ZERO; 3],
+        cluster_id: -1,
     })
 }
 
