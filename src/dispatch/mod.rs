@@ -14,6 +14,7 @@ pub mod image;
 pub mod image_cmd;
 pub mod instance;
 pub mod memory;
+pub mod nv_partitioned;
 pub mod physical_device;
 pub mod pipeline;
 pub mod query;
@@ -59,6 +60,7 @@ pub fn implemented() -> Vec<Implemented> {
     v.extend(queue::commands());
     v.extend(sync::commands());
     v.extend(query::commands());
+    v.extend(nv_partitioned::commands());
     v
 }
 

@@ -31,6 +31,7 @@ pub const DEVICE_EXTENSIONS: &[(&str, u32)] = &[
     ("VK_KHR_ray_tracing_maintenance1", 1),
     ("VK_KHR_synchronization2", 1),
     ("VK_KHR_timeline_semaphore", 2),
+    (super::nv_partitioned::EXTENSION_NAME, super::nv_partitioned::SPEC_VERSION),
 ];
 
 pub const QUEUE_FAMILY_COUNT: u32 = 1;
@@ -192,7 +193,7 @@ pub unsafe fn fill_feature_struct(s_type: vk::StructureType, p: *mut c_void) -> 
             vk::StructureType::PHYSICAL_DEVICE_SHADER_DRAW_PARAMETERS_FEATURES => {
                 util::write_keep_chain(p, vk::PhysicalDeviceShaderDrawParametersFeatures::default())
             }
-            _ => return super::core_caps::fill_feature_struct(s_type, p),
+            _ => return super::nv_partitioned::fill_feature_struct(s_type, p) || super::core_caps::fill_feature_struct(s_type, p),
         }
     }
     true
@@ -440,7 +441,7 @@ pub unsafe fn fill_property_struct(s_type: vk::StructureType, p: *mut c_void) ->
                     ..Default::default()
                 },
             ),
-            _ => return super::core_caps::fill_property_struct(s_type, p),
+            _ => return super::nv_partitioned::fill_property_struct(s_type, p) || super::core_caps::fill_property_struct(s_type, p),
         }
     }
     true

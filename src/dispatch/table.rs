@@ -48,6 +48,13 @@ macro_rules! void_fn {
         // to the command's PFN type before calling.
         unsafe { std::mem::transmute::<ash::vk::$pfn, $crate::dispatch::table::VoidFn>(f) }
     }};
+    // A PFN type ash lacks, defined by Arbor (`@local path::PFN_vkFoo`).
+    (@local $pfn:path => $f:path) => {{
+        let f: $pfn = $f;
+        // SAFETY: function pointers of any signature have the same size; the loader casts back
+        // to the command's PFN type before calling.
+        unsafe { std::mem::transmute::<$pfn, $crate::dispatch::table::VoidFn>(f) }
+    }};
 }
 pub(crate) use void_fn;
 

@@ -225,6 +225,11 @@ pub fn header_for(c: &Capacities, s: &Sections, build_flags: u32) -> PtlasHeader
 
 /// The header of a valid PTLAS whose sections all lie inside `bytes` (None otherwise).
 pub fn parse(bytes: &[u8]) -> Option<PtlasHeader> {
+    parse_header(bytes).filter(|h| h.used_size <= bytes.len() as u64)
+}
+
+/// A self-consistent PTLAS header at the start of `bytes` (which may hold the header alone).
+pub fn parse_header(bytes: &[u8]) -> Option<PtlasHeader> {
     let h: PtlasHeader = bytemuck::pod_read_unaligned(bytes.get(..PTLAS_HEADER_SIZE)?);
     if h.magic != PTLAS_MAGIC || h.version != PTLAS_VERSION || h.valid != PTLAS_VALID {
         return None;
@@ -233,7 +238,6 @@ pub fn parse(bytes: &[u8]) -> Option<PtlasHeader> {
     let c = Capacities::of_header(&h);
     let s = sections(&c);
     let ok = s.end == h.used_size
-        && h.used_size <= bytes.len() as u64
         && s.instances == h.instances_offset
         && s.partitions == h.partitions_offset
         && s.members == h.members_offset

@@ -207,10 +207,14 @@ pub fn traversable(bytes: &[u8]) -> Option<&[u8]> {
     layout::embedded(bytes)
 }
 
-/// The header of a valid PTLAS.
+/// The header at the start of `bytes` when it is a self-consistent PTLAS header (`bytes` may
+/// hold the header alone: its `used_size` says how many bytes the whole blob spans).
 pub fn header(bytes: &[u8]) -> Option<PtlasHeader> {
-    layout::parse(bytes)
+    layout::parse_header(bytes)
 }
+
+/// Bytes of the PTLAS header (what `header` needs to read).
+pub const HEADER_SIZE: usize = layout::PTLAS_HEADER_SIZE;
 
 /// Clears the header's identifying words: traversal then finds nothing.
 pub fn mark_invalid(dst: &mut [u8]) {
