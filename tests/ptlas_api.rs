@@ -2,7 +2,9 @@
 //! with vkCmdBuildPartitionedAccelerationStructuresNV from op records in device memory (the op
 //! count and some records written by vkCmdUpdateBuffer earlier in the same command buffer),
 //! read back and traversed, equals brute force (tests/reference) and a KHR TLAS built through
-//! the API from the equivalent instance list; then incremental builds in place and src → dst.
+//! the API from the equivalent instance list, and a ray-query shader that reaches it by address
+//! (OpConvertUToAccelerationStructureKHR) gets the same hits; then incremental builds in place
+//! and src → dst.
 //!
 //! The validation layer here (Debian 12's, 1.3.239) predates the extension. Exactly one of its
 //! messages is filtered, by the harness (`KNOWN_UNSUPPORTED_EXTENSIONS`, matched by its full
@@ -237,6 +239,72 @@ fn build(a: &Accel, nv: &Nv, info: &BuildInfo, count_word: &Region, count: u32, 
     });
 }
 
+/// tests/shaders/ptlas_rq.comp over `rays` against the structure at `address` (converted in
+/// the shader with OpConvertUToAccelerationStructureKHR); the hits buffer.
+fn trace(a: &Accel, address: u64, rays: &[Ray]) -> Vec<u8> {
+    let d = &a.ctx.device;
+    let ray_bytes: Vec<u8> = rays
+        .iter()
+        .flat_map(|r| [r.origin.x, r.origin.y, r.origin.z, r.tmin, r.direction.x, r.direction.y, r.direction.z, r.tmax])
+        .flat_map(f32::to_le_bytes)
+        .collect();
+    let (rb, hb) = (a.upload(&ray_bytes), a.buffer(16 * rays.len() as u64));
+    let spirv = harness::compute::glsl("ptlas_rq.comp");
+    let stage = vk::ShaderStageFlags::COMPUTE;
+    let bindings = [0, 1].map(|b| vk::DescriptorSetLayoutBinding::default().binding(b).descriptor_type(vk::DescriptorType::STORAGE_BUFFER).descriptor_count(1).stage_flags(stage));
+    // SAFETY: valid create infos; everything is destroyed before returning, after the wait.
+    unsafe {
+        let set_layout = d.create_descriptor_set_layout(&vk::DescriptorSetLayoutCreateInfo::default().bindings(&bindings), None).unwrap();
+        let sizes = [vk::DescriptorPoolSize { ty: vk::DescriptorType::STORAGE_BUFFER, descriptor_count: 2 }];
+        let pool = d.create_descriptor_pool(&vk::DescriptorPoolCreateInfo::default().max_sets(1).pool_sizes(&sizes), None).unwrap();
+        let layouts = [set_layout];
+        let set = d.allocate_descriptor_sets(&vk::DescriptorSetAllocateInfo::default().descriptor_pool(pool).set_layouts(&layouts)).unwrap()[0];
+        let infos = [rb, hb].map(|b| [vk::DescriptorBufferInfo { buffer: a.buf(b).buffer, offset: 0, range: vk::WHOLE_SIZE }]);
+        let writes = [0, 1].map(|k| vk::WriteDescriptorSet::default().dst_set(set).dst_binding(k as u32).descriptor_type(vk::DescriptorType::STORAGE_BUFFER).buffer_info(&infos[k]));
+        d.update_descriptor_sets(&writes, &[]);
+        let ranges = [vk::PushConstantRange { stage_flags: stage, offset: 0, size: 12 }];
+        let layout = d.create_pipeline_layout(&vk::PipelineLayoutCreateInfo::default().set_layouts(&layouts).push_constant_ranges(&ranges), None).unwrap();
+        let module = d.create_shader_module(&vk::ShaderModuleCreateInfo::default().code(&spirv), None).unwrap();
+        let ci = [vk::ComputePipelineCreateInfo::default().stage(vk::PipelineShaderStageCreateInfo::default().stage(stage).module(module).name(c"main")).layout(layout)];
+        let pipeline = d.create_compute_pipelines(vk::PipelineCache::null(), &ci, None).map_err(|(_, e)| e).unwrap()[0];
+        let push: Vec<u8> = [address as u32, (address >> 32) as u32, rays.len() as u32].iter().flat_map(|x| x.to_le_bytes()).collect();
+        a.submit(|cb| {
+            let barrier = [vk::MemoryBarrier::default().src_access_mask(vk::AccessFlags::ACCELERATION_STRUCTURE_WRITE_KHR).dst_access_mask(vk::AccessFlags::ACCELERATION_STRUCTURE_READ_KHR)];
+            d.cmd_pipeline_barrier(cb, vk::PipelineStageFlags::ACCELERATION_STRUCTURE_BUILD_KHR, vk::PipelineStageFlags::COMPUTE_SHADER, vk::DependencyFlags::empty(), &barrier, &[], &[]);
+            d.cmd_bind_pipeline(cb, vk::PipelineBindPoint::COMPUTE, pipeline);
+            d.cmd_bind_descriptor_sets(cb, vk::PipelineBindPoint::COMPUTE, layout, 0, &[set], &[]);
+            d.cmd_push_constants(cb, layout, stage, 0, &push);
+            d.cmd_dispatch(cb, (rays.len() as u32).div_ceil(64), 1, 1);
+            let barrier = [vk::MemoryBarrier::default().src_access_mask(vk::AccessFlags::SHADER_WRITE).dst_access_mask(vk::AccessFlags::HOST_READ)];
+            d.cmd_pipeline_barrier(cb, vk::PipelineStageFlags::COMPUTE_SHADER, vk::PipelineStageFlags::HOST, vk::DependencyFlags::empty(), &barrier, &[], &[]);
+        });
+        d.destroy_pipeline(pipeline, None);
+        d.destroy_shader_module(module, None);
+        d.destroy_pipeline_layout(layout, None);
+        d.destroy_descriptor_pool(pool, None);
+        d.destroy_descriptor_set_layout(set_layout, None);
+    }
+    a.buf(hb).read(0, 16 * rays.len())
+}
+
+/// A ray-query shader tracing the PTLAS by address gets `closest_hit`'s answers on the bytes read back.
+fn assert_shader_hits(a: &Accel, address: u64, ptlas: &[u8], view: &MapView) {
+    let rays = reference::random_rays([-4.0, -4.0, -4.0, 5.0, 5.0, 5.0], 200, 77);
+    let out = trace(a, address, &rays);
+    let mut hits = 0;
+    for (i, (ray, got)) in rays.iter().zip(out.chunks(16)).enumerate() {
+        let word = |k: usize| u32::from_le_bytes(got[4 * k..4 * k + 4].try_into().unwrap());
+        match accel::closest_hit(ptlas, view, *ray, RayFlags(RayFlags::OPAQUE), 0xFF) {
+            Some(h) => {
+                hits += 1;
+                assert_eq!((f32::from_bits(word(0)), word(1), word(2), word(3)), (h.t, h.primitive_index, h.instance_index, h.instance_custom_index), "ray {i}");
+            }
+            None => assert_eq!((word(1), word(2)), (u32::MAX, u32::MAX), "ray {i}: miss"),
+        }
+    }
+    assert!(hits > 20, "only {hits} hits");
+}
+
 fn grid_geometry(m: &Mesh) -> Geometry<'_> {
     Geometry {
         flags: GeometryFlags(1),
@@ -258,6 +326,7 @@ fn grid_geometry(m: &Mesh) -> Geometry<'_> {
 fn ptlas_builds_through_the_loader_match_brute_force_and_a_khr_tlas() {
     let mut exts = harness::default_device_extensions();
     exts.push(EXT);
+    exts.push("VK_KHR_ray_query");
     let ctx = harness::Context::new(harness::Options { acceleration_structure: true, device_extensions: exts, ..Default::default() });
     let a = Accel::new(&ctx);
     let nv = functions(&ctx);
@@ -293,6 +362,7 @@ fn ptlas_builds_through_the_loader_match_brute_force_and_a_khr_tlas() {
     build(&a, &nv, &info, &count_word, 2, None);
     let first = dst.read(&a);
     checker.check(&a, &first, &slots, &translations, 1);
+    assert_shader_hits(&a, dst.address(&a), &first, &checker.view);
 
     // In place: three writes whose records vkCmdUpdateBuffer writes in the same command buffer
     // (one moves an instance, one reactivates a never-written slot), and updates that disable one
