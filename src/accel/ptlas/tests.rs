@@ -38,10 +38,10 @@ fn random_write(rng: &mut Rng, index: u32, partitions: u32) -> WriteInstance {
         1..=2 => BLAS_B,
         _ => BLAS_A,
     };
-    let partition = if rng.next_u32() % 6 == 0 { PARTITION_INDEX_GLOBAL } else { rng.next_u32() % partitions };
+    let partition = if rng.next_u32().is_multiple_of(6) { PARTITION_INDEX_GLOBAL } else { rng.next_u32() % partitions };
     let mut flags = rng.next_u32() % 16;
     let mut aabb = [0.0; 6];
-    if rng.next_u32() % 3 == 0 {
+    if rng.next_u32().is_multiple_of(3) {
         // A generous explicit box around the instance (every BLAS lies within [-1.5, 1.5]^3 scaled).
         flags |= INSTANCE_FLAG_EXPLICIT_BOUNDING_BOX;
         aabb = [t.x - 3.0 * s, t.y - 3.0 * s, t.z - 3.0 * s, t.x + 3.0 * s, t.y + 3.0 * s, t.z + 3.0 * s];
@@ -147,7 +147,7 @@ fn from_scratch_traverses_like_the_khr_tlas() {
         let mut writes = Vec::new();
         for i in 0..n {
             // Some slots are never written: disabled instances.
-            if rng.next_u32() % 5 != 0 {
+            if !rng.next_u32().is_multiple_of(5) {
                 let w = random_write(&mut rng, i, partitions);
                 model.slots[i as usize] = Some(w);
                 writes.push(w);
@@ -194,8 +194,8 @@ fn random_round(rng: &mut Rng, model: &mut Model, partitions: u32) -> (Vec<Write
         updates.push(u);
     }
     let mut translations = Vec::new();
-    if rng.next_u32() % 3 == 0 {
-        let p = if rng.next_u32() % 4 == 0 { PARTITION_INDEX_GLOBAL } else { rng.next_u32() % partitions };
+    if rng.next_u32().is_multiple_of(3) {
+        let p = if rng.next_u32().is_multiple_of(4) { PARTITION_INDEX_GLOBAL } else { rng.next_u32() % partitions };
         let t = WriteTranslation { partition_index: p, partition_translation: rng.v3(2.0).to_array() };
         model.translations.insert(p, t.partition_translation);
         translations.push(t);
@@ -217,12 +217,12 @@ fn incremental_builds_equal_a_from_scratch_build_of_the_final_state() {
         let o = ops(&first.0, &first.1, &first.2);
         build_from(&inp, &o, &view, Source::Empty, &mut in_place);
         build_from(&inp, &o, &view, Source::Empty, &mut ping);
-        for round in 0..30 {
+        for round in 0..30u32 {
             let (w, u, t) = random_round(&mut rng, &mut model, partitions);
             let o = ops(&w, &u, &t);
             build_from(&inp, &o, &view, Source::InPlace, &mut in_place);
             // Ping-pong: src → dst, then the roles swap.
-            if round % 2 == 0 {
+            if round.is_multiple_of(2) {
                 build_from(&inp, &o, &view, Source::Other(&ping), &mut pong);
             } else {
                 build_from(&inp, &o, &view, Source::Other(&pong), &mut ping);

@@ -87,7 +87,7 @@ fn read_input<'m>(mem: &'m DeviceInputs<'_>, address: u64, len: u64, what: &str)
 
 /// The op records of one build: the count, then each command's strided records.
 fn read_ops<'m>(mem: &'m DeviceInputs<'_>, b: &PtlasBuild) -> Option<Ops<'m>> {
-    if b.src_infos_count % 4 != 0 {
+    if !b.src_infos_count.is_multiple_of(4) {
         diag::report(diag::Level::Error, CMD, "srcInfosCount is not aligned to 4 bytes; build skipped");
         return None;
     }
@@ -95,6 +95,10 @@ fn read_ops<'m>(mem: &'m DeviceInputs<'_>, b: &PtlasBuild) -> Option<Ops<'m>> {
     let mut ops = Ops::default();
     if count == 0 {
         return Some(ops);
+    }
+    if count > 3 {
+        diag::report(diag::Level::Error, CMD, &format!("srcInfosCount is {count}: more op records than op types (each may appear once); build skipped"));
+        return None;
     }
     let size = std::mem::size_of::<IndirectCommand>() as u64;
     let infos = read_input(mem, b.src_infos, size * count as u64, "the srcInfos array")?;
@@ -130,32 +134,28 @@ fn overlaps(a: u64, alen: u64, b: u64, blen: u64) -> bool {
     a < b.saturating_add(blen) && b < a.saturating_add(alen)
 }
 
-/// Checks, then runs one build. Returns false when anything was invalid (reported once).
-fn execute(mem: &DeviceInputs<'_>, b: &PtlasBuild) -> bool {
-    for (address, n, what) in [(b.scratch, 10542, "scratchData"), (b.src, 10544, "srcAccelerationStructureData"), (b.dst, 10545, "dstAccelerationStructureData")] {
-        if address % PTLAS_ALIGNMENT != 0 {
-            diag::vuid(&vuid_name(n), CMD, &format!("{what} {address:#x} is not aligned to 256 bytes; build skipped"));
-            return false;
-        }
-    }
-    let Some(ops) = read_ops(mem, b) else { return false };
-    let sizes = ptlas::build_sizes(&b.input);
-    // The source's extent: its header says how many bytes it uses.
+/// A source blob's bytes and its used size.
+type SourceBytes<'m> = Option<(&'m [u8], u64)>;
+
+/// The source's bytes (with its used size) when it is another blob, and how many bytes of dst
+/// the build may use: up to the layout of a grown source, at least `needed`. None: reported.
+fn source_and_destination<'m>(mem: &'m DeviceInputs<'_>, b: &PtlasBuild, needed: u64) -> Option<(SourceBytes<'m>, u64)> {
+    let header_at = |address: u64| mem.view.bytes(address, ptlas::HEADER_SIZE as u64).and_then(ptlas::header);
     let src = if b.src == 0 || b.src == b.dst {
         None
     } else {
-        let used = mem.view.bytes(b.src, ptlas::HEADER_SIZE as u64).and_then(ptlas::header).map(|h| h.used_size);
+        let used = header_at(b.src).map(|h| h.used_size);
         match used.and_then(|u| mem.view.bytes(b.src, u).map(|s| (s, u))) {
             Some(s) => Some(s),
             None => {
                 diag::report(diag::Level::Error, CMD, &format!("srcAccelerationStructureData {:#x} holds no valid partitioned acceleration structure; build skipped", b.src));
-                return false;
+                return None;
             }
         }
     };
     // dst may be laid out for a grown source's capacities: give it what its buffer holds, up to that.
-    let prior = if b.src == b.dst && b.src != 0 { mem.view.bytes(b.dst, ptlas::HEADER_SIZE as u64).and_then(ptlas::header) } else { src.and_then(|(s, _)| ptlas::header(s)) };
-    let mut want = sizes.acceleration_structure_size;
+    let prior = if b.src == 0 { None } else { header_at(b.src) };
+    let mut want = needed;
     if let Some(h) = prior {
         let grown = ptlas::Input {
             instance_count: h.instance_capacity.max(b.input.instance_count),
@@ -167,11 +167,24 @@ fn execute(mem: &DeviceInputs<'_>, b: &PtlasBuild) -> bool {
         want = want.max(ptlas::build_sizes(&grown).acceleration_structure_size);
     }
     let room = mem.space.resolve(b.dst, 1).map(|r| r.buffer.size - r.offset).unwrap_or(0);
-    let dst_len = want.min(room);
-    if dst_len < sizes.acceleration_structure_size {
-        diag::vuid(&vuid_name(10543), CMD, &format!("dstAccelerationStructureData has {room} bytes; the build needs {}; build skipped", sizes.acceleration_structure_size));
-        return false;
+    if room < needed {
+        diag::vuid(&vuid_name(10543), CMD, &format!("dstAccelerationStructureData has {room} bytes; the build needs {needed}; build skipped"));
+        return None;
     }
+    Some((src, want.min(room)))
+}
+
+/// Checks, then runs one build. Returns false when anything was invalid (reported once).
+fn execute(mem: &DeviceInputs<'_>, b: &PtlasBuild) -> bool {
+    for (address, n, what) in [(b.scratch, 10542, "scratchData"), (b.src, 10544, "srcAccelerationStructureData"), (b.dst, 10545, "dstAccelerationStructureData")] {
+        if !address.is_multiple_of(PTLAS_ALIGNMENT) {
+            diag::vuid(&vuid_name(n), CMD, &format!("{what} {address:#x} is not aligned to 256 bytes; build skipped"));
+            return false;
+        }
+    }
+    let Some(ops) = read_ops(mem, b) else { return false };
+    let sizes = ptlas::build_sizes(&b.input);
+    let Some((src, dst_len)) = source_and_destination(mem, b, sizes.acceleration_structure_size) else { return false };
     if let Some((_, used)) = src {
         if overlaps(b.src, used, b.dst, dst_len) {
             diag::vuid(&vuid_name(10549), CMD, "the source and destination structures overlap; build skipped");
