@@ -324,6 +324,8 @@ fn grid_geometry(m: &Mesh) -> Geometry<'_> {
 // One function: each build continues from the state the builds before it left.
 #[test]
 fn ptlas_builds_through_the_loader_match_brute_force_and_a_khr_tlas() {
+    // Diagnostics are per process: the negative test's must not land in this one's.
+    let _serial = serial();
     let mut exts = harness::default_device_extensions();
     exts.push(EXT);
     exts.push("VK_KHR_ray_query");
@@ -424,5 +426,42 @@ fn ptlas_feature_property_and_extension_are_advertised() {
         ctx.instance.get_physical_device_properties2(ctx.physical, &mut p2);
         assert!(p.max_partition_count >= (1 << 24) - 1);
     }
+    ctx.finish();
+}
+
+/// A misaligned destination (VUID 10545) and an op type repeated in srcInfos are reported,
+/// the build skipped, nothing outside the command's regions written, and the queue lives.
+/// Validation off: the inputs are invalid on purpose.
+#[test]
+fn ptlas_invalid_builds_are_reported_and_skipped() {
+    let _serial = serial();
+    let mut exts = harness::default_device_extensions();
+    exts.push(EXT);
+    let ctx = harness::Context::new(harness::Options { validation: false, acceleration_structure: true, device_extensions: exts, ..Default::default() });
+    let a = Accel::new(&ctx);
+    let nv = functions(&ctx);
+    let inp = input(4, 4, 1, 0, std::ptr::null());
+    let mut sizes = vk::AccelerationStructureBuildSizesInfoKHR::default();
+    // SAFETY: valid input and output structs.
+    unsafe { (nv.sizes)(ctx.device.handle(), &inp, &mut sizes) };
+    let (dst, scratch, count_word) = (guarded(&a, sizes.acceleration_structure_size + 256), guarded(&a, sizes.build_scratch_size), guarded(&a, 4));
+    let ops_reg = guarded_data(&a, &[op_record(0, 0, 0, 104), op_record(0, 0, 0, 104)].concat());
+    let snap = snapshot(&a);
+    let mut info = BuildInfo { s_type: 1000570004, p_next: std::ptr::null(), input: inp, src: 0, dst: dst.address(&a) + 64, scratch: scratch.address(&a), src_infos: ops_reg.address(&a), src_infos_count: count_word.address(&a) };
+    let before = harness::diagnostics().len();
+    build(&a, &nv, &info, &count_word, 0, None);
+    let said = harness::diagnostics()[before..].to_string();
+    assert!(said.contains("VUID-vkCmdBuildPartitionedAccelerationStructuresNV-pBuildInfo-10545"), "diagnostics: {said}");
+    info.dst = dst.address(&a);
+    let before = harness::diagnostics().len();
+    build(&a, &nv, &info, &count_word, 2, None);
+    let said = harness::diagnostics()[before..].to_string();
+    assert!(said.contains("srcInfos[1].opType 0 is unknown or repeats"), "diagnostics: {said}");
+    // Only the count word (vkCmdUpdateBuffer) changed; the destination was never written.
+    verify(&a, &snap, &[count_word]);
+    // The queue still works: a valid build (no ops) into the same destination.
+    build(&a, &nv, &info, &count_word, 0, None);
+    assert!(accel::header(&dst.read(&a)).is_some());
+    a.destroy();
     ctx.finish();
 }
