@@ -26,6 +26,7 @@ mod layout;
 mod metrics;
 mod params;
 mod primitive;
+pub mod ptlas;
 mod refit;
 mod traverse;
 mod tree;
@@ -43,7 +44,13 @@ pub use copy::{
 };
 pub use input::{fetch_aabb, fetch_triangle};
 pub use check::Reason as CheckReason;
-pub use layout::{header, mark_invalid, Header};
+pub use layout::{mark_invalid, Header};
+
+/// The header of a valid structure; for a PTLAS (`ptlas`), that of the top-level structure it
+/// embeds, which is what traversal walks.
+pub fn header(bytes: &[u8]) -> Option<Header> {
+    layout::header(ptlas::traversable(bytes).unwrap_or(bytes))
+}
 pub use metrics::{metrics, validate, Metrics};
 pub use traverse::{all_hits, any_hit, closest_hit, intersect_triangle, Hit, HitKind, Ray, RayFlags, RayQuery};
 

@@ -287,6 +287,8 @@ fn make_level<'a>((s, cluster): (Parsed<'a>, Option<Side<'a>>), org: Vec3, dir: 
 
 impl<'a> RayQuery<'a> {
     pub fn new(structure: &'a [u8], view: &'a dyn DeviceView, ray: Ray, flags: RayFlags, cull_mask: u8) -> Self {
+        // A PTLAS is walked through the top-level structure it embeds.
+        let structure = super::ptlas::traversable(structure).unwrap_or(structure);
         let top = clas::open_walkable(structure).map(|s| make_level(s, ray.origin, ray.direction));
         let mut q = RayQuery {
             top,

@@ -15,6 +15,7 @@ pub mod image_cmd;
 pub mod instance;
 pub mod memory;
 pub mod nv_cluster;
+pub mod nv_partitioned;
 pub mod physical_device;
 pub mod pipeline;
 pub mod query;
@@ -61,6 +62,7 @@ pub fn implemented() -> Vec<Implemented> {
     v.extend(sync::commands());
     v.extend(query::commands());
     v.extend(nv_cluster::commands());
+    v.extend(nv_partitioned::commands());
     v
 }
 

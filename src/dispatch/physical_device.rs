@@ -32,6 +32,7 @@ pub const DEVICE_EXTENSIONS: &[(&str, u32)] = &[
     ("VK_KHR_ray_tracing_maintenance1", 1),
     ("VK_KHR_synchronization2", 1),
     ("VK_KHR_timeline_semaphore", 2),
+    (super::nv_partitioned::EXTENSION_NAME, super::nv_partitioned::SPEC_VERSION),
 ];
 
 pub const QUEUE_FAMILY_COUNT: u32 = 1;
@@ -196,7 +197,7 @@ pub unsafe fn fill_feature_struct(s_type: vk::StructureType, p: *mut c_void) -> 
                 util::write_keep_chain(p, vk::PhysicalDeviceShaderDrawParametersFeatures::default())
             }
             s if s == super::nv_cluster::STYPE_FEATURES => super::nv_cluster::write_features(p),
-            _ => return super::core_caps::fill_feature_struct(s_type, p),
+            _ => return super::nv_partitioned::fill_feature_struct(s_type, p) || super::core_caps::fill_feature_struct(s_type, p),
         }
     }
     true
@@ -446,7 +447,7 @@ pub unsafe fn fill_property_struct(s_type: vk::StructureType, p: *mut c_void) ->
                 },
             ),
             s if s == super::nv_cluster::STYPE_PROPERTIES => super::nv_cluster::write_properties(p),
-            _ => return super::core_caps::fill_property_struct(s_type, p),
+            _ => return super::nv_partitioned::fill_property_struct(s_type, p) || super::core_caps::fill_property_struct(s_type, p),
         }
     }
     true

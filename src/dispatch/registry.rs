@@ -5,7 +5,7 @@
 use ash::vk;
 use std::ffi::{c_char, c_void};
 
-use super::table::{void_fn, void_fn_at, Level, Origin, RegistryEntry};
+use super::table::{void_fn, Level, Origin, RegistryEntry};
 
 pub static REGISTRY: &[RegistryEntry] = &[
     RegistryEntry { name: "vkAllocateCommandBuffers", canonical: "vkAllocateCommandBuffers", level: Level::Device, origin: Origin::Core(0), fallback: void_fn!(PFN_vkAllocateCommandBuffers => fallback::allocate_command_buffers) },
@@ -30,7 +30,8 @@ pub static REGISTRY: &[RegistryEntry] = &[
     RegistryEntry { name: "vkCmdBlitImage2KHR", canonical: "vkCmdBlitImage2", level: Level::Device, origin: Origin::Extension("VK_KHR_copy_commands2"), fallback: void_fn!(PFN_vkCmdBlitImage2 => fallback::cmd_blit_image2) },
     RegistryEntry { name: "vkCmdBuildAccelerationStructuresIndirectKHR", canonical: "vkCmdBuildAccelerationStructuresIndirectKHR", level: Level::Device, origin: Origin::Extension("VK_KHR_acceleration_structure"), fallback: void_fn!(PFN_vkCmdBuildAccelerationStructuresIndirectKHR => fallback::cmd_build_acceleration_structures_indirect_khr) },
     RegistryEntry { name: "vkCmdBuildAccelerationStructuresKHR", canonical: "vkCmdBuildAccelerationStructuresKHR", level: Level::Device, origin: Origin::Extension("VK_KHR_acceleration_structure"), fallback: void_fn!(PFN_vkCmdBuildAccelerationStructuresKHR => fallback::cmd_build_acceleration_structures_khr) },
-    RegistryEntry { name: "vkCmdBuildClusterAccelerationStructureIndirectNV", canonical: "vkCmdBuildClusterAccelerationStructureIndirectNV", level: Level::Device, origin: Origin::Extension("VK_NV_cluster_acceleration_structure"), fallback: void_fn_at!(crate::dispatch::nv_cluster::PFN_vkCmdBuildClusterAccelerationStructureIndirectNV => fallback::cmd_build_cluster_acceleration_structure_indirect_nv) },
+    RegistryEntry { name: "vkCmdBuildClusterAccelerationStructureIndirectNV", canonical: "vkCmdBuildClusterAccelerationStructureIndirectNV", level: Level::Device, origin: Origin::Extension("VK_NV_cluster_acceleration_structure"), fallback: void_fn!(@local crate::dispatch::nv_cluster::PFN_vkCmdBuildClusterAccelerationStructureIndirectNV => fallback::cmd_build_cluster_acceleration_structure_indirect_nv) },
+    RegistryEntry { name: "vkCmdBuildPartitionedAccelerationStructuresNV", canonical: "vkCmdBuildPartitionedAccelerationStructuresNV", level: Level::Device, origin: Origin::Extension("VK_NV_partitioned_acceleration_structure"), fallback: void_fn!(@local crate::dispatch::nv_partitioned::PFN_vkCmdBuildPartitionedAccelerationStructuresNV => fallback::cmd_build_partitioned_acceleration_structures_nv) },
     RegistryEntry { name: "vkCmdClearAttachments", canonical: "vkCmdClearAttachments", level: Level::Device, origin: Origin::Core(0), fallback: void_fn!(PFN_vkCmdClearAttachments => fallback::cmd_clear_attachments) },
     RegistryEntry { name: "vkCmdClearColorImage", canonical: "vkCmdClearColorImage", level: Level::Device, origin: Origin::Core(0), fallback: void_fn!(PFN_vkCmdClearColorImage => fallback::cmd_clear_color_image) },
     RegistryEntry { name: "vkCmdClearDepthStencilImage", canonical: "vkCmdClearDepthStencilImage", level: Level::Device, origin: Origin::Core(0), fallback: void_fn!(PFN_vkCmdClearDepthStencilImage => fallback::cmd_clear_depth_stencil_image) },
@@ -164,7 +165,7 @@ pub static REGISTRY: &[RegistryEntry] = &[
     RegistryEntry { name: "vkGetBufferMemoryRequirements2KHR", canonical: "vkGetBufferMemoryRequirements2", level: Level::Device, origin: Origin::Extension("VK_KHR_get_memory_requirements2"), fallback: void_fn!(PFN_vkGetBufferMemoryRequirements2 => fallback::get_buffer_memory_requirements2) },
     RegistryEntry { name: "vkGetBufferOpaqueCaptureAddress", canonical: "vkGetBufferOpaqueCaptureAddress", level: Level::Device, origin: Origin::Core(2), fallback: void_fn!(PFN_vkGetBufferOpaqueCaptureAddress => fallback::get_buffer_opaque_capture_address) },
     RegistryEntry { name: "vkGetBufferOpaqueCaptureAddressKHR", canonical: "vkGetBufferOpaqueCaptureAddress", level: Level::Device, origin: Origin::Extension("VK_KHR_buffer_device_address"), fallback: void_fn!(PFN_vkGetBufferOpaqueCaptureAddress => fallback::get_buffer_opaque_capture_address) },
-    RegistryEntry { name: "vkGetClusterAccelerationStructureBuildSizesNV", canonical: "vkGetClusterAccelerationStructureBuildSizesNV", level: Level::Device, origin: Origin::Extension("VK_NV_cluster_acceleration_structure"), fallback: void_fn_at!(crate::dispatch::nv_cluster::PFN_vkGetClusterAccelerationStructureBuildSizesNV => fallback::get_cluster_acceleration_structure_build_sizes_nv) },
+    RegistryEntry { name: "vkGetClusterAccelerationStructureBuildSizesNV", canonical: "vkGetClusterAccelerationStructureBuildSizesNV", level: Level::Device, origin: Origin::Extension("VK_NV_cluster_acceleration_structure"), fallback: void_fn!(@local crate::dispatch::nv_cluster::PFN_vkGetClusterAccelerationStructureBuildSizesNV => fallback::get_cluster_acceleration_structure_build_sizes_nv) },
     RegistryEntry { name: "vkGetDeferredOperationMaxConcurrencyKHR", canonical: "vkGetDeferredOperationMaxConcurrencyKHR", level: Level::Device, origin: Origin::Extension("VK_KHR_deferred_host_operations"), fallback: void_fn!(PFN_vkGetDeferredOperationMaxConcurrencyKHR => fallback::get_deferred_operation_max_concurrency_khr) },
     RegistryEntry { name: "vkGetDeferredOperationResultKHR", canonical: "vkGetDeferredOperationResultKHR", level: Level::Device, origin: Origin::Extension("VK_KHR_deferred_host_operations"), fallback: void_fn!(PFN_vkGetDeferredOperationResultKHR => fallback::get_deferred_operation_result_khr) },
     RegistryEntry { name: "vkGetDescriptorSetLayoutSupport", canonical: "vkGetDescriptorSetLayoutSupport", level: Level::Device, origin: Origin::Core(1), fallback: void_fn!(PFN_vkGetDescriptorSetLayoutSupport => fallback::get_descriptor_set_layout_support) },
@@ -187,6 +188,7 @@ pub static REGISTRY: &[RegistryEntry] = &[
     RegistryEntry { name: "vkGetImageSparseMemoryRequirements2KHR", canonical: "vkGetImageSparseMemoryRequirements2", level: Level::Device, origin: Origin::Extension("VK_KHR_get_memory_requirements2"), fallback: void_fn!(PFN_vkGetImageSparseMemoryRequirements2 => fallback::get_image_sparse_memory_requirements2) },
     RegistryEntry { name: "vkGetImageSubresourceLayout", canonical: "vkGetImageSubresourceLayout", level: Level::Device, origin: Origin::Core(0), fallback: void_fn!(PFN_vkGetImageSubresourceLayout => fallback::get_image_subresource_layout) },
     RegistryEntry { name: "vkGetInstanceProcAddr", canonical: "vkGetInstanceProcAddr", level: Level::Global, origin: Origin::Core(0), fallback: void_fn!(PFN_vkGetInstanceProcAddr => fallback::get_instance_proc_addr) },
+    RegistryEntry { name: "vkGetPartitionedAccelerationStructuresBuildSizesNV", canonical: "vkGetPartitionedAccelerationStructuresBuildSizesNV", level: Level::Device, origin: Origin::Extension("VK_NV_partitioned_acceleration_structure"), fallback: void_fn!(@local crate::dispatch::nv_partitioned::PFN_vkGetPartitionedAccelerationStructuresBuildSizesNV => fallback::get_partitioned_acceleration_structures_build_sizes_nv) },
     RegistryEntry { name: "vkGetPhysicalDeviceExternalBufferProperties", canonical: "vkGetPhysicalDeviceExternalBufferProperties", level: Level::PhysicalDevice, origin: Origin::Core(1), fallback: void_fn!(PFN_vkGetPhysicalDeviceExternalBufferProperties => fallback::get_physical_device_external_buffer_properties) },
     RegistryEntry { name: "vkGetPhysicalDeviceExternalFenceProperties", canonical: "vkGetPhysicalDeviceExternalFenceProperties", level: Level::PhysicalDevice, origin: Origin::Core(1), fallback: void_fn!(PFN_vkGetPhysicalDeviceExternalFenceProperties => fallback::get_physical_device_external_fence_properties) },
     RegistryEntry { name: "vkGetPhysicalDeviceExternalSemaphoreProperties", canonical: "vkGetPhysicalDeviceExternalSemaphoreProperties", level: Level::PhysicalDevice, origin: Origin::Core(1), fallback: void_fn!(PFN_vkGetPhysicalDeviceExternalSemaphoreProperties => fallback::get_physical_device_external_semaphore_properties) },
@@ -319,6 +321,9 @@ pub mod fallback {
     }
     pub unsafe extern "system" fn cmd_build_cluster_acceleration_structure_indirect_nv(_command_buffer: vk::CommandBuffer, _p_command_infos: *const crate::dispatch::nv_cluster::ClusterAccelerationStructureCommandsInfoNV) {
         crate::diag::unsupported("vkCmdBuildClusterAccelerationStructureIndirectNV");
+    }
+    pub unsafe extern "system" fn cmd_build_partitioned_acceleration_structures_nv(_command_buffer: vk::CommandBuffer, _p_build_info: *const crate::dispatch::nv_partitioned::BuildPartitionedAccelerationStructureInfoNV) {
+        crate::diag::unsupported("vkCmdBuildPartitionedAccelerationStructuresNV");
     }
     pub unsafe extern "system" fn cmd_clear_attachments(_command_buffer: vk::CommandBuffer, _attachment_count: u32, _p_attachments: *const vk::ClearAttachment, _rect_count: u32, _p_rects: *const vk::ClearRect) {
         crate::diag::unsupported("vkCmdClearAttachments");
@@ -817,6 +822,9 @@ pub mod fallback {
     pub unsafe extern "system" fn get_instance_proc_addr(_instance: vk::Instance, _p_name: *const c_char) -> vk::PFN_vkVoidFunction {
         crate::diag::unsupported("vkGetInstanceProcAddr");
         None
+    }
+    pub unsafe extern "system" fn get_partitioned_acceleration_structures_build_sizes_nv(_device: vk::Device, _p_info: *const crate::dispatch::nv_partitioned::PartitionedAccelerationStructureInstancesInputNV, _p_size_info: *mut vk::AccelerationStructureBuildSizesInfoKHR) {
+        crate::diag::unsupported("vkGetPartitionedAccelerationStructuresBuildSizesNV");
     }
     pub unsafe extern "system" fn get_physical_device_external_buffer_properties(_physical_device: vk::PhysicalDevice, _p_external_buffer_info: *const vk::PhysicalDeviceExternalBufferInfo, _p_external_buffer_properties: *mut vk::ExternalBufferProperties) {
         crate::diag::unsupported("vkGetPhysicalDeviceExternalBufferProperties");

@@ -48,20 +48,15 @@ macro_rules! void_fn {
         // to the command's PFN type before calling.
         unsafe { std::mem::transmute::<ash::vk::$pfn, $crate::dispatch::table::VoidFn>(f) }
     }};
-}
-pub(crate) use void_fn;
-
-/// `void_fn_at!(path::PFN_vkFoo => function)`: `void_fn!` for a PFN type defined outside ash
-/// (extensions newer than ash's registry).
-macro_rules! void_fn_at {
-    ($pfn:path => $f:path) => {{
+    // A PFN type ash lacks, defined by Arbor (`@local path::PFN_vkFoo`).
+    (@local $pfn:path => $f:path) => {{
         let f: $pfn = $f;
         // SAFETY: function pointers of any signature have the same size; the loader casts back
         // to the command's PFN type before calling.
         unsafe { std::mem::transmute::<$pfn, $crate::dispatch::table::VoidFn>(f) }
     }};
 }
-pub(crate) use void_fn_at;
+pub(crate) use void_fn;
 
 /// `imp!(PFN_vkFoo => path::to::function)`: an implemented command (see `void_fn!`).
 macro_rules! imp {

@@ -27,12 +27,13 @@ const KNOWN_STALE_VUIDS: &[&str] = &[
     "VUID-vkGetDeviceAccelerationStructureCompatibilityKHR-rayTracingPipeline-03661",
 ];
 
-/// What that layer (Vulkan header 239) says about VK_NV_cluster_acceleration_structure, which
-/// postdates it: only that it does not know it. Each entry is every phrase of one message, matched
-/// exactly: enabling the device extension, and the properties struct's sType in a
-/// VkPhysicalDeviceProperties2 chain. Any other message about the extension still fails a test.
+/// What that layer (Vulkan header 239) says about the NV extensions, which postdate it: only that
+/// it does not know them. Each entry is every phrase of one message, matched exactly: enabling the
+/// device extension, and the cluster properties struct's sType in a VkPhysicalDeviceProperties2
+/// chain. Any other message about the extensions still fails a test.
 const LAYER_PREDATES: &[&[&str]] = &[
     &["Device Extension VK_NV_cluster_acceleration_structure is not supported by this layer"],
+    &["Device Extension VK_NV_partitioned_acceleration_structure is not supported by this layer"],
     &["VUID-VkPhysicalDeviceProperties2-pNext-pNext", "unknown VkStructureType (1000569001)"],
 ];
 

@@ -33,6 +33,7 @@ pub mod build;
 pub mod command;
 pub mod copy;
 pub mod inputs;
+pub mod ptlas;
 pub mod query;
 pub mod validate;
 

@@ -1,0 +1,114 @@
+//! The BVH4 of one partition (over its active instances) and of the top level (over partition
+//! roots and global instances), in the node format of `accel::layout`, quantised by the same
+//! encoder as every other structure. Median splits on the widest centroid axis, keyed by
+//! (centroid, child) so the tree depends only on the set of entries, never on their order.
+//!
+//! Owns: the tree shape of partitions and the top level. Must not touch: instance records.
+use glam::Vec3A;
+
+use crate::accel::encode::quantize::quantize_node;
+use crate::accel::geometry::Aabb;
+use crate::accel::layout::{WideNode, CHILD_INTERNAL};
+
+/// One child to place: a leaf of one instance slot (kind 1) or a subtree root (CHILD_INTERNAL).
+#[derive(Clone, Copy, Debug)]
+pub struct Entry {
+    pub lo: [f32; 3],
+    pub hi: [f32; 3],
+    pub child: u32,
+    pub kind: u8,
+}
+
+impl Entry {
+    fn centroid(&self, a: usize) -> f32 {
+        self.lo[a] * 0.5 + self.hi[a] * 0.5
+    }
+}
+
+fn box_of(entries: &[Entry]) -> Aabb {
+    let mut b = Aabb::EMPTY;
+    for e in entries {
+        b.grow(&e.lo, &e.hi);
+    }
+    b
+}
+
+fn key_cmp(a: &Entry, b: &Entry, axis: usize) -> std::cmp::Ordering {
+    a.centroid(axis).total_cmp(&b.centroid(axis)).then(a.child.cmp(&b.child)).then(a.kind.cmp(&b.kind))
+}
+
+/// Splits at the median of the widest centroid axis: (lower half, upper half).
+fn split(entries: &mut [Entry]) -> (&mut [Entry], &mut [Entry]) {
+    let (mut lo, mut hi) = ([f32::INFINITY; 3], [f32::NEG_INFINITY; 3]);
+    for e in entries.iter() {
+        for a in 0..3 {
+            let c = e.centroid(a);
+            lo[a] = lo[a].min(c);
+            hi[a] = hi[a].max(c);
+        }
+    }
+    let ext = |a: usize| (hi[a] - lo[a]).max(0.0);
+    let axis = if ext(0) >= ext(1) && ext(0) >= ext(2) {
+        0
+    } else if ext(1) >= ext(2) {
+        1
+    } else {
+        2
+    };
+    let mid = entries.len() / 2;
+    entries.select_nth_unstable_by(mid, |a, b| key_cmp(a, b, axis));
+    entries.split_at_mut(mid)
+}
+
+/// Builds the BVH4 over `entries` into `out` (appended), the root at node index `base +
+/// out.len()` on entry; children always get larger indices than their parent. Returns the
+/// root's bounds, or None (nothing appended) when `entries` is empty.
+pub fn build(entries: &mut [Entry], base: u32, out: &mut Vec<WideNode>) -> Option<Aabb> {
+    if entries.is_empty() {
+        return None;
+    }
+    Some(node(entries, base, out))
+}
+
+fn node(entries: &mut [Entry], base: u32, out: &mut Vec<WideNode>) -> Aabb {
+    let me = out.len();
+    out.push(bytemuck::Zeroable::zeroed());
+    let mut groups: Vec<&mut [Entry]> = Vec::with_capacity(4);
+    if entries.len() <= 4 {
+        entries.sort_unstable_by(|a, b| key_cmp(a, b, 0));
+        groups.extend(entries.chunks_mut(1));
+    } else {
+        let (l, r) = split(entries);
+        for half in [l, r] {
+            let (a, b) = split(half);
+            groups.push(a);
+            groups.push(b);
+        }
+    }
+    let mut child = [0u32; 4];
+    let mut kind = [0u8; 4];
+    let mut clo = [Vec3A::ZERO; 4];
+    let mut chi = [Vec3A::ZERO; 4];
+    let mut bounds = Aabb::EMPTY;
+    for (c, g) in groups.into_iter().enumerate() {
+        let b = if g.len() == 1 {
+            child[c] = g[0].child;
+            kind[c] = g[0].kind;
+            box_of(g)
+        } else {
+            child[c] = base + out.len() as u32;
+            kind[c] = CHILD_INTERNAL;
+            node(g, base, out)
+        };
+        clo[c] = Vec3A::from(b.lo);
+        chi[c] = Vec3A::from(b.hi);
+        bounds.grow(&b.lo, &b.hi);
+    }
+    let cnt = kind.iter().filter(|&&k| k != 0).count();
+    for c in cnt..4 {
+        clo[c] = Vec3A::from(bounds.lo);
+        chi[c] = Vec3A::from(bounds.lo);
+    }
+    out[me] = quantize_node(&bounds, &clo, &chi, cnt, &child, &kind);
+    bounds
+}
