@@ -144,7 +144,11 @@ pub fn diff(ray: &TraceRay, a: &Hit, b: &Hit) -> Diff {
     d.instance = a.inst != b.inst || a.custom != b.custom;
     d.geometry = a.geom != b.geom;
     d.t = !close;
-    d.barycentrics = same_triangle && (0..2).any(|k| !((a.bary[k] - b.bary[k]).abs() <= BARY_ABS_TOL));
+    d.barycentrics = same_triangle
+        && (0..2).any(|k| {
+            let e = (a.bary[k] - b.bary[k]).abs();
+            e.is_nan() || e > BARY_ABS_TOL
+        });
     d
 }
 
