@@ -31,7 +31,8 @@ Drivers (default: arbor, the libvulkan_arbor.so beside this program):
   --list               list the devices found and exit
   --compare DRIVER     trace the same rays on arbor and on DRIVER (lavapipe, nvidia) and compare
                        them hit by hit (default workloads: trace-primary, trace-random); exits 3
-                       when any ray mismatches (ties, equally close hits, are no mismatch)
+                       when any ray mismatches (ties, equally close hits, and edge cases,
+                       a hit within 1e-3 of an open edge, are no mismatch)
   --compare-show N     mismatching rays printed per comparison (default 10)
 Scenes (default: bunny):
   --scene LIST         bunny (embedded Stanford bunny), soup (random triangle soup), terrain
