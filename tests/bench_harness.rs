@@ -272,21 +272,23 @@ fn harness_trace_workloads_on_arbor_report_a_positive_rate() {
 }
 
 /// `--compare lavapipe`: the same rays on Arbor and on lavapipe agree hit by hit (exit status 0,
-/// every category 0 in the JSON); skipped when lavapipe or its ray queries are missing.
+/// every category 0 in the JSON), on the bunny and on a TLAS of 200 instances (instance indices
+/// and custom indices); skipped when lavapipe or its ray queries are missing.
 #[test]
 fn harness_compare_with_lavapipe_finds_no_mismatch() {
     if !std::path::Path::new("/usr/share/vulkan/icd.d/lvp_icd.json").exists() {
         eprintln!("SKIPPED: lavapipe is not installed (apt-get install -y -t bookworm-backports mesa-vulkan-drivers)");
         return;
     }
-    let r = run_in("compare", "arbor", &["--compare", "lavapipe", "--rays", TRACE_RAYS, "--repeat", "1", "--warmup", "0", "--threads", "2"]);
+    let args = ["--compare", "lavapipe", "--scene", "instances", "--instances", "200", "--rays", TRACE_RAYS, "--repeat", "1", "--warmup", "0", "--threads", "2"];
+    let r = run_in("compare", "arbor", &args);
     let lvp: Vec<_> = r.results.iter().filter(|f| get(f, "driver") == "lavapipe").collect();
-    assert_eq!(lvp.len(), 2, "{}", r.stdout);
+    assert_eq!(lvp.len(), 4, "{}", r.stdout);
     if lvp.iter().any(|f| get(f, "status") == "not supported") {
         eprintln!("SKIPPED: this lavapipe has no VK_KHR_ray_query (Mesa 25 from bookworm-backports has): {:?}", lvp);
         return;
     }
-    assert_eq!(r.compare.len(), 2, "one comparison per trace workload:\n{}", r.stdout);
+    assert_eq!(r.compare.len(), 4, "one comparison per scene and trace workload:\n{}", r.stdout);
     for c in &r.compare {
         let f = fields_of_compare(c);
         assert_eq!(get(&f, "other"), "lavapipe");
@@ -297,6 +299,8 @@ fn harness_compare_with_lavapipe_finds_no_mismatch() {
         }
     }
     assert!(r.stdout.contains("compare arbor vs lavapipe on bunny trace-primary"), "{}", r.stdout);
+    let inst = r.compare.iter().find(|c| c.contains("\"scene\": \"instances\"")).expect("instances compared");
+    assert!(num(&fields_of_compare(inst), "hits_arbor") > 100.0, "{inst}");
     let _ = std::fs::remove_dir_all(out_dir("compare"));
 }
 
