@@ -2,19 +2,21 @@
 //! --workspace`) on a small scene and checks the table, the JSON and the CSV: every column,
 //! one row per workload, sane values (times > 0, sizes > 0, compacted ≤ size, SAH and node counts
 //! for Arbor). Then the same against lavapipe when it is installed (skipped with a message when
-//! not), where host and indirect builds must read "not supported", not fail.
+//! not), where host and indirect builds must read "not supported", not fail. The trace workloads
+//! (ray queries from a compute shader) on Arbor, and `--compare lavapipe` on the same rays; the
+//! committed SPIR-V of the trace shader against a fresh compile.
 use std::path::PathBuf;
 use std::process::Command;
 
 const WORKLOADS: [&str; 7] = ["fast-trace", "fast-build", "update", "compact", "indirect", "host", "host-deferred"];
-const TABLE_COLUMNS: [&str; 18] = [
+const TABLE_COLUMNS: [&str; 19] = [
     "driver", "threads", "scene", "workload", "prims", "timing", "median ms", "min ms", "max ms", "wall ms", "Mprim/s", "AS size",
-    "compacted", "scratch", "B/prim", "SAH", "nodes", "leaves",
+    "compacted", "scratch", "B/prim", "SAH", "nodes", "leaves", "Mray/s",
 ];
-const FIELDS: [&str; 25] = [
+const FIELDS: [&str; 27] = [
     "driver", "device", "threads", "scene", "workload", "primitives", "status", "reason", "timing", "repeat", "median_ms", "min_ms",
     "max_ms", "wall_median_ms", "wall_min_ms", "wall_max_ms", "mprims_per_s", "as_size", "compacted_size", "scratch_size",
-    "bytes_per_prim", "sah_cost", "node_count", "leaf_count", "note",
+    "bytes_per_prim", "sah_cost", "node_count", "leaf_count", "note", "rays", "mrays_per_s",
 ];
 
 fn bench_exe() -> PathBuf {
@@ -76,6 +78,8 @@ struct Run {
     stdout: String,
     results: Vec<Vec<(String, String)>>,
     csv: String,
+    /// The JSON's "compare" objects (--compare), one per line.
+    compare: Vec<String>,
 }
 
 fn run(driver: &str, extra: &[&str]) -> Run {
@@ -116,7 +120,14 @@ fn run_in(tag: &str, driver: &str, extra: &[&str]) -> Run {
     }
     let svg_text = std::fs::read_to_string(&svg).unwrap();
     assert!(svg_text.starts_with("<svg") && svg_text.trim_end().ends_with("</svg>") && svg_text.contains("<rect"), "{svg_text}");
-    Run { stdout, results, csv: std::fs::read_to_string(&csv).unwrap() }
+    let compare = text
+        .lines()
+        .skip_while(|l| !l.contains("\"compare\""))
+        .skip(1)
+        .take_while(|l| l.trim_start().starts_with('{'))
+        .map(|l| l.trim().trim_end_matches(',').to_string())
+        .collect();
+    Run { stdout, results, csv: std::fs::read_to_string(&csv).unwrap(), compare }
 }
 
 fn check_common(r: &Run, driver: &str) {
@@ -234,4 +245,94 @@ fn harness_efficiency_against_concurrent_single_thread_builds() {
     let base: f64 = note.split("median of their medians ").nth(1).and_then(|s| s.split(' ').next()).and_then(|v| v.parse().ok()).expect("baseline median");
     assert!(base > 0.0, "{note}");
     let _ = std::fs::remove_dir_all(out_dir("efficiency"));
+}
+
+const TRACE_RAYS: &str = "16384";
+
+/// The trace workloads on Arbor: one row each, with the rays asked for, a positive rate in the
+/// table and the JSON, and hits (the bunny fills a good part of the primary camera's view).
+#[test]
+fn harness_trace_workloads_on_arbor_report_a_positive_rate() {
+    let r = run_in("trace", "arbor", &["--workloads", "trace-primary,trace-random", "--rays", TRACE_RAYS, "--threads", "2"]);
+    assert!(r.stdout.lines().next().unwrap().contains("Mray/s"), "{}", r.stdout);
+    assert_eq!(r.results.len(), 2, "{}", r.stdout);
+    for (res, w) in r.results.iter().zip(["trace-primary", "trace-random"]) {
+        assert_eq!(get(res, "workload"), w);
+        assert_eq!(get(res, "status"), "ok", "{res:?}");
+        assert_eq!(get(res, "rays"), TRACE_RAYS, "{res:?}");
+        assert!(num(res, "mrays_per_s") > 0.0 && num(res, "median_ms") > 0.0, "{res:?}");
+        assert_eq!(get(res, "mprims_per_s"), "null", "a trace row has no build rate: {res:?}");
+        let pct: f64 = get(res, "note").split("rays, ").nth(1).and_then(|s| s.split('%').next()).and_then(|v| v.parse().ok()).expect("hit rate");
+        assert!(pct > 5.0 && pct < 100.0, "hit rate {pct} %: {res:?}");
+        let line = r.stdout.lines().find(|l| l.split_whitespace().nth(3) == Some(w)).expect("table line");
+        let rate: f64 = line.split_whitespace().last().unwrap().parse().unwrap_or_else(|_| panic!("no Mray/s in {line}"));
+        assert!(rate > 0.0, "{line}");
+    }
+    let _ = std::fs::remove_dir_all(out_dir("trace"));
+}
+
+/// `--compare lavapipe`: the same rays on Arbor and on lavapipe agree hit by hit (exit status 0,
+/// every category 0 in the JSON), on the bunny and on a TLAS of 200 instances (instance indices
+/// and custom indices); skipped when lavapipe or its ray queries are missing.
+#[test]
+fn harness_compare_with_lavapipe_finds_no_mismatch() {
+    if !std::path::Path::new("/usr/share/vulkan/icd.d/lvp_icd.json").exists() {
+        eprintln!("SKIPPED: lavapipe is not installed (apt-get install -y -t bookworm-backports mesa-vulkan-drivers)");
+        return;
+    }
+    let args = ["--compare", "lavapipe", "--scene", "instances", "--instances", "200", "--rays", TRACE_RAYS, "--repeat", "1", "--warmup", "0", "--threads", "2"];
+    let r = run_in("compare", "arbor", &args);
+    let lvp: Vec<_> = r.results.iter().filter(|f| get(f, "driver") == "lavapipe").collect();
+    assert_eq!(lvp.len(), 4, "{}", r.stdout);
+    if lvp.iter().any(|f| get(f, "status") == "not supported") {
+        eprintln!("SKIPPED: this lavapipe has no VK_KHR_ray_query (Mesa 25 from bookworm-backports has): {:?}", lvp);
+        return;
+    }
+    assert_eq!(r.compare.len(), 4, "one comparison per scene and trace workload:\n{}", r.stdout);
+    for c in &r.compare {
+        let f = fields_of_compare(c);
+        assert_eq!(get(&f, "other"), "lavapipe");
+        assert_eq!(get(&f, "rays"), TRACE_RAYS);
+        assert!(num(&f, "hits_arbor") > 0.0 && num(&f, "hits_arbor") == num(&f, "hits_other"), "{c}");
+        for k in ["mismatches", "hit_miss", "primitive", "instance", "geometry", "t", "barycentrics"] {
+            assert_eq!(num(&f, k), 0.0, "{k}: {c}\n{}", r.stdout);
+        }
+    }
+    assert!(r.stdout.contains("compare arbor vs lavapipe on bunny trace-primary"), "{}", r.stdout);
+    let inst = r.compare.iter().find(|c| c.contains("\"scene\": \"instances\"")).expect("instances compared");
+    assert!(num(&fields_of_compare(inst), "hits_arbor") > 100.0, "{inst}");
+    let _ = std::fs::remove_dir_all(out_dir("compare"));
+}
+
+/// The flat fields of a comparison object (before its nested "first" list).
+fn fields_of_compare(obj: &str) -> Vec<(String, String)> {
+    let flat = obj.split(", \"first\"").next().unwrap();
+    fields(&format!("{flat}}}"))
+}
+
+/// bench/shaders/trace.spv is what glslang makes of trace.comp today (when the glslang recorded
+/// in bench/shaders/README.md is installed; another version may emit other, equally valid words).
+#[test]
+fn trace_shader_spirv_matches_its_source() {
+    let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("bench/shaders");
+    let Ok(v) = Command::new("glslangValidator").arg("--version").output() else {
+        eprintln!("SKIPPED: glslangValidator is not installed");
+        return;
+    };
+    let version = String::from_utf8_lossy(&v.stdout).lines().next().unwrap_or("").trim().to_string();
+    let out = out_dir("spirv").join("trace.spv");
+    let r = Command::new("glslangValidator").args(["-V", "--target-env", "vulkan1.2", "-o"]).arg(&out).arg(dir.join("trace.comp")).output().unwrap();
+    assert!(r.status.success(), "{}", String::from_utf8_lossy(&r.stdout));
+    let fresh = std::fs::read(&out).unwrap();
+    let committed = std::fs::read(dir.join("trace.spv")).unwrap();
+    let recorded = std::fs::read_to_string(dir.join("README.md")).unwrap();
+    if fresh != committed {
+        assert!(
+            !recorded.contains(&format!("glslang: {version}")),
+            "bench/shaders/trace.spv is stale: regenerate it (bench/shaders/README.md)"
+        );
+        eprintln!("SKIPPED: {version} differs from the glslang recorded in bench/shaders/README.md");
+    }
+    assert_eq!(u32::from_le_bytes(committed[..4].try_into().unwrap()), 0x0723_0203, "SPIR-V magic");
+    let _ = std::fs::remove_dir_all(out_dir("spirv"));
 }

@@ -1,6 +1,7 @@
 //! arbor-bench: runs acceleration-structure workloads through the Vulkan loader on any installed
 //! driver (Arbor by default: the library built beside this program) and reports build times,
 //! sizes and, for Arbor, SAH cost and node counts. `arbor-bench --help` lists the options.
+mod compare;
 mod png;
 mod render;
 mod report;
@@ -28,6 +29,11 @@ Drivers (default: arbor, the libvulkan_arbor.so beside this program):
   --icd PATH           another driver's manifest (repeatable)
   --threads N          ARBOR_THREADS for Arbor (its worker pool size)
   --list               list the devices found and exit
+  --compare DRIVER     trace the same rays on arbor and on DRIVER (lavapipe, nvidia) and compare
+                       them hit by hit (default workloads: trace-primary, trace-random); exits 3
+                       when any ray mismatches (ties, equally close hits, and edge cases,
+                       a hit within 1e-3 of an open edge, are no mismatch)
+  --compare-show N     mismatching rays printed per comparison (default 10)
 Scenes (default: bunny):
   --scene LIST         bunny (embedded Stanford bunny), soup (random triangle soup), terrain
                        (tessellated heightfield), instances (TLAS of instances over 3 BLASes), all
@@ -38,7 +44,10 @@ Scenes (default: bunny):
 Workloads (default: all; unsupported ones are reported as \"not supported\"):
   --workloads LIST     fast-trace, fast-build, update, compact, indirect, host, host-deferred;
                        also lib-fast-trace, lib-fast-build (Arbor: arbor::accel::build called
-                       directly, no Vulkan: the library's share of the driver's time)
+                       directly, no Vulkan: the library's share of the driver's time);
+                       trace-primary, trace-random (ray queries from a compute shader over the
+                       scene's TLAS, Mrays/s; not in the default set)
+  --rays N             rays per trace workload (default 1000000)
   --repeat N           timed runs per workload (default 5), after --warmup N (default 1)
   --joiners N          threads joining deferred host builds (default: all cores)
   --no-metrics         skip Arbor's serialize + SAH/node metrics
@@ -60,6 +69,9 @@ struct Args {
     icds: Vec<PathBuf>,
     threads: Option<usize>,
     list: bool,
+    compare: Option<String>,
+    compare_show: usize,
+    rays: usize,
     scenes: Vec<String>,
     meshes: Vec<PathBuf>,
     soup: usize,
@@ -123,6 +135,9 @@ impl Args {
             icds: Vec::new(),
             threads: None,
             list: false,
+            compare: None,
+            compare_show: 10,
+            rays: 1_000_000,
             scenes: Vec::new(),
             meshes: Vec::new(),
             soup: 1_000_000,
@@ -150,6 +165,8 @@ impl Args {
             "--icd" => self.icds.push(PathBuf::from(value("--icd")?)),
             "--threads" => self.threads = Some(num("--threads", value("--threads")?)?.max(1)),
             "--list" => self.list = true,
+            "--compare" => self.compare = Some(value("--compare")?),
+            "--compare-show" => self.compare_show = num("--compare-show", value("--compare-show")?)?,
             _ => return Ok(false),
         }
         Ok(true)
@@ -180,6 +197,7 @@ impl Args {
             }
             "--repeat" => self.repeat = num("--repeat", value("--repeat")?)?.max(1),
             "--warmup" => self.warmup = num("--warmup", value("--warmup")?)?,
+            "--rays" => self.rays = num("--rays", value("--rays")?)?.max(1),
             "--joiners" => self.joiners = num("--joiners", value("--joiners")?)?.max(1),
             "--no-metrics" => self.metrics = false,
             "--efficiency" => self.efficiency = true,
@@ -214,6 +232,19 @@ impl Args {
 
     /// The defaults that depend on what was given (workloads, drivers, scenes), and "all".
     fn complete(&mut self) -> Result<(), String> {
+        if let Some(other) = &self.compare {
+            if other == "arbor" || !["lavapipe", "nvidia"].contains(&other.as_str()) {
+                return Err(format!("--compare {other}: lavapipe or nvidia"));
+            }
+            for d in ["arbor".to_string(), other.clone()] {
+                if !self.drivers.contains(&d) {
+                    self.drivers.push(d);
+                }
+            }
+            if self.workloads.is_empty() {
+                self.workloads.extend(work::Workload::TRACE);
+            }
+        }
         if self.workloads.is_empty() {
             self.workloads.extend(Workload::ALL);
         }
@@ -337,7 +368,7 @@ fn main() {
         }
     };
     match run(&args, &argv) {
-        Ok(failed) => std::process::exit(if failed { 1 } else { 0 }),
+        Ok(code) => std::process::exit(code),
         Err(e) => {
             eprintln!("arbor-bench: {e}");
             std::process::exit(1);
@@ -345,8 +376,8 @@ fn main() {
     }
 }
 
-/// Returns whether any workload failed.
-fn run(args: &Args, argv: &[String]) -> Result<bool, String> {
+/// Returns the exit status: 1 when any workload failed, 3 when --compare found mismatches.
+fn run(args: &Args, argv: &[String]) -> Result<i32, String> {
     let cores = std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1);
     let arbor_threads = set_threads(args, cores);
     let (joined, wanted) = select_drivers(args)?;
@@ -354,7 +385,8 @@ fn run(args: &Args, argv: &[String]) -> Result<bool, String> {
 
     // SAFETY: loading the system Vulkan loader.
     let entry = unsafe { ash::Entry::load() }.map_err(|e| format!("cannot load libvulkan.so.1 ({e}); install libvulkan1"))?;
-    let app = vk::ApplicationInfo::default().application_name(c"arbor-bench").api_version(vk::API_VERSION_1_1);
+    // 1.2: the trace shader is SPIR-V 1.5, and VK_KHR_ray_query needs SPIR-V 1.4.
+    let app = vk::ApplicationInfo::default().application_name(c"arbor-bench").api_version(vk::API_VERSION_1_2);
     // SAFETY: valid create info.
     let instance = unsafe { entry.create_instance(&vk::InstanceCreateInfo::default().application_info(&app), None) }
         .map_err(|e| format!("vkCreateInstance: {e} (manifests: {})", joined.to_string_lossy()))?;
@@ -365,7 +397,7 @@ fn run(args: &Args, argv: &[String]) -> Result<bool, String> {
         }
         // SAFETY: no child objects.
         unsafe { instance.destroy_instance(None) };
-        return Ok(false);
+        return Ok(0);
     }
     let mut meta = report::Meta {
         command: std::iter::once("arbor-bench".to_string()).chain(argv.iter().cloned()).collect::<Vec<_>>().join(" "),
@@ -380,8 +412,41 @@ fn run(args: &Args, argv: &[String]) -> Result<bool, String> {
     unsafe { instance.destroy_instance(None) };
 
     print!("{}", report::table(&measured.rows));
-    let render_failed = write_outputs(args, &meta, &scenes, &measured, render_scene)?;
-    Ok(measured.failed || render_failed)
+    let comparisons = match &args.compare {
+        Some(other) => compare_drivers(&measured.rows, other, args.compare_show),
+        None => Vec::new(),
+    };
+    let render_failed = write_outputs(args, &meta, &scenes, &measured, render_scene, &comparisons)?;
+    Ok(if measured.failed || render_failed {
+        1
+    } else if comparisons.iter().any(|c| c.mismatches > 0) {
+        3
+    } else {
+        0
+    })
+}
+
+/// Arbor's trace rows against `other`'s of the same scene and workload, printed below the table.
+fn compare_drivers(rows: &[work::Row], other: &str, show: usize) -> Vec<compare::Comparison> {
+    let mut out = Vec::new();
+    for a in rows.iter().filter(|r| r.driver == "arbor") {
+        let Some(ha) = &a.hits else { continue };
+        let Some(b) = rows.iter().find(|r| r.driver == other && r.scene == a.scene && r.workload == a.workload) else {
+            println!("compare: no {other} row for {} {}", a.scene, a.workload);
+            continue;
+        };
+        let Some(hb) = &b.hits else {
+            println!("compare: {other} did not trace {} {} ({:?})", a.scene, a.workload, b.status);
+            continue;
+        };
+        let mut c = compare::compare(&ha.rays, &ha.hits, &hb.hits, show);
+        c.scene = a.scene.clone();
+        c.workload = a.workload.clone();
+        c.other = other.to_string();
+        print!("{}", c.text());
+        out.push(c);
+    }
+    out
 }
 
 /// --threads into the environment Arbor and this process's rayon pool read; returns the size of
@@ -478,7 +543,15 @@ fn measure(
     render_scene: Option<&String>,
     meta: &mut report::Meta,
 ) -> Measured {
-    let opts = work::Options { repeat: args.repeat, warmup: args.warmup, joiners: args.joiners, metrics: args.metrics, efficiency: args.efficiency };
+    let opts = work::Options {
+        repeat: args.repeat,
+        warmup: args.warmup,
+        joiners: args.joiners,
+        metrics: args.metrics,
+        efficiency: args.efficiency,
+        rays: args.rays,
+        keep_hits: args.compare.is_some(),
+    };
     let total = devices.len() * scenes.len() * args.workloads.len();
     let mut step = 0usize;
     let tty = std::io::stderr().is_terminal();
@@ -544,7 +617,14 @@ fn announce_driver(args: &Args, meta: &mut report::Meta, label: &str, gpu: &vkct
 }
 
 /// The files asked for (JSON, CSV, SVG, PNG); returns whether --render had nothing to render.
-fn write_outputs(args: &Args, meta: &report::Meta, scenes: &[Scene], measured: &Measured, render_scene: Option<String>) -> Result<bool, String> {
+fn write_outputs(
+    args: &Args,
+    meta: &report::Meta,
+    scenes: &[Scene],
+    measured: &Measured,
+    render_scene: Option<String>,
+    comparisons: &[compare::Comparison],
+) -> Result<bool, String> {
     let rows = &measured.rows;
     let write = |path: &Path, data: &[u8]| -> Result<(), String> {
         std::fs::write(path, data).map_err(|e| format!("{}: {e}", path.display()))?;
@@ -554,7 +634,9 @@ fn write_outputs(args: &Args, meta: &report::Meta, scenes: &[Scene], measured: &
         Ok(())
     };
     if let Some(p) = &args.json {
-        write(p, report::json(meta, rows).as_bytes())?;
+        let compared: Vec<String> = comparisons.iter().map(|c| c.json()).collect();
+        let extra = if args.compare.is_some() { vec![("compare", compared)] } else { Vec::new() };
+        write(p, report::json_with(meta, rows, &extra).as_bytes())?;
     }
     if let Some(p) = &args.csv {
         write(p, report::csv(rows).as_bytes())?;

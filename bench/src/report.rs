@@ -4,16 +4,16 @@ use std::fmt::Write as _;
 use crate::work::{Row, Stats, Status};
 
 /// Columns of the terminal table, in order (tests check every one is there).
-pub const TABLE_COLUMNS: [&str; 18] = [
+pub const TABLE_COLUMNS: [&str; 19] = [
     "driver", "threads", "scene", "workload", "prims", "timing", "median ms", "min ms", "max ms", "wall ms", "Mprim/s", "AS size",
-    "compacted", "scratch", "B/prim", "SAH", "nodes", "leaves",
+    "compacted", "scratch", "B/prim", "SAH", "nodes", "leaves", "Mray/s",
 ];
 
 /// Keys of each JSON result object and CSV columns, in order.
-pub const FIELDS: [&str; 25] = [
+pub const FIELDS: [&str; 27] = [
     "driver", "device", "threads", "scene", "workload", "primitives", "status", "reason", "timing", "repeat", "median_ms", "min_ms",
     "max_ms", "wall_median_ms", "wall_min_ms", "wall_max_ms", "mprims_per_s", "as_size", "compacted_size", "scratch_size",
-    "bytes_per_prim", "sah_cost", "node_count", "leaf_count", "note",
+    "bytes_per_prim", "sah_cost", "node_count", "leaf_count", "note", "rays", "mrays_per_s",
 ];
 
 pub fn fmt_bytes(b: u64) -> String {
@@ -40,7 +40,7 @@ fn fmt_ms(v: f64) -> String {
 
 pub fn bytes_per_prim(r: &Row) -> Option<f64> {
     let b = r.compacted_size.unwrap_or(r.as_size);
-    (r.status == Status::Ok && b > 0 && r.primitives > 0).then(|| b as f64 / r.primitives as f64)
+    (r.status == Status::Ok && b > 0 && r.primitives > 0 && r.rays == 0).then(|| b as f64 / r.primitives as f64)
 }
 
 fn cells(r: &Row) -> Vec<String> {
@@ -62,6 +62,7 @@ fn cells(r: &Row) -> Vec<String> {
             c.push(r.sah.map(|s| format!("{s:.2}")).unwrap_or_else(dash));
             c.push(r.nodes.map(|s| s.to_string()).unwrap_or_else(dash));
             c.push(r.leaves.map(|s| s.to_string()).unwrap_or_else(dash));
+            c.push(r.mrays_per_s().map(|m| format!("{m:.3}")).unwrap_or_else(dash));
         }
         Status::NotSupported(_) | Status::Failed(_) => {
             c.push(dash());
@@ -200,6 +201,8 @@ fn values(r: &Row) -> Vec<(String, String)> {
         n(r.nodes.map(|v| v as f64)),
         n(r.leaves.map(|v| v as f64)),
         s(&r.note),
+        n((r.rays > 0).then_some(r.rays as f64)),
+        n(if ok { r.mrays_per_s() } else { None }),
     ]
 }
 
@@ -219,6 +222,25 @@ pub struct Meta {
     pub drivers: Vec<(String, String, String, bool, bool, bool)>,
     /// (name, primitives, description)
     pub scenes: Vec<(String, u64, String)>,
+}
+
+/// The JSON report with extra top-level arrays after "results": (key, preformatted objects).
+pub fn json_with(meta: &Meta, rows: &[Row], extra: &[(&str, Vec<String>)]) -> String {
+    let mut o = json(meta, rows);
+    if extra.is_empty() {
+        return o;
+    }
+    o.truncate(o.len() - "\n}\n".len());
+    for (key, objects) in extra {
+        let _ = write!(o, ",\n  {}: [", json_str(key));
+        for (i, obj) in objects.iter().enumerate() {
+            o.push_str(if i == 0 { "\n    " } else { ",\n    " });
+            o.push_str(obj);
+        }
+        o.push_str(if objects.is_empty() { "]" } else { "\n  ]" });
+    }
+    o.push_str("\n}\n");
+    o
 }
 
 pub fn json(meta: &Meta, rows: &[Row]) -> String {

@@ -19,6 +19,8 @@ pub struct Caps {
     pub timestamp_period_ns: f64,
     pub max_primitive_count: u64,
     pub max_instance_count: u64,
+    /// VK_KHR_ray_query with its rayQuery feature (the trace workloads).
+    pub ray_query: bool,
     /// Why the AS work cannot run at all (extension or feature missing).
     pub missing: Option<String>,
 }
@@ -96,6 +98,7 @@ impl Gpu {
             .collect();
         let has = |e: &str| exts.iter().any(|x| x == e);
         let mut caps = as_caps(instance, physical, &has);
+        caps.ray_query = caps.acceleration_structure && props.api_version >= vk::API_VERSION_1_2 && ray_query_feature(instance, physical, &has);
         let family = compute_family(instance, physical, &props, &mut caps)?;
         let device = create_device(instance, physical, family, &caps, &has)?;
         // SAFETY: a live device; everything created here is destroyed by `destroy`.
@@ -370,6 +373,18 @@ fn as_caps(instance: &ash::Instance, physical: vk::PhysicalDevice, has: &dyn Fn(
     caps
 }
 
+/// Whether the driver offers VK_KHR_ray_query with its rayQuery feature.
+fn ray_query_feature(instance: &ash::Instance, physical: vk::PhysicalDevice, has: &dyn Fn(&str) -> bool) -> bool {
+    if !has("VK_KHR_ray_query") {
+        return false;
+    }
+    let mut rq = vk::PhysicalDeviceRayQueryFeaturesKHR::default();
+    let mut f2 = vk::PhysicalDeviceFeatures2::default().push_next(&mut rq);
+    // SAFETY: plain query into a valid chain (the extension is offered).
+    unsafe { instance.get_physical_device_features2(physical, &mut f2) };
+    rq.ray_query == vk::TRUE
+}
+
 /// The first queue family with compute (AS builds are compute-queue commands); its timestamp
 /// support goes into `caps`.
 fn compute_family(instance: &ash::Instance, physical: vk::PhysicalDevice, props: &vk::PhysicalDeviceProperties, caps: &mut Caps) -> Result<u32, String> {
@@ -408,6 +423,9 @@ fn create_device(
             }
         }
     }
+    if caps.ray_query {
+        names.push(ash::khr::ray_query::NAME);
+    }
     let name_ptrs: Vec<*const std::ffi::c_char> = names.iter().map(|c| c.as_ptr()).collect();
     let prio = [1.0f32];
     let qci = [vk::DeviceQueueCreateInfo::default().queue_family_index(family).queue_priorities(&prio)];
@@ -419,6 +437,10 @@ fn create_device(
     let mut dci = vk::DeviceCreateInfo::default().queue_create_infos(&qci).enabled_extension_names(&name_ptrs);
     if caps.acceleration_structure {
         dci = dci.push_next(&mut asf_on).push_next(&mut bda_on);
+    }
+    let mut rq_on = vk::PhysicalDeviceRayQueryFeaturesKHR::default().ray_query(true);
+    if caps.ray_query {
+        dci = dci.push_next(&mut rq_on);
     }
     // SAFETY: valid create info; the caller destroys the device (`Gpu::destroy`).
     unsafe { instance.create_device(physical, &dci, None) }.map_err(vk_err("vkCreateDevice"))

@@ -1,11 +1,12 @@
 //! Scenes and acceleration-structure workloads: device builds (PREFER_FAST_TRACE,
 //! PREFER_FAST_BUILD), refit updates, compaction, indirect builds, host builds (plain and deferred,
-//! joined by N threads), and Arbor's library called directly. Each returns one report row; features
-//! a driver lacks give a "not supported" row.
+//! joined by N threads), Arbor's library called directly, and ray-query trace workloads. Each
+//! returns one report row; features a driver lacks give a "not supported" row.
 mod device;
 mod host;
 mod inputs;
 mod library;
+pub mod trace;
 
 use arbor_scene::{InstanceRecord, Mesh};
 
@@ -56,6 +57,9 @@ pub enum Workload {
     /// split the driver's time into library build and API overhead.
     LibFastTrace,
     LibFastBuild,
+    /// Ray queries from a compute shader over the scene's TLAS: primary camera rays, random rays.
+    TracePrimary,
+    TraceRandom,
 }
 
 impl Workload {
@@ -68,6 +72,8 @@ impl Workload {
         Workload::Host,
         Workload::HostDeferred,
     ];
+    /// The trace workloads (not in ALL: they measure rays, not builds).
+    pub const TRACE: [Workload; 2] = [Workload::TracePrimary, Workload::TraceRandom];
     pub fn name(self) -> &'static str {
         match self {
             Workload::FastTrace => "fast-trace",
@@ -79,10 +85,12 @@ impl Workload {
             Workload::HostDeferred => "host-deferred",
             Workload::LibFastTrace => "lib-fast-trace",
             Workload::LibFastBuild => "lib-fast-build",
+            Workload::TracePrimary => "trace-primary",
+            Workload::TraceRandom => "trace-random",
         }
     }
     pub fn parse(s: &str) -> Option<Workload> {
-        Workload::ALL.iter().chain(&[Workload::LibFastTrace, Workload::LibFastBuild]).copied().find(|w| w.name() == s)
+        Workload::ALL.iter().chain(&[Workload::LibFastTrace, Workload::LibFastBuild]).chain(&Workload::TRACE).copied().find(|w| w.name() == s)
     }
 }
 
@@ -135,12 +143,20 @@ pub struct Row {
     pub nodes: Option<u64>,
     pub leaves: Option<u64>,
     pub note: String,
+    /// Trace workloads: rays per dispatch (0 for the others).
+    pub rays: u64,
+    /// Trace workloads under --compare: the rays and their hits.
+    pub hits: Option<std::sync::Arc<trace::Capture>>,
 }
 
 impl Row {
     pub fn mprims_per_s(&self) -> Option<f64> {
         let t = self.time?.median;
-        (t > 0.0).then(|| self.primitives as f64 / (t * 1e-3) / 1e6)
+        (t > 0.0 && self.rays == 0).then(|| self.primitives as f64 / (t * 1e-3) / 1e6)
+    }
+    pub fn mrays_per_s(&self) -> Option<f64> {
+        let t = self.time?.median;
+        (t > 0.0 && self.rays > 0).then(|| self.rays as f64 / (t * 1e-3) / 1e6)
     }
 }
 
@@ -163,6 +179,9 @@ pub struct Options {
     pub metrics: bool,
     /// lib-* rows: also the loaded single-thread baseline and the parallel efficiency.
     pub efficiency: bool,
+    /// Trace workloads: rays per dispatch; keep the hits in the row (--compare).
+    pub rays: usize,
+    pub keep_hits: bool,
 }
 
 /// Runs the chosen workloads of one scene on one device. `progress` is called before each.
@@ -231,6 +250,8 @@ fn base_row(gpu: &Gpu, threads: &str, scene: &Scene, opts: &Options) -> Row {
         nodes: None,
         leaves: None,
         note: String::new(),
+        rays: 0,
+        hits: None,
     }
 }
 
@@ -268,6 +289,7 @@ fn run_workload(
             }
         }
         Workload::LibFastTrace | Workload::LibFastBuild => library::library_build(gpu, scene, w, opts, row),
+        Workload::TracePrimary | Workload::TraceRandom => trace::trace(gpu, inputs, scene, w, opts, row),
         Workload::Host | Workload::HostDeferred => {
             if !gpu.caps.host_commands {
                 row.status = Status::NotSupported("accelerationStructureHostCommands = false".into());

@@ -28,12 +28,15 @@ pub(super) struct Slot<'a> {
 }
 
 /// The ray queries of one lane group: per lane, (query address, state). Shaders use one or
-/// two queries, so a short list beats a map.
-pub(super) struct Queries<'a>([Vec<(u64, Slot<'a>)>; LANES]);
+/// two queries, so a short list beats a map. Also the last structure an Initialize resolved and
+/// found valid, (address, bytes): every ray of a dispatch usually names the same one, and the
+/// memory view's lookup takes a lock shared by all worker threads. Its bytes stay valid for the
+/// whole dispatch (`'a`), across workgroups.
+pub(super) struct Queries<'a>([Vec<(u64, Slot<'a>)>; LANES], Option<(u64, &'a [u8])>);
 
 impl<'a> Queries<'a> {
     pub fn new() -> Self {
-        Queries(std::array::from_fn(|_| Vec::new()))
+        Queries(std::array::from_fn(|_| Vec::new()), None)
     }
 
     /// Forgets every query (a new workgroup starts with none initialised).
@@ -67,7 +70,7 @@ pub(super) fn exec_ray_query<'a>(ctx: &Ctx<'a>, group: &mut Group<'a>, wg: &mut 
     for l in (0..LANES).filter(|&l| (mask >> l) & 1 != 0) {
         let at = group.regs[op.query as usize][l];
         if op.kind == RqKind::Initialize {
-            let slot = initialize(ctx, group, wg, op, l);
+            let slot = initialize(ctx, &mut *group, wg, op, l);
             group.queries.set(l, at, slot);
             continue;
         }
@@ -103,7 +106,7 @@ pub(super) fn exec_ray_query<'a>(ctx: &Ctx<'a>, group: &mut Group<'a>, wg: &mut 
 
 /// OpRayQueryInitializeKHR for lane `l`: resolves the structure (faulting when it cannot) and
 /// starts a traversal, which finds nothing when the structure is missing.
-fn initialize<'a>(ctx: &Ctx<'a>, group: &Group<'a>, wg: &mut Wg, op: &RayQueryOp, l: usize) -> Slot<'a> {
+fn initialize<'a>(ctx: &Ctx<'a>, group: &mut Group<'a>, wg: &mut Wg, op: &RayQueryOp, l: usize) -> Slot<'a> {
     let a = |k: usize| group.regs[op.args[k] as usize][l];
     let f = |k: usize| f32::from_bits(a(k) as u32);
     let address = a(0);
@@ -112,6 +115,9 @@ fn initialize<'a>(ctx: &Ctx<'a>, group: &Group<'a>, wg: &mut Wg, op: &RayQueryOp
     let cull = a(2) as u8;
     let ray = Ray { origin: Vec3::new(f(3), f(4), f(5)), tmin: f(6), direction: Vec3::new(f(7), f(8), f(9)), tmax: f(10) };
     let view: &'a dyn DeviceView = ctx.mem.acceleration_structures().unwrap_or(&NoDevice);
+    if let Some((_, bytes)) = group.queries.1.filter(|(at, _)| *at == address) {
+        return Slot { q: RayQuery::new(bytes, view, ray, RayFlags(flags), cull), ray, flags, candidate: None };
+    }
     let bytes: &'a [u8] = match view.acceleration_structure(address) {
         None => {
             fault(wg, group.index, l, FaultKind::Unmapped, address);
@@ -121,7 +127,10 @@ fn initialize<'a>(ctx: &Ctx<'a>, group: &Group<'a>, wg: &mut Wg, op: &RayQueryOp
             fault(wg, group.index, l, FaultKind::InvalidStructure, address);
             &[]
         }
-        Some(b) => b,
+        Some(b) => {
+            group.queries.1 = Some((address, b));
+            b
+        }
     };
     Slot { q: RayQuery::new(bytes, view, ray, RayFlags(flags), cull), ray, flags, candidate: None }
 }
