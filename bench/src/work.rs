@@ -2,6 +2,7 @@
 //! PREFER_FAST_BUILD), refit updates, compaction, indirect builds, host builds (plain and deferred,
 //! joined by N threads), and Arbor's library called directly. Each returns one report row; features
 //! a driver lacks give a "not supported" row.
+pub mod compute;
 mod device;
 mod host;
 mod inputs;
@@ -56,6 +57,11 @@ pub enum Workload {
     /// split the driver's time into library build and API overhead.
     LibFastTrace,
     LibFastBuild,
+    /// Compute shaders (once per device, no scene): see `compute`.
+    ComputeAlu,
+    ComputeMemory,
+    ComputeDivergent,
+    ComputeFirstDispatch,
 }
 
 impl Workload {
@@ -79,10 +85,19 @@ impl Workload {
             Workload::HostDeferred => "host-deferred",
             Workload::LibFastTrace => "lib-fast-trace",
             Workload::LibFastBuild => "lib-fast-build",
+            Workload::ComputeAlu => "compute-alu",
+            Workload::ComputeMemory => "compute-memory",
+            Workload::ComputeDivergent => "compute-divergent",
+            Workload::ComputeFirstDispatch => "compute-first-dispatch",
         }
     }
     pub fn parse(s: &str) -> Option<Workload> {
-        Workload::ALL.iter().chain(&[Workload::LibFastTrace, Workload::LibFastBuild]).copied().find(|w| w.name() == s)
+        Workload::ALL.iter().chain(&[Workload::LibFastTrace, Workload::LibFastBuild]).chain(&Workload::COMPUTE).copied().find(|w| w.name() == s)
+    }
+    /// The compute-shader workloads ("--workloads compute").
+    pub const COMPUTE: [Workload; 4] = [Workload::ComputeAlu, Workload::ComputeMemory, Workload::ComputeDivergent, Workload::ComputeFirstDispatch];
+    pub fn is_compute(self) -> bool {
+        Workload::COMPUTE.contains(&self)
     }
 }
 
@@ -163,6 +178,10 @@ pub struct Options {
     pub metrics: bool,
     /// lib-* rows: also the loaded single-thread baseline and the parallel efficiency.
     pub efficiency: bool,
+    /// Invocations of compute-alu and compute-divergent.
+    pub compute_invocations: u64,
+    /// Bytes compute-memory streams through.
+    pub compute_memory_bytes: u64,
 }
 
 /// Runs the chosen workloads of one scene on one device. `progress` is called before each.
@@ -207,6 +226,24 @@ pub fn run_scene(
         rows.push(row);
     }
     drop(arena);
+    rows
+}
+
+/// The compute workloads among `workloads` on one device: one row each, scene "-".
+pub fn run_compute(gpu: &Gpu, threads: &str, workloads: &[Workload], opts: &Options, progress: &mut dyn FnMut(&str)) -> Vec<Row> {
+    let scene = Scene { name: "-".into(), kind: SceneKind::Instances { blases: Vec::new(), count: 0, seed: 0 } };
+    let base = Row { timing: "fence", ..base_row(gpu, threads, &scene, opts) };
+    let mut rows = Vec::new();
+    for &w in workloads.iter().filter(|w| w.is_compute()) {
+        progress(w.name());
+        let mut row = Row { workload: w.name().into(), ..base.clone() };
+        if let Some(status) = compute::unsupported(gpu) {
+            row.status = status;
+        } else if let Err(e) = compute::run(gpu, w, opts, &mut row) {
+            row.status = Status::Failed(e);
+        }
+        rows.push(row);
+    }
     rows
 }
 
@@ -268,6 +305,9 @@ fn run_workload(
             }
         }
         Workload::LibFastTrace | Workload::LibFastBuild => library::library_build(gpu, scene, w, opts, row),
+        Workload::ComputeAlu | Workload::ComputeMemory | Workload::ComputeDivergent | Workload::ComputeFirstDispatch => {
+            Err("compute workloads run once per device (run_compute)".into())
+        }
         Workload::Host | Workload::HostDeferred => {
             if !gpu.caps.host_commands {
                 row.status = Status::NotSupported("accelerationStructureHostCommands = false".into());
