@@ -16,7 +16,7 @@ use std::time::Instant;
 use rayon::prelude::*;
 
 use super::alu;
-use super::ir::{builtin_offset as bo, BallotOp, BinOp, Block, Op, Program, Sc, SgOp, Term, UnOp};
+use super::ir::{builtin_offset as bo, BallotOp, BinOp, Block, Op, Program, Sc, SgOp, Term, TriOp, UnOp};
 use super::memory::{Fault, ImageBinding, Memory, Region};
 use super::{Pipeline, LANES};
 
@@ -373,7 +373,7 @@ fn exec_op<'a>(ctx: &Ctx<'a>, group: &mut Group<'a>, wg: &mut Wg, op: &Op, mask:
         }
         Op::Tri { op, ty, dst, a, b, c } => {
             let (a, b, c) = (regs[a as usize], regs[b as usize], regs[c as usize]);
-            lanes(regs, dst, mask, |l| alu::tri(op, ty, a[l], b[l], c[l]));
+            exec_tri(regs, op, ty, dst, mask, &a, &b, &c);
         }
         Op::BitInsert { ty, dst, base, insert, offset, count } => {
             let (a, b, c, d) = (regs[base as usize], regs[insert as usize], regs[offset as usize], regs[count as usize]);
@@ -453,6 +453,15 @@ fn exec_bin(regs: &mut [Regs], op: BinOp, ty: Sc, dst: u32, mask: u32, a: &Regs,
         (FAdd, F64), (FSub, F64), (FMul, F64), (FDiv, F64), (LAnd, Bool), (LOr, Bool),
         (LEq, Bool), (LNe, Bool),
     ], lanes(regs, dst, mask, |l| alu::bin(op, ty, a[l], b[l])))
+}
+
+/// Three-operand ops: fused multiply-add and clamps get their own loops.
+// The op's operands, as exec_bin's; one call site.
+#[allow(clippy::too_many_arguments)]
+fn exec_tri(regs: &mut [Regs], op: TriOp, ty: Sc, dst: u32, mask: u32, a: &Regs, b: &Regs, c: &Regs) {
+    specialised!((op, ty): TriOp, [
+        (Fma, F32), (FClamp, F32), (NClamp, F32), (UClamp, I32), (SClamp, I32), (FMix, F32), (Fma, F64),
+    ], lanes(regs, dst, mask, |l| alu::tri(op, ty, a[l], b[l], c[l])))
 }
 
 /// Unary ops: conversions and the common float functions get their own loops.

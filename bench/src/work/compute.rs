@@ -27,7 +27,7 @@ const ALU_ITERS: u32 = 32;
 /// Step cap of the Collatz kernel (no start value below 2^20 needs more than 524).
 const COLLATZ_CAP: u32 = 1000;
 /// Invocations of the first-dispatch workload: small, so the pipeline's creation dominates.
-const FIRST_DISPATCH_INVOCATIONS: u64 = 4096;
+const FIRST_DISPATCH_INVOCATIONS: u64 = 256;
 /// Largest |GPU − CPU| accepted for the float kernel: drivers' sin/cos/exp/sqrt/fma precision
 /// differs from the CPU's by far less; a missing or wrong operation by far more.
 const ALU_TOLERANCE: f32 = 1e-2;
