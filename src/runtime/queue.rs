@@ -214,7 +214,11 @@ impl Queue {
                 "vkDestroyDevice",
                 &format!("{pending} submission(s) still pending on queue (family {}, index {}); waiting for them (call vkDeviceWaitIdle before destroying the device)", self.family, self.index),
             );
-            // The device goes either way; a lost device only ends the wait sooner.
+            // The device goes either way; a lost device only ends the wait sooner. The running
+            // submission is interrupted: its waits end and a running dispatch stops (its
+            // watchdog reads the flag) instead of running to its deadline.
+            self.shared.interrupt.store(true, Ordering::Release);
+            sync::notify();
             let _ = self.wait_idle("vkDestroyDevice");
         }
     }

@@ -27,11 +27,14 @@ const CHECK_EVERY: u64 = 1024;
 
 /// Stops a dispatch that runs too long. All fields optional; `Default` never stops.
 #[derive(Clone, Debug, Default)]
-pub struct Watchdog {
+pub struct Watchdog<'f> {
     /// Stop once this instant has passed (the runtime's per-submission deadline).
     pub deadline: Option<Instant>,
     /// Stop when this flag becomes true (device lost, process shutting down).
     pub cancel: Option<Arc<AtomicBool>>,
+    /// Stop when any of these becomes true: flags the caller owns and cannot share as an
+    /// `Arc` (a queue's stop flag, a device's lost flag).
+    pub stop_flags: &'f [&'f AtomicBool],
     /// Stop a workgroup after this many block executions of one lane group.
     pub step_budget: Option<u64>,
 }
@@ -91,7 +94,7 @@ pub(super) struct Ctx<'a> {
     accel: Vec<u64>,
     local: [u32; 3],
     num_groups: [u32; 3],
-    watchdog: &'a Watchdog,
+    watchdog: &'a Watchdog<'a>,
     stop: AtomicBool,
 }
 
@@ -289,7 +292,7 @@ fn check_watchdog(w: &Watchdog, steps: u64) -> Option<Stop> {
     if w.step_budget.is_some_and(|b| steps >= b) {
         return Some(Stop::StepBudget);
     }
-    if w.cancel.as_ref().is_some_and(|c| c.load(Ordering::Relaxed)) {
+    if w.cancel.as_ref().is_some_and(|c| c.load(Ordering::Relaxed)) || w.stop_flags.iter().any(|f| f.load(Ordering::Relaxed)) {
         return Some(Stop::Cancelled);
     }
     if w.deadline.is_some_and(|d| Instant::now() >= d) {
