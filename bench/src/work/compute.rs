@@ -292,7 +292,7 @@ fn memory(arena: &Arena, n: u64, opts: &Options, row: &mut Row) -> Result<(), St
     }
     time_kernel(arena, &kernel, push, n, opts, row)?;
     let gbs = row.time.map(|t| 2.0 * 16.0 * n as f64 / (t.median * 1e-3) / 1e9).unwrap_or(0.0);
-    row.note = format!("{}; {gbs:.2} GB/s read+write of {} MiB; verified: all {} words exact", rate_note(row), 16 * n >> 20, 4 * n);
+    row.note = format!("{}; {gbs:.2} GB/s read+write of {} MiB; verified: all {} words exact", rate_note(row), (16 * n) >> 20, 4 * n);
     Ok(())
 }
 
