@@ -2,7 +2,9 @@
 //! run fails at pipeline creation naming what it rejects; out-of-bounds accesses and a null
 //! device address are reported once and contained, and the device stays usable; a shader that
 //! never ends is stopped by the watchdog, which loses the device (in a child process, because
-//! ARBOR_WATCHDOG_SECONDS is read once per process).
+//! ARBOR_WATCHDOG_SECONDS is read once per process); destroying the device while such a shader
+//! runs stops it at once, long before the watchdog's deadline (validation off there: that use is
+//! invalid on purpose).
 mod harness;
 
 use ash::vk;
