@@ -164,7 +164,7 @@ fn execute(words: &[u32], rng: &mut Rng, counts: &mut Counts, outcomes: &mut BTr
     counts.accepted += 1;
     let mem = memory_for(&pipeline, rng);
     let push: Vec<u8> = (0..128).map(|_| rng.next() as u8).collect();
-    let watchdog = Watchdog { deadline: Some(Instant::now() + Duration::from_millis(500)), cancel: None, step_budget: Some(20_000) };
+    let watchdog = Watchdog { deadline: Some(Instant::now() + Duration::from_millis(500)), step_budget: Some(20_000), ..Watchdog::default() };
     let groups = [1 + rng.below(2) as u32, 1, 1];
     let report = dispatch(&pipeline, &mem, &push, groups, [0; 3], &watchdog);
     let outcome = match (report.stopped, report.faults.first()) {

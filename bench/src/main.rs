@@ -48,6 +48,11 @@ Workloads (default: all; unsupported ones are reported as \"not supported\"):
                        trace-primary, trace-random (ray queries from a compute shader over the
                        scene's TLAS, Mrays/s; not in the default set)
   --rays N             rays per trace workload (default 1000000)
+                       compute-alu, compute-memory, compute-divergent, compute-first-dispatch
+                       or compute (all four): compute shaders, once per driver, no scene;
+                       the Mprim/s column is then M invocations/s
+  --invocations N      invocations of compute-alu and compute-divergent (default 262144)
+  --memory-mib N       MiB compute-memory reads and writes (default 64)
   --repeat N           timed runs per workload (default 5), after --warmup N (default 1)
   --joiners N          threads joining deferred host builds (default: all cores)
   --no-metrics         skip Arbor's serialize + SAH/node metrics
@@ -83,6 +88,8 @@ struct Args {
     joiners: usize,
     metrics: bool,
     efficiency: bool,
+    compute_invocations: u64,
+    compute_memory_mib: u64,
     json: Option<PathBuf>,
     csv: Option<PathBuf>,
     svg: Option<PathBuf>,
@@ -149,6 +156,8 @@ impl Args {
             joiners: cores,
             metrics: true,
             efficiency: false,
+            compute_invocations: 1 << 18,
+            compute_memory_mib: 64,
             json: None,
             csv: None,
             svg: None,
@@ -190,6 +199,8 @@ impl Args {
                 for w in list(&value("--workloads")?) {
                     if w == "all" {
                         self.workloads.extend(Workload::ALL);
+                    } else if w == "compute" {
+                        self.workloads.extend(Workload::COMPUTE);
                     } else {
                         self.workloads.push(Workload::parse(&w).ok_or_else(|| format!("unknown workload {w}"))?);
                     }
@@ -201,6 +212,8 @@ impl Args {
             "--joiners" => self.joiners = num("--joiners", value("--joiners")?)?.max(1),
             "--no-metrics" => self.metrics = false,
             "--efficiency" => self.efficiency = true,
+            "--invocations" => self.compute_invocations = num("--invocations", value("--invocations")?)?.max(1) as u64,
+            "--memory-mib" => self.compute_memory_mib = num("--memory-mib", value("--memory-mib")?)?.max(1) as u64,
             _ => return Ok(false),
         }
         Ok(true)
@@ -381,7 +394,8 @@ fn run(args: &Args, argv: &[String]) -> Result<i32, String> {
     let cores = std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1);
     let arbor_threads = set_threads(args, cores);
     let (joined, wanted) = select_drivers(args)?;
-    let scenes = if args.list { Vec::new() } else { load_scenes(args)? };
+    let scene_work = args.workloads.iter().any(|w| !w.is_compute());
+    let scenes = if args.list || !scene_work { Vec::new() } else { load_scenes(args)? };
 
     // SAFETY: loading the system Vulkan loader.
     let entry = unsafe { ash::Entry::load() }.map_err(|e| format!("cannot load libvulkan.so.1 ({e}); install libvulkan1"))?;
@@ -551,8 +565,11 @@ fn measure(
         efficiency: args.efficiency,
         rays: args.rays,
         keep_hits: args.compare.is_some(),
+        compute_invocations: args.compute_invocations,
+        compute_memory_bytes: args.compute_memory_mib << 20,
     };
-    let total = devices.len() * scenes.len() * args.workloads.len();
+    let (compute, scene_work): (Vec<work::Workload>, Vec<work::Workload>) = args.workloads.iter().partition(|w| w.is_compute());
+    let total = devices.len() * (scenes.len() * scene_work.len() + compute.len());
     let mut step = 0usize;
     let tty = std::io::stderr().is_terminal();
     let mut out = Measured { rows: Vec::new(), render_data: None, failed: false };
@@ -569,25 +586,29 @@ fn measure(
         let is_arbor = label == "arbor";
         let threads = if is_arbor { arbor_threads.to_string() } else { "-".to_string() };
         announce_driver(args, meta, label, &gpu);
-        for scene in scenes {
+        let mut progress = |scene: &str, w: &str| {
+            step += 1;
+            if !args.quiet {
+                let msg = format!("[{step}/{total}] {:.1}s {label} {scene} {w}", started.elapsed().as_secs_f64());
+                if tty {
+                    eprint!("\r\x1b[K{msg}");
+                } else {
+                    eprintln!("{msg}");
+                }
+                let _ = std::io::stderr().flush();
+            }
+        };
+        for scene in scenes.iter().filter(|_| !scene_work.is_empty()) {
             let want_render = args.render.is_some() && is_arbor && Some(&scene.name) == render_scene;
             let opts = work::Options { metrics: opts.metrics && is_arbor || want_render, ..opts };
-            let mut progress = |w: &str| {
-                step += 1;
-                if !args.quiet {
-                    let msg = format!("[{step}/{total}] {:.1}s {label} {} {w}", started.elapsed().as_secs_f64(), scene.name);
-                    if tty {
-                        eprint!("\r\x1b[K{msg}");
-                    } else {
-                        eprintln!("{msg}");
-                    }
-                    let _ = std::io::stderr().flush();
-                }
-            };
-            let r = work::run_scene(&gpu, &threads, scene, &args.workloads, &opts, want_render, &mut progress, &mut out.render_data);
+            let mut progress = |w: &str| progress(&scene.name, w);
+            let r = work::run_scene(&gpu, &threads, scene, &scene_work, &opts, want_render, &mut progress, &mut out.render_data);
             out.failed |= r.iter().any(|r| matches!(r.status, work::Status::Failed(_)));
             out.rows.extend(r);
         }
+        let r = work::run_compute(&gpu, &threads, &compute, &opts, &mut |w: &str| progress("-", w));
+        out.failed |= r.iter().any(|r| matches!(r.status, work::Status::Failed(_)));
+        out.rows.extend(r);
         gpu.destroy();
     }
     if tty && !args.quiet {

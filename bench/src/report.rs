@@ -120,6 +120,10 @@ pub fn table(rows: &[Row]) -> String {
         out.push_str(&s);
         out.push('\n');
     }
+    // Compute rows: their rate in invocations and how the result was verified.
+    for r in rows.iter().filter(|r| r.status == Status::Ok && r.workload.starts_with("compute-")) {
+        let _ = writeln!(out, "{} (threads {}) {}: {}", r.driver, r.threads, r.workload, r.note);
+    }
     out
 }
 

@@ -1,7 +1,9 @@
 //! Scenes and acceleration-structure workloads: device builds (PREFER_FAST_TRACE,
 //! PREFER_FAST_BUILD), refit updates, compaction, indirect builds, host builds (plain and deferred,
-//! joined by N threads), Arbor's library called directly, and ray-query trace workloads. Each
-//! returns one report row; features a driver lacks give a "not supported" row.
+//! joined by N threads), Arbor's library called directly, ray-query trace workloads and
+//! compute-shader workloads. Each returns one report row; features a driver lacks give a
+//! "not supported" row.
+pub mod compute;
 mod device;
 mod host;
 mod inputs;
@@ -60,6 +62,11 @@ pub enum Workload {
     /// Ray queries from a compute shader over the scene's TLAS: primary camera rays, random rays.
     TracePrimary,
     TraceRandom,
+    /// Compute shaders (once per device, no scene): see `compute`.
+    ComputeAlu,
+    ComputeMemory,
+    ComputeDivergent,
+    ComputeFirstDispatch,
 }
 
 impl Workload {
@@ -87,10 +94,19 @@ impl Workload {
             Workload::LibFastBuild => "lib-fast-build",
             Workload::TracePrimary => "trace-primary",
             Workload::TraceRandom => "trace-random",
+            Workload::ComputeAlu => "compute-alu",
+            Workload::ComputeMemory => "compute-memory",
+            Workload::ComputeDivergent => "compute-divergent",
+            Workload::ComputeFirstDispatch => "compute-first-dispatch",
         }
     }
     pub fn parse(s: &str) -> Option<Workload> {
-        Workload::ALL.iter().chain(&[Workload::LibFastTrace, Workload::LibFastBuild]).chain(&Workload::TRACE).copied().find(|w| w.name() == s)
+        Workload::ALL.iter().chain(&[Workload::LibFastTrace, Workload::LibFastBuild]).chain(&Workload::TRACE).chain(&Workload::COMPUTE).copied().find(|w| w.name() == s)
+    }
+    /// The compute-shader workloads ("--workloads compute").
+    pub const COMPUTE: [Workload; 4] = [Workload::ComputeAlu, Workload::ComputeMemory, Workload::ComputeDivergent, Workload::ComputeFirstDispatch];
+    pub fn is_compute(self) -> bool {
+        Workload::COMPUTE.contains(&self)
     }
 }
 
@@ -182,6 +198,10 @@ pub struct Options {
     /// Trace workloads: rays per dispatch; keep the hits in the row (--compare).
     pub rays: usize,
     pub keep_hits: bool,
+    /// Invocations of compute-alu and compute-divergent.
+    pub compute_invocations: u64,
+    /// Bytes compute-memory streams through.
+    pub compute_memory_bytes: u64,
 }
 
 /// Runs the chosen workloads of one scene on one device. `progress` is called before each.
@@ -226,6 +246,24 @@ pub fn run_scene(
         rows.push(row);
     }
     drop(arena);
+    rows
+}
+
+/// The compute workloads among `workloads` on one device: one row each, scene "-".
+pub fn run_compute(gpu: &Gpu, threads: &str, workloads: &[Workload], opts: &Options, progress: &mut dyn FnMut(&str)) -> Vec<Row> {
+    let scene = Scene { name: "-".into(), kind: SceneKind::Instances { blases: Vec::new(), count: 0, seed: 0 } };
+    let base = Row { timing: "fence", ..base_row(gpu, threads, &scene, opts) };
+    let mut rows = Vec::new();
+    for &w in workloads.iter().filter(|w| w.is_compute()) {
+        progress(w.name());
+        let mut row = Row { workload: w.name().into(), ..base.clone() };
+        if let Some(status) = compute::unsupported(gpu) {
+            row.status = status;
+        } else if let Err(e) = compute::run(gpu, w, opts, &mut row) {
+            row.status = Status::Failed(e);
+        }
+        rows.push(row);
+    }
     rows
 }
 
@@ -290,6 +328,9 @@ fn run_workload(
         }
         Workload::LibFastTrace | Workload::LibFastBuild => library::library_build(gpu, scene, w, opts, row),
         Workload::TracePrimary | Workload::TraceRandom => trace::trace(gpu, inputs, scene, w, opts, row),
+        Workload::ComputeAlu | Workload::ComputeMemory | Workload::ComputeDivergent | Workload::ComputeFirstDispatch => {
+            Err("compute workloads run once per device (run_compute)".into())
+        }
         Workload::Host | Workload::HostDeferred => {
             if !gpu.caps.host_commands {
                 row.status = Status::NotSupported("accelerationStructureHostCommands = false".into());

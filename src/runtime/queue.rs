@@ -266,7 +266,12 @@ impl Queue {
                 "vkDestroyDevice",
                 &format!("{pending} submission(s) still pending on queue (family {}, index {}); waiting for them (call vkDeviceWaitIdle before destroying the device)", self.family, self.index),
             );
-            // The device goes either way; a lost device only ends the wait sooner.
+            // The device goes either way; a lost device only ends the wait sooner. Marking it
+            // lost stops a running dispatch at its next watchdog check (the watchdog reads the
+            // flag) instead of at its deadline; waits still end by the stall rule.
+            if let Some(d) = self.device.upgrade() {
+                d.mark_lost();
+            }
             let _ = self.wait_idle("vkDestroyDevice");
         }
     }

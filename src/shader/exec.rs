@@ -16,7 +16,7 @@ use std::time::Instant;
 use rayon::prelude::*;
 
 use super::alu;
-use super::ir::{builtin_offset as bo, BallotOp, BinOp, Block, Op, Program, Sc, SgOp, Term, UnOp};
+use super::ir::{builtin_offset as bo, BallotOp, BinOp, Block, Op, Program, Sc, SgOp, Term, TriOp, UnOp};
 use super::memory::{Fault, ImageBinding, Memory, Region};
 use super::{Pipeline, LANES};
 
@@ -27,11 +27,14 @@ const CHECK_EVERY: u64 = 1024;
 
 /// Stops a dispatch that runs too long. All fields optional; `Default` never stops.
 #[derive(Clone, Debug, Default)]
-pub struct Watchdog {
+pub struct Watchdog<'f> {
     /// Stop once this instant has passed (the runtime's per-submission deadline).
     pub deadline: Option<Instant>,
     /// Stop when this flag becomes true (device lost, process shutting down).
     pub cancel: Option<Arc<AtomicBool>>,
+    /// Stop when any of these becomes true: flags the caller owns and cannot share as an
+    /// `Arc` (a queue's stop flag, a device's lost flag).
+    pub stop_flags: &'f [&'f AtomicBool],
     /// Stop a workgroup after this many block executions of one lane group.
     pub step_budget: Option<u64>,
 }
@@ -91,7 +94,7 @@ pub(super) struct Ctx<'a> {
     accel: Vec<u64>,
     local: [u32; 3],
     num_groups: [u32; 3],
-    watchdog: &'a Watchdog,
+    watchdog: &'a Watchdog<'a>,
     stop: AtomicBool,
 }
 
@@ -289,7 +292,7 @@ fn check_watchdog(w: &Watchdog, steps: u64) -> Option<Stop> {
     if w.step_budget.is_some_and(|b| steps >= b) {
         return Some(Stop::StepBudget);
     }
-    if w.cancel.as_ref().is_some_and(|c| c.load(Ordering::Relaxed)) {
+    if w.cancel.as_ref().is_some_and(|c| c.load(Ordering::Relaxed)) || w.stop_flags.iter().any(|f| f.load(Ordering::Relaxed)) {
         return Some(Stop::Cancelled);
     }
     if w.deadline.is_some_and(|d| Instant::now() >= d) {
@@ -373,7 +376,7 @@ fn exec_op<'a>(ctx: &Ctx<'a>, group: &mut Group<'a>, wg: &mut Wg, op: &Op, mask:
         }
         Op::Tri { op, ty, dst, a, b, c } => {
             let (a, b, c) = (regs[a as usize], regs[b as usize], regs[c as usize]);
-            lanes(regs, dst, mask, |l| alu::tri(op, ty, a[l], b[l], c[l]));
+            exec_tri(regs, op, ty, dst, mask, &a, &b, &c);
         }
         Op::BitInsert { ty, dst, base, insert, offset, count } => {
             let (a, b, c, d) = (regs[base as usize], regs[insert as usize], regs[offset as usize], regs[count as usize]);
@@ -453,6 +456,15 @@ fn exec_bin(regs: &mut [Regs], op: BinOp, ty: Sc, dst: u32, mask: u32, a: &Regs,
         (FAdd, F64), (FSub, F64), (FMul, F64), (FDiv, F64), (LAnd, Bool), (LOr, Bool),
         (LEq, Bool), (LNe, Bool),
     ], lanes(regs, dst, mask, |l| alu::bin(op, ty, a[l], b[l])))
+}
+
+/// Three-operand ops: fused multiply-add and clamps get their own loops.
+// The op's operands, as exec_bin's; one call site.
+#[allow(clippy::too_many_arguments)]
+fn exec_tri(regs: &mut [Regs], op: TriOp, ty: Sc, dst: u32, mask: u32, a: &Regs, b: &Regs, c: &Regs) {
+    specialised!((op, ty): TriOp, [
+        (Fma, F32), (FClamp, F32), (NClamp, F32), (UClamp, I32), (SClamp, I32), (FMix, F32), (Fma, F64),
+    ], lanes(regs, dst, mask, |l| alu::tri(op, ty, a[l], b[l], c[l])))
 }
 
 /// Unary ops: conversions and the common float functions get their own loops.

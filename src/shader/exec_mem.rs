@@ -23,11 +23,14 @@ pub(super) fn exec_mem(ctx: &Ctx, group: &mut Group, wg: &mut Wg, op: &Op, mask:
         _ => return,
     };
     let fs = ctx.prog.lane_frame.len();
-    if space == Space::Lane && access.is_none() {
-        if let Some(dst) = dst {
-            if lane_loads(group, fs, ty, addr, dst, mask) {
-                return;
-            }
+    if space == Space::Lane {
+        let fast = match (op, dst) {
+            (Op::Load { .. }, Some(dst)) => lane_loads(group, fs, ty, addr, dst, mask),
+            (&Op::Store { src, .. }, _) => lane_stores(group, fs, ty, addr, src, mask),
+            _ => false,
+        };
+        if fast {
+            return;
         }
     }
     for l in (0..LANES).filter(|&l| (mask >> l) & 1 != 0) {
@@ -84,10 +87,8 @@ fn access_one(ctx: &Ctx, frame: &mut [u8], wg: &mut Wg, space: Space, at: u64, t
 
 fn read_le(bytes: &[u8], at: u64, size: usize) -> Option<u64> {
     let at = usize::try_from(at).ok()?;
-    let src = bytes.get(at..at.checked_add(size)?)?;
-    let mut w = [0u8; 8];
-    w[..size].copy_from_slice(src);
-    Some(u64::from_le_bytes(w))
+    bytes.get(at..at.checked_add(size)?)?;
+    Some(get_le(bytes, at, size))
 }
 
 /// Lane-frame and shared memory: plain bytes owned by this workgroup's thread.
@@ -98,8 +99,7 @@ fn local(bytes: &mut [u8], at: u64, size: usize, ty: Sc, acc: Access) -> Option<
         Access::Write(v) => v,
         Access::Rmw(op, v, cmp) => alu::atomic(op, ty, old, v, cmp),
     };
-    let at = at as usize;
-    bytes[at..at + size].copy_from_slice(&new.to_le_bytes()[..size]);
+    put_le(bytes, at as usize, size, new);
     Some(if matches!(acc, Access::Write(_)) { new } else { old })
 }
 
@@ -115,23 +115,70 @@ fn device(ctx: &Ctx, buffer: u64, offset: u64, ty: Sc, acc: Access) -> Option<u6
     }
 }
 
-/// Loads from lane frames with every address in bounds (the common case: local variables of
-/// unoptimised SPIR-V) skip the general path. Returns false, having done nothing, otherwise.
+/// Whether every lane in `mask` accesses `size` bytes inside its lane frame of `fs` bytes.
+fn in_frame(at: &[u64; LANES], mask: u32, size: usize, fs: usize) -> bool {
+    (0..LANES).all(|l| (mask >> l) & 1 == 0 || at[l].saturating_add(size as u64) <= fs as u64)
+}
+
+/// `size` (1, 2, 4 or 8) bytes at `p` as a little-endian value; fixed-size copies, so no
+/// library call per lane.
+#[inline(always)]
+fn get_le(bytes: &[u8], p: usize, size: usize) -> u64 {
+    fn get<const N: usize>(bytes: &[u8], p: usize) -> u64 {
+        let mut w = [0u8; 8];
+        w[..N].copy_from_slice(&bytes[p..p + N]);
+        u64::from_le_bytes(w)
+    }
+    match size {
+        4 => get::<4>(bytes, p),
+        8 => get::<8>(bytes, p),
+        2 => get::<2>(bytes, p),
+        _ => get::<1>(bytes, p),
+    }
+}
+
+/// The low `size` (1, 2, 4 or 8) bytes of `v` at `p`, little-endian.
+#[inline(always)]
+fn put_le(bytes: &mut [u8], p: usize, size: usize, v: u64) {
+    fn put<const N: usize>(bytes: &mut [u8], p: usize, v: u64) {
+        bytes[p..p + N].copy_from_slice(&v.to_le_bytes()[..N]);
+    }
+    match size {
+        4 => put::<4>(bytes, p, v),
+        8 => put::<8>(bytes, p, v),
+        2 => put::<2>(bytes, p, v),
+        _ => put::<1>(bytes, p, v),
+    }
+}
+
+/// Loads from lane frames with every active lane's address in bounds (the common case: local
+/// variables of unoptimised SPIR-V) skip the general path. Returns false, having done
+/// nothing, otherwise.
 fn lane_loads(group: &mut Group, fs: usize, ty: Sc, addr: u32, dst: u32, mask: u32) -> bool {
     let size = ty.size() as usize;
     let at = group.regs[addr as usize];
-    if at.iter().any(|&a| a.saturating_add(size as u64) > fs as u64) {
+    if !in_frame(&at, mask, size, fs) {
         return false;
     }
     let mut out = group.regs[dst as usize];
     for (l, o) in out.iter_mut().enumerate() {
         if (mask >> l) & 1 != 0 {
-            let p = l * fs + at[l] as usize;
-            let mut w = [0u8; 8];
-            w[..size].copy_from_slice(&group.frame[p..p + size]);
-            *o = alu::norm(ty, u64::from_le_bytes(w));
+            *o = alu::norm(ty, get_le(&group.frame, l * fs + at[l] as usize, size));
         }
     }
     group.regs[dst as usize] = out;
+    true
+}
+
+/// Stores to lane frames, as `lane_loads` for loads.
+fn lane_stores(group: &mut Group, fs: usize, ty: Sc, addr: u32, src: u32, mask: u32) -> bool {
+    let size = ty.size() as usize;
+    let (at, v) = (group.regs[addr as usize], group.regs[src as usize]);
+    if !in_frame(&at, mask, size, fs) {
+        return false;
+    }
+    for l in (0..LANES).filter(|&l| (mask >> l) & 1 != 0) {
+        put_le(&mut group.frame, l * fs + at[l] as usize, size, v[l]);
+    }
     true
 }

@@ -113,7 +113,10 @@ impl Exec for Dispatch {
             push.resize(pipeline.push_constant_size as usize, 0);
         }
         let seconds = watchdog_seconds();
-        let watchdog = lib::Watchdog { deadline: Some(Instant::now() + Duration::from_secs_f64(seconds)), ..Default::default() };
+        // vkDestroyDevice raises the queue's cancel flag; a lost device sets its flag: either
+        // stops a running dispatch within a few thousand blocks, not at the deadline.
+        let flags = [ctx.cancel, &ctx.device.lost];
+        let watchdog = lib::Watchdog { deadline: Some(Instant::now() + Duration::from_secs_f64(seconds)), stop_flags: &flags, ..Default::default() };
         let invocations = groups.iter().chain(&pipeline.local_size).map(|&n| n as u64).product::<u64>();
         let small = invocations <= 4 * lib::LANES as u64;
         let report = crate::threads::run_parallel(small, || lib::dispatch(pipeline, &memory, &push, groups, base, &watchdog));
@@ -124,13 +127,21 @@ impl Exec for Dispatch {
                 &format!("[{}] {} contained memory fault(s); first: {first}", fault_rule(first.kind, first.space), report.fault_count),
             );
         }
-        if report.stopped.is_some() {
-            diag::report(
-                diag::Level::Error,
+        match report.stopped {
+            Some(lib::Stop::Cancelled) => diag::report(
+                diag::Level::Warn,
                 self.name,
-                &format!("the shader did not finish within {seconds} s (ARBOR_WATCHDOG_SECONDS); stopped, device lost"),
-            );
-            ctx.device.mark_lost();
+                "dispatch stopped before it finished: the device is being destroyed or was lost",
+            ),
+            Some(_) => {
+                diag::report(
+                    diag::Level::Error,
+                    self.name,
+                    &format!("the shader did not finish within {seconds} s (ARBOR_WATCHDOG_SECONDS); stopped, device lost"),
+                );
+                ctx.device.mark_lost();
+            }
+            None => {}
         }
         Ok(())
     }
