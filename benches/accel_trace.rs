@@ -8,6 +8,10 @@
 //!   cargo bench --bench accel_trace [--features peers]
 //!   ARBOR_DATA_DIR=dir   where dragon_vrip.ply.gz is (default: data/ of the checkout)
 //!   ARBOR_BENCH_SECS=N   measurement time per benchmark (default 3)
+//!   ARBOR_TRACE_ONLY=W   no timing: W = digest prints a digest of every hit field for the
+//!                        bench's rays under several ray flags (equal digests = equal results);
+//!                        W = primary_closest, random_closest or random_any traces that batch
+//!                        once (a short program for `valgrind --tool=callgrind`)
 
 #[cfg(feature = "peers")]
 mod peers;
@@ -61,6 +65,10 @@ fn bench_trace(c: &mut Criterion) {
     let hit_rate = |rays: &[Ray]| rays.iter().filter(|r| accel::closest_hit(bvh, &accel::NoDevice, copy(r), RayFlags(0), 0xFF).is_some()).count() as f64 / rays.len() as f64;
     println!("\ndragon {} triangles; primary rays hit {:.1}%, random rays hit {:.1}%", mesh.indices.len(), 100.0 * hit_rate(&primary), 100.0 * hit_rate(&random));
 
+    if let Ok(what) = std::env::var("ARBOR_TRACE_ONLY") {
+        trace_only(&what, bvh, &primary, &random);
+        return;
+    }
     let secs = std::env::var("ARBOR_BENCH_SECS").ok().and_then(|s| s.parse().ok()).unwrap_or(3);
     let mut group = c.benchmark_group("trace/dragon");
     group.throughput(Throughput::Elements(BATCH as u64));
@@ -95,6 +103,58 @@ fn bench_trace(c: &mut Criterion) {
     #[cfg(feature = "peers")]
     bench_embree(&mut group, &mesh, bvh, &primary, &random, all);
     group.finish();
+}
+
+/// FNV-1a over words.
+fn fnv(h: &mut u64, words: &[u32]) {
+    for w in words {
+        for b in w.to_le_bytes() {
+            *h = (*h ^ b as u64).wrapping_mul(0x100_0000_01b3);
+        }
+    }
+}
+
+fn hit_words(h: &accel::Hit) -> Vec<u32> {
+    let mut w = vec![h.t.to_bits(), h.barycentrics[0].to_bits(), h.barycentrics[1].to_bits(), h.front_face as u32, h.opaque as u32];
+    w.extend([h.instance_index, h.instance_custom_index, h.sbt_record_offset, h.geometry_index, h.primitive_index, (h.kind == accel::HitKind::Aabb) as u32]);
+    w.extend(h.object_ray_origin.to_array().map(f32::to_bits));
+    w.extend(h.object_ray_direction.to_array().map(f32::to_bits));
+    w.extend(h.object_to_world.iter().chain(&h.world_to_object).map(|x| x.to_bits()));
+    w.extend(h.vertices.iter().flat_map(|v| v.to_array()).map(f32::to_bits));
+    w
+}
+
+/// The digest mode and the one-batch profiling mode (see the module doc).
+fn trace_only(what: &str, bvh: &[u8], primary: &[Ray], random: &[Ray]) {
+    let batch = |rays: &[Ray], flags: u32| rays.iter().filter(|r| accel::closest_hit(bvh, &accel::NoDevice, copy(r), RayFlags(flags), 0xFF).is_some()).count();
+    match what {
+        "primary_closest" => println!("hits {}", batch(primary, 0)),
+        "random_closest" => println!("hits {}", batch(random, 0)),
+        "random_any" => println!("hits {}", batch(random, RayFlags::TERMINATE_ON_FIRST_HIT)),
+        _ => {
+            let (b, f, o) = (RayFlags::CULL_BACK_FACING_TRIANGLES, RayFlags::CULL_FRONT_FACING_TRIANGLES, RayFlags::OPAQUE);
+            for flags in [0, RayFlags::TERMINATE_ON_FIRST_HIT, b, f, o | f, RayFlags::NO_OPAQUE | b, RayFlags::CULL_OPAQUE] {
+                for (name, rays) in [("primary", primary), ("random", random)] {
+                    let (mut hc, mut ha, mut hq, mut n) = (0xcbf2_9ce4_8422_2325u64, 0xcbf2_9ce4_8422_2325u64, 0xcbf2_9ce4_8422_2325u64, 0);
+                    for r in rays.iter() {
+                        let c = accel::closest_hit(bvh, &accel::NoDevice, copy(r), RayFlags(flags), 0xFF);
+                        n += c.is_some() as usize;
+                        fnv(&mut hc, &c.map_or(vec![u32::MAX], |h| hit_words(&h)));
+                        let a = accel::any_hit(bvh, &accel::NoDevice, copy(r), RayFlags(flags), 0xFF);
+                        fnv(&mut ha, &a.map_or(vec![u32::MAX], |h| hit_words(&h)));
+                        // The resumable query, every candidate confirmed.
+                        let mut q = accel::RayQuery::new(bvh, &accel::NoDevice, copy(r), RayFlags(flags), 0xFF);
+                        while let Some(h) = q.proceed() {
+                            fnv(&mut hq, &hit_words(&h));
+                            q.confirm();
+                        }
+                        fnv(&mut hq, &q.committed().map_or(vec![u32::MAX], |h| hit_words(&h)));
+                    }
+                    println!("flags {flags:#05x} {name:7}: {n:6} hits, closest {hc:016x}, any {ha:016x}, query {hq:016x}");
+                }
+            }
+        }
+    }
 }
 
 /// The mesh's FAST_TRACE BLAS, built by the library on the host.
