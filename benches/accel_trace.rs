@@ -62,13 +62,13 @@ fn bench_trace(c: &mut Criterion) {
     let b = mesh.bounds();
     let primary: Vec<Ray> = scene::primary_rays(b, 256, 256).into_iter().map(|r| Ray { origin: r.origin, direction: r.direction, tmin: 0.0, tmax: f32::INFINITY }).collect();
     let random = random_rays(b, BATCH, 7);
-    let hit_rate = |rays: &[Ray]| rays.iter().filter(|r| accel::closest_hit(bvh, &accel::NoDevice, copy(r), RayFlags(0), 0xFF).is_some()).count() as f64 / rays.len() as f64;
-    println!("\ndragon {} triangles; primary rays hit {:.1}%, random rays hit {:.1}%", mesh.indices.len(), 100.0 * hit_rate(&primary), 100.0 * hit_rate(&random));
-
     if let Ok(what) = std::env::var("ARBOR_TRACE_ONLY") {
         trace_only(&what, bvh, &primary, &random);
         return;
     }
+    let hit_rate = |rays: &[Ray]| rays.iter().filter(|r| accel::closest_hit(bvh, &accel::NoDevice, copy(r), RayFlags(0), 0xFF).is_some()).count() as f64 / rays.len() as f64;
+    println!("\ndragon {} triangles; primary rays hit {:.1}%, random rays hit {:.1}%", mesh.indices.len(), 100.0 * hit_rate(&primary), 100.0 * hit_rate(&random));
+
     let secs = std::env::var("ARBOR_BENCH_SECS").ok().and_then(|s| s.parse().ok()).unwrap_or(3);
     let mut group = c.benchmark_group("trace/dragon");
     group.throughput(Throughput::Elements(BATCH as u64));
