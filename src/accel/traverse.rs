@@ -351,6 +351,7 @@ fn uniform_triangles(s: &Parsed<'_>) -> Option<u32> {
     Some(g0.flags)
 }
 
+#[inline(always)]
 fn make_level(s: Parsed<'_>, org: Vec3, dir: Vec3) -> Level<'_> {
     let inv = Vec3::ONE / dir;
     let (org4, inv4) = ([0, 1, 2].map(|a| Vec4::splat(org[a])), [0, 1, 2].map(|a| Vec4::splat(inv[a])));

@@ -15,7 +15,7 @@ const EXIT: Child = Child { tnear: 0.0, index: 0, kind: 0 };
 
 /// Entries kept in place before the rest goes to the heap (a valid tree's traversal rarely
 /// holds more: at most three pending siblings per level of depth).
-const INLINE: usize = 64;
+const INLINE: usize = 32;
 
 /// The traversal stack: the first `INLINE` entries in place, the rest in `spill`
 /// (`spill.len() == len.saturating_sub(INLINE)`), so a ray allocates nothing.
@@ -56,6 +56,17 @@ impl Stack {
     }
 }
 
+/// Starts loading a pending child's node or primitives, which random rays mostly miss in cache.
+#[inline(always)]
+fn prefetch(l: &Level<'_>, c: Child) {
+    let r = &l.s.raw;
+    let at = match c.kind {
+        CHILD_INTERNAL => r.nodes_offset.wrapping_add(c.index as u64 * layout::NODE_SIZE as u64),
+        _ => r.prims_offset.wrapping_add(c.index as u64 * layout::PRIM_SIZE as u64),
+    };
+    arbor_prefetch::read(l.s.bytes, at as usize);
+}
+
 struct Tracer<'a> {
     view: &'a dyn DeviceView,
     ray: Ray,
@@ -93,8 +104,18 @@ impl<'a> Tracer<'a> {
                 return;
             }
         }
-        while self.stack.len() > base {
-            let Some(e) = self.stack.pop() else { break };
+        // The nearest child of the last node goes on directly: pushing and popping it would
+        // leave everything (stack depth included) as it is now.
+        let mut next = None;
+        loop {
+            let e = match next.take() {
+                Some(e) => e,
+                None if self.stack.len() > base => match self.stack.pop() {
+                    Some(e) => e,
+                    None => break,
+                },
+                None => break,
+            };
             if budget == 0 {
                 self.stop(inst.is_none(), base);
                 return;
@@ -106,10 +127,12 @@ impl<'a> Tracer<'a> {
                 }
                 let mut hits = [EXIT; 4];
                 let nh = enter_children(l, e.index, self.ray.tmin, self.tmax, &mut hits);
-                if self.stack.len() + nh <= MAX_STACK {
-                    for &h in &hits[..nh] {
+                if nh > 0 && self.stack.len() + nh <= MAX_STACK {
+                    for &h in &hits[..nh - 1] {
+                        prefetch(l, h);
                         self.stack.push(h);
                     }
+                    next = Some(hits[nh - 1]);
                 }
             } else if tlas {
                 // One instance at a time, the rest of the leaf pending on the stack.
