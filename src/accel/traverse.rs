@@ -210,7 +210,10 @@ fn ray_box4(n: &layout::WideNode, org: [f32; 3], inv: [f32; 3], tmin: f32, tmax:
 /// not (or a sum of two overflows): the general form then decides.
 #[inline(always)]
 fn ray_box4_finite(n: &layout::WideNode, org: &[Vec4; 3], inv: &[Vec4; 3], tmin: f32, tmax: f32) -> Option<(Vec4, u32)> {
-    let q = |b: [u8; 4]| Vec4::new(b[0] as f32, b[1] as f32, b[2] as f32, b[3] as f32);
+    // All 24 quantised planes converted at once (exact: bytes are small integers).
+    let qb: [u8; 24] = bytemuck::cast([n.qlo, n.qhi]);
+    let qf = qb.map(f32::from);
+    let q = |at: usize| Vec4::new(qf[at], qf[at + 1], qf[at + 2], qf[at + 3]);
     let mut tn = Vec4::splat(tmin);
     let mut tf = Vec4::splat(tmax);
     // NaN exactly when some t0 or t1 is NaN or infinite (infinity times zero).
@@ -218,8 +221,8 @@ fn ray_box4_finite(n: &layout::WideNode, org: &[Vec4; 3], inv: &[Vec4; 3], tmin:
     for a in 0..3 {
         let s = Vec4::splat(n.scale(a));
         let base = Vec4::splat(n.origin[a]);
-        let t0 = (base + q(n.qlo[a]) * s - org[a]) * inv[a];
-        let t1 = (base + q(n.qhi[a]) * s - org[a]) * inv[a];
+        let t0 = (base + q(4 * a) * s - org[a]) * inv[a];
+        let t1 = (base + q(12 + 4 * a) * s - org[a]) * inv[a];
         check += (t0 + t1) * Vec4::ZERO;
         let h = t0.max(t1);
         tn = tn.max(t0.min(t1));
