@@ -551,6 +551,9 @@ struct PrimCtx<'r> {
 }
 
 /// What a TLAS leaf slot leads to.
+// Returned by value and taken apart at once: boxing the large variant would allocate per
+// instance entered.
+#[allow(clippy::large_enum_variant)]
 enum Entered<'a> {
     /// Masked out, no such instance, an empty BLAS or a degenerate transformed ray.
     Absent,
