@@ -8,6 +8,15 @@
 //!   cargo bench --bench accel_trace [--features peers]
 //!   ARBOR_DATA_DIR=dir   where dragon_vrip.ply.gz is (default: data/ of the checkout)
 //!   ARBOR_BENCH_SECS=N   measurement time per benchmark (default 3)
+//!   ARBOR_TRACE_ONLY=W   no timing: W = digest prints a digest of every hit field for the
+//!                        bench's rays under several ray flags (equal digests = equal results);
+//!                        W = primary_closest, random_closest or random_any traces that batch
+//!                        once (a short program for `valgrind --tool=callgrind`);
+//!                        W = cputime times each workload on Arbor and (with `peers`) Embree
+//!                        alternately, ARBOR_BENCH_REPS times (default 7), in on-CPU time of
+//!                        the thread (/proc/thread-self/schedstat), and prints the medians:
+//!                        on a box shared with other work, wall time counts the time the
+//!                        scheduler gives to others
 
 #[cfg(feature = "peers")]
 mod peers;
@@ -58,6 +67,10 @@ fn bench_trace(c: &mut Criterion) {
     let b = mesh.bounds();
     let primary: Vec<Ray> = scene::primary_rays(b, 256, 256).into_iter().map(|r| Ray { origin: r.origin, direction: r.direction, tmin: 0.0, tmax: f32::INFINITY }).collect();
     let random = random_rays(b, BATCH, 7);
+    if let Ok(what) = std::env::var("ARBOR_TRACE_ONLY") {
+        trace_only(&what, &mesh, bvh, &primary, &random);
+        return;
+    }
     let hit_rate = |rays: &[Ray]| rays.iter().filter(|r| accel::closest_hit(bvh, &accel::NoDevice, copy(r), RayFlags(0), 0xFF).is_some()).count() as f64 / rays.len() as f64;
     println!("\ndragon {} triangles; primary rays hit {:.1}%, random rays hit {:.1}%", mesh.indices.len(), 100.0 * hit_rate(&primary), 100.0 * hit_rate(&random));
 
@@ -95,6 +108,108 @@ fn bench_trace(c: &mut Criterion) {
     #[cfg(feature = "peers")]
     bench_embree(&mut group, &mesh, bvh, &primary, &random, all);
     group.finish();
+}
+
+/// FNV-1a over words.
+fn fnv(h: &mut u64, words: &[u32]) {
+    for w in words {
+        for b in w.to_le_bytes() {
+            *h = (*h ^ b as u64).wrapping_mul(0x100_0000_01b3);
+        }
+    }
+}
+
+fn hit_words(h: &accel::Hit) -> Vec<u32> {
+    let mut w = vec![h.t.to_bits(), h.barycentrics[0].to_bits(), h.barycentrics[1].to_bits(), h.front_face as u32, h.opaque as u32];
+    w.extend([h.instance_index, h.instance_custom_index, h.sbt_record_offset, h.geometry_index, h.primitive_index, (h.kind == accel::HitKind::Aabb) as u32]);
+    w.extend(h.object_ray_origin.to_array().map(f32::to_bits));
+    w.extend(h.object_ray_direction.to_array().map(f32::to_bits));
+    w.extend(h.object_to_world.iter().chain(&h.world_to_object).map(|x| x.to_bits()));
+    w.extend(h.vertices.iter().flat_map(|v| v.to_array()).map(f32::to_bits));
+    w
+}
+
+/// The digest mode and the one-batch profiling mode (see the module doc).
+fn trace_only(what: &str, mesh: &scene::Mesh, bvh: &[u8], primary: &[Ray], random: &[Ray]) {
+    let batch = |rays: &[Ray], flags: u32| rays.iter().filter(|r| accel::closest_hit(bvh, &accel::NoDevice, copy(r), RayFlags(flags), 0xFF).is_some()).count();
+    match what {
+        "primary_closest" => println!("hits {}", batch(primary, 0)),
+        "random_closest" => println!("hits {}", batch(random, 0)),
+        "random_any" => println!("hits {}", batch(random, RayFlags::TERMINATE_ON_FIRST_HIT)),
+        "cputime" => cpu_times(mesh, bvh, primary, random),
+        _ => {
+            let (b, f, o) = (RayFlags::CULL_BACK_FACING_TRIANGLES, RayFlags::CULL_FRONT_FACING_TRIANGLES, RayFlags::OPAQUE);
+            for flags in [0, RayFlags::TERMINATE_ON_FIRST_HIT, b, f, o | f, RayFlags::NO_OPAQUE | b, RayFlags::CULL_OPAQUE] {
+                for (name, rays) in [("primary", primary), ("random", random)] {
+                    let (mut hc, mut ha, mut hq, mut n) = (0xcbf2_9ce4_8422_2325u64, 0xcbf2_9ce4_8422_2325u64, 0xcbf2_9ce4_8422_2325u64, 0);
+                    for r in rays.iter() {
+                        let c = accel::closest_hit(bvh, &accel::NoDevice, copy(r), RayFlags(flags), 0xFF);
+                        n += c.is_some() as usize;
+                        fnv(&mut hc, &c.map_or(vec![u32::MAX], |h| hit_words(&h)));
+                        let a = accel::any_hit(bvh, &accel::NoDevice, copy(r), RayFlags(flags), 0xFF);
+                        fnv(&mut ha, &a.map_or(vec![u32::MAX], |h| hit_words(&h)));
+                        // The resumable query, every candidate confirmed.
+                        let mut q = accel::RayQuery::new(bvh, &accel::NoDevice, copy(r), RayFlags(flags), 0xFF);
+                        while let Some(h) = q.proceed() {
+                            fnv(&mut hq, &hit_words(&h));
+                            q.confirm();
+                        }
+                        fnv(&mut hq, &q.committed().map_or(vec![u32::MAX], |h| hit_words(&h)));
+                    }
+                    println!("flags {flags:#05x} {name:7}: {n:6} hits, closest {hc:016x}, any {ha:016x}, query {hq:016x}");
+                }
+            }
+        }
+    }
+}
+
+/// Nanoseconds this thread has run on a CPU; None where the kernel does not say.
+fn thread_cpu_ns() -> Option<u64> {
+    std::fs::read_to_string("/proc/thread-self/schedstat").ok()?.split_whitespace().next()?.parse().ok()
+}
+
+fn median_ms(mut v: Vec<u64>) -> f64 {
+    v.sort_unstable();
+    v.get(v.len() / 2).map_or(f64::NAN, |&ns| ns as f64 / 1e6)
+}
+
+/// The cputime mode (see the module doc): one thread, Arbor and Embree alternating per batch.
+fn cpu_times(mesh: &scene::Mesh, bvh: &[u8], primary: &[Ray], random: &[Ray]) {
+    let _ = mesh;
+    let reps: usize = std::env::var("ARBOR_BENCH_REPS").ok().and_then(|s| s.parse().ok()).unwrap_or(7);
+    let Some(_) = thread_cpu_ns() else {
+        println!("no /proc/thread-self/schedstat here");
+        return;
+    };
+    let timed = |f: &mut dyn FnMut() -> usize| {
+        let t0 = thread_cpu_ns().unwrap_or(0);
+        black_box(f());
+        thread_cpu_ns().unwrap_or(0).saturating_sub(t0)
+    };
+    #[cfg(feature = "peers")]
+    let dev = peers::embree::Device::new(1);
+    #[cfg(feature = "peers")]
+    let scene = peers::embree::Scene::new(&dev, mesh, 1);
+    for (name, rays, any) in [("primary_closest", primary, false), ("random_closest", random, false), ("random_any", random, true)] {
+        let flags = if any { RayFlags::TERMINATE_ON_FIRST_HIT } else { 0 };
+        let mut arbor = Vec::new();
+        #[cfg_attr(not(feature = "peers"), allow(unused_mut))]
+        let mut embree = Vec::new();
+        for _ in 0..reps {
+            arbor.push(timed(&mut || rays.iter().filter(|r| accel::closest_hit(bvh, &accel::NoDevice, copy(r), RayFlags(flags), 0xFF).is_some()).count()));
+            #[cfg(feature = "peers")]
+            embree.push(timed(&mut || {
+                rays.iter()
+                    .filter(|r| {
+                        let (o, d) = (r.origin.to_array(), r.direction.to_array());
+                        if any { scene.occluded(o, d, r.tmin, r.tmax) } else { scene.intersect(o, d, r.tmin, r.tmax).is_some() }
+                    })
+                    .count()
+            }));
+        }
+        let (a, e) = (median_ms(arbor), median_ms(embree));
+        println!("{name:16} on-CPU ms per {} rays, median of {reps}: arbor {a:8.2}  embree {e:8.2}  arbor/embree {:.2}", rays.len(), a / e);
+    }
 }
 
 /// The mesh's FAST_TRACE BLAS, built by the library on the host.

@@ -14,6 +14,10 @@ use super::layout::{self, InstanceRecord, Parsed, CHILD_INTERNAL};
 use super::{DeviceView, GeometryFlags};
 use glam::{DVec3, Vec3, Vec4};
 
+mod closest;
+#[cfg(test)]
+mod tests;
+
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Ray {
     pub origin: Vec3,
@@ -177,7 +181,7 @@ fn intersect_sheared(sh: &Shear, o: [f32; 3], tmin: f32, tmax: f32, v0: [f32; 3]
 /// and this axis constrains nothing. (f32::min alone would drop the NaN and return the
 /// infinite other bound: a false miss.)
 #[inline(always)]
-fn ray_box4(n: &layout::WideNode, org: [f32; 3], inv: [f32; 3], tmin: f32, tmax: f32) -> ([f32; 4], [bool; 4]) {
+fn ray_box4(n: &layout::WideNode, org: [f32; 3], inv: [f32; 3], tmin: f32, tmax: f32) -> ([f32; 4], u32) {
     // The four children in the lanes of one vector, with the per-lane arithmetic of the
     // scalar form; `f32::min`/`max` ignore a NaN operand, so the selects below do too
     // (maxps/minps would return it).
@@ -201,8 +205,79 @@ fn ray_box4(n: &layout::WideNode, org: [f32; 3], inv: [f32; 3], tmin: f32, tmax:
         tn = Vec4::select(skip, tn, ntn);
         tf = Vec4::select(skip, tf, ntf);
     }
-    let m = tn.cmple(tf).bitmask();
-    (tn.to_array(), [m & 1 != 0, m & 2 != 0, m & 4 != 0, m & 8 != 0])
+    (tn.to_array(), tn.cmple(tf).bitmask())
+}
+
+/// `ray_box4` for a ray with finite origin and inverse direction: the same operations, without
+/// the NaN selects, which change nothing while every slab distance is finite. None when one is
+/// not (or a sum of two overflows): the general form then decides.
+#[inline(always)]
+fn ray_box4_finite(n: &layout::WideNode, org: &[Vec4; 3], inv: &[Vec4; 3], tmin: f32, tmax: f32) -> Option<(Vec4, u32)> {
+    // All 24 quantised planes converted at once (exact: bytes are small integers).
+    let qb: [u8; 24] = bytemuck::cast([n.qlo, n.qhi]);
+    let qf = qb.map(f32::from);
+    let q = |at: usize| Vec4::new(qf[at], qf[at + 1], qf[at + 2], qf[at + 3]);
+    let mut tn = Vec4::splat(tmin);
+    let mut tf = Vec4::splat(tmax);
+    // NaN exactly when some t0 or t1 is NaN or infinite (infinity times zero).
+    let mut check = Vec4::ZERO;
+    for a in 0..3 {
+        let s = Vec4::splat(n.scale(a));
+        let base = Vec4::splat(n.origin[a]);
+        let t0 = (base + q(4 * a) * s - org[a]) * inv[a];
+        let t1 = (base + q(12 + 4 * a) * s - org[a]) * inv[a];
+        check += (t0 + t1) * Vec4::ZERO;
+        let h = t0.max(t1);
+        tn = tn.max(t0.min(t1));
+        tf = tf.min(h + h.abs() * 4.8e-7);
+    }
+    if check.is_nan_mask().any() {
+        return None;
+    }
+    Some((tn, tn.cmple(tf).bitmask()))
+}
+
+/// A child the ray enters: its entry distance, index (node or first primitive slot) and
+/// kind (CHILD_INTERNAL or the leaf's primitive count).
+#[derive(Clone, Copy, Debug)]
+struct Child {
+    tnear: f32,
+    index: u32,
+    kind: u8,
+}
+
+/// The children of node `node` the ray enters within [tmin, tmax], in push order: farthest
+/// first, children with equal entry distance in slot order, so the nearest (and of those the
+/// last slot) is processed first.
+#[inline(always)]
+fn enter_children(l: &Level<'_>, node: u32, tmin: f32, tmax: f32, out: &mut [Child; 4]) -> usize {
+    let Some(n) = l.s.node(node) else { return 0 };
+    let (tn, hit) = match l.finite.then(|| ray_box4_finite(&n, &l.org4, &l.inv4, tmin, tmax)).flatten() {
+        Some((tn, m)) => (tn.to_array(), m),
+        None => ray_box4(&n, l.org.to_array(), l.inv.to_array(), tmin, tmax),
+    };
+    let mut live = hit & ((1u32 << (n.child_count as u32).min(4)) - 1);
+    let mut nh = 0;
+    while live != 0 {
+        let c = live.trailing_zeros() as usize;
+        live &= live - 1;
+        let kind = n.kind[c];
+        // Children always follow their parent in the layout; refusing anything else makes a
+        // corrupted blob unable to loop.
+        if kind == 0 || (kind == CHILD_INTERNAL && n.child[c] <= node) {
+            continue;
+        }
+        // Insertion by descending entry distance, after equal ones (a stable sort).
+        let x = Child { tnear: tn[c], index: n.child[c], kind };
+        let mut j = nh;
+        while j > 0 && out[j - 1].tnear.total_cmp(&x.tnear) == std::cmp::Ordering::Less {
+            out[j] = out[j - 1];
+            j -= 1;
+        }
+        out[j] = x;
+        nh += 1;
+    }
+    nh
 }
 
 #[derive(Clone, Copy, Debug)]
@@ -223,6 +298,10 @@ struct Level<'a> {
     uni_tri: Option<u32>,
     /// A cluster BLAS: per-triangle cluster ID, geometry index, flags and index in cluster.
     cluster: Option<Side<'a>>,
+    /// Origin and inverse direction, one axis splatted per vector, and whether all are finite.
+    org4: [Vec4; 3],
+    inv4: [Vec4; 3],
+    finite: bool,
 }
 
 #[derive(Clone, Copy)]
@@ -280,9 +359,12 @@ fn uniform_triangles(s: &Parsed<'_>) -> Option<u32> {
     Some(g0.flags)
 }
 
+#[inline(always)]
 fn make_level<'a>((s, cluster): (Parsed<'a>, Option<Side<'a>>), org: Vec3, dir: Vec3) -> Level<'a> {
+    let inv = Vec3::ONE / dir;
+    let (org4, inv4) = ([0, 1, 2].map(|a| Vec4::splat(org[a])), [0, 1, 2].map(|a| Vec4::splat(inv[a])));
     let uni_tri = if cluster.is_some() { None } else { uniform_triangles(&s) };
-    Level { s, org, dir, inv: Vec3::ONE / dir, sh: shear(dir), uni_tri, cluster }
+    Level { s, org, dir, inv, sh: shear(dir), uni_tri, cluster, org4, inv4, finite: org.is_finite() && inv.is_finite() }
 }
 
 impl<'a> RayQuery<'a> {
@@ -353,36 +435,18 @@ impl<'a> RayQuery<'a> {
                     }
                     let (tmin, tmax) = (self.ray.tmin, self.tmax);
                     let Some(l) = self.level_ref(inner) else { continue };
-                    let Some(n) = l.s.node(node) else { continue };
-                    let (tn, m) = ray_box4(&n, l.org.to_array(), l.inv.to_array(), tmin, tmax);
-                    let mut hits: [(f32, Item); 4] = [(0.0, Item::ExitInstance); 4];
-                    let mut nh = 0;
-                    for c in 0..(n.child_count as usize).min(4) {
-                        if !m[c] {
-                            continue;
-                        }
-                        let t = tn[c];
-                        let it = match n.kind[c] {
-                            0 => continue,
-                            // Children always follow their parent in the layout; refusing anything
-                            // else makes a corrupted blob unable to loop.
-                            CHILD_INTERNAL if n.child[c] > node => Item::Node { node: n.child[c], inner, tnear: t },
-                            CHILD_INTERNAL => continue,
-                            k => Item::Prims { first: n.child[c], count: k as u32, inner },
-                        };
-                        hits[nh] = (t, it);
-                        nh += 1;
-                    }
-                    // Push far to near so the nearest child is processed first. A valid tree
-                    // never holds more than three pending siblings per level; a stack this
-                    // deep means a corrupt blob, whose rest is dropped.
+                    let mut hits = [Child { tnear: 0.0, index: 0, kind: 0 }; 4];
+                    let nh = enter_children(l, node, tmin, tmax, &mut hits);
+                    // A valid tree never holds more than three pending siblings per level; a
+                    // stack this deep means a corrupt blob, whose rest is dropped.
                     if self.stack.len() + nh > MAX_STACK {
                         continue;
                     }
-                    let hs = &mut hits[..nh];
-                    hs.sort_unstable_by(|a, b| b.0.total_cmp(&a.0));
-                    for h in hs.iter() {
-                        self.stack.push(h.1);
+                    for h in &hits[..nh] {
+                        self.stack.push(match h.kind {
+                            CHILD_INTERNAL => Item::Node { node: h.index, inner, tnear: h.tnear },
+                            k => Item::Prims { first: h.index, count: k as u32, inner },
+                        });
                     }
                 }
                 Item::Prims { first, count, inner } => {
@@ -409,130 +473,23 @@ impl<'a> RayQuery<'a> {
         if self.inst.is_some() {
             return;
         }
-        let Some(rec) = l.s.instance(slot) else { return };
-        if rec.mask & self.cull_mask as u32 == 0 {
-            return;
+        match resolve_instance(&l, slot, self.view, &self.ray, self.cull_mask) {
+            Entered::Absent => {}
+            Entered::Unresolved(addr) => {
+                self.unresolved.get_or_insert(addr);
+            }
+            Entered::Blas(rec, level) => {
+                self.budget_inner = level.s.raw.node_count as u64 + level.s.raw.primitive_count as u64;
+                self.inst = Some(InstCtx { level, rec });
+                self.stack.push(Item::ExitInstance);
+                self.stack.push(Item::Node { node: 0, inner: true, tnear: self.ray.tmin });
+            }
         }
-        let Some(addr) = l.s.blas_address(rec.blas_index) else { return };
-        // A reference that resolves to no built BLAS is never followed: the instance is absent.
-        let Some(blas) = self.view.acceleration_structure(addr).and_then(clas::open_walkable).filter(|b| !b.0.is_tlas()) else {
-            self.unresolved.get_or_insert(addr);
-            return;
-        };
-        if blas.0.raw.node_count == 0 {
-            return;
-        }
-        let org = transform_point(&rec.world_to_object, self.ray.origin);
-        let dir = transform_dir(&rec.world_to_object, self.ray.direction);
-        if org.is_nan() || dir.is_nan() || dir == Vec3::ZERO {
-            return;
-        }
-        self.budget_inner = blas.0.raw.node_count as u64 + blas.0.raw.primitive_count as u64;
-        self.inst = Some(InstCtx { level: make_level(blas, org, dir), rec });
-        self.stack.push(Item::ExitInstance);
-        self.stack.push(Item::Node { node: 0, inner: true, tnear: self.ray.tmin });
     }
 
-    /// Opacity after instance and ray flags; None when the ray culls it.
-    #[inline(always)]
-    fn opacity(&self, geom_flags: u32, inst_flags: u32) -> Option<bool> {
-        let f = self.flags;
-        let mut opaque = geom_flags & GeometryFlags::OPAQUE != 0;
-        if inst_flags & INSTANCE_FORCE_OPAQUE != 0 {
-            opaque = true;
-        } else if inst_flags & INSTANCE_FORCE_NO_OPAQUE != 0 {
-            opaque = false;
-        }
-        if f & RayFlags::OPAQUE != 0 {
-            opaque = true;
-        } else if f & RayFlags::NO_OPAQUE != 0 {
-            opaque = false;
-        }
-        if (opaque && f & RayFlags::CULL_OPAQUE != 0) || (!opaque && f & RayFlags::CULL_NO_OPAQUE != 0) {
-            return None;
-        }
-        Some(opaque)
-    }
-
-    /// Geometric test + flag rules for stored primitive `slot` of a BLAS level.
     fn test_prim(&self, l: &Level<'a>, slot: u32) -> Option<Hit> {
-        let inst_flags = self.inst.map_or(0, |i| i.rec.flags);
-        let f = self.flags;
-        // Every condition below is a pure conjunct, so with uniform triangle geometries the
-        // record/geometry lookups (another cache line per primitive) move after the hit test.
-        let (rec, gkind, opaque, gflags) = match l.uni_tri {
-            Some(gflags) => (None, layout::KIND_TRIANGLES, self.opacity(gflags, inst_flags)?, gflags),
-            None => {
-                let rec = l.s.record(slot)?;
-                let geom = l.s.geometry(rec.geometry)?;
-                let gflags = match l.cluster {
-                    Some(c) => c.get(rec.primitive)?.flags,
-                    None => geom.flags,
-                };
-                (Some(rec), geom.kind, self.opacity(gflags, inst_flags)?, gflags)
-            }
-        };
-        let data = l.s.prim(slot)?;
-        let (t, kind, bary, front, vertices) = match gkind {
-            layout::KIND_TRIANGLES => {
-                if f & RayFlags::SKIP_TRIANGLES != 0 {
-                    return None;
-                }
-                let v0 = [data[0], data[1], data[2]];
-                let v1 = [data[3], data[4], data[5]];
-                let v2 = [data[6], data[7], data[8]];
-                let (t, u, v, front_raw) = intersect_sheared(&l.sh, l.org.to_array(), self.ray.tmin, self.tmax, v0, v1, v2)?;
-                let front = front_raw ^ (inst_flags & INSTANCE_FLIP_FACING != 0);
-                let culled = (f & RayFlags::CULL_BACK_FACING_TRIANGLES != 0 && !front) || (f & RayFlags::CULL_FRONT_FACING_TRIANGLES != 0 && front);
-                if inst_flags & INSTANCE_FACING_CULL_DISABLE == 0 && gflags & clas::FLAG_CULL_DISABLE == 0 && culled {
-                    return None;
-                }
-                (t, HitKind::Triangle, [u, v], front, [v0, v1, v2].map(Vec3::from_array))
-            }
-            layout::KIND_AABBS => {
-                if f & RayFlags::SKIP_AABBS != 0 {
-                    return None;
-                }
-                let b = [data[0], data[1], data[2], data[3], data[4], data[5]];
-                let t = ray_box_exact(l.org, l.dir, &b, self.ray.tmin, self.tmax)?;
-                (t, HitKind::Aabb, [0.0, 0.0], false, [Vec3::ZERO; 3])
-            }
-            _ => return None,
-        };
-        let rec = match rec {
-            Some(r) => r,
-            None => {
-                let r = l.s.record(slot)?;
-                l.s.geometry(r.geometry)?;
-                r
-            }
-        };
-        let (geometry_index, primitive_index, cluster_id) = match l.cluster.and_then(|c| c.get(rec.primitive)) {
-            Some(e) => (e.geometry_index, e.primitive_index, e.cluster_id as i32),
-            None => (rec.geometry, rec.primitive, -1),
-        };
-        let (ii, ci, sbt, o2w, w2o) = match self.inst {
-            Some(i) => (i.rec.instance_index, i.rec.custom_index, i.rec.sbt_offset, i.rec.object_to_world, i.rec.world_to_object),
-            None => (0, 0, 0, IDENTITY, IDENTITY),
-        };
-        Some(Hit {
-            t,
-            kind,
-            barycentrics: bary,
-            front_face: front,
-            opaque,
-            instance_index: ii,
-            instance_custom_index: ci,
-            sbt_record_offset: sbt,
-            geometry_index,
-            primitive_index,
-            object_ray_origin: l.org,
-            object_ray_direction: l.dir,
-            object_to_world: o2w,
-            world_to_object: w2o,
-            vertices,
-            cluster_id,
-        })
+        let cx = PrimCtx { flags: self.flags, tmin: self.ray.tmin, tmax: self.tmax, inst: self.inst.as_ref().map(|i| &i.rec) };
+        test_prim(&cx, l, slot)
     }
 
     fn handle_hit(&mut self, hit: Hit) -> Option<Hit> {
@@ -590,6 +547,152 @@ impl<'a> RayQuery<'a> {
     }
 }
 
+/// What the primitive test needs of the traversal state.
+#[derive(Clone, Copy)]
+struct PrimCtx<'r> {
+    flags: u32,
+    tmin: f32,
+    /// The current (shrinking) end of the interval.
+    tmax: f32,
+    /// The instance being traversed, None at the root level.
+    inst: Option<&'r InstanceRecord>,
+}
+
+/// What a TLAS leaf slot leads to.
+// Returned by value and taken apart at once: boxing the large variant would allocate per
+// instance entered.
+#[allow(clippy::large_enum_variant)]
+enum Entered<'a> {
+    /// Masked out, no such instance, an empty BLAS or a degenerate transformed ray.
+    Absent,
+    /// The reference names no built BLAS: the instance is absent, reported once.
+    Unresolved(u64),
+    Blas(InstanceRecord, Level<'a>),
+}
+
+fn resolve_instance<'a>(l: &Level<'a>, slot: u32, view: &'a dyn DeviceView, ray: &Ray, cull_mask: u8) -> Entered<'a> {
+    let Some(rec) = l.s.instance(slot) else { return Entered::Absent };
+    if rec.mask & cull_mask as u32 == 0 {
+        return Entered::Absent;
+    }
+    let Some(addr) = l.s.blas_address(rec.blas_index) else { return Entered::Absent };
+    // A reference that resolves to no built BLAS is never followed: the instance is absent.
+    let Some(blas) = view.acceleration_structure(addr).and_then(clas::open_walkable).filter(|b| !b.0.is_tlas()) else {
+        return Entered::Unresolved(addr);
+    };
+    if blas.0.raw.node_count == 0 {
+        return Entered::Absent;
+    }
+    let org = transform_point(&rec.world_to_object, ray.origin);
+    let dir = transform_dir(&rec.world_to_object, ray.direction);
+    if org.is_nan() || dir.is_nan() || dir == Vec3::ZERO {
+        return Entered::Absent;
+    }
+    Entered::Blas(rec, make_level(blas, org, dir))
+}
+
+/// Opacity after instance and ray flags; None when the ray culls it.
+#[inline(always)]
+fn opacity(f: u32, geom_flags: u32, inst_flags: u32) -> Option<bool> {
+    let mut opaque = geom_flags & GeometryFlags::OPAQUE != 0;
+    if inst_flags & INSTANCE_FORCE_OPAQUE != 0 {
+        opaque = true;
+    } else if inst_flags & INSTANCE_FORCE_NO_OPAQUE != 0 {
+        opaque = false;
+    }
+    if f & RayFlags::OPAQUE != 0 {
+        opaque = true;
+    } else if f & RayFlags::NO_OPAQUE != 0 {
+        opaque = false;
+    }
+    if (opaque && f & RayFlags::CULL_OPAQUE != 0) || (!opaque && f & RayFlags::CULL_NO_OPAQUE != 0) {
+        return None;
+    }
+    Some(opaque)
+}
+
+/// Geometric test + flag rules for stored primitive `slot` of a BLAS level.
+#[inline(always)]
+fn test_prim(cx: &PrimCtx<'_>, l: &Level<'_>, slot: u32) -> Option<Hit> {
+    let inst_flags = cx.inst.map_or(0, |i| i.flags);
+    let f = cx.flags;
+    // Every condition below is a pure conjunct, so with uniform triangle geometries the
+    // record/geometry lookups (another cache line per primitive) move after the hit test.
+    let (rec, gkind, opaque, gflags) = match l.uni_tri {
+        Some(gflags) => (None, layout::KIND_TRIANGLES, opacity(f, gflags, inst_flags)?, gflags),
+        None => {
+            let rec = l.s.record(slot)?;
+            let geom = l.s.geometry(rec.geometry)?;
+            let gflags = match l.cluster {
+                Some(c) => c.get(rec.primitive)?.flags,
+                None => geom.flags,
+            };
+            (Some(rec), geom.kind, opacity(f, gflags, inst_flags)?, gflags)
+        }
+    };
+    let data = l.s.prim(slot)?;
+    let (t, kind, bary, front, vertices) = match gkind {
+        layout::KIND_TRIANGLES => {
+            if f & RayFlags::SKIP_TRIANGLES != 0 {
+                return None;
+            }
+            let v0 = [data[0], data[1], data[2]];
+            let v1 = [data[3], data[4], data[5]];
+            let v2 = [data[6], data[7], data[8]];
+            let (t, u, v, front_raw) = intersect_sheared(&l.sh, l.org.to_array(), cx.tmin, cx.tmax, v0, v1, v2)?;
+            let front = front_raw ^ (inst_flags & INSTANCE_FLIP_FACING != 0);
+            let culled = (f & RayFlags::CULL_BACK_FACING_TRIANGLES != 0 && !front) || (f & RayFlags::CULL_FRONT_FACING_TRIANGLES != 0 && front);
+            if inst_flags & INSTANCE_FACING_CULL_DISABLE == 0 && gflags & clas::FLAG_CULL_DISABLE == 0 && culled {
+                return None;
+            }
+            (t, HitKind::Triangle, [u, v], front, [v0, v1, v2].map(Vec3::from_array))
+        }
+        layout::KIND_AABBS => {
+            if f & RayFlags::SKIP_AABBS != 0 {
+                return None;
+            }
+            let b = [data[0], data[1], data[2], data[3], data[4], data[5]];
+            let t = ray_box_exact(l.org, l.dir, &b, cx.tmin, cx.tmax)?;
+            (t, HitKind::Aabb, [0.0, 0.0], false, [Vec3::ZERO; 3])
+        }
+        _ => return None,
+    };
+    let rec = match rec {
+        Some(r) => r,
+        None => {
+            let r = l.s.record(slot)?;
+            l.s.geometry(r.geometry)?;
+            r
+        }
+    };
+    let (geometry_index, primitive_index, cluster_id) = match l.cluster.and_then(|c| c.get(rec.primitive)) {
+        Some(e) => (e.geometry_index, e.primitive_index, e.cluster_id as i32),
+        None => (rec.geometry, rec.primitive, -1),
+    };
+    let (ii, ci, sbt, o2w, w2o) = match cx.inst {
+        Some(i) => (i.instance_index, i.custom_index, i.sbt_offset, i.object_to_world, i.world_to_object),
+        None => (0, 0, 0, IDENTITY, IDENTITY),
+    };
+    Some(Hit {
+        t,
+        kind,
+        barycentrics: bary,
+        front_face: front,
+        opaque,
+        instance_index: ii,
+        instance_custom_index: ci,
+        sbt_record_offset: sbt,
+        geometry_index,
+        primitive_index,
+        object_ray_origin: l.org,
+        object_ray_direction: l.dir,
+        object_to_world: o2w,
+        world_to_object: w2o,
+        vertices,
+        cluster_id,
+    })
+}
+
 /// Exact (unwidened) entry distance of a ray into an AABB primitive within [tmin, tmax].
 fn ray_box_exact(org: Vec3, dir: Vec3, b: &[f32; 6], tmin: f32, tmax: f32) -> Option<f32> {
     let o = DVec3::new(org.x as f64, org.y as f64, org.z as f64);
@@ -616,6 +719,9 @@ fn ray_box_exact(org: Vec3, dir: Vec3, b: &[f32; 6], tmin: f32, tmax: f32) -> Op
     }
 }
 
+/// closest_hit through the resumable query, every candidate confirmed: the definition the
+/// plain loop in `closest` must match.
+#[cfg(test)]
 fn run(mut q: RayQuery<'_>) -> Option<Hit> {
     while let Some(c) = q.proceed() {
         match c.kind {
@@ -628,12 +734,12 @@ fn run(mut q: RayQuery<'_>) -> Option<Hit> {
 
 /// Every candidate confirmed (AABB candidates: hit at max(tmin, box entry t)).
 pub fn closest_hit(structure: &[u8], view: &dyn DeviceView, ray: Ray, flags: RayFlags, cull_mask: u8) -> Option<Hit> {
-    run(RayQuery::new(structure, view, ray, flags, cull_mask))
+    closest::trace(structure, view, ray, flags.0, cull_mask)
 }
 
 /// closest_hit with TERMINATE_ON_FIRST_HIT.
 pub fn any_hit(structure: &[u8], view: &dyn DeviceView, ray: Ray, flags: RayFlags, cull_mask: u8) -> Option<Hit> {
-    run(RayQuery::new(structure, view, ray, RayFlags(flags.0 | RayFlags::TERMINATE_ON_FIRST_HIT), cull_mask))
+    closest::trace(structure, view, ray, flags.0 | RayFlags::TERMINATE_ON_FIRST_HIT, cull_mask)
 }
 
 /// Every candidate/hit the traversal meets within [tmin, tmax] (flags and culling applied), in
