@@ -3,8 +3,8 @@
 //! address); a failed check records a [`Fault`] and the access reads zero or is dropped.
 use super::alu;
 use super::exec::{Ctx, Group, Wg};
-use super::ir::{AtomicOp, Op, Sc, Space};
-use super::memory::{Fault, FaultKind, FaultSpace};
+use super::ir::{AtomicOp, Op, Program, Sc, Space, ELEMENT_SHIFT};
+use super::memory::{Fault, FaultKind, FaultSpace, Memory, Region};
 use super::LANES;
 
 /// What one lane does at an address.
@@ -44,6 +44,8 @@ pub(super) fn exec_mem(ctx: &Ctx, group: &mut Group, wg: &mut Wg, op: &Op, mask:
             wg.fault_count += 1;
             if wg.faults.len() < 16 {
                 let write = !matches!(acc, Access::Read);
+                // An array element's fault names the element; `at` is the offset inside it.
+                let at = if matches!(fspace, FaultSpace::ArrayElement { .. }) { at & ((1 << ELEMENT_SHIFT) - 1) } else { at };
                 wg.faults.push(Fault { kind, space: fspace, at, len: ty.size(), write, workgroup: wg.id, invocation });
             }
             0
@@ -66,9 +68,7 @@ fn access_one(ctx: &Ctx, frame: &mut [u8], wg: &mut Wg, space: Space, at: u64, t
             _ => Err((FaultKind::Refused, FaultSpace::PushConstant)),
         },
         Space::Buffer(slot) => {
-            let (set, binding) = ctx.prog.bindings[slot as usize];
-            let fspace = FaultSpace::Binding { set, binding };
-            let region = ctx.regions[slot as usize].ok_or((FaultKind::Unbound, fspace))?;
+            let (region, fspace, at) = buffer_region(ctx, slot, at)?;
             if at.checked_add(size as u64).is_none_or(|end| end > region.len) {
                 return Err((FaultKind::OutOfBounds, fspace));
             }
@@ -80,6 +80,36 @@ fn access_one(ctx: &Ctx, frame: &mut [u8], wg: &mut Wg, space: Space, at: u64, t
             device(ctx, region.buffer, region.offset, ty, acc).ok_or((FaultKind::Refused, FaultSpace::DeviceAddress))
         }
     }
+}
+
+/// The region a `Space::Buffer` address falls in, the fault space naming it, and the offset
+/// inside it. A single descriptor takes the address whole; an array's address carries the
+/// element above `ELEMENT_SHIFT` (an index past the end is an `ArrayIndex` fault).
+fn buffer_region(ctx: &Ctx, slot: u16, at: u64) -> Result<(Region, FaultSpace, u64), (FaultKind, FaultSpace)> {
+    let (set, binding) = ctx.prog.bindings[slot as usize];
+    let elements = &ctx.regions[slot as usize];
+    if ctx.prog.binding_counts[slot as usize] == 1 {
+        let fspace = FaultSpace::Binding { set, binding };
+        return Ok((elements[0].ok_or((FaultKind::Unbound, fspace))?, fspace, at));
+    }
+    let element = u32::try_from(at >> ELEMENT_SHIFT).unwrap_or(u32::MAX);
+    let fspace = FaultSpace::ArrayElement { set, binding, element };
+    let region = elements.get(element as usize).ok_or((FaultKind::ArrayIndex, fspace))?;
+    Ok((region.ok_or((FaultKind::Unbound, fspace))?, fspace, at & ((1 << ELEMENT_SHIFT) - 1)))
+}
+
+/// Every element region of every buffer slot, resolved once per dispatch. A runtime array has
+/// as many elements as the bound set gives it (bounded: the executor holds them all).
+pub(super) fn binding_regions(prog: &Program, memory: &dyn Memory) -> Vec<Vec<Option<Region>>> {
+    const MAX_RESOLVED: u32 = 1 << 20;
+    prog.bindings
+        .iter()
+        .zip(&prog.binding_counts)
+        .map(|(&(s, b), &n)| {
+            let n = if n == 0 { memory.binding_count(s, b).min(MAX_RESOLVED) } else { n };
+            (0..n).map(|e| memory.binding_element(s, b, e)).collect()
+        })
+        .collect()
 }
 
 fn read_le(bytes: &[u8], at: u64, size: usize) -> Option<u64> {

@@ -49,11 +49,18 @@ pub enum Space {
     Workgroup,
     /// The push-constant block.
     Push,
-    /// A descriptor binding: index into [`Program::bindings`], resolved once per dispatch.
+    /// A descriptor binding: index into [`Program::bindings`], resolved once per dispatch. For
+    /// an array of descriptors the address carries the array element above
+    /// [`ELEMENT_SHIFT`] (the element's byte offset below it).
     Buffer(u16),
     /// PhysicalStorageBuffer64: the register holds a device address.
     Physical,
 }
+
+/// Bit where the array element of a descriptor-array address starts (`Space::Buffer`):
+/// 2^40 bytes per element is beyond any buffer range Arbor reports, so offset arithmetic stays
+/// inside its element unless it goes out of bounds anyway.
+pub const ELEMENT_SHIFT: u32 = 40;
 
 /// Two-operand ALU ops. Signedness lives in the op, width in the [`Sc`] it is applied to.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -306,6 +313,9 @@ pub struct Program {
     /// Descriptor (set, binding) for each `Space::Buffer` index (and every acceleration
     /// structure descriptor, which is in `accel_bindings` too).
     pub bindings: Vec<(u32, u32)>,
+    /// Array length of each `bindings` entry as the shader declares it: 1 for a single
+    /// descriptor, 0 for a runtime array (as many elements as the bound set has).
+    pub binding_counts: Vec<u32>,
     /// Descriptor (set, binding) of each storage image the image ops name.
     pub images: Vec<(u32, u32)>,
     /// Registers holding the device address of the acceleration structure bound at (set,

@@ -82,7 +82,11 @@ pub struct Lowerer<'a> {
     frames: Vec<Frame>,
     lane_frame: Vec<u8>,
     workgroup_bytes: u32,
-    bindings: Vec<(u32, u32)>,
+    pub(super) bindings: Vec<(u32, u32)>,
+    /// Declared array length of each `bindings` entry (see `Program::binding_counts`).
+    pub(super) binding_counts: Vec<u32>,
+    /// Type ids of descriptor arrays of buffers (indexing one steps whole elements).
+    pub(super) descriptor_arrays: Vec<u32>,
     pub(super) images: Vec<(u32, u32)>,
     accel_bindings: Vec<(Reg, (u32, u32))>,
     push_size: u32,
@@ -105,6 +109,8 @@ pub fn lower(m: &Module, consts: &Constants, e: &EntryPoint) -> Result<Lowered, 
         lane_frame: vec![0; bo::END as usize],
         workgroup_bytes: 0,
         bindings: Vec::new(),
+        binding_counts: Vec::new(),
+        descriptor_arrays: Vec::new(),
         images: Vec::new(),
         accel_bindings: Vec::new(),
         push_size: 0,
@@ -117,6 +123,7 @@ pub fn lower(m: &Module, consts: &Constants, e: &EntryPoint) -> Result<Lowered, 
         lane_frame: lw.lane_frame,
         workgroup_bytes: lw.workgroup_bytes,
         bindings: lw.bindings,
+        binding_counts: lw.binding_counts,
         images: lw.images,
         accel_bindings: lw.accel_bindings,
     };
@@ -250,14 +257,7 @@ impl<'a> Lowerer<'a> {
         let (space, addr) = match class {
             StorageClass::StorageBuffer | StorageClass::Uniform => {
                 let key = (deco.set.unwrap_or(0), deco.binding.unwrap_or(0));
-                let slot = match self.bindings.iter().position(|&b| b == key) {
-                    Some(s) => s,
-                    None => {
-                        self.bindings.push(key);
-                        self.bindings.len() - 1
-                    }
-                };
-                (Space::Buffer(slot as u16), 0)
+                (self.buffer_variable(id, key, pointee)?, 0)
             }
             StorageClass::PushConstant => {
                 self.push_size = self.push_size.max(self.l.size_align(pointee)?.0);
@@ -290,6 +290,7 @@ impl<'a> Lowerer<'a> {
         let key = (set, binding);
         if !self.bindings.contains(&key) {
             self.bindings.push(key);
+            self.binding_counts.push(1);
         }
         let r = match self.accel_bindings.iter().find(|(_, k)| *k == key) {
             Some(&(r, _)) => r,
@@ -406,14 +407,17 @@ impl<'a> Lowerer<'a> {
                     p.pointee = member;
                     continue;
                 }
-                Type::Array { elem, .. } | Type::RuntimeArray { elem } => (elem, self.l.stride(p.pointee, elem)?),
-                Type::Vector { elem, .. } => (elem, self.l.size_align(elem)?.0),
+                Type::Array { elem, .. } | Type::RuntimeArray { elem } => match self.descriptor_stride(&p) {
+                    Some(stride) => (elem, stride),
+                    None => (elem, self.l.stride(p.pointee, elem)? as u64),
+                },
+                Type::Vector { elem, .. } => (elem, self.l.size_align(elem)?.0 as u64),
                 Type::Matrix { column, .. } => {
-                    (column, p.matrix_stride.unwrap_or(self.l.size_align(column)?.0))
+                    (column, p.matrix_stride.unwrap_or(self.l.size_align(column)?.0) as u64)
                 }
                 _ => return Err(self.m.malformed(id, "access chain into a scalar")),
             };
-            p.addr = self.index(p.addr, idx, stride as u64, &mut imm)?;
+            p.addr = self.index(p.addr, idx, stride, &mut imm)?;
             if !matches!(self.m.ty(p.pointee)?, Type::Array { .. } | Type::RuntimeArray { .. }) {
                 p.matrix_stride = None;
             }

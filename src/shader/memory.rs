@@ -36,6 +36,21 @@ pub struct Region {
 pub trait Memory: Sync {
     /// The region bound at (set, binding), after dynamic offsets; None when nothing is bound.
     fn binding(&self, set: u32, binding: u32) -> Option<Region>;
+    /// Element `element` of an array of buffer descriptors at (set, binding); None when that
+    /// element has nothing bound. The default knows single descriptors only.
+    fn binding_element(&self, set: u32, binding: u32, element: u32) -> Option<Region> {
+        if element == 0 {
+            self.binding(set, binding)
+        } else {
+            None
+        }
+    }
+    /// How many array elements the binding at (set, binding) has as bound (the length a
+    /// runtime descriptor array takes). The default knows single descriptors only.
+    fn binding_count(&self, set: u32, binding: u32) -> u32 {
+        let _ = (set, binding);
+        1
+    }
     /// The region of the one live buffer containing `[address, address + len)`, with `offset`
     /// the position of `address` in that buffer and `len` the bytes from there to the buffer's
     /// end; None for an unmapped or null address.
@@ -141,6 +156,8 @@ pub enum FaultKind {
     OutOfBounds,
     /// A descriptor binding the shader uses has nothing bound.
     Unbound,
+    /// A descriptor-array index past the array's end (the access is dropped or reads zero).
+    ArrayIndex,
     /// A device address no live buffer contains (including null).
     Unmapped,
     /// The memory refused an in-range access.
@@ -150,12 +167,18 @@ pub enum FaultKind {
     InvalidStructure,
     /// A ray-query instruction other than Initialize on a query never initialised.
     Uninitialized,
+    /// A top-level structure's instance references an address that is no built bottom-level
+    /// structure (`at`: that address); traversal treats the instance as absent. Reported once
+    /// per workgroup, not per ray; the dispatch turns it into one diagnostic.
+    UnresolvedInstance,
 }
 
 /// Which memory a faulting access went to.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum FaultSpace {
     Binding { set: u32, binding: u32 },
+    /// One element of an array of descriptors; `at` is the offset inside that element.
+    ArrayElement { set: u32, binding: u32, element: u32 },
     DeviceAddress,
     PushConstant,
     Workgroup,
@@ -193,6 +216,9 @@ impl std::fmt::Display for Fault {
 pub struct HostMemory {
     buffers: Vec<HostBuffer>,
     bindings: Vec<((u32, u32), Region)>,
+    /// Elements of descriptor arrays: ((set, binding, element), region); element 0 of an
+    /// array is in `bindings`.
+    elements: Vec<((u32, u32, u32), Region)>,
     images: Vec<((u32, u32), ImageBinding)>,
 }
 
@@ -234,6 +260,16 @@ impl HostMemory {
         self.bindings.push(((set, binding), Region { buffer: index as u64, offset, len }));
     }
 
+    /// Binds the whole of buffer `index` as element `element` of the array at (set, binding).
+    pub fn bind_element(&mut self, set: u32, binding: u32, element: u32, index: usize) {
+        if element == 0 {
+            return self.bind(set, binding, index);
+        }
+        let region = Region { buffer: index as u64, offset: 0, len: self.buffers[index].len };
+        self.elements.retain(|(k, _)| *k != (set, binding, element));
+        self.elements.push(((set, binding, element), region));
+    }
+
     /// Binds a storage image at (set, binding); its texels live in buffer `image.buffer`.
     pub fn bind_image(&mut self, set: u32, binding: u32, image: ImageBinding) {
         self.images.retain(|(k, _)| *k != (set, binding));
@@ -270,6 +306,18 @@ fn merge_word(word: &AtomicU64, shift: u32, n: u32, value: u64) {
 impl Memory for HostMemory {
     fn binding(&self, set: u32, binding: u32) -> Option<Region> {
         self.bindings.iter().find(|(k, _)| *k == (set, binding)).map(|(_, r)| *r)
+    }
+
+    fn binding_element(&self, set: u32, binding: u32, element: u32) -> Option<Region> {
+        if element == 0 {
+            return self.binding(set, binding);
+        }
+        self.elements.iter().find(|(k, _)| *k == (set, binding, element)).map(|(_, r)| *r)
+    }
+
+    fn binding_count(&self, set: u32, binding: u32) -> u32 {
+        let n = self.elements.iter().filter(|((s, b, _), _)| (*s, *b) == (set, binding)).map(|((_, _, e), _)| e + 1).max();
+        n.unwrap_or(1)
     }
 
     fn image(&self, set: u32, binding: u32) -> Option<ImageBinding> {

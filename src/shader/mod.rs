@@ -61,6 +61,7 @@ mod exec_rq;
 pub mod ir;
 mod layout;
 mod lower;
+mod lower_array;
 mod lower_image;
 mod lower_ops;
 mod lower_rq;
@@ -122,6 +123,9 @@ impl std::error::Error for ShaderError {}
 pub struct BindingUse {
     pub set: u32,
     pub binding: u32,
+    /// The array length the shader declares: 1 for a single descriptor, 0 for a runtime
+    /// array.
+    pub count: u32,
 }
 
 /// A compute pipeline: one specialised, lowered entry point. Cheap to clone.
@@ -156,7 +160,9 @@ impl Pipeline {
     /// Descriptor bindings the entry point uses: buffers and acceleration structures in
     /// first-use order, then storage images in first-use order.
     pub fn bindings(&self) -> Vec<BindingUse> {
-        self.program.bindings.iter().chain(&self.program.images).map(|&(set, binding)| BindingUse { set, binding }).collect()
+        let p = &self.program;
+        let buffers = p.bindings.iter().zip(&p.binding_counts).map(|(&(set, binding), &count)| BindingUse { set, binding, count });
+        buffers.chain(p.images.iter().map(|&(set, binding)| BindingUse { set, binding, count: 1 })).collect()
     }
 
     /// Bytes of workgroup shared memory one workgroup needs.

@@ -97,6 +97,14 @@ const CAPABILITIES: &[Capability] = &[
     Capability::StorageImageWriteWithoutFormat,
     Capability::RayQueryKHR,
     Capability::RayQueryPositionFetchKHR,
+    // Arrays of storage and uniform buffer descriptors, indexed by any value (the executor
+    // resolves the element per lane), sized or runtime.
+    Capability::UniformBufferArrayDynamicIndexing,
+    Capability::StorageBufferArrayDynamicIndexing,
+    Capability::RuntimeDescriptorArray,
+    Capability::ShaderNonUniform,
+    Capability::UniformBufferArrayNonUniformIndexing,
+    Capability::StorageBufferArrayNonUniformIndexing,
 ];
 
 const EXTENSIONS: &[&str] = &[
@@ -108,6 +116,7 @@ const EXTENSIONS: &[&str] = &[
     "SPV_KHR_shader_ballot",
     "SPV_KHR_ray_query",
     "SPV_KHR_ray_tracing_position_fetch",
+    "SPV_EXT_descriptor_indexing",
 ];
 
 /// Opcodes the lowering handles; anything else is rejected with its word offset.

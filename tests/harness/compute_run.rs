@@ -4,7 +4,7 @@
 //! after it, so the staging buffer is what the job returns for that binding.
 use ash::vk;
 
-use super::compute::{Gpu, Job, JobError, Size};
+use super::compute::{Binding, Gpu, Job, JobError, Size};
 
 struct Buffer {
     buffer: vk::Buffer,
@@ -119,12 +119,12 @@ fn objects(gpu: &Gpu, job: &Job, buffers: &[Buffer], images: &[Option<Image>]) -
         .bindings
         .iter()
         .enumerate()
-        .map(|(i, b)| vk::DescriptorSetLayoutBinding::default().binding(i as u32).descriptor_type(b.kind).descriptor_count(1).stage_flags(vk::ShaderStageFlags::COMPUTE))
+        .map(|(i, b)| vk::DescriptorSetLayoutBinding::default().binding(i as u32).descriptor_type(b.kind).descriptor_count(b.elements).stage_flags(vk::ShaderStageFlags::COMPUTE))
         .collect();
     // SAFETY: valid create infos; every object is destroyed by `destroy`.
     unsafe {
         let set_layout = d.create_descriptor_set_layout(&vk::DescriptorSetLayoutCreateInfo::default().bindings(&lb), None).unwrap();
-        let sizes: Vec<_> = job.bindings.iter().map(|b| vk::DescriptorPoolSize { ty: b.kind, descriptor_count: 1 }).collect();
+        let sizes: Vec<_> = job.bindings.iter().map(|b| vk::DescriptorPoolSize { ty: b.kind, descriptor_count: b.elements }).collect();
         let pool = if sizes.is_empty() {
             vk::DescriptorPool::null()
         } else {
@@ -136,8 +136,7 @@ fn objects(gpu: &Gpu, job: &Job, buffers: &[Buffer], images: &[Option<Image>]) -
             let layouts = [set_layout];
             d.allocate_descriptor_sets(&vk::DescriptorSetAllocateInfo::default().descriptor_pool(pool).set_layouts(&layouts)).unwrap()[0]
         };
-        let infos: Vec<[vk::DescriptorBufferInfo; 1]> =
-            job.bindings.iter().zip(buffers).map(|(b, buf)| [vk::DescriptorBufferInfo { buffer: buf.buffer, offset: 0, range: b.range }]).collect();
+        let infos: Vec<Vec<vk::DescriptorBufferInfo>> = job.bindings.iter().zip(buffers).map(|(b, buf)| buffer_infos(b, buf.buffer)).collect();
         let image_infos: Vec<[vk::DescriptorImageInfo; 1]> = images
             .iter()
             .map(|i| [vk::DescriptorImageInfo { sampler: vk::Sampler::null(), image_view: i.as_ref().map_or(vk::ImageView::null(), |i| i.view), image_layout: vk::ImageLayout::GENERAL }])
@@ -188,6 +187,15 @@ fn objects(gpu: &Gpu, job: &Job, buffers: &[Buffer], images: &[Option<Image>]) -
     }
 }
 
+/// The descriptors of one buffer binding: the whole range, or one part per array element.
+fn buffer_infos(b: &Binding, buffer: vk::Buffer) -> Vec<vk::DescriptorBufferInfo> {
+    if b.elements == 1 {
+        return vec![vk::DescriptorBufferInfo { buffer, offset: 0, range: b.range }];
+    }
+    let part = (b.data.len() / b.elements as usize) as u64;
+    (0..b.elements as u64).map(|e| vk::DescriptorBufferInfo { buffer, offset: e * part, range: if b.range == vk::WHOLE_SIZE { part } else { b.range } }).collect()
+}
+
 fn destroy(gpu: &Gpu, o: &Objects) {
     let d = &gpu.device;
     // SAFETY: the objects are idle (the fence was waited on) and not used again.
@@ -219,7 +227,7 @@ fn submit(gpu: &Gpu, job: &Job, o: &Objects, indirect: &Buffer, buffers: &[Buffe
         }
         d.cmd_bind_pipeline(cb, vk::PipelineBindPoint::COMPUTE, o.pipeline);
         if o.set != vk::DescriptorSet::null() {
-            let dynamic: Vec<u32> = job.bindings.iter().filter(|b| b.kind == vk::DescriptorType::UNIFORM_BUFFER_DYNAMIC || b.kind == vk::DescriptorType::STORAGE_BUFFER_DYNAMIC).map(|b| b.dynamic_offset).collect();
+            let dynamic: Vec<u32> = job.bindings.iter().filter(|b| b.kind == vk::DescriptorType::UNIFORM_BUFFER_DYNAMIC || b.kind == vk::DescriptorType::STORAGE_BUFFER_DYNAMIC).flat_map(|b| vec![b.dynamic_offset; b.elements as usize]).collect();
             d.cmd_bind_descriptor_sets(cb, vk::PipelineBindPoint::COMPUTE, o.layout, 0, &[o.set], &dynamic);
         }
         if !job.push.is_empty() {

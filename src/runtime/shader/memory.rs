@@ -33,8 +33,11 @@ const IMAGE_TAG: u64 = 1 << 62;
 /// One dispatch's memory: the buffers its descriptors name, and the device's address space.
 pub struct DispatchMemory<'a> {
     space: &'a AddressSpace,
-    /// ((set, binding), region) for every binding the pipeline uses that resolved.
-    regions: Vec<((u32, u32), Region)>,
+    /// ((set, binding, array element), region) for every buffer element the pipeline's
+    /// bindings have that resolved.
+    regions: Vec<((u32, u32, u32), Region)>,
+    /// ((set, binding), elements) of every buffer binding: the length a runtime array takes.
+    counts: Vec<((u32, u32), u32)>,
     /// The buffers `regions` refer to, by `Region::buffer`.
     buffers: Vec<Arc<Buffer>>,
     /// ((set, binding), image, its view for the library) for every storage image that resolved;
@@ -77,21 +80,44 @@ impl<'a> DispatchMemory<'a> {
     /// a contained fault).
     pub fn new(space: &'a AddressSpace, sets: &[Option<BoundSet>], used: &[(u32, u32)]) -> (Self, Missing) {
         let device = DeviceInputs::new(space, "vkCmdDispatch");
-        let mut m = DispatchMemory { space, regions: Vec::new(), buffers: Vec::new(), images: Vec::new(), structures: Vec::new(), device };
+        let mut m = DispatchMemory { space, regions: Vec::new(), counts: Vec::new(), buffers: Vec::new(), images: Vec::new(), structures: Vec::new(), device };
         let mut missing = Vec::new();
         for &(set, binding) in used {
-            match resolve_binding(sets, set, binding, IMAGE_TAG | m.images.len() as u64) {
-                Ok(Resolved::Buffer(buffer, offset, len)) => {
-                    let region = Region { buffer: m.buffers.len() as u64, offset, len };
-                    m.buffers.push(buffer);
-                    m.regions.push(((set, binding), region));
-                }
+            if m.buffer_array(sets, set, binding) {
+                continue;
+            }
+            match resolve_binding(sets, set, binding, 0, IMAGE_TAG | m.images.len() as u64) {
+                Ok(Resolved::Buffer(buffer, offset, len)) => m.push_region((set, binding, 0), buffer, offset, len),
                 Ok(Resolved::Image(image, view)) => m.images.push(((set, binding), image, view)),
                 Ok(Resolved::Structure(address)) => m.structures.push(((set, binding), address)),
                 Err(e) => missing.push(((set, binding), e)),
             }
         }
         (m, missing)
+    }
+
+    fn push_region(&mut self, key: (u32, u32, u32), buffer: Arc<Buffer>, offset: u64, len: u64) {
+        self.regions.push((key, Region { buffer: self.buffers.len() as u64, offset, len }));
+        self.buffers.push(buffer);
+    }
+
+    /// Resolves every element of a binding with more than one buffer descriptor and returns
+    /// true; false for anything else. An array's elements need not all be valid (partially
+    /// bound, or simply not used by this dispatch): one that does not resolve is reported by
+    /// the access that reaches it, as an unbound fault naming the element.
+    fn buffer_array(&mut self, sets: &[Option<BoundSet>], set: u32, binding: u32) -> bool {
+        let Some(bound) = sets.get(set as usize).and_then(Option::as_ref) else { return false };
+        let Some(elements) = bound.set.binding(binding) else { return false };
+        if elements.len() == 1 || !elements.iter().all(|d| matches!(d, Descriptor::Buffer { .. } | Descriptor::Empty)) {
+            return false;
+        }
+        self.counts.push(((set, binding), elements.len() as u32));
+        for e in 0..elements.len() as u32 {
+            if let Ok(Resolved::Buffer(buffer, offset, len)) = resolve_binding(sets, set, binding, e, 0) {
+                self.push_region((set, binding, e), buffer, offset, len);
+            }
+        }
+        true
     }
 
     /// The buffer of a descriptor region (offsets the library passes are buffer-relative).
@@ -105,20 +131,20 @@ impl<'a> DispatchMemory<'a> {
     }
 }
 
-/// The buffer range a bound descriptor gives the shader: element 0 of the binding, dynamic
-/// offset applied, or the storage image it names (its texels under id `image_id`). Dynamic
-/// offsets are ordered by binding number, then array element.
-fn resolve_binding(sets: &[Option<BoundSet>], set: u32, binding: u32, image_id: u64) -> Result<Resolved, Unresolved> {
+/// The buffer range a bound descriptor gives the shader: array element `element` of the
+/// binding, dynamic offset applied, or the storage image it names (its texels under id
+/// `image_id`). Dynamic offsets are ordered by binding number, then array element.
+fn resolve_binding(sets: &[Option<BoundSet>], set: u32, binding: u32, element: u32, image_id: u64) -> Result<Resolved, Unresolved> {
     let bound = sets.get(set as usize).and_then(Option::as_ref).ok_or(Unresolved::NotBound)?;
     let layout = &bound.set.layout;
     let lb = layout.binding(binding).ok_or(Unresolved::NotBound)?;
     let dynamic = if is_dynamic(lb.descriptor_type) {
         let index: u32 = layout.bindings.iter().take_while(|b| b.binding < binding).filter(|b| is_dynamic(b.descriptor_type)).map(|b| b.count).sum();
-        bound.dynamic_offsets.get(index as usize).copied().unwrap_or(0) as u64
+        bound.dynamic_offsets.get((index + element) as usize).copied().unwrap_or(0) as u64
     } else {
         0
     };
-    match bound.set.descriptor(binding, 0).ok_or(Unresolved::NotBound)? {
+    match bound.set.descriptor(binding, element).ok_or(Unresolved::NotBound)? {
         d @ Descriptor::Buffer { .. } => {
             let (buffer, offset, len) = d.buffer_range(dynamic).ok_or(Unresolved::Empty)?;
             match offset.checked_add(len) {
@@ -142,7 +168,15 @@ fn resolve_binding(sets: &[Option<BoundSet>], set: u32, binding: u32, image_id: 
 
 impl Memory for DispatchMemory<'_> {
     fn binding(&self, set: u32, binding: u32) -> Option<Region> {
-        self.regions.iter().find(|(k, _)| *k == (set, binding)).map(|(_, r)| *r)
+        self.binding_element(set, binding, 0)
+    }
+
+    fn binding_element(&self, set: u32, binding: u32, element: u32) -> Option<Region> {
+        self.regions.iter().find(|(k, _)| *k == (set, binding, element)).map(|(_, r)| *r)
+    }
+
+    fn binding_count(&self, set: u32, binding: u32) -> u32 {
+        self.counts.iter().find(|(k, _)| *k == (set, binding)).map_or(1, |(_, n)| *n)
     }
 
     fn address(&self, address: u64, len: u64) -> Option<Region> {
