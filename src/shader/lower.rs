@@ -644,7 +644,7 @@ impl Lowerer<'_> {
                 let v = self.val(id_op(inst, 0)?)?;
                 self.define(id, v);
             }
-            Op::ImageRead | Op::ImageWrite | Op::ImageQuerySize => self.lower_image(inst)?,
+            Op::ImageRead | Op::ImageFetch | Op::ImageWrite | Op::ImageQuerySize => self.lower_image(inst)?,
             Op::Load => {
                 let src = id_op(inst, 0)?;
                 let p = self.ptr(src, self.type_of(src))?;

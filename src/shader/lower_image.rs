@@ -1,4 +1,4 @@
-//! Storage images in lowering: a UniformConstant image variable becomes [`Val::Image`] (a slot
+//! Storage images and texel buffers in lowering: a UniformConstant image variable becomes [`Val::Image`] (a slot
 //! in `Program::images`), and OpImageRead / OpImageWrite / OpImageQuerySize become the IR's
 //! image ops with the coordinate spread into (x, y, z, layer) by the image's Dim and Arrayed.
 use rspirv::dr::Instruction;
@@ -37,7 +37,9 @@ impl Lowerer<'_> {
         };
         let zero = self.konst(0);
         match inst.class.opcode {
-            Op::ImageRead => {
+            // OpImageFetch of a uniform texel buffer reads like OpImageRead (no sampler, no
+            // level: the image operands a buffer fetch may carry are none).
+            Op::ImageRead | Op::ImageFetch => {
                 let out = self.l.components(inst.result_type.unwrap_or(0))?;
                 let ty = texel_type(self, id, &out)?;
                 let coord = self.coordinate(id_op(inst, 1)?, dim, arrayed, zero)?;
@@ -60,7 +62,7 @@ impl Lowerer<'_> {
             _ => {
                 // OpImageQuerySize: width[, height][, depth][, layers].
                 let dims: &[u8] = match (dim, arrayed) {
-                    (Dim::Dim1D, false) => &[0],
+                    (Dim::Dim1D | Dim::DimBuffer, false) => &[0],
                     (Dim::Dim1D, true) => &[0, 3],
                     (Dim::Dim2D, false) => &[0, 1],
                     (Dim::Dim2D, true) => &[0, 1, 3],
@@ -85,7 +87,7 @@ impl Lowerer<'_> {
     fn coordinate(&mut self, id: u32, dim: Dim, arrayed: bool, zero: Reg) -> Result<[Reg; 4], ShaderError> {
         let c = self.regs(id)?;
         let n = match dim {
-            Dim::Dim1D => 1,
+            Dim::Dim1D | Dim::DimBuffer => 1,
             Dim::Dim2D => 2,
             _ => 3,
         };

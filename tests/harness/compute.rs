@@ -235,19 +235,29 @@ pub struct Binding {
     /// parts, element e bound to the e-th part of the one buffer (offset e * part, range
     /// part); a dynamic offset applies to each element.
     pub elements: u32,
+    /// For UNIFORM_/STORAGE_TEXEL_BUFFER: the buffer view's format (the view covers `data`).
+    pub texel: Option<vk::Format>,
 }
 
 impl Binding {
     pub fn storage(data: Vec<u8>) -> Binding {
-        Binding { data, kind: vk::DescriptorType::STORAGE_BUFFER, image: None, dynamic_offset: 0, range: vk::WHOLE_SIZE, elements: 1 }
+        Binding { data, kind: vk::DescriptorType::STORAGE_BUFFER, image: None, dynamic_offset: 0, range: vk::WHOLE_SIZE, elements: 1, texel: None }
     }
     pub fn uniform(data: Vec<u8>) -> Binding {
-        Binding { data, kind: vk::DescriptorType::UNIFORM_BUFFER, image: None, dynamic_offset: 0, range: vk::WHOLE_SIZE, elements: 1 }
+        Binding { data, kind: vk::DescriptorType::UNIFORM_BUFFER, image: None, dynamic_offset: 0, range: vk::WHOLE_SIZE, elements: 1, texel: None }
     }
     /// A 2D storage image of `format` and `extent` holding `texels` (tightly packed); the job
     /// returns its texels after the dispatch, packed the same way.
     pub fn storage_image(format: vk::Format, extent: [u32; 2], texels: Vec<u8>) -> Binding {
-        Binding { data: texels, kind: vk::DescriptorType::STORAGE_IMAGE, image: Some((format, extent)), dynamic_offset: 0, range: vk::WHOLE_SIZE, elements: 1 }
+        Binding { data: texels, kind: vk::DescriptorType::STORAGE_IMAGE, image: Some((format, extent)), dynamic_offset: 0, range: vk::WHOLE_SIZE, elements: 1, texel: None }
+    }
+    /// A uniform texel buffer of `format` over `data`.
+    pub fn uniform_texels(format: vk::Format, data: Vec<u8>) -> Binding {
+        Binding { kind: vk::DescriptorType::UNIFORM_TEXEL_BUFFER, texel: Some(format), ..Binding::storage(data) }
+    }
+    /// A storage texel buffer of `format` over `data`.
+    pub fn storage_texels(format: vk::Format, data: Vec<u8>) -> Binding {
+        Binding { kind: vk::DescriptorType::STORAGE_TEXEL_BUFFER, texel: Some(format), ..Binding::storage(data) }
     }
     /// An array of `n` buffer descriptors over equal parts of `data` (see `elements`).
     pub fn array(mut self, n: u32) -> Binding {

@@ -111,6 +111,8 @@ struct Objects {
     layout: vk::PipelineLayout,
     module: vk::ShaderModule,
     pipeline: vk::Pipeline,
+    /// Buffer views of the texel-buffer bindings (null for the others).
+    views: Vec<vk::BufferView>,
 }
 
 fn objects(gpu: &Gpu, job: &Job, buffers: &[Buffer], images: &[Option<Image>]) -> Result<Objects, JobError> {
@@ -141,14 +143,19 @@ fn objects(gpu: &Gpu, job: &Job, buffers: &[Buffer], images: &[Option<Image>]) -
             .iter()
             .map(|i| [vk::DescriptorImageInfo { sampler: vk::Sampler::null(), image_view: i.as_ref().map_or(vk::ImageView::null(), |i| i.view), image_layout: vk::ImageLayout::GENERAL }])
             .collect();
+        let views: Vec<vk::BufferView> = job.bindings.iter().zip(buffers).map(|(b, buf)| texel_view(gpu, b, buf.buffer)).collect();
+        let view_infos: Vec<[vk::BufferView; 1]> = views.iter().map(|&v| [v]).collect();
         let writes: Vec<_> = job
             .bindings
             .iter()
             .zip(infos.iter().zip(&image_infos))
+            .zip(&view_infos)
             .enumerate()
-            .map(|(i, (b, (info, image_info)))| {
+            .map(|(i, ((b, (info, image_info)), view))| {
                 let w = vk::WriteDescriptorSet::default().dst_set(set).dst_binding(i as u32).descriptor_type(b.kind);
-                if b.image.is_some() {
+                if b.texel.is_some() {
+                    w.texel_buffer_view(view)
+                } else if b.image.is_some() {
                     w.image_info(image_info)
                 } else {
                     w.buffer_info(info)
@@ -176,7 +183,7 @@ fn objects(gpu: &Gpu, job: &Job, buffers: &[Buffer], images: &[Option<Image>]) -
         let stage = vk::PipelineShaderStageCreateInfo::default().stage(vk::ShaderStageFlags::COMPUTE).module(module).name(name).specialization_info(&spec);
         let flags = if matches!(job.size, Size::Base { .. }) { vk::PipelineCreateFlags::DISPATCH_BASE } else { vk::PipelineCreateFlags::empty() };
         let ci = [vk::ComputePipelineCreateInfo::default().flags(flags).stage(stage).layout(layout)];
-        let o = |pipeline| Objects { set_layout, pool, set, layout, module, pipeline };
+        let o = |pipeline| Objects { set_layout, pool, set, layout, module, pipeline, views: views.clone() };
         match d.create_compute_pipelines(vk::PipelineCache::null(), &ci, None) {
             Ok(p) => Ok(o(p[0])),
             Err((_, e)) => {
@@ -185,6 +192,14 @@ fn objects(gpu: &Gpu, job: &Job, buffers: &[Buffer], images: &[Option<Image>]) -
             }
         }
     }
+}
+
+/// The buffer view of a texel-buffer binding (the whole buffer), or null.
+fn texel_view(gpu: &Gpu, b: &Binding, buffer: vk::Buffer) -> vk::BufferView {
+    let Some(format) = b.texel else { return vk::BufferView::null() };
+    let ci = vk::BufferViewCreateInfo::default().buffer(buffer).format(format).offset(0).range(vk::WHOLE_SIZE);
+    // SAFETY: a live buffer with texel-buffer usage; the view is destroyed with the objects.
+    unsafe { gpu.device.create_buffer_view(&ci, None) }.expect("vkCreateBufferView")
 }
 
 /// The descriptors of one buffer binding: the whole range, or one part per array element.
@@ -205,6 +220,9 @@ fn destroy(gpu: &Gpu, o: &Objects) {
         d.destroy_pipeline_layout(o.layout, None);
         d.destroy_descriptor_pool(o.pool, None);
         d.destroy_descriptor_set_layout(o.set_layout, None);
+        for &v in &o.views {
+            d.destroy_buffer_view(v, None);
+        }
     }
 }
 
@@ -267,7 +285,10 @@ fn submit(gpu: &Gpu, job: &Job, o: &Objects, indirect: &Buffer, buffers: &[Buffe
 
 /// Run `job` on `gpu`; returns every binding's bytes afterwards.
 pub fn run(gpu: &Gpu, job: &Job) -> Result<Vec<Vec<u8>>, JobError> {
-    let usage = vk::BufferUsageFlags::STORAGE_BUFFER | vk::BufferUsageFlags::UNIFORM_BUFFER;
+    let usage = vk::BufferUsageFlags::STORAGE_BUFFER
+        | vk::BufferUsageFlags::UNIFORM_BUFFER
+        | vk::BufferUsageFlags::UNIFORM_TEXEL_BUFFER
+        | vk::BufferUsageFlags::STORAGE_TEXEL_BUFFER;
     let staging = vk::BufferUsageFlags::TRANSFER_SRC | vk::BufferUsageFlags::TRANSFER_DST;
     let buffers: Vec<Buffer> = job.bindings.iter().map(|b| buffer(gpu, &b.data, if b.image.is_some() { staging } else { usage })).collect();
     let images: Vec<Option<Image>> = job

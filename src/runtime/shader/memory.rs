@@ -9,14 +9,16 @@
 //! `resolve_binding` is the one place a descriptor becomes something the shader can reach, and
 //! `DispatchMemory::new` the one loop that collects them. Storage images reach the library
 //! through `Memory::image`, not as buffer regions: they are kept in `images`, and their texel
-//! reads and writes arrive with an id tagged `IMAGE_TAG`.
+//! reads and writes arrive with an id tagged `IMAGE_TAG`. Texel buffers are images to the
+//! library too (one row of texels), but their memory is a buffer: kept in `texels`, their
+//! ids index `buffers` like descriptor buffers.
 use std::sync::Arc;
 
 use crate::accel::DeviceView;
 use crate::memory::{AddressSpace, Buffer};
 use crate::runtime::accel::inputs::DeviceInputs;
 use crate::runtime::descriptor::{is_dynamic, Descriptor};
-use crate::runtime::image::{storage_image_binding, Image};
+use crate::runtime::image::{storage_image_binding, texel_buffer_binding, Image};
 use crate::shader::{ImageBinding, Memory, Region};
 
 use super::BoundSet;
@@ -43,6 +45,9 @@ pub struct DispatchMemory<'a> {
     /// ((set, binding), image, its view for the library) for every storage image that resolved;
     /// the binding's id is `IMAGE_TAG | index`.
     images: Vec<((u32, u32), Arc<Image>, ImageBinding)>,
+    /// ((set, binding), view) of every texel buffer: texels live in `buffers` (the view's
+    /// `buffer` id indexes it), so reads and writes take the descriptor-buffer path.
+    texels: Vec<((u32, u32), ImageBinding)>,
     /// ((set, binding), device address) for every acceleration-structure descriptor.
     structures: Vec<((u32, u32), u64)>,
     /// Ray queries follow structure addresses (and each TLAS's BLAS references) through the
@@ -54,6 +59,8 @@ pub struct DispatchMemory<'a> {
 enum Resolved {
     Buffer(Arc<Buffer>, u64, u64),
     Image(Arc<Image>, ImageBinding),
+    /// A texel buffer: its buffer and its view (whose id is filled in when stored).
+    Texel(Arc<Buffer>, ImageBinding),
     Structure(u64),
 }
 
@@ -80,7 +87,7 @@ impl<'a> DispatchMemory<'a> {
     /// a contained fault).
     pub fn new(space: &'a AddressSpace, sets: &[Option<BoundSet>], used: &[(u32, u32)]) -> (Self, Missing) {
         let device = DeviceInputs::new(space, "vkCmdDispatch");
-        let mut m = DispatchMemory { space, regions: Vec::new(), counts: Vec::new(), buffers: Vec::new(), images: Vec::new(), structures: Vec::new(), device };
+        let mut m = DispatchMemory { space, regions: Vec::new(), counts: Vec::new(), buffers: Vec::new(), images: Vec::new(), texels: Vec::new(), structures: Vec::new(), device };
         let mut missing = Vec::new();
         for &(set, binding) in used {
             if m.buffer_array(sets, set, binding) {
@@ -89,6 +96,10 @@ impl<'a> DispatchMemory<'a> {
             match resolve_binding(sets, set, binding, 0, IMAGE_TAG | m.images.len() as u64) {
                 Ok(Resolved::Buffer(buffer, offset, len)) => m.push_region((set, binding, 0), buffer, offset, len),
                 Ok(Resolved::Image(image, view)) => m.images.push(((set, binding), image, view)),
+                Ok(Resolved::Texel(buffer, view)) => {
+                    m.texels.push(((set, binding), ImageBinding { buffer: m.buffers.len() as u64, ..view }));
+                    m.buffers.push(buffer);
+                }
                 Ok(Resolved::Structure(address)) => m.structures.push(((set, binding), address)),
                 Err(e) => missing.push(((set, binding), e)),
             }
@@ -160,6 +171,10 @@ fn resolve_binding(sets: &[Option<BoundSet>], set: u32, binding: u32, element: u
             let address = d.acceleration_structure().and_then(|s| s.address()).ok_or(Unresolved::Empty)?;
             Ok(Resolved::Structure(address))
         }
+        d @ Descriptor::TexelBuffer { .. } => {
+            let (buffer, view) = texel_buffer_binding(&d, 0).ok_or(Unresolved::Empty)?;
+            Ok(Resolved::Texel(buffer, view))
+        }
         // Samplers and sampled images: the library has no sampling.
         Descriptor::Image { .. } => Err(Unresolved::Image),
         _ => Err(Unresolved::Empty),
@@ -230,6 +245,7 @@ impl Memory for DispatchMemory<'_> {
     }
 
     fn image(&self, set: u32, binding: u32) -> Option<ImageBinding> {
-        self.images.iter().find(|(k, _, _)| *k == (set, binding)).map(|(_, _, view)| *view)
+        let image = self.images.iter().find(|(k, _, _)| *k == (set, binding)).map(|(_, _, view)| *view);
+        image.or_else(|| self.texels.iter().find(|(k, _)| *k == (set, binding)).map(|(_, view)| *view))
     }
 }

@@ -1,0 +1,84 @@
+//! Texel buffers through the loader (validation on, zero messages): vkCreateBufferView, a
+//! uniform texel buffer read with texelFetch (OpImageFetch), R32_SFLOAT and RGBA8_UNORM storage
+//! texel buffers written and read back, their sizes queried; every result checked against a
+//! CPU reference computed here, on Arbor and (when installed) lavapipe, with glslang's and
+//! `spirv-opt -O`'s SPIR-V (WGSL has no texel buffers: no naga twin). A texel coordinate past
+//! the view is reported once and contained. The format query answers texel-buffer support
+//! for exactly the formats that run.
+mod harness;
+
+use ash::vk;
+use harness::compute::*;
+
+fn on_every_driver(check: impl Fn(&Gpu)) {
+    let arbor = Gpu::arbor();
+    check(&arbor);
+    arbor.assert_quiet();
+    if let Some(lvp) = Gpu::lavapipe() {
+        check(&lvp);
+        lvp.assert_quiet();
+    }
+}
+
+#[test]
+fn uniform_and_storage_texel_buffers_match_the_cpu_reference() {
+    let n = 64u32;
+    let src: Vec<u32> = (0..n).map(|i| i * 13 + 5).collect();
+    let rgba: Vec<u8> = (0..n).flat_map(|i| [i as u8, (2 * i) as u8, 255 - i as u8, 7]).collect();
+    let want_dst: Vec<f32> = src.iter().map(|&v| v as f32 * 0.5 + 0.25).collect();
+    // c.wzyx of a UNORM8 texel stores its bytes reversed (conversion round-trips exactly).
+    let want_io: Vec<u8> = rgba.chunks(4).flat_map(|t| [t[3], t[2], t[1], t[0]]).collect();
+    let g = glsl("vk_texel.comp");
+    let shaders = [("vk_texel.comp (glslang)", g.clone()), ("vk_texel.comp (spirv-opt -O)", optimized(&g))];
+    on_every_driver(|gpu| {
+        for (name, spirv) in &shaders {
+            let bindings = vec![
+                Binding::uniform_texels(vk::Format::R32_UINT, u32s(&src)),
+                Binding::storage_texels(vk::Format::R32_SFLOAT, vec![0; 4 * n as usize]),
+                Binding::storage_texels(vk::Format::R8G8B8A8_UNORM, rgba.clone()),
+                Binding::storage(vec![0; 8]),
+            ];
+            let out = run(gpu, &Job::new(spirv.clone(), bindings, Size::Direct([n / 16, 1, 1]))).unwrap_or_else(|e| panic!("{name} on {:?}: {e:?}", gpu.driver));
+            assert_eq!(as_f32(&out[1]), want_dst, "{name} on {:?}: float storage texels", gpu.driver);
+            assert_eq!(out[2], want_io, "{name} on {:?}: RGBA8 storage texels", gpu.driver);
+            assert_eq!(as_u32(&out[3]), [n, n], "{name} on {:?}: textureSize / imageSize", gpu.driver);
+        }
+    });
+}
+
+#[test]
+fn a_texel_coordinate_past_the_view_is_reported_once_and_contained() {
+    let gpu = Gpu::arbor();
+    let texels: Vec<u32> = (0..32).map(|i| 1000 + i).collect();
+    let mut job = Job::new(glsl("vk_texel_oob.comp"), vec![Binding::storage_texels(vk::Format::R32_UINT, u32s(&texels)), Binding::storage(vec![0xEE; 4 * 32])], Size::Direct([2, 1, 1]));
+    job.push = u32s(&[8]);
+    let out = run(&gpu, &job).expect("the dispatch completes");
+    let (t, o) = (as_u32(&out[0]), as_u32(&out[1]));
+    for i in 0..32usize {
+        // Invocation i reads and writes texel i + 8: those past texel 31 read zero and write nothing.
+        assert_eq!(o[i], if i + 8 < 32 { texels[i + 8] } else { 0 }, "read by invocation {i}");
+        assert_eq!(t[i], if i >= 8 { (i - 8) as u32 + 100 } else { texels[i] }, "texel {i}");
+    }
+    let diag = harness::diagnostics();
+    let lines: Vec<&str> = diag.lines().filter(|l| l.contains("contained memory fault")).collect();
+    assert_eq!(lines.len(), 1, "one diagnostic per dispatch:\n{diag}");
+    assert!(lines[0].contains("Binding { set: 0, binding: 0 }") && lines[0].contains("OutOfBounds"), "{}", lines[0]);
+    gpu.assert_quiet();
+}
+
+#[test]
+fn format_properties_report_texel_buffers_for_the_formats_that_run() {
+    let gpu = Gpu::arbor();
+    let texel = vk::FormatFeatureFlags::UNIFORM_TEXEL_BUFFER | vk::FormatFeatureFlags::STORAGE_TEXEL_BUFFER;
+    for format in [vk::Format::R32_UINT, vk::Format::R32_SINT, vk::Format::R32_SFLOAT, vk::Format::R32G32B32A32_UINT, vk::Format::R32G32B32A32_SINT, vk::Format::R32G32B32A32_SFLOAT, vk::Format::R8G8B8A8_UNORM] {
+        // SAFETY: plain query.
+        let p = unsafe { gpu.instance.get_physical_device_format_properties(gpu.physical, format) };
+        assert!(p.buffer_features.contains(texel), "{format:?}: {:?}", p.buffer_features);
+    }
+    for format in [vk::Format::R8_UNORM, vk::Format::R16G16B16A16_SFLOAT, vk::Format::B8G8R8A8_UNORM] {
+        // SAFETY: plain query.
+        let p = unsafe { gpu.instance.get_physical_device_format_properties(gpu.physical, format) };
+        assert!(!p.buffer_features.intersects(texel), "{format:?} claims texel buffers: {:?}", p.buffer_features);
+    }
+    gpu.assert_quiet();
+}
