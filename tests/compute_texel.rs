@@ -3,8 +3,9 @@
 //! texel buffers written and read back, their sizes queried; every result checked against a
 //! CPU reference computed here, on Arbor and (when installed) lavapipe, with glslang's and
 //! `spirv-opt -O`'s SPIR-V (WGSL has no texel buffers: no naga twin). A texel coordinate past
-//! the view is reported once and contained. The format query answers texel-buffer support
-//! for exactly the formats that run.
+//! the view is reported once and contained. Image atomics (OpImageTexelPointer) on an
+//! R32_UINT storage image and an R32_SINT texel buffer. The format query answers texel-buffer
+//! and atomic support for exactly the formats that run.
 mod harness;
 
 use ash::vk;
@@ -47,6 +48,55 @@ fn uniform_and_storage_texel_buffers_match_the_cpu_reference() {
 }
 
 #[test]
+fn image_atomics_on_storage_images_and_texel_buffers_match_the_cpu_reference() {
+    let n = 256usize;
+    let mut x = 0x2545_F491u32;
+    let values: Vec<i32> = (0..n)
+        .map(|_| {
+            x ^= x << 13;
+            x ^= x >> 17;
+            x ^= x << 5;
+            (x % 2001) as i32 - 1000
+        })
+        .collect();
+    let bin = |v: i32| (v as u32 & 15) as usize;
+    let mut hist = vec![0u32; 4 * 6];
+    let mut minmax: Vec<i32> = (0..32).map(|k| if k % 2 == 0 { i32::MAX } else { i32::MIN }).collect();
+    for (i, &v) in values.iter().enumerate() {
+        let b = bin(v);
+        hist[b] += 1;
+        hist[16 + b % 4] |= 1 << (i % 32);
+        minmax[2 * b] = minmax[2 * b].min(v);
+        minmax[2 * b + 1] = minmax[2 * b + 1].max(v);
+    }
+    let g = glsl("vk_image_atomics.comp");
+    let shaders = [("vk_image_atomics.comp (glslang)", g.clone()), ("vk_image_atomics.comp (spirv-opt -O)", optimized(&g))];
+    let initial: Vec<i32> = (0..32).map(|k| if k % 2 == 0 { i32::MAX } else { i32::MIN }).collect();
+    on_every_driver(|gpu| {
+        for (name, spirv) in &shaders {
+            let bindings = vec![
+                Binding::storage_image(vk::Format::R32_UINT, [4, 6], vec![0; 4 * 4 * 6]),
+                Binding::storage_texels(vk::Format::R32_SINT, initial.iter().flat_map(|v| v.to_le_bytes()).collect()),
+                Binding::storage(values.iter().flat_map(|v| v.to_le_bytes()).collect()),
+                Binding::storage(vec![0xEE; 4 * n]),
+            ];
+            let out = run(gpu, &Job::new(spirv.clone(), bindings, Size::Direct([n as u32 / 64, 1, 1]))).unwrap_or_else(|e| panic!("{name} on {:?}: {e:?}", gpu.driver));
+            let (img, old) = (as_u32(&out[0]), as_u32(&out[3]));
+            let ctx = format!("{name} on {:?}", gpu.driver);
+            assert_eq!(img[..20], hist[..20], "{ctx}: histogram and OR masks");
+            let got_minmax: Vec<i32> = as_u32(&out[1]).iter().map(|&w| w as i32).collect();
+            assert_eq!(got_minmax, minmax, "{ctx}: min/max texel buffer");
+            // One invocation claims texel (0, 5); every other one sees its id + 1.
+            let winners: Vec<usize> = (0..n).filter(|&i| old[i] == 0).collect();
+            assert_eq!(winners.len(), 1, "{ctx}: exactly one compare-exchange succeeds");
+            let w = winners[0] as u32 + 1;
+            assert!(old.iter().all(|&o| o == 0 || o == w), "{ctx}: the others return the winner's value");
+            assert_eq!(img[20..], [w, 0, 0, 0], "{ctx}: the claimed texel");
+        }
+    });
+}
+
+#[test]
 fn a_texel_coordinate_past_the_view_is_reported_once_and_contained() {
     let gpu = Gpu::arbor();
     let texels: Vec<u32> = (0..32).map(|i| 1000 + i).collect();
@@ -74,6 +124,14 @@ fn format_properties_report_texel_buffers_for_the_formats_that_run() {
         // SAFETY: plain query.
         let p = unsafe { gpu.instance.get_physical_device_format_properties(gpu.physical, format) };
         assert!(p.buffer_features.contains(texel), "{format:?}: {:?}", p.buffer_features);
+    }
+    // Atomics: exactly the 32-bit integer formats.
+    for format in [vk::Format::R32_UINT, vk::Format::R32_SINT, vk::Format::R32_SFLOAT, vk::Format::R8G8B8A8_UNORM] {
+        // SAFETY: plain query.
+        let p = unsafe { gpu.instance.get_physical_device_format_properties(gpu.physical, format) };
+        let int = matches!(format, vk::Format::R32_UINT | vk::Format::R32_SINT);
+        assert_eq!(p.optimal_tiling_features.contains(vk::FormatFeatureFlags::STORAGE_IMAGE_ATOMIC), int, "{format:?}");
+        assert_eq!(p.buffer_features.contains(vk::FormatFeatureFlags::STORAGE_TEXEL_BUFFER_ATOMIC), int, "{format:?}");
     }
     for format in [vk::Format::R8_UNORM, vk::Format::R16G16B16A16_SFLOAT, vk::Format::B8G8R8A8_UNORM] {
         // SAFETY: plain query.

@@ -43,10 +43,20 @@ pub const AS_VERTEX_FORMATS: &[vk::Format] = &[
     vk::Format::A2B10G10R10_UNORM_PACK32,
 ];
 
+/// Formats whose texels shader atomics run on (OpImageTexelPointer: 32-bit integers).
+fn atomic_format(format: vk::Format) -> bool {
+    matches!(format, vk::Format::R32_UINT | vk::Format::R32_SINT)
+}
+
 /// Features of an image format (both tilings store linearly, so they are the same).
 fn image_features(format: vk::Format) -> vk::FormatFeatureFlags {
     if format_info(format).is_some() {
-        vk::FormatFeatureFlags::STORAGE_IMAGE | vk::FormatFeatureFlags::TRANSFER_SRC | vk::FormatFeatureFlags::TRANSFER_DST
+        let base = vk::FormatFeatureFlags::STORAGE_IMAGE | vk::FormatFeatureFlags::TRANSFER_SRC | vk::FormatFeatureFlags::TRANSFER_DST;
+        if atomic_format(format) {
+            base | vk::FormatFeatureFlags::STORAGE_IMAGE_ATOMIC
+        } else {
+            base
+        }
     } else {
         vk::FormatFeatureFlags::empty()
     }
@@ -62,6 +72,9 @@ pub fn format_properties(format: vk::Format) -> vk::FormatProperties {
     // Texel buffers run for the storage-image formats (the executor converts the same way).
     if format_info(format).is_some() {
         buffer |= vk::FormatFeatureFlags::UNIFORM_TEXEL_BUFFER | vk::FormatFeatureFlags::STORAGE_TEXEL_BUFFER;
+    }
+    if atomic_format(format) {
+        buffer |= vk::FormatFeatureFlags::STORAGE_TEXEL_BUFFER_ATOMIC;
     }
     let image = image_features(format);
     vk::FormatProperties { linear_tiling_features: image, optimal_tiling_features: image, buffer_features: buffer }

@@ -403,7 +403,7 @@ fn exec_op<'a>(ctx: &Ctx<'a>, group: &mut Group<'a>, wg: &mut Wg, op: &Op, mask:
             lanes(regs, dst, mask, |l| a[l].wrapping_add(imm));
         }
         Op::Load { .. } | Op::Store { .. } | Op::Atomic { .. } => super::exec_mem::exec_mem(ctx, group, wg, op, mask),
-        Op::ImageRead { .. } | Op::ImageWrite { .. } | Op::ImageSize { .. } => super::exec_image::exec_image(ctx, group, wg, op, mask),
+        Op::ImageRead { .. } | Op::ImageWrite { .. } | Op::ImageSize { .. } | Op::ImageTexel { .. } => super::exec_image::exec_image(ctx, group, wg, op, mask),
         Op::RayQuery(ref rq) => super::exec_rq::exec_ray_query(ctx, group, wg, rq, mask),
         Op::Subgroup { op, ty, dst, a, b } => {
             let (a, b) = (regs[a as usize], regs[b as usize]);

@@ -41,6 +41,14 @@ pub(super) fn exec_image(ctx: &Ctx, group: &mut Group, wg: &mut Wg, op: &Op, mas
                 }
             }
         }
+        Op::ImageTexel { image, dst, coord } => {
+            // Only the offset: the atomic that uses it checks the binding and reports faults.
+            let b = ctx.images[image as usize];
+            for l in (0..LANES).filter(|&l| (mask >> l) & 1 != 0) {
+                let c = coord.map(|r| group.regs[r as usize][l] as u32 as i32 as i64);
+                group.regs[dst as usize][l] = b.and_then(|b| b.texel_offset(c[0], c[1], c[2], c[3])).unwrap_or(u64::MAX);
+            }
+        }
         _ => {}
     }
 }

@@ -4,7 +4,7 @@
 use super::alu;
 use super::exec::{Ctx, Group, Wg};
 use super::ir::{AtomicOp, Op, Program, Sc, Space, ELEMENT_SHIFT};
-use super::memory::{Fault, FaultKind, FaultSpace, Memory, Region};
+use super::memory::{Fault, FaultKind, FaultSpace, ImageFormat, Memory, Region};
 use super::LANES;
 
 /// What one lane does at an address.
@@ -74,6 +74,18 @@ fn access_one(ctx: &Ctx, frame: &mut [u8], wg: &mut Wg, space: Space, at: u64, t
             }
             let offset = region.offset.checked_add(at).ok_or((FaultKind::Refused, fspace))?;
             device(ctx, region.buffer, offset, ty, acc).ok_or((FaultKind::Refused, fspace))
+        }
+        Space::Image(slot) => {
+            let (set, binding) = ctx.prog.images[slot as usize];
+            let fspace = FaultSpace::Binding { set, binding };
+            let image = ctx.images[slot as usize].ok_or((FaultKind::Unbound, fspace))?;
+            // Texel pointers reach single-component 32-bit integer texels only (the formats
+            // image atomics are defined on); anything else is refused.
+            if !matches!(image.format, ImageFormat::R32Uint | ImageFormat::R32Sint) || size != 4 {
+                return Err((FaultKind::Refused, fspace));
+            }
+            let offset = image.offset.checked_add(at).filter(|_| at != u64::MAX).ok_or((FaultKind::OutOfBounds, fspace))?;
+            device(ctx, image.buffer, offset, ty, acc).ok_or((FaultKind::Refused, fspace))
         }
         Space::Physical => {
             let region = ctx.mem.address(at, size as u64).ok_or((FaultKind::Unmapped, FaultSpace::DeviceAddress))?;

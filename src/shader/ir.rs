@@ -55,6 +55,10 @@ pub enum Space {
     Buffer(u16),
     /// PhysicalStorageBuffer64: the register holds a device address.
     Physical,
+    /// A texel of storage image (or texel buffer) `Program::images[slot]`, from
+    /// OpImageTexelPointer: the register holds the texel's byte offset in the view (from
+    /// [`Op::ImageTexel`]), or `u64::MAX` for a coordinate outside it.
+    Image(u16),
 }
 
 /// Bit where the array element of a descriptor-array address starts (`Space::Buffer`):
@@ -165,6 +169,9 @@ pub enum Op {
     /// OpImageQuerySize: width, height, depth, layers of the view, those of the image's
     /// dimensionality (`dims`: which of them, in order) into `dst`.
     ImageSize { image: u16, n: u8, dims: [u8; 4], dst: [Reg; 4] },
+    /// OpImageTexelPointer: the byte offset of the texel at `coord` in storage image `image`
+    /// (a `Space::Image` address), `u64::MAX` when the coordinate is outside the view.
+    ImageTexel { image: u16, dst: Reg, coord: [Reg; 4] },
     /// A ray-query instruction (boxed: rare, and larger than every other op).
     RayQuery(Box<RayQueryOp>),
 }

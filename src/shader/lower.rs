@@ -645,6 +645,10 @@ impl Lowerer<'_> {
                 self.define(id, v);
             }
             Op::ImageRead | Op::ImageFetch | Op::ImageWrite | Op::ImageQuerySize => self.lower_image(inst)?,
+            Op::ImageTexelPointer => {
+                let p = self.texel_pointer(inst)?;
+                self.define(id, Val::Ptr(p));
+            }
             Op::Load => {
                 let src = id_op(inst, 0)?;
                 let p = self.ptr(src, self.type_of(src))?;

@@ -4,8 +4,8 @@
 use rspirv::dr::Instruction;
 use spirv::{Dim, Op};
 
-use super::ir::{Op as IrOp, Reg, Sc};
-use super::lower::{Lowerer, Val};
+use super::ir::{Op as IrOp, Reg, Sc, Space};
+use super::lower::{Lowerer, Ptr, Val};
 use super::parse::{id_op, Type};
 use super::ShaderError;
 
@@ -81,6 +81,28 @@ impl Lowerer<'_> {
             }
         }
         Ok(())
+    }
+
+    /// OpImageTexelPointer: a `Space::Image` pointer to one texel (for image atomics), its
+    /// address the texel's offset in the view as the executor computes it.
+    pub(super) fn texel_pointer(&mut self, inst: &Instruction) -> Result<Ptr, ShaderError> {
+        let id = inst.result_id.unwrap_or(0);
+        let img_id = id_op(inst, 0)?;
+        let Val::Image { slot, ty } = self.val(img_id)? else {
+            return Err(self.m.malformed(img_id, "OpImageTexelPointer of something that is not a storage image"));
+        };
+        let Type::Image { dim, arrayed, .. } = self.m.ty(ty)?.clone() else {
+            return Err(self.m.malformed(img_id, "OpImageTexelPointer of something that is not a storage image"));
+        };
+        let zero = self.konst(0);
+        let coord = self.coordinate(id_op(inst, 1)?, dim, arrayed, zero)?;
+        let pointee = self.pointee(inst.result_type.unwrap_or(0))?;
+        if !matches!(self.m.ty(pointee)?, Type::Int { bits: 32, .. }) {
+            return Err(self.err(id, "image atomics on texels other than 32-bit integers"));
+        }
+        let dst = self.reg();
+        self.emit(IrOp::ImageTexel { image: slot, dst, coord });
+        Ok(Ptr { space: Space::Image(slot), addr: dst, pointee, matrix_stride: None })
     }
 
     /// The coordinate operand as (x, y, z, layer), missing ones `zero`.

@@ -162,7 +162,7 @@ const OPCODES: &[Op] = {
         GroupNonUniformSMin, GroupNonUniformUMin, GroupNonUniformFMin, GroupNonUniformSMax,
         GroupNonUniformUMax, GroupNonUniformFMax, GroupNonUniformBitwiseAnd,
         GroupNonUniformBitwiseOr, GroupNonUniformBitwiseXor, GroupNonUniformLogicalAnd,
-        GroupNonUniformLogicalOr, GroupNonUniformLogicalXor, TypeImage, ImageRead, ImageWrite, ImageFetch,
+        GroupNonUniformLogicalOr, GroupNonUniformLogicalXor, TypeImage, ImageRead, ImageWrite, ImageFetch, ImageTexelPointer,
         ImageQuerySize,
         // SPV_KHR_ray_query (lowered in `lower_rq`) and SPV_KHR_ray_tracing_position_fetch.
         TypeAccelerationStructureKHR, TypeRayQueryKHR, ConvertUToAccelerationStructureKHR,

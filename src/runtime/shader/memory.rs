@@ -229,9 +229,9 @@ impl Memory for DispatchMemory<'_> {
             let r = self.space.resolve(address, size as u64).ok()?;
             return r.buffer.atomic(r.offset, size, update).ok();
         }
-        // Image atomics are not part of the library's image interface; an image id is no buffer.
+        // Image atomics (OpImageTexelPointer): the executor has checked the texel's format.
         if buffer & IMAGE_TAG != 0 {
-            return None;
+            return self.image_of(buffer)?.storage.atomic(offset, size, update).ok();
         }
         self.buffer(buffer)?.atomic(offset, size, update).ok()
     }
