@@ -97,6 +97,39 @@ fn image_atomics_on_storage_images_and_texel_buffers_match_the_cpu_reference() {
 }
 
 #[test]
+fn arrays_of_texel_buffers_with_uniform_constant_and_non_uniform_indices() {
+    let (n, texels) = (64usize, 64usize);
+    let srcs: Vec<u32> = (0..3 * texels).map(|k| (k / texels) as u32 * 1000 + (k % texels) as u32).collect();
+    let g = glsl("vk_texel_arrays.comp");
+    let shaders = [("vk_texel_arrays.comp (glslang)", g.clone()), ("vk_texel_arrays.comp (spirv-opt -O)", optimized(&g))];
+    on_every_driver(|gpu| {
+        for (name, spirv) in &shaders {
+            for pick in [0u32, 1] {
+                let bindings = vec![
+                    Binding::uniform_texels(vk::Format::R32_UINT, u32s(&srcs)).array(3),
+                    Binding::storage_texels(vk::Format::R32_UINT, vec![0; 4 * 4 * texels]).array(4),
+                    Binding::storage(vec![0; 32]),
+                ];
+                let mut job = Job::new(spirv.clone(), bindings, Size::Direct([n as u32 / 16, 1, 1]));
+                job.push = u32s(&[pick]);
+                let out = run(gpu, &job).unwrap_or_else(|e| panic!("{name} on {:?}: {e:?}", gpu.driver));
+                let mut want = vec![0u32; 4 * texels];
+                for i in 0..n {
+                    let (a, b) = (srcs[pick as usize * texels + i], srcs[2 * texels + i]);
+                    want[(i % 4) * texels + i / 4] = a * 10 + b;
+                }
+                for e in 0..4 {
+                    want[e * texels + 60 + e] = (n / 4) as u32;
+                }
+                let ctx = format!("{name} on {:?}, pick {pick}", gpu.driver);
+                assert_eq!(as_u32(&out[1]), want, "{ctx}: storage texel buffer elements");
+                assert_eq!(as_u32(&out[2]), [64, 64, 64, 64, 64, 64, 64, 0], "{ctx}: element sizes");
+            }
+        }
+    });
+}
+
+#[test]
 fn a_texel_coordinate_past_the_view_is_reported_once_and_contained() {
     let gpu = Gpu::arbor();
     let texels: Vec<u32> = (0..32).map(|i| 1000 + i).collect();

@@ -89,10 +89,11 @@ pub const SUBGROUP_OPERATIONS: vk::SubgroupFeatureFlags = vk::SubgroupFeatureFla
 pub fn features() -> vk::PhysicalDeviceFeatures {
     vk::PhysicalDeviceFeatures {
         robust_buffer_access: vk::TRUE,
-        // Arrays of buffer descriptors indexed by dynamically uniform values (the library
-        // resolves each element per lane, so non-uniform indices work too).
+        // Arrays of buffers and storage images indexed by dynamically uniform values (the
+        // library resolves each element per lane, so non-uniform indices work too).
         shader_uniform_buffer_array_dynamic_indexing: vk::TRUE,
         shader_storage_buffer_array_dynamic_indexing: vk::TRUE,
+        shader_storage_image_array_dynamic_indexing: vk::TRUE,
         shader_storage_image_read_without_format: vk::TRUE,
         shader_storage_image_write_without_format: vk::TRUE,
         shader_int64: vk::TRUE,

@@ -259,7 +259,7 @@ impl BufferView {
         if offset >= buffer.size {
             return Err(invalid("VUID-VkBufferViewCreateInfo-offset-00925", format!("offset {offset} is not less than the buffer's size {}", buffer.size)));
         }
-        if offset % limits.min_offset_alignment != 0 {
+        if !offset.is_multiple_of(limits.min_offset_alignment) {
             return Err(invalid("VUID-VkBufferViewCreateInfo-offset-02749", format!("offset {offset} is not a multiple of minTexelBufferOffsetAlignment {}", limits.min_offset_alignment)));
         }
         let bytes = if range == vk::WHOLE_SIZE {
@@ -268,7 +268,7 @@ impl BufferView {
             if range == 0 {
                 return Err(invalid("VUID-VkBufferViewCreateInfo-range-00928", "range is 0"));
             }
-            if range % texel != 0 {
+            if !range.is_multiple_of(texel) {
                 return Err(invalid("VUID-VkBufferViewCreateInfo-range-00929", format!("range {range} is not a multiple of the {texel}-byte texel")));
             }
             if offset.checked_add(range).is_none_or(|end| end > buffer.size) {

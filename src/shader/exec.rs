@@ -91,7 +91,8 @@ pub(super) struct Ctx<'a> {
     /// Per `Program::bindings` slot, the region of each array element (one for a single
     /// descriptor).
     pub regions: Vec<Vec<Option<Region>>>,
-    pub images: Vec<Option<ImageBinding>>,
+    /// Per `Program::images` slot, the view of each array element (one for a single image).
+    pub images: Vec<Vec<Option<ImageBinding>>>,
     pub push: &'a [u8],
     /// Device addresses of `Program::accel_bindings` (0 when nothing is bound).
     accel: Vec<u64>,
@@ -113,6 +114,10 @@ pub(super) struct Wg {
     stopped: Option<Stop>,
 }
 
+/// What one workgroup leaves for the report: its first faults, their count, a watchdog stop,
+/// and the first unresolved instance reference its ray queries met.
+type WorkgroupResult = (Vec<Fault>, u64, Option<Stop>, Option<Fault>);
+
 /// Runs `group_count` workgroups starting at `base_group` (vkCmdDispatchBase). Never panics on
 /// shader behaviour: bad accesses become faults, endless loops meet the watchdog.
 pub fn dispatch(
@@ -128,7 +133,7 @@ pub fn dispatch(
         prog,
         mem: memory,
         regions: super::exec_mem::binding_regions(prog, memory),
-        images: prog.images.iter().map(|&(s, b)| memory.image(s, b)).collect(),
+        images: super::exec_image::image_bindings(prog, memory),
         push: push_constants,
         accel: prog.accel_bindings.iter().map(|&(_, (s, b))| memory.acceleration_structure(s, b).unwrap_or(0)).collect(),
         local: pipeline.local_size,
@@ -139,7 +144,7 @@ pub fn dispatch(
     };
     let total = group_count.iter().map(|&c| c as u64).product::<u64>();
     let per_row = group_count[0] as u64 * group_count[1] as u64;
-    let results: Vec<(Vec<Fault>, u64, Option<Stop>, Option<Fault>)> = (0..total)
+    let results: Vec<WorkgroupResult> = (0..total)
         .into_par_iter()
         .map_init(
             || new_groups(&ctx),
@@ -180,7 +185,7 @@ fn new_groups<'a>(ctx: &Ctx<'a>) -> Vec<Group<'a>> {
         .collect()
 }
 
-fn run_workgroup<'a>(ctx: &Ctx<'a>, groups: &mut [Group<'a>], id: [u32; 3]) -> (Vec<Fault>, u64, Option<Stop>, Option<Fault>) {
+fn run_workgroup<'a>(ctx: &Ctx<'a>, groups: &mut [Group<'a>], id: [u32; 3]) -> WorkgroupResult {
     if ctx.stop.load(Ordering::Relaxed) {
         return (Vec::new(), 0, None, None);
     }

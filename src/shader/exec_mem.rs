@@ -76,15 +76,18 @@ fn access_one(ctx: &Ctx, frame: &mut [u8], wg: &mut Wg, space: Space, at: u64, t
             device(ctx, region.buffer, offset, ty, acc).ok_or((FaultKind::Refused, fspace))
         }
         Space::Image(slot) => {
-            let (set, binding) = ctx.prog.images[slot as usize];
-            let fspace = FaultSpace::Binding { set, binding };
-            let image = ctx.images[slot as usize].ok_or((FaultKind::Unbound, fspace))?;
+            // The element is above ELEMENT_SHIFT; the offset below it is TEXEL_OUTSIDE for a
+            // coordinate outside the view.
+            let element = (at >> ELEMENT_SHIFT) as u32;
+            let image = super::exec_image::view(ctx, slot, element)?;
+            let fspace = super::exec_image::view_space(ctx, slot, element);
+            let at = at & ((1 << ELEMENT_SHIFT) - 1);
             // Texel pointers reach single-component 32-bit integer texels only (the formats
             // image atomics are defined on); anything else is refused.
             if !matches!(image.format, ImageFormat::R32Uint | ImageFormat::R32Sint) || size != 4 {
                 return Err((FaultKind::Refused, fspace));
             }
-            let offset = image.offset.checked_add(at).filter(|_| at != u64::MAX).ok_or((FaultKind::OutOfBounds, fspace))?;
+            let offset = image.offset.checked_add(at).filter(|_| at != super::exec_image::TEXEL_OUTSIDE).ok_or((FaultKind::OutOfBounds, fspace))?;
             device(ctx, image.buffer, offset, ty, acc).ok_or((FaultKind::Refused, fspace))
         }
         Space::Physical => {

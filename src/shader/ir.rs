@@ -57,7 +57,8 @@ pub enum Space {
     Physical,
     /// A texel of storage image (or texel buffer) `Program::images[slot]`, from
     /// OpImageTexelPointer: the register holds the texel's byte offset in the view (from
-    /// [`Op::ImageTexel`]), or `u64::MAX` for a coordinate outside it.
+    /// [`Op::ImageTexel`]; the array element above [`ELEMENT_SHIFT`], all ones below it for a
+    /// coordinate outside the view).
     Image(u16),
 }
 
@@ -163,15 +164,16 @@ pub enum Op {
     /// OpImageRead of storage image `image` (index into [`Program::images`]) at `coord`
     /// (x, y, z, layer; I32, unused ones a zero constant): `n` components of type `ty` (I32 or
     /// F32) into `dst`, the texel converted from the view's format.
-    ImageRead { image: u16, ty: Sc, n: u8, dst: [Reg; 4], coord: [Reg; 4] },
+    /// `index` holds the element of an array of images (a zero constant for a single one).
+    ImageRead { image: u16, index: Reg, ty: Sc, n: u8, dst: [Reg; 4], coord: [Reg; 4] },
     /// OpImageWrite: `src` (four components of `ty`) converted to the view's format.
-    ImageWrite { image: u16, ty: Sc, coord: [Reg; 4], src: [Reg; 4] },
+    ImageWrite { image: u16, index: Reg, ty: Sc, coord: [Reg; 4], src: [Reg; 4] },
     /// OpImageQuerySize: width, height, depth, layers of the view, those of the image's
     /// dimensionality (`dims`: which of them, in order) into `dst`.
-    ImageSize { image: u16, n: u8, dims: [u8; 4], dst: [Reg; 4] },
+    ImageSize { image: u16, index: Reg, n: u8, dims: [u8; 4], dst: [Reg; 4] },
     /// OpImageTexelPointer: the byte offset of the texel at `coord` in storage image `image`
-    /// (a `Space::Image` address), `u64::MAX` when the coordinate is outside the view.
-    ImageTexel { image: u16, dst: Reg, coord: [Reg; 4] },
+    /// (a `Space::Image` address, the array element above [`ELEMENT_SHIFT`]).
+    ImageTexel { image: u16, index: Reg, dst: Reg, coord: [Reg; 4] },
     /// A ray-query instruction (boxed: rare, and larger than every other op).
     RayQuery(Box<RayQueryOp>),
 }
@@ -325,6 +327,9 @@ pub struct Program {
     pub binding_counts: Vec<u32>,
     /// Descriptor (set, binding) of each storage image the image ops name.
     pub images: Vec<(u32, u32)>,
+    /// Array length of each `images` entry as declared (1 for a single image, 0 for a
+    /// runtime array).
+    pub image_counts: Vec<u32>,
     /// Registers holding the device address of the acceleration structure bound at (set,
     /// binding): resolved once per dispatch, filled for every lane when a lane group starts.
     pub accel_bindings: Vec<(Reg, (u32, u32))>,

@@ -29,9 +29,10 @@ const MAX_INLINE_DEPTH: u32 = 64;
 pub enum Val {
     Regs(Vec<Reg>),
     Ptr(Ptr),
-    /// A storage image (its variable or a load of it): index into `Program::images` and the
-    /// OpTypeImage id.
-    Image { slot: u16, ty: u32 },
+    /// A storage image (its variable or a load of it): index into `Program::images`, the
+    /// OpTypeImage id (or the array type's, before an array of images is indexed), and the
+    /// register holding the array element (a zero constant for a single image).
+    Image { slot: u16, ty: u32, index: Reg },
 }
 
 #[derive(Clone, Copy, Debug)]
@@ -88,6 +89,7 @@ pub struct Lowerer<'a> {
     /// Type ids of descriptor arrays of buffers (indexing one steps whole elements).
     pub(super) descriptor_arrays: Vec<u32>,
     pub(super) images: Vec<(u32, u32)>,
+    pub(super) image_counts: Vec<u32>,
     accel_bindings: Vec<(Reg, (u32, u32))>,
     push_size: u32,
 }
@@ -112,6 +114,7 @@ pub fn lower(m: &Module, consts: &Constants, e: &EntryPoint) -> Result<Lowered, 
         binding_counts: Vec::new(),
         descriptor_arrays: Vec::new(),
         images: Vec::new(),
+        image_counts: Vec::new(),
         accel_bindings: Vec::new(),
         push_size: 0,
     };
@@ -125,6 +128,7 @@ pub fn lower(m: &Module, consts: &Constants, e: &EntryPoint) -> Result<Lowered, 
         bindings: lw.bindings,
         binding_counts: lw.binding_counts,
         images: lw.images,
+        image_counts: lw.image_counts,
         accel_bindings: lw.accel_bindings,
     };
     Ok(Lowered { program, push_size: lw.push_size })
@@ -666,6 +670,10 @@ impl Lowerer<'_> {
                 let (pd, ps) = (self.ptr(dst, self.type_of(dst))?, self.ptr(src, self.type_of(src))?);
                 let v = self.load(&ps)?;
                 self.store(&pd, &v)?;
+            }
+            Op::AccessChain | Op::InBoundsAccessChain if matches!(self.val(id_op(inst, 0)?)?, Val::Image { .. }) => {
+                let v = self.image_element(inst)?;
+                self.define(id, v);
             }
             Op::AccessChain | Op::InBoundsAccessChain | Op::PtrAccessChain => {
                 let p = self.access_chain(inst, inst.class.opcode == Op::PtrAccessChain)?;

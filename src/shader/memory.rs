@@ -46,7 +46,7 @@ pub trait Memory: Sync {
         }
     }
     /// How many array elements the binding at (set, binding) has as bound (the length a
-    /// runtime descriptor array takes). The default knows single descriptors only.
+    /// runtime descriptor array of buffers or images takes). The default knows single descriptors only.
     fn binding_count(&self, set: u32, binding: u32) -> u32 {
         let _ = (set, binding);
         1
@@ -84,6 +84,16 @@ pub trait Memory: Sync {
     fn image(&self, set: u32, binding: u32) -> Option<ImageBinding> {
         let _ = (set, binding);
         None
+    }
+
+    /// Element `element` of an array of storage images or texel buffers at (set, binding)
+    /// (its length is [`Memory::binding_count`]). The default knows single images only.
+    fn image_element(&self, set: u32, binding: u32, element: u32) -> Option<ImageBinding> {
+        if element == 0 {
+            self.image(set, binding)
+        } else {
+            None
+        }
     }
 }
 
@@ -219,7 +229,8 @@ pub struct HostMemory {
     /// Elements of descriptor arrays: ((set, binding, element), region); element 0 of an
     /// array is in `bindings`.
     elements: Vec<((u32, u32, u32), Region)>,
-    images: Vec<((u32, u32), ImageBinding)>,
+    /// ((set, binding, array element), view).
+    images: Vec<((u32, u32, u32), ImageBinding)>,
 }
 
 struct HostBuffer {
@@ -272,8 +283,13 @@ impl HostMemory {
 
     /// Binds a storage image at (set, binding); its texels live in buffer `image.buffer`.
     pub fn bind_image(&mut self, set: u32, binding: u32, image: ImageBinding) {
-        self.images.retain(|(k, _)| *k != (set, binding));
-        self.images.push(((set, binding), image));
+        self.bind_image_element(set, binding, 0, image);
+    }
+
+    /// Binds a storage image as element `element` of the array at (set, binding).
+    pub fn bind_image_element(&mut self, set: u32, binding: u32, element: u32, image: ImageBinding) {
+        self.images.retain(|(k, _)| *k != (set, binding, element));
+        self.images.push(((set, binding, element), image));
     }
 
     pub fn device_address(&self, index: usize) -> u64 {
@@ -316,12 +332,17 @@ impl Memory for HostMemory {
     }
 
     fn binding_count(&self, set: u32, binding: u32) -> u32 {
-        let n = self.elements.iter().filter(|((s, b, _), _)| (*s, *b) == (set, binding)).map(|((_, _, e), _)| e + 1).max();
-        n.unwrap_or(1)
+        let buffers = self.elements.iter().filter(|((s, b, _), _)| (*s, *b) == (set, binding)).map(|((_, _, e), _)| e + 1);
+        let images = self.images.iter().filter(|((s, b, _), _)| (*s, *b) == (set, binding)).map(|((_, _, e), _)| e + 1);
+        buffers.chain(images).max().unwrap_or(1)
     }
 
     fn image(&self, set: u32, binding: u32) -> Option<ImageBinding> {
-        self.images.iter().find(|(k, _)| *k == (set, binding)).map(|(_, r)| *r)
+        self.image_element(set, binding, 0)
+    }
+
+    fn image_element(&self, set: u32, binding: u32, element: u32) -> Option<ImageBinding> {
+        self.images.iter().find(|(k, _)| *k == (set, binding, element)).map(|(_, r)| *r)
     }
 
     fn address(&self, address: u64, len: u64) -> Option<Region> {

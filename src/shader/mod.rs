@@ -162,7 +162,8 @@ impl Pipeline {
     pub fn bindings(&self) -> Vec<BindingUse> {
         let p = &self.program;
         let buffers = p.bindings.iter().zip(&p.binding_counts).map(|(&(set, binding), &count)| BindingUse { set, binding, count });
-        buffers.chain(p.images.iter().map(|&(set, binding)| BindingUse { set, binding, count: 1 })).collect()
+        let images = p.images.iter().zip(&p.image_counts).map(|(&(set, binding), &count)| BindingUse { set, binding, count });
+        buffers.chain(images).collect()
     }
 
     /// Bytes of workgroup shared memory one workgroup needs.

@@ -107,6 +107,13 @@ const CAPABILITIES: &[Capability] = &[
     Capability::ShaderNonUniform,
     Capability::UniformBufferArrayNonUniformIndexing,
     Capability::StorageBufferArrayNonUniformIndexing,
+    // Arrays of storage images and texel buffers: each element's view resolved per dispatch.
+    Capability::StorageImageArrayDynamicIndexing,
+    Capability::StorageImageArrayNonUniformIndexing,
+    Capability::UniformTexelBufferArrayDynamicIndexing,
+    Capability::StorageTexelBufferArrayDynamicIndexing,
+    Capability::UniformTexelBufferArrayNonUniformIndexing,
+    Capability::StorageTexelBufferArrayNonUniformIndexing,
 ];
 
 const EXTENSIONS: &[&str] = &[

@@ -170,11 +170,17 @@ impl Gpu {
                 .shader_int64(true)
                 .shader_float64(true)
                 .shader_uniform_buffer_array_dynamic_indexing(true)
-                .shader_storage_buffer_array_dynamic_indexing(true);
+                .shader_storage_buffer_array_dynamic_indexing(true)
+                .shader_storage_image_array_dynamic_indexing(true);
             let mut v12 = vk::PhysicalDeviceVulkan12Features::default()
                 .runtime_descriptor_array(true)
                 .shader_uniform_buffer_array_non_uniform_indexing(true)
                 .shader_storage_buffer_array_non_uniform_indexing(true)
+                .shader_storage_image_array_non_uniform_indexing(true)
+                .shader_uniform_texel_buffer_array_dynamic_indexing(true)
+                .shader_storage_texel_buffer_array_dynamic_indexing(true)
+                .shader_uniform_texel_buffer_array_non_uniform_indexing(true)
+                .shader_storage_texel_buffer_array_non_uniform_indexing(true)
                 .buffer_device_address(true)
                 .shader_buffer_int64_atomics(true)
                 .shader_subgroup_extended_types(true);
@@ -259,7 +265,8 @@ impl Binding {
     pub fn storage_texels(format: vk::Format, data: Vec<u8>) -> Binding {
         Binding { kind: vk::DescriptorType::STORAGE_TEXEL_BUFFER, texel: Some(format), ..Binding::storage(data) }
     }
-    /// An array of `n` buffer descriptors over equal parts of `data` (see `elements`).
+    /// An array of `n` buffer (or texel-buffer) descriptors over equal parts of `data` (see
+    /// `elements`).
     pub fn array(mut self, n: u32) -> Binding {
         assert!(n > 0 && self.data.len() % n as usize == 0 && self.image.is_none());
         self.elements = n;

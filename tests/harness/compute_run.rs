@@ -143,8 +143,8 @@ fn objects(gpu: &Gpu, job: &Job, buffers: &[Buffer], images: &[Option<Image>]) -
             .iter()
             .map(|i| [vk::DescriptorImageInfo { sampler: vk::Sampler::null(), image_view: i.as_ref().map_or(vk::ImageView::null(), |i| i.view), image_layout: vk::ImageLayout::GENERAL }])
             .collect();
-        let views: Vec<vk::BufferView> = job.bindings.iter().zip(buffers).map(|(b, buf)| texel_view(gpu, b, buf.buffer)).collect();
-        let view_infos: Vec<[vk::BufferView; 1]> = views.iter().map(|&v| [v]).collect();
+        let view_infos: Vec<Vec<vk::BufferView>> = job.bindings.iter().zip(buffers).map(|(b, buf)| texel_views(gpu, b, buf.buffer)).collect();
+        let views: Vec<vk::BufferView> = view_infos.iter().flatten().copied().collect();
         let writes: Vec<_> = job
             .bindings
             .iter()
@@ -194,12 +194,19 @@ fn objects(gpu: &Gpu, job: &Job, buffers: &[Buffer], images: &[Option<Image>]) -
     }
 }
 
-/// The buffer view of a texel-buffer binding (the whole buffer), or null.
-fn texel_view(gpu: &Gpu, b: &Binding, buffer: vk::Buffer) -> vk::BufferView {
-    let Some(format) = b.texel else { return vk::BufferView::null() };
-    let ci = vk::BufferViewCreateInfo::default().buffer(buffer).format(format).offset(0).range(vk::WHOLE_SIZE);
-    // SAFETY: a live buffer with texel-buffer usage; the view is destroyed with the objects.
-    unsafe { gpu.device.create_buffer_view(&ci, None) }.expect("vkCreateBufferView")
+/// The buffer views of a texel-buffer binding: the whole buffer, or one per array element
+/// over its part; none for other bindings.
+fn texel_views(gpu: &Gpu, b: &Binding, buffer: vk::Buffer) -> Vec<vk::BufferView> {
+    let Some(format) = b.texel else { return Vec::new() };
+    let part = (b.data.len() / b.elements as usize) as u64;
+    (0..b.elements as u64)
+        .map(|e| {
+            let range = if b.elements == 1 { vk::WHOLE_SIZE } else { part };
+            let ci = vk::BufferViewCreateInfo::default().buffer(buffer).format(format).offset(e * part).range(range);
+            // SAFETY: a live buffer with texel-buffer usage; the view is destroyed with the objects.
+            unsafe { gpu.device.create_buffer_view(&ci, None) }.expect("vkCreateBufferView")
+        })
+        .collect()
 }
 
 /// The descriptors of one buffer binding: the whole range, or one part per array element.

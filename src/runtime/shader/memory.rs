@@ -44,10 +44,10 @@ pub struct DispatchMemory<'a> {
     buffers: Vec<Arc<Buffer>>,
     /// ((set, binding), image, its view for the library) for every storage image that resolved;
     /// the binding's id is `IMAGE_TAG | index`.
-    images: Vec<((u32, u32), Arc<Image>, ImageBinding)>,
+    images: Vec<((u32, u32, u32), Arc<Image>, ImageBinding)>,
     /// ((set, binding), view) of every texel buffer: texels live in `buffers` (the view's
     /// `buffer` id indexes it), so reads and writes take the descriptor-buffer path.
-    texels: Vec<((u32, u32), ImageBinding)>,
+    texels: Vec<((u32, u32, u32), ImageBinding)>,
     /// ((set, binding), device address) for every acceleration-structure descriptor.
     structures: Vec<((u32, u32), u64)>,
     /// Ray queries follow structure addresses (and each TLAS's BLAS references) through the
@@ -90,42 +90,52 @@ impl<'a> DispatchMemory<'a> {
         let mut m = DispatchMemory { space, regions: Vec::new(), counts: Vec::new(), buffers: Vec::new(), images: Vec::new(), texels: Vec::new(), structures: Vec::new(), device };
         let mut missing = Vec::new();
         for &(set, binding) in used {
-            if m.buffer_array(sets, set, binding) {
+            if m.array(sets, set, binding) {
                 continue;
             }
             match resolve_binding(sets, set, binding, 0, IMAGE_TAG | m.images.len() as u64) {
-                Ok(Resolved::Buffer(buffer, offset, len)) => m.push_region((set, binding, 0), buffer, offset, len),
-                Ok(Resolved::Image(image, view)) => m.images.push(((set, binding), image, view)),
-                Ok(Resolved::Texel(buffer, view)) => {
-                    m.texels.push(((set, binding), ImageBinding { buffer: m.buffers.len() as u64, ..view }));
-                    m.buffers.push(buffer);
-                }
-                Ok(Resolved::Structure(address)) => m.structures.push(((set, binding), address)),
+                Ok(r) => m.store((set, binding, 0), r),
                 Err(e) => missing.push(((set, binding), e)),
             }
         }
         (m, missing)
     }
 
-    fn push_region(&mut self, key: (u32, u32, u32), buffer: Arc<Buffer>, offset: u64, len: u64) {
-        self.regions.push((key, Region { buffer: self.buffers.len() as u64, offset, len }));
-        self.buffers.push(buffer);
+    /// Keeps what element `key` resolved to.
+    fn store(&mut self, key: (u32, u32, u32), resolved: Resolved) {
+        match resolved {
+            Resolved::Buffer(buffer, offset, len) => {
+                self.regions.push((key, Region { buffer: self.buffers.len() as u64, offset, len }));
+                self.buffers.push(buffer);
+            }
+            Resolved::Image(image, view) => self.images.push((key, image, view)),
+            Resolved::Texel(buffer, view) => {
+                self.texels.push((key, ImageBinding { buffer: self.buffers.len() as u64, ..view }));
+                self.buffers.push(buffer);
+            }
+            // The library names structures by (set, binding): element 0 only.
+            Resolved::Structure(address) => {
+                if key.2 == 0 {
+                    self.structures.push(((key.0, key.1), address));
+                }
+            }
+        }
     }
 
-    /// Resolves every element of a binding with more than one buffer descriptor and returns
-    /// true; false for anything else. An array's elements need not all be valid (partially
+    /// Resolves every element of a binding with more than one descriptor and returns true;
+    /// false for a single descriptor. An array's elements need not all be valid (partially
     /// bound, or simply not used by this dispatch): one that does not resolve is reported by
     /// the access that reaches it, as an unbound fault naming the element.
-    fn buffer_array(&mut self, sets: &[Option<BoundSet>], set: u32, binding: u32) -> bool {
+    fn array(&mut self, sets: &[Option<BoundSet>], set: u32, binding: u32) -> bool {
         let Some(bound) = sets.get(set as usize).and_then(Option::as_ref) else { return false };
         let Some(elements) = bound.set.binding(binding) else { return false };
-        if elements.len() == 1 || !elements.iter().all(|d| matches!(d, Descriptor::Buffer { .. } | Descriptor::Empty)) {
+        if elements.len() == 1 {
             return false;
         }
         self.counts.push(((set, binding), elements.len() as u32));
         for e in 0..elements.len() as u32 {
-            if let Ok(Resolved::Buffer(buffer, offset, len)) = resolve_binding(sets, set, binding, e, 0) {
-                self.push_region((set, binding, e), buffer, offset, len);
+            if let Ok(r) = resolve_binding(sets, set, binding, e, IMAGE_TAG | self.images.len() as u64) {
+                self.store((set, binding, e), r);
             }
         }
         true
@@ -245,7 +255,12 @@ impl Memory for DispatchMemory<'_> {
     }
 
     fn image(&self, set: u32, binding: u32) -> Option<ImageBinding> {
-        let image = self.images.iter().find(|(k, _, _)| *k == (set, binding)).map(|(_, _, view)| *view);
-        image.or_else(|| self.texels.iter().find(|(k, _)| *k == (set, binding)).map(|(_, view)| *view))
+        self.image_element(set, binding, 0)
+    }
+
+    fn image_element(&self, set: u32, binding: u32, element: u32) -> Option<ImageBinding> {
+        let key = (set, binding, element);
+        let image = self.images.iter().find(|(k, _, _)| *k == key).map(|(_, _, view)| *view);
+        image.or_else(|| self.texels.iter().find(|(k, _)| *k == key).map(|(_, view)| *view))
     }
 }
