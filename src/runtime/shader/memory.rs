@@ -32,22 +32,25 @@ const ADDRESS_TAG: u64 = 1 << 63;
 /// descriptor buffer ids are small indices, so the three kinds cannot collide.
 const IMAGE_TAG: u64 = 1 << 62;
 
+/// (set, binding, array element) of one resolved descriptor.
+type ElementKey = (u32, u32, u32);
+
 /// One dispatch's memory: the buffers its descriptors name, and the device's address space.
 pub struct DispatchMemory<'a> {
     space: &'a AddressSpace,
     /// ((set, binding, array element), region) for every buffer element the pipeline's
     /// bindings have that resolved.
-    regions: Vec<((u32, u32, u32), Region)>,
+    regions: Vec<(ElementKey, Region)>,
     /// ((set, binding), elements) of every buffer binding: the length a runtime array takes.
     counts: Vec<((u32, u32), u32)>,
     /// The buffers `regions` refer to, by `Region::buffer`.
     buffers: Vec<Arc<Buffer>>,
     /// ((set, binding), image, its view for the library) for every storage image that resolved;
     /// the binding's id is `IMAGE_TAG | index`.
-    images: Vec<((u32, u32, u32), Arc<Image>, ImageBinding)>,
+    images: Vec<(ElementKey, Arc<Image>, ImageBinding)>,
     /// ((set, binding), view) of every texel buffer: texels live in `buffers` (the view's
     /// `buffer` id indexes it), so reads and writes take the descriptor-buffer path.
-    texels: Vec<((u32, u32, u32), ImageBinding)>,
+    texels: Vec<(ElementKey, ImageBinding)>,
     /// ((set, binding), device address) for every acceleration-structure descriptor.
     structures: Vec<((u32, u32), u64)>,
     /// Ray queries follow structure addresses (and each TLAS's BLAS references) through the
@@ -102,7 +105,7 @@ impl<'a> DispatchMemory<'a> {
     }
 
     /// Keeps what element `key` resolved to.
-    fn store(&mut self, key: (u32, u32, u32), resolved: Resolved) {
+    fn store(&mut self, key: ElementKey, resolved: Resolved) {
         match resolved {
             Resolved::Buffer(buffer, offset, len) => {
                 self.regions.push((key, Region { buffer: self.buffers.len() as u64, offset, len }));
