@@ -60,7 +60,7 @@ fn image_atomics_on_storage_images_and_texel_buffers_match_the_cpu_reference() {
         })
         .collect();
     let bin = |v: i32| (v as u32 & 15) as usize;
-    let mut hist = vec![0u32; 4 * 6];
+    let mut hist = [0u32; 4 * 6];
     let mut minmax: Vec<i32> = (0..32).map(|k| if k % 2 == 0 { i32::MAX } else { i32::MIN }).collect();
     for (i, &v) in values.iter().enumerate() {
         let b = bin(v);

@@ -14,7 +14,12 @@
 //! - `alu`: scalar semantics shared by the executor and the constant folder;
 //! - `memory`: the [`Memory`] trait, [`Fault`]s, and [`HostMemory`] for tests;
 //! - `lower_image`/`exec_image`: storage images (OpImageRead/Write/QuerySize on 1D/2D/3D,
-//!   arrayed or not), texels converted from the [`ImageFormat`] of the bound view.
+//!   arrayed or not) and texel buffers (Dim Buffer, OpImageFetch for uniform ones), texels
+//!   converted from the [`ImageFormat`] of the bound view; OpImageTexelPointer for image
+//!   atomics (a `Space::Image` address);
+//! - `lower_array`: arrays of buffer descriptors (and, in `lower_image`, of images): the
+//!   element rides in the address (buffers, texel pointers) or in a register of the image op,
+//!   and the executor resolves every element once per dispatch.
 //!
 //! Ray queries (SPV_KHR_ray_query, and position fetch): `lower_rq` turns each `OpRayQuery*`
 //! into an IR op naming the query by its variable's lane-frame address; `exec_rq` keeps a

@@ -268,7 +268,7 @@ impl Binding {
     /// An array of `n` buffer (or texel-buffer) descriptors over equal parts of `data` (see
     /// `elements`).
     pub fn array(mut self, n: u32) -> Binding {
-        assert!(n > 0 && self.data.len() % n as usize == 0 && self.image.is_none());
+        assert!(n > 0 && self.data.len().is_multiple_of(n as usize) && self.image.is_none());
         self.elements = n;
         self
     }
