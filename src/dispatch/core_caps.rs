@@ -31,9 +31,9 @@ pub fn vulkan12_features() -> vk::PhysicalDeviceVulkan12Features<'static> {
         descriptor_binding_update_unused_while_pending: vk::TRUE,
         descriptor_binding_partially_bound: vk::TRUE,
         descriptor_binding_variable_descriptor_count: vk::TRUE,
-        // Arrays of storage and uniform buffers, storage images and texel buffers, sized or
-        // runtime, indexed by any value: the executor resolves every element once per dispatch
-        // and picks one per lane. Arrays of acceleration structures are not run.
+        // Arrays of storage and uniform buffers, storage images, texel buffers and
+        // acceleration structures, sized or runtime, indexed by any value: the executor
+        // resolves every element once per dispatch and picks one per lane.
         runtime_descriptor_array: vk::TRUE,
         shader_uniform_buffer_array_non_uniform_indexing: vk::TRUE,
         shader_storage_buffer_array_non_uniform_indexing: vk::TRUE,

@@ -96,6 +96,8 @@ pub(super) struct Ctx<'a> {
     pub push: &'a [u8],
     /// Device addresses of `Program::accel_bindings` (0 when nothing is bound).
     accel: Vec<u64>,
+    /// Per `Program::accel_arrays` slot, each element's structure address (0 when unbound).
+    pub accel_arrays: Vec<Vec<u64>>,
     local: [u32; 3],
     num_groups: [u32; 3],
     watchdog: &'a Watchdog,
@@ -136,6 +138,7 @@ pub fn dispatch(
         images: super::exec_image::image_bindings(prog, memory),
         push: push_constants,
         accel: prog.accel_bindings.iter().map(|&(_, (s, b))| memory.acceleration_structure(s, b).unwrap_or(0)).collect(),
+        accel_arrays: super::exec_mem::accel_arrays(prog, memory),
         local: pipeline.local_size,
         // NumWorkgroups is the dispatch's group count, base or not (vkCmdDispatchBase).
         num_groups: group_count,

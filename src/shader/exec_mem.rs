@@ -90,6 +90,16 @@ fn access_one(ctx: &Ctx, frame: &mut [u8], wg: &mut Wg, space: Space, at: u64, t
             let offset = image.offset.checked_add(at).filter(|_| at != super::exec_image::TEXEL_OUTSIDE).ok_or((FaultKind::OutOfBounds, fspace))?;
             device(ctx, image.buffer, offset, ty, acc).ok_or((FaultKind::Refused, fspace))
         }
+        Space::Accel(slot) => {
+            let ((set, binding), _) = ctx.prog.accel_arrays[slot as usize];
+            let element = u32::try_from(at / 8).unwrap_or(u32::MAX);
+            let fspace = FaultSpace::ArrayElement { set, binding, element };
+            let elements = &ctx.accel_arrays[slot as usize];
+            match acc {
+                Access::Read if at.is_multiple_of(8) && size == 8 => elements.get(element as usize).copied().ok_or((FaultKind::ArrayIndex, fspace)),
+                _ => Err((FaultKind::Refused, fspace)),
+            }
+        }
         Space::Physical => {
             let region = ctx.mem.address(at, size as u64).ok_or((FaultKind::Unmapped, FaultSpace::DeviceAddress))?;
             device(ctx, region.buffer, region.offset, ty, acc).ok_or((FaultKind::Refused, FaultSpace::DeviceAddress))
@@ -123,6 +133,19 @@ pub(super) fn binding_regions(prog: &Program, memory: &dyn Memory) -> Vec<Vec<Op
         .map(|(&(s, b), &n)| {
             let n = if n == 0 { memory.binding_count(s, b).min(MAX_RESOLVED) } else { n };
             (0..n).map(|e| memory.binding_element(s, b, e)).collect()
+        })
+        .collect()
+}
+
+/// The structure address of every element of every acceleration-structure array, resolved
+/// once per dispatch (0 for an element with nothing bound: a query on it faults).
+pub(super) fn accel_arrays(prog: &Program, memory: &dyn Memory) -> Vec<Vec<u64>> {
+    const MAX_RESOLVED: u32 = 1 << 16;
+    prog.accel_arrays
+        .iter()
+        .map(|&((s, b), n)| {
+            let n = if n == 0 { memory.binding_count(s, b).min(MAX_RESOLVED) } else { n };
+            (0..n).map(|e| memory.acceleration_structure_element(s, b, e).unwrap_or(0)).collect()
         })
         .collect()
 }

@@ -55,6 +55,9 @@ pub enum Space {
     Buffer(u16),
     /// PhysicalStorageBuffer64: the register holds a device address.
     Physical,
+    /// An array of acceleration-structure descriptors, `Program::accel_arrays[slot]`: the
+    /// address is element * 8 and a load gives that element's structure address.
+    Accel(u16),
     /// A texel of storage image (or texel buffer) `Program::images[slot]`, from
     /// OpImageTexelPointer: the register holds the texel's byte offset in the view (from
     /// [`Op::ImageTexel`]; the array element above [`ELEMENT_SHIFT`], all ones below it for a
@@ -330,6 +333,9 @@ pub struct Program {
     /// Array length of each `images` entry as declared (1 for a single image, 0 for a
     /// runtime array).
     pub image_counts: Vec<u32>,
+    /// Arrays of acceleration-structure descriptors: (set, binding) and the declared length
+    /// (0 for a runtime array), by `Space::Accel` slot.
+    pub accel_arrays: Vec<((u32, u32), u32)>,
     /// Registers holding the device address of the acceleration structure bound at (set,
     /// binding): resolved once per dispatch, filled for every lane when a lane group starts.
     pub accel_bindings: Vec<(Reg, (u32, u32))>,

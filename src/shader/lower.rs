@@ -91,6 +91,7 @@ pub struct Lowerer<'a> {
     pub(super) images: Vec<(u32, u32)>,
     pub(super) image_counts: Vec<u32>,
     accel_bindings: Vec<(Reg, (u32, u32))>,
+    pub(super) accel_arrays: Vec<((u32, u32), u32)>,
     push_size: u32,
 }
 
@@ -116,6 +117,7 @@ pub fn lower(m: &Module, consts: &Constants, e: &EntryPoint) -> Result<Lowered, 
         images: Vec::new(),
         image_counts: Vec::new(),
         accel_bindings: Vec::new(),
+        accel_arrays: Vec::new(),
         push_size: 0,
     };
     lw.inline(e.function, Vec::new(), true)?;
@@ -130,6 +132,7 @@ pub fn lower(m: &Module, consts: &Constants, e: &EntryPoint) -> Result<Lowered, 
         images: lw.images,
         image_counts: lw.image_counts,
         accel_bindings: lw.accel_bindings,
+        accel_arrays: lw.accel_arrays,
     };
     Ok(Lowered { program, push_size: lw.push_size })
 }
@@ -252,6 +255,11 @@ impl<'a> Lowerer<'a> {
         let pointee = self.pointee(inst.result_type.unwrap_or(0))?;
         let class = super::parse::storage_class(inst, 0)?;
         let deco = self.m.decorations.get(&id).cloned().unwrap_or_default();
+        if class == StorageClass::UniformConstant {
+            if let Some(v) = self.accel_array(id, (deco.set.unwrap_or(0), deco.binding.unwrap_or(0)), pointee)? {
+                return Ok(v);
+            }
+        }
         if class == StorageClass::UniformConstant && matches!(self.m.ty(pointee)?, Type::AccelerationStructure) {
             return Ok(self.accel_descriptor(deco.set.unwrap_or(0), deco.binding.unwrap_or(0)));
         }
@@ -640,7 +648,9 @@ impl Lowerer<'_> {
                 }
                 self.define(id, Val::Ptr(p));
             }
-            Op::Load if matches!(self.m.ty(rty)?, Type::AccelerationStructure) => {
+            // A single structure descriptor is its address register; an element of an array of
+            // them is a `Space::Accel` pointer, loaded like memory below.
+            Op::Load if matches!(self.m.ty(rty)?, Type::AccelerationStructure) && !matches!(self.val(id_op(inst, 0)?)?, Val::Ptr(_)) => {
                 let r = self.regs(id_op(inst, 0)?)?;
                 self.define(id, Val::Regs(r));
             }

@@ -3,7 +3,7 @@
 //! [`ELEMENT_SHIFT`], so indexing the array, constant or not, uniform or not, is ordinary
 //! address arithmetic and the executor picks the element's region per lane.
 use super::ir::{Space, ELEMENT_SHIFT};
-use super::lower::{Lowerer, Ptr};
+use super::lower::{Lowerer, Ptr, Val};
 use super::parse::Type;
 use super::ShaderError;
 
@@ -48,5 +48,35 @@ impl Lowerer<'_> {
     /// never match.
     pub(super) fn descriptor_stride(&self, p: &Ptr) -> Option<u64> {
         (matches!(p.space, Space::Buffer(_)) && self.descriptor_arrays.contains(&p.pointee)).then_some(1 << ELEMENT_SHIFT)
+    }
+
+    /// An array of acceleration-structure descriptors (None for any other variable): a
+    /// `Space::Accel` pointer whose elements load as structure addresses. The binding is
+    /// listed in `bindings` too, with its length, for the pipeline-layout checks.
+    pub(super) fn accel_array(&mut self, id: u32, key: (u32, u32), pointee: u32) -> Result<Option<Val>, ShaderError> {
+        let (elem, count) = match self.m.ty(pointee)? {
+            Type::Array { elem, len } => (*elem, self.consts.value(*len).and_then(|v| v.first().copied()).unwrap_or(0) as u32),
+            Type::RuntimeArray { elem } => (*elem, 0),
+            _ => return Ok(None),
+        };
+        if !matches!(self.m.ty(elem)?, Type::AccelerationStructure) {
+            return Ok(None);
+        }
+        if matches!(self.m.ty(pointee)?, Type::Array { .. }) && count == 0 {
+            return Err(self.err(id, "acceleration-structure array of unknown length"));
+        }
+        let slot = match self.accel_arrays.iter().position(|(k, _)| *k == key) {
+            Some(s) => s,
+            None => {
+                self.accel_arrays.push((key, count));
+                if !self.bindings.contains(&key) {
+                    self.bindings.push(key);
+                    self.binding_counts.push(count);
+                }
+                self.accel_arrays.len() - 1
+            }
+        };
+        let addr = self.konst(0);
+        Ok(Some(Val::Ptr(Ptr { space: Space::Accel(slot as u16), addr, pointee, matrix_stride: None })))
     }
 }

@@ -68,6 +68,16 @@ pub trait Memory: Sync {
         None
     }
 
+    /// Element `element` of an array of acceleration-structure descriptors (its length is
+    /// [`Memory::binding_count`]). The default knows single descriptors only.
+    fn acceleration_structure_element(&self, set: u32, binding: u32, element: u32) -> Option<u64> {
+        if element == 0 {
+            self.acceleration_structure(set, binding)
+        } else {
+            None
+        }
+    }
+
     /// Ray queries: where traversal finds structures, keyed by device address.
     /// `DeviceView::acceleration_structure(address)` must give the bytes of the live structure
     /// starting exactly at `address` (the one a query is initialised with, from a descriptor

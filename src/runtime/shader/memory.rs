@@ -51,8 +51,9 @@ pub struct DispatchMemory<'a> {
     /// ((set, binding), view) of every texel buffer: texels live in `buffers` (the view's
     /// `buffer` id indexes it), so reads and writes take the descriptor-buffer path.
     texels: Vec<(ElementKey, ImageBinding)>,
-    /// ((set, binding), device address) for every acceleration-structure descriptor.
-    structures: Vec<((u32, u32), u64)>,
+    /// ((set, binding, array element), device address) of every acceleration-structure
+    /// descriptor.
+    structures: Vec<(ElementKey, u64)>,
     /// Ray queries follow structure addresses (and each TLAS's BLAS references) through the
     /// same view builds use, which pins the buffers it hands out for the dispatch.
     device: DeviceInputs<'a>,
@@ -116,12 +117,7 @@ impl<'a> DispatchMemory<'a> {
                 self.texels.push((key, ImageBinding { buffer: self.buffers.len() as u64, ..view }));
                 self.buffers.push(buffer);
             }
-            // The library names structures by (set, binding): element 0 only.
-            Resolved::Structure(address) => {
-                if key.2 == 0 {
-                    self.structures.push(((key.0, key.1), address));
-                }
-            }
+            Resolved::Structure(address) => self.structures.push((key, address)),
         }
     }
 
@@ -250,7 +246,11 @@ impl Memory for DispatchMemory<'_> {
     }
 
     fn acceleration_structure(&self, set: u32, binding: u32) -> Option<u64> {
-        self.structures.iter().find(|(k, _)| *k == (set, binding)).map(|(_, a)| *a)
+        self.acceleration_structure_element(set, binding, 0)
+    }
+
+    fn acceleration_structure_element(&self, set: u32, binding: u32, element: u32) -> Option<u64> {
+        self.structures.iter().find(|(k, _)| *k == (set, binding, element)).map(|(_, a)| *a)
     }
 
     fn acceleration_structures(&self) -> Option<&dyn DeviceView> {
