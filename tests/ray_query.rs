@@ -1,7 +1,8 @@
 //! Ray queries in a compute dispatch through the loader (validation on, zero messages): a BLAS
 //! of the grid and a TLAS of two instances of it built with vkCmdBuildAccelerationStructuresKHR,
 //! tests/shaders/rq_closest.comp traces a handful of rays through the TLAS descriptor, and each
-//! committed hit matches `arbor::accel::closest_hit` on the structures read back.
+//! committed hit matches `arbor::accel::closest_hit` on the structures read back. A BLAS gone
+//! after the TLAS build leaves its instances absent, reported once per dispatch.
 mod harness;
 
 use arbor::accel::{self, MapView, Ray, RayFlags};
@@ -120,6 +121,34 @@ fn rq_closest_through_a_tlas_descriptor_matches_closest_hit() {
         }
     }
     assert!(hits >= 5 && hits < rays.len(), "the rays cover hits and misses ({hits} hits)");
+    a.destroy();
+    ctx.finish();
+}
+
+#[test]
+fn an_instance_whose_blas_is_gone_is_reported_once_per_dispatch() {
+    let mut exts = harness::default_device_extensions();
+    exts.push("VK_KHR_ray_query");
+    let ctx = harness::Context::new(harness::Options { acceleration_structure: true, device_extensions: exts, ..Default::default() });
+    let a = Accel::new(&ctx);
+    let mesh = upload_grid(&a);
+    let (blas, _) = valid_blas(&a, &mesh, NO_FLAGS);
+    let tlas = build_tlas(&a, &blas);
+    // Clearing the BLAS's header after the TLAS build: its address names no built structure.
+    let address = a.address_of(blas.s);
+    blas.r.write(&a, 0, &[0u8; 64]);
+    assert!(header_of(&a, &blas).is_none());
+    // 130 rays (three workgroups), each down onto one of the two instances of the gone BLAS.
+    let rays: Vec<Ray> = (0..130).map(|i| Ray { origin: Vec3::new(0.5 + 2.0 * (i % 2) as f32, 0.5, 1.0), direction: Vec3::new(0.0, 0.0, -1.0), tmin: 0.0, tmax: 10.0 }).collect();
+    let out = trace(&a, tlas.s, &rays);
+    for (i, got) in out.chunks(16).enumerate() {
+        assert_eq!(u32::from_le_bytes(got[12..16].try_into().unwrap()), 0, "ray {i}: the instance is absent, nothing is hit");
+    }
+    let diag = harness::diagnostics();
+    let lines: Vec<&str> = diag.lines().filter(|l| l.contains("no built bottom-level structure") && l.contains("reported once per dispatch")).collect();
+    assert_eq!(lines.len(), 1, "one diagnostic for the dispatch, not one per ray:\n{diag}");
+    assert!(lines[0].contains(&format!("{address:#x}")), "names the reference: {}", lines[0]);
+    assert!(!diag.contains("contained memory fault"), "not a memory fault:\n{diag}");
     a.destroy();
     ctx.finish();
 }

@@ -31,7 +31,17 @@ pub fn vulkan12_features() -> vk::PhysicalDeviceVulkan12Features<'static> {
         descriptor_binding_update_unused_while_pending: vk::TRUE,
         descriptor_binding_partially_bound: vk::TRUE,
         descriptor_binding_variable_descriptor_count: vk::TRUE,
+        // Arrays of storage and uniform buffers, storage images, texel buffers and
+        // acceleration structures, sized or runtime, indexed by any value: the executor
+        // resolves every element once per dispatch and picks one per lane.
         runtime_descriptor_array: vk::TRUE,
+        shader_uniform_buffer_array_non_uniform_indexing: vk::TRUE,
+        shader_storage_buffer_array_non_uniform_indexing: vk::TRUE,
+        shader_storage_image_array_non_uniform_indexing: vk::TRUE,
+        shader_uniform_texel_buffer_array_dynamic_indexing: vk::TRUE,
+        shader_storage_texel_buffer_array_dynamic_indexing: vk::TRUE,
+        shader_uniform_texel_buffer_array_non_uniform_indexing: vk::TRUE,
+        shader_storage_texel_buffer_array_non_uniform_indexing: vk::TRUE,
         uniform_buffer_standard_layout: vk::TRUE,
         shader_subgroup_extended_types: vk::TRUE,
         host_query_reset: vk::TRUE,
@@ -41,6 +51,28 @@ pub fn vulkan12_features() -> vk::PhysicalDeviceVulkan12Features<'static> {
         vulkan_memory_model: vk::TRUE,
         vulkan_memory_model_device_scope: vk::TRUE,
         subgroup_broadcast_dynamic_id: vk::TRUE,
+        ..Default::default()
+    }
+}
+
+/// VkPhysicalDeviceDescriptorIndexingFeatures, derived from the Vulkan 1.2 features (they must
+/// agree).
+pub fn descriptor_indexing_features() -> vk::PhysicalDeviceDescriptorIndexingFeatures<'static> {
+    let f = vulkan12_features();
+    vk::PhysicalDeviceDescriptorIndexingFeatures {
+        shader_uniform_buffer_array_non_uniform_indexing: f.shader_uniform_buffer_array_non_uniform_indexing,
+        shader_storage_buffer_array_non_uniform_indexing: f.shader_storage_buffer_array_non_uniform_indexing,
+        shader_storage_image_array_non_uniform_indexing: f.shader_storage_image_array_non_uniform_indexing,
+        shader_uniform_texel_buffer_array_dynamic_indexing: f.shader_uniform_texel_buffer_array_dynamic_indexing,
+        shader_storage_texel_buffer_array_dynamic_indexing: f.shader_storage_texel_buffer_array_dynamic_indexing,
+        shader_uniform_texel_buffer_array_non_uniform_indexing: f.shader_uniform_texel_buffer_array_non_uniform_indexing,
+        shader_storage_texel_buffer_array_non_uniform_indexing: f.shader_storage_texel_buffer_array_non_uniform_indexing,
+        descriptor_binding_uniform_buffer_update_after_bind: f.descriptor_binding_uniform_buffer_update_after_bind,
+        descriptor_binding_storage_buffer_update_after_bind: f.descriptor_binding_storage_buffer_update_after_bind,
+        descriptor_binding_update_unused_while_pending: f.descriptor_binding_update_unused_while_pending,
+        descriptor_binding_partially_bound: f.descriptor_binding_partially_bound,
+        descriptor_binding_variable_descriptor_count: f.descriptor_binding_variable_descriptor_count,
+        runtime_descriptor_array: f.runtime_descriptor_array,
         ..Default::default()
     }
 }

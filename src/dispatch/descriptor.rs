@@ -14,9 +14,9 @@ use super::table::{imp, Implemented};
 use super::{guard, util};
 use crate::diag;
 use crate::runtime::accel::AccelerationStructure;
-use crate::runtime::image::ImageView;
+use crate::runtime::image::{BufferView, ImageView};
 use crate::runtime::descriptor::{
-    acceleration_structure_descriptor, buffer_descriptor, storage_image_descriptor, type_class, AllocateError, BufferLimits, Descriptor, DescriptorPool, DescriptorSet, DescriptorSetLayout,
+    acceleration_structure_descriptor, buffer_descriptor, storage_image_descriptor, texel_buffer_descriptor, type_class, AllocateError, BufferLimits, Descriptor, DescriptorPool, DescriptorSet, DescriptorSetLayout,
     DescriptorUpdateTemplate, LayoutBinding, PipelineLayout, TemplateEntry, TypeClass, Violation,
 };
 
@@ -417,7 +417,7 @@ unsafe fn convert(t: vk::DescriptorType, count: u32, at: impl Fn(usize) -> *cons
                 TypeClass::TexelBuffer => {
                     // SAFETY: see above; a VkBufferView.
                     let v = unsafe { std::ptr::read_unaligned(p as *const vk::BufferView) };
-                    Ok(Descriptor::TexelBuffer { view: v.as_raw() })
+                    texel_buffer_descriptor(t, get::<BufferView>(v.as_raw()), v.as_raw())
                 }
                 TypeClass::AccelerationStructure => {
                     // SAFETY: see above; a VkAccelerationStructureKHR handle.

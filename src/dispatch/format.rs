@@ -1,6 +1,7 @@
 //! Format queries: vkGetPhysicalDeviceFormatProperties(2) and
 //! vkGetPhysicalDeviceImageFormatProperties(2), answering exactly what works — storage images
-//! and transfers for the formats of `runtime::image::FORMATS` in both tilings, and the vertex
+//! and transfers for the formats of `runtime::image::FORMATS` in both tilings (and uniform and
+//! storage texel buffers of them), and the vertex
 //! formats acceleration-structure builds decode — and sparse queries (none).
 use std::ffi::c_void;
 
@@ -42,10 +43,20 @@ pub const AS_VERTEX_FORMATS: &[vk::Format] = &[
     vk::Format::A2B10G10R10_UNORM_PACK32,
 ];
 
+/// Formats whose texels shader atomics run on (OpImageTexelPointer: 32-bit integers).
+fn atomic_format(format: vk::Format) -> bool {
+    matches!(format, vk::Format::R32_UINT | vk::Format::R32_SINT)
+}
+
 /// Features of an image format (both tilings store linearly, so they are the same).
 fn image_features(format: vk::Format) -> vk::FormatFeatureFlags {
     if format_info(format).is_some() {
-        vk::FormatFeatureFlags::STORAGE_IMAGE | vk::FormatFeatureFlags::TRANSFER_SRC | vk::FormatFeatureFlags::TRANSFER_DST
+        let base = vk::FormatFeatureFlags::STORAGE_IMAGE | vk::FormatFeatureFlags::TRANSFER_SRC | vk::FormatFeatureFlags::TRANSFER_DST;
+        if atomic_format(format) {
+            base | vk::FormatFeatureFlags::STORAGE_IMAGE_ATOMIC
+        } else {
+            base
+        }
     } else {
         vk::FormatFeatureFlags::empty()
     }
@@ -57,6 +68,13 @@ pub fn format_properties(format: vk::Format) -> vk::FormatProperties {
     let mut buffer = vk::FormatFeatureFlags::empty();
     if AS_VERTEX_FORMATS.contains(&format) {
         buffer |= vk::FormatFeatureFlags::ACCELERATION_STRUCTURE_VERTEX_BUFFER_KHR;
+    }
+    // Texel buffers run for the storage-image formats (the executor converts the same way).
+    if format_info(format).is_some() {
+        buffer |= vk::FormatFeatureFlags::UNIFORM_TEXEL_BUFFER | vk::FormatFeatureFlags::STORAGE_TEXEL_BUFFER;
+    }
+    if atomic_format(format) {
+        buffer |= vk::FormatFeatureFlags::STORAGE_TEXEL_BUFFER_ATOMIC;
     }
     let image = image_features(format);
     vk::FormatProperties { linear_tiling_features: image, optimal_tiling_features: image, buffer_features: buffer }
@@ -71,7 +89,11 @@ fn format_properties3(format: vk::Format) -> vk::FormatProperties3<'static> {
     if !image.is_empty() {
         image |= vk::FormatFeatureFlags2::STORAGE_READ_WITHOUT_FORMAT | vk::FormatFeatureFlags2::STORAGE_WRITE_WITHOUT_FORMAT;
     }
-    vk::FormatProperties3 { linear_tiling_features: image, optimal_tiling_features: image, buffer_features: wide(p.buffer_features), ..Default::default() }
+    let mut buffer = wide(p.buffer_features);
+    if buffer.contains(vk::FormatFeatureFlags2::STORAGE_TEXEL_BUFFER) {
+        buffer |= vk::FormatFeatureFlags2::STORAGE_READ_WITHOUT_FORMAT | vk::FormatFeatureFlags2::STORAGE_WRITE_WITHOUT_FORMAT;
+    }
+    vk::FormatProperties3 { linear_tiling_features: image, optimal_tiling_features: image, buffer_features: buffer, ..Default::default() }
 }
 
 unsafe extern "system" fn get_physical_device_format_properties(pd: vk::PhysicalDevice, format: vk::Format, p: *mut vk::FormatProperties) {

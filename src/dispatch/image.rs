@@ -8,12 +8,12 @@ use ash::vk::Handle;
 
 use super::device::device_from;
 use super::handle::{get, register, unregister};
-use super::memory::memory_from;
+use super::memory::{buffer_from, memory_from};
 use super::table::{imp, Implemented};
 use super::{guard, util};
 use crate::diag;
 use crate::memory::BindError;
-use crate::runtime::image::{CreateError, Image, ImageDesc, ImageView};
+use crate::runtime::image::{BufferView, CreateError, Image, ImageDesc, ImageView, TexelBufferLimits};
 
 pub fn commands() -> Vec<Implemented> {
     vec![
@@ -28,6 +28,8 @@ pub fn commands() -> Vec<Implemented> {
         imp!(PFN_vkGetImageSubresourceLayout => get_image_subresource_layout),
         imp!(PFN_vkCreateImageView => create_image_view),
         imp!(PFN_vkDestroyImageView => destroy_image_view),
+        imp!(PFN_vkCreateBufferView => create_buffer_view),
+        imp!(PFN_vkDestroyBufferView => destroy_buffer_view),
     ]
 }
 
@@ -319,6 +321,54 @@ unsafe extern "system" fn destroy_image_view(device: vk::Device, view: vk::Image
         }
         if view != vk::ImageView::null() && unregister::<ImageView>(view.as_raw()).is_none() {
             diag::vuid("VUID-vkDestroyImageView-imageView-parameter", CMD, "imageView is not a live VkImageView");
+        }
+    })
+}
+
+unsafe extern "system" fn create_buffer_view(
+    device: vk::Device,
+    p_info: *const vk::BufferViewCreateInfo,
+    _p_allocator: *const vk::AllocationCallbacks,
+    p_view: *mut vk::BufferView,
+) -> vk::Result {
+    const CMD: &str = "vkCreateBufferView";
+    guard(CMD, vk::Result::ERROR_OUT_OF_HOST_MEMORY, || {
+        if device_from(device).is_none() {
+            return unknown_device(CMD);
+        }
+        if p_info.is_null() || p_view.is_null() {
+            return invalid("VUID-vkCreateBufferView-pCreateInfo-parameter", CMD, "null pointer argument");
+        }
+        // SAFETY: valid create info and output pointer per the spec (checked non-null).
+        let i = unsafe {
+            *p_view = vk::BufferView::null();
+            &*p_info
+        };
+        let Some(buffer) = buffer_from(i.buffer) else {
+            return invalid("VUID-VkBufferViewCreateInfo-buffer-parameter", CMD, "buffer is not a live VkBuffer");
+        };
+        let l = super::physical_device::limits();
+        let limits = TexelBufferLimits { min_offset_alignment: l.min_texel_buffer_offset_alignment, max_elements: l.max_texel_buffer_elements as u64 };
+        match BufferView::new(buffer, i.format, i.offset, i.range, &limits) {
+            Ok(v) => {
+                // SAFETY: checked non-null.
+                unsafe { *p_view = vk::BufferView::from_raw(register(Arc::new(v))) };
+                vk::Result::SUCCESS
+            }
+            Err(e) => create_error(CMD, e),
+        }
+    })
+}
+
+unsafe extern "system" fn destroy_buffer_view(device: vk::Device, view: vk::BufferView, _p_allocator: *const vk::AllocationCallbacks) {
+    const CMD: &str = "vkDestroyBufferView";
+    guard(CMD, (), || {
+        if device_from(device).is_none() {
+            report_unknown_device(CMD);
+            return;
+        }
+        if view != vk::BufferView::null() && unregister::<BufferView>(view.as_raw()).is_none() {
+            diag::vuid("VUID-vkDestroyBufferView-bufferView-parameter", CMD, "bufferView is not a live VkBufferView");
         }
     })
 }

@@ -37,8 +37,6 @@ pub fn commands() -> Vec<Implemented> {
         imp!(PFN_vkBindBufferMemory2 => bind_buffer_memory2),
         imp!(PFN_vkGetBufferDeviceAddress => get_buffer_device_address),
         imp!(PFN_vkGetBufferOpaqueCaptureAddress => get_buffer_opaque_capture_address),
-        imp!(PFN_vkCreateBufferView => create_buffer_view),
-        imp!(PFN_vkDestroyBufferView => destroy_buffer_view),
     ]
 }
 
@@ -753,39 +751,3 @@ unsafe extern "system" fn get_buffer_opaque_capture_address(device: vk::Device, 
     })
 }
 
-unsafe extern "system" fn create_buffer_view(
-    device: vk::Device,
-    p_create_info: *const vk::BufferViewCreateInfo,
-    _p_allocator: *const vk::AllocationCallbacks,
-    p_view: *mut vk::BufferView,
-) -> vk::Result {
-    const CMD: &str = "vkCreateBufferView";
-    guard(CMD, vk::Result::ERROR_OUT_OF_HOST_MEMORY, || {
-        if device_from(device).is_none() {
-            return unknown_device(CMD);
-        }
-        // SAFETY: valid output pointer per the spec.
-        unsafe { util::out(p_view, vk::BufferView::null()) };
-        // SAFETY: valid create info per the spec (or null, reported below).
-        let format = unsafe { p_create_info.as_ref() }.map(|i| i.format);
-        // No format reports UNIFORM_ or STORAGE_TEXEL_BUFFER support, so no call can be valid.
-        invalid(
-            "VUID-VkBufferViewCreateInfo-format-08778",
-            CMD,
-            &format!("format {format:?} does not support texel-buffer access (Arbor supports no texel buffers)"),
-        )
-    })
-}
-
-unsafe extern "system" fn destroy_buffer_view(device: vk::Device, view: vk::BufferView, _p_allocator: *const vk::AllocationCallbacks) {
-    const CMD: &str = "vkDestroyBufferView";
-    guard(CMD, (), || {
-        if device_from(device).is_none() {
-            report_unknown_device(CMD);
-            return;
-        }
-        if view != vk::BufferView::null() {
-            diag::vuid("VUID-vkDestroyBufferView-bufferView-parameter", CMD, "bufferView is not a live VkBufferView");
-        }
-    })
-}

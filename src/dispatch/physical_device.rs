@@ -91,6 +91,11 @@ pub const SUBGROUP_OPERATIONS: vk::SubgroupFeatureFlags = vk::SubgroupFeatureFla
 pub fn features() -> vk::PhysicalDeviceFeatures {
     vk::PhysicalDeviceFeatures {
         robust_buffer_access: vk::TRUE,
+        // Arrays of buffers and storage images indexed by dynamically uniform values (the
+        // library resolves each element per lane, so non-uniform indices work too).
+        shader_uniform_buffer_array_dynamic_indexing: vk::TRUE,
+        shader_storage_buffer_array_dynamic_indexing: vk::TRUE,
+        shader_storage_image_array_dynamic_indexing: vk::TRUE,
         shader_storage_image_read_without_format: vk::TRUE,
         shader_storage_image_write_without_format: vk::TRUE,
         shader_int64: vk::TRUE,
@@ -130,15 +135,7 @@ pub unsafe fn fill_feature_struct(s_type: vk::StructureType, p: *mut c_void) -> 
             ),
             vk::StructureType::PHYSICAL_DEVICE_DESCRIPTOR_INDEXING_FEATURES => util::write_keep_chain(
                 p,
-                vk::PhysicalDeviceDescriptorIndexingFeatures {
-                    descriptor_binding_uniform_buffer_update_after_bind: vk::TRUE,
-                    descriptor_binding_storage_buffer_update_after_bind: vk::TRUE,
-                    descriptor_binding_update_unused_while_pending: vk::TRUE,
-                    descriptor_binding_partially_bound: vk::TRUE,
-                    descriptor_binding_variable_descriptor_count: vk::TRUE,
-                    runtime_descriptor_array: vk::TRUE,
-                    ..Default::default()
-                },
+                super::core_caps::descriptor_indexing_features(),
             ),
             vk::StructureType::PHYSICAL_DEVICE_TIMELINE_SEMAPHORE_FEATURES => util::write_keep_chain(
                 p,

@@ -109,6 +109,13 @@ impl Image {
         let (m, o) = self.locate(offset, data.len() as u64)?;
         m.write(o, data)
     }
+
+    /// Atomic read-modify-write of a 4- or 8-byte texel word (offset relative to the image's
+    /// start, checked): image atomics in shaders.
+    pub fn atomic(&self, offset: u64, size: usize, update: &dyn Fn(u64) -> u64) -> Result<u64, AccessError> {
+        let (m, o) = self.locate(offset, size as u64)?;
+        m.atomic(o, size, update)
+    }
 }
 
 /// Extent of mip level `level` of an image whose level 0 is `extent`.

@@ -7,6 +7,7 @@ use std::sync::Arc;
 use ash::vk;
 
 use crate::memory::image::Image as Storage;
+use crate::memory::Buffer;
 use crate::runtime::descriptor::Descriptor;
 use crate::shader::{ImageBinding, ImageFormat};
 
@@ -225,6 +226,77 @@ pub fn storage_image_binding(descriptor: &Descriptor, id: u64) -> Option<(Arc<Im
         return None;
     }
     Some((view.image.clone(), view.shader_binding(id)?))
+}
+
+/// One `VkBufferView`: a range of a buffer read and written as texels of `format` (uniform
+/// and storage texel buffers). The formats are the storage-image ones.
+pub struct BufferView {
+    pub buffer: Arc<Buffer>,
+    pub info: FormatInfo,
+    pub offset: u64,
+    /// Bytes of the view (VK_WHOLE_SIZE resolved, rounded down to whole texels).
+    pub range: u64,
+}
+
+/// Device limits a buffer view must respect.
+#[derive(Clone, Copy, Debug)]
+pub struct TexelBufferLimits {
+    pub min_offset_alignment: u64,
+    pub max_elements: u64,
+}
+
+impl BufferView {
+    /// Check and create a view (vkCreateBufferView). `range` may be VK_WHOLE_SIZE.
+    pub fn new(buffer: Arc<Buffer>, format: vk::Format, offset: u64, range: u64, limits: &TexelBufferLimits) -> Result<BufferView, CreateError> {
+        let info = *format_info(format).ok_or_else(|| invalid("VUID-VkBufferViewCreateInfo-format-08778", format!("format {format:?} does not support texel-buffer access")))?;
+        let texel = info.texel_size as u64;
+        if !buffer.usage.intersects(vk::BufferUsageFlags::UNIFORM_TEXEL_BUFFER | vk::BufferUsageFlags::STORAGE_TEXEL_BUFFER) {
+            return Err(invalid("VUID-VkBufferViewCreateInfo-buffer-00932", "the buffer has neither UNIFORM_TEXEL_BUFFER nor STORAGE_TEXEL_BUFFER usage"));
+        }
+        if buffer.memory().is_none() {
+            return Err(invalid("VUID-VkBufferViewCreateInfo-buffer-00935", "the buffer has no memory bound"));
+        }
+        if offset >= buffer.size {
+            return Err(invalid("VUID-VkBufferViewCreateInfo-offset-00925", format!("offset {offset} is not less than the buffer's size {}", buffer.size)));
+        }
+        if !offset.is_multiple_of(limits.min_offset_alignment) {
+            return Err(invalid("VUID-VkBufferViewCreateInfo-offset-02749", format!("offset {offset} is not a multiple of minTexelBufferOffsetAlignment {}", limits.min_offset_alignment)));
+        }
+        let bytes = if range == vk::WHOLE_SIZE {
+            (buffer.size - offset) / texel * texel
+        } else {
+            if range == 0 {
+                return Err(invalid("VUID-VkBufferViewCreateInfo-range-00928", "range is 0"));
+            }
+            if !range.is_multiple_of(texel) {
+                return Err(invalid("VUID-VkBufferViewCreateInfo-range-00929", format!("range {range} is not a multiple of the {texel}-byte texel")));
+            }
+            if offset.checked_add(range).is_none_or(|end| end > buffer.size) {
+                return Err(invalid("VUID-VkBufferViewCreateInfo-offset-00931", format!("offset {offset} + range {range} exceeds the buffer's size {}", buffer.size)));
+            }
+            range
+        };
+        if bytes / texel > limits.max_elements {
+            let vuid = if range == vk::WHOLE_SIZE { "VUID-VkBufferViewCreateInfo-range-04059" } else { "VUID-VkBufferViewCreateInfo-range-00930" };
+            return Err(invalid(vuid, format!("{} texels exceed maxTexelBufferElements {}", bytes / texel, limits.max_elements)));
+        }
+        Ok(BufferView { buffer, info, offset, range: bytes })
+    }
+
+    /// What a shader sees of the view: a one-row image of `range / texel` texels in the memory
+    /// the caller names `id` (the buffer), starting at the view's offset.
+    pub fn shader_binding(&self, id: u64) -> ImageBinding {
+        let n = (self.range / self.info.texel_size as u64) as u32;
+        ImageBinding::packed(id, self.offset, self.info.shader, [n, 1, 1], 1)
+    }
+}
+
+/// The texel buffer a descriptor names, for a dispatch: its buffer (serving `read`/`write` for
+/// id `id`, offsets relative to the buffer's start) and the library's view. None when the
+/// descriptor is no texel buffer or its view or buffer was destroyed.
+pub fn texel_buffer_binding(descriptor: &Descriptor, id: u64) -> Option<(Arc<Buffer>, ImageBinding)> {
+    let view = descriptor.texel_buffer()?;
+    Some((view.buffer.clone(), view.shader_binding(id)))
 }
 
 #[cfg(test)]

@@ -54,11 +54,15 @@ pub struct DispatchReport {
     pub faults: Vec<Fault>,
     pub fault_count: u64,
     pub stopped: Option<Stop>,
+    /// The first TLAS instance reference (in workgroup order) that named no built BLAS
+    /// ([`super::FaultKind::UnresolvedInstance`]), kept apart from `faults`: it is reported
+    /// once per dispatch however many rays met it.
+    pub unresolved_instance: Option<Fault>,
 }
 
 impl DispatchReport {
     pub fn is_clean(&self) -> bool {
-        self.fault_count == 0 && self.stopped.is_none()
+        self.fault_count == 0 && self.stopped.is_none() && self.unresolved_instance.is_none()
     }
 }
 
@@ -87,11 +91,16 @@ pub(super) struct Group<'a> {
 pub(super) struct Ctx<'a> {
     pub prog: &'a Program,
     pub mem: &'a dyn Memory,
-    pub regions: Vec<Option<Region>>,
-    pub images: Vec<Option<ImageBinding>>,
+    /// Per `Program::bindings` slot, the region of each array element (one for a single
+    /// descriptor).
+    pub regions: Vec<Vec<Option<Region>>>,
+    /// Per `Program::images` slot, the view of each array element (one for a single image).
+    pub images: Vec<Vec<Option<ImageBinding>>>,
     pub push: &'a [u8],
     /// Device addresses of `Program::accel_bindings` (0 when nothing is bound).
     accel: Vec<u64>,
+    /// Per `Program::accel_arrays` slot, each element's structure address (0 when unbound).
+    pub accel_arrays: Vec<Vec<u64>>,
     local: [u32; 3],
     num_groups: [u32; 3],
     watchdog: &'a Watchdog<'a>,
@@ -104,9 +113,15 @@ pub(super) struct Wg {
     pub shared: Vec<u8>,
     pub faults: Vec<Fault>,
     pub fault_count: u64,
+    /// The first unresolved instance reference a ray query of this workgroup met.
+    pub unresolved: Option<Fault>,
     steps: u64,
     stopped: Option<Stop>,
 }
+
+/// What one workgroup leaves for the report: its first faults, their count, a watchdog stop,
+/// and the first unresolved instance reference its ray queries met.
+type WorkgroupResult = (Vec<Fault>, u64, Option<Stop>, Option<Fault>);
 
 /// Runs `group_count` workgroups starting at `base_group` (vkCmdDispatchBase). Never panics on
 /// shader behaviour: bad accesses become faults, endless loops meet the watchdog.
@@ -122,10 +137,11 @@ pub fn dispatch(
     let ctx = Ctx {
         prog,
         mem: memory,
-        regions: prog.bindings.iter().map(|&(s, b)| memory.binding(s, b)).collect(),
-        images: prog.images.iter().map(|&(s, b)| memory.image(s, b)).collect(),
+        regions: super::exec_mem::binding_regions(prog, memory),
+        images: super::exec_image::image_bindings(prog, memory),
         push: push_constants,
         accel: prog.accel_bindings.iter().map(|&(_, (s, b))| memory.acceleration_structure(s, b).unwrap_or(0)).collect(),
+        accel_arrays: super::exec_mem::accel_arrays(prog, memory),
         local: pipeline.local_size,
         // NumWorkgroups is the dispatch's group count, base or not (vkCmdDispatchBase).
         num_groups: group_count,
@@ -134,7 +150,7 @@ pub fn dispatch(
     };
     let total = group_count.iter().map(|&c| c as u64).product::<u64>();
     let per_row = group_count[0] as u64 * group_count[1] as u64;
-    let results: Vec<(Vec<Fault>, u64, Option<Stop>)> = (0..total)
+    let results: Vec<WorkgroupResult> = (0..total)
         .into_par_iter()
         .map_init(
             || new_groups(&ctx),
@@ -147,10 +163,11 @@ pub fn dispatch(
                 run_workgroup(&ctx, groups, id)
             },
         )
-        .filter(|r| r.1 > 0 || r.2.is_some())
+        .filter(|r| r.1 > 0 || r.2.is_some() || r.3.is_some())
         .collect();
     let mut report = DispatchReport::default();
-    for (faults, count, stop) in results {
+    for (faults, count, stop, unresolved) in results {
+        report.unresolved_instance = report.unresolved_instance.or(unresolved);
         report.fault_count += count;
         report.faults.extend(faults.into_iter().take(MAX_FAULTS - report.faults.len().min(MAX_FAULTS)));
         report.stopped = report.stopped.or(stop);
@@ -174,15 +191,16 @@ fn new_groups<'a>(ctx: &Ctx<'a>) -> Vec<Group<'a>> {
         .collect()
 }
 
-fn run_workgroup<'a>(ctx: &Ctx<'a>, groups: &mut [Group<'a>], id: [u32; 3]) -> (Vec<Fault>, u64, Option<Stop>) {
+fn run_workgroup<'a>(ctx: &Ctx<'a>, groups: &mut [Group<'a>], id: [u32; 3]) -> WorkgroupResult {
     if ctx.stop.load(Ordering::Relaxed) {
-        return (Vec::new(), 0, None);
+        return (Vec::new(), 0, None, None);
     }
     let mut wg = Wg {
         id,
         shared: vec![0; ctx.prog.workgroup_bytes as usize],
         faults: Vec::new(),
         fault_count: 0,
+        unresolved: None,
         steps: 0,
         stopped: None,
     };
@@ -195,7 +213,7 @@ fn run_workgroup<'a>(ctx: &Ctx<'a>, groups: &mut [Group<'a>], id: [u32; 3]) -> (
             run_group(ctx, group, &mut wg);
             if wg.stopped.is_some() {
                 ctx.stop.store(true, Ordering::Relaxed);
-                return (wg.faults, wg.fault_count, wg.stopped);
+                return (wg.faults, wg.fault_count, wg.stopped, wg.unresolved);
             }
         }
         // Every group now waits at the barrier or is done: release the barrier.
@@ -207,7 +225,7 @@ fn run_workgroup<'a>(ctx: &Ctx<'a>, groups: &mut [Group<'a>], id: [u32; 3]) -> (
             }
         }
         if !waiting {
-            return (wg.faults, wg.fault_count, None);
+            return (wg.faults, wg.fault_count, None, wg.unresolved);
         }
     }
 }
@@ -396,7 +414,7 @@ fn exec_op<'a>(ctx: &Ctx<'a>, group: &mut Group<'a>, wg: &mut Wg, op: &Op, mask:
             lanes(regs, dst, mask, |l| a[l].wrapping_add(imm));
         }
         Op::Load { .. } | Op::Store { .. } | Op::Atomic { .. } => super::exec_mem::exec_mem(ctx, group, wg, op, mask),
-        Op::ImageRead { .. } | Op::ImageWrite { .. } | Op::ImageSize { .. } => super::exec_image::exec_image(ctx, group, wg, op, mask),
+        Op::ImageRead { .. } | Op::ImageWrite { .. } | Op::ImageSize { .. } | Op::ImageTexel { .. } => super::exec_image::exec_image(ctx, group, wg, op, mask),
         Op::RayQuery(ref rq) => super::exec_rq::exec_ray_query(ctx, group, wg, rq, mask),
         Op::Subgroup { op, ty, dst, a, b } => {
             let (a, b) = (regs[a as usize], regs[b as usize]);

@@ -3,8 +3,8 @@
 //! address); a failed check records a [`Fault`] and the access reads zero or is dropped.
 use super::alu;
 use super::exec::{Ctx, Group, Wg};
-use super::ir::{AtomicOp, Op, Sc, Space};
-use super::memory::{Fault, FaultKind, FaultSpace};
+use super::ir::{AtomicOp, Op, Program, Sc, Space, ELEMENT_SHIFT};
+use super::memory::{Fault, FaultKind, FaultSpace, ImageFormat, Memory, Region};
 use super::LANES;
 
 /// What one lane does at an address.
@@ -47,6 +47,8 @@ pub(super) fn exec_mem(ctx: &Ctx, group: &mut Group, wg: &mut Wg, op: &Op, mask:
             wg.fault_count += 1;
             if wg.faults.len() < 16 {
                 let write = !matches!(acc, Access::Read);
+                // An array element's fault names the element; `at` is the offset inside it.
+                let at = if matches!(fspace, FaultSpace::ArrayElement { .. }) { at & ((1 << ELEMENT_SHIFT) - 1) } else { at };
                 wg.faults.push(Fault { kind, space: fspace, at, len: ty.size(), write, workgroup: wg.id, invocation });
             }
             0
@@ -69,20 +71,86 @@ fn access_one(ctx: &Ctx, frame: &mut [u8], wg: &mut Wg, space: Space, at: u64, t
             _ => Err((FaultKind::Refused, FaultSpace::PushConstant)),
         },
         Space::Buffer(slot) => {
-            let (set, binding) = ctx.prog.bindings[slot as usize];
-            let fspace = FaultSpace::Binding { set, binding };
-            let region = ctx.regions[slot as usize].ok_or((FaultKind::Unbound, fspace))?;
+            let (region, fspace, at) = buffer_region(ctx, slot, at)?;
             if at.checked_add(size as u64).is_none_or(|end| end > region.len) {
                 return Err((FaultKind::OutOfBounds, fspace));
             }
             let offset = region.offset.checked_add(at).ok_or((FaultKind::Refused, fspace))?;
             device(ctx, region.buffer, offset, ty, acc).ok_or((FaultKind::Refused, fspace))
         }
+        Space::Image(slot) => {
+            // The element is above ELEMENT_SHIFT; the offset below it is TEXEL_OUTSIDE for a
+            // coordinate outside the view.
+            let element = (at >> ELEMENT_SHIFT) as u32;
+            let image = super::exec_image::view(ctx, slot, element)?;
+            let fspace = super::exec_image::view_space(ctx, slot, element);
+            let at = at & ((1 << ELEMENT_SHIFT) - 1);
+            // Texel pointers reach single-component 32-bit integer texels only (the formats
+            // image atomics are defined on); anything else is refused.
+            if !matches!(image.format, ImageFormat::R32Uint | ImageFormat::R32Sint) || size != 4 {
+                return Err((FaultKind::Refused, fspace));
+            }
+            let offset = image.offset.checked_add(at).filter(|_| at != super::exec_image::TEXEL_OUTSIDE).ok_or((FaultKind::OutOfBounds, fspace))?;
+            device(ctx, image.buffer, offset, ty, acc).ok_or((FaultKind::Refused, fspace))
+        }
+        Space::Accel(slot) => {
+            let ((set, binding), _) = ctx.prog.accel_arrays[slot as usize];
+            let element = u32::try_from(at / 8).unwrap_or(u32::MAX);
+            let fspace = FaultSpace::ArrayElement { set, binding, element };
+            let elements = &ctx.accel_arrays[slot as usize];
+            match acc {
+                Access::Read if at.is_multiple_of(8) && size == 8 => elements.get(element as usize).copied().ok_or((FaultKind::ArrayIndex, fspace)),
+                _ => Err((FaultKind::Refused, fspace)),
+            }
+        }
         Space::Physical => {
             let region = ctx.mem.address(at, size as u64).ok_or((FaultKind::Unmapped, FaultSpace::DeviceAddress))?;
             device(ctx, region.buffer, region.offset, ty, acc).ok_or((FaultKind::Refused, FaultSpace::DeviceAddress))
         }
     }
+}
+
+/// The region a `Space::Buffer` address falls in, the fault space naming it, and the offset
+/// inside it. A single descriptor takes the address whole; an array's address carries the
+/// element above `ELEMENT_SHIFT` (an index past the end is an `ArrayIndex` fault).
+fn buffer_region(ctx: &Ctx, slot: u16, at: u64) -> Result<(Region, FaultSpace, u64), (FaultKind, FaultSpace)> {
+    let (set, binding) = ctx.prog.bindings[slot as usize];
+    let elements = &ctx.regions[slot as usize];
+    if ctx.prog.binding_counts[slot as usize] == 1 {
+        let fspace = FaultSpace::Binding { set, binding };
+        return Ok((elements[0].ok_or((FaultKind::Unbound, fspace))?, fspace, at));
+    }
+    let element = u32::try_from(at >> ELEMENT_SHIFT).unwrap_or(u32::MAX);
+    let fspace = FaultSpace::ArrayElement { set, binding, element };
+    let region = elements.get(element as usize).ok_or((FaultKind::ArrayIndex, fspace))?;
+    Ok((region.ok_or((FaultKind::Unbound, fspace))?, fspace, at & ((1 << ELEMENT_SHIFT) - 1)))
+}
+
+/// Every element region of every buffer slot, resolved once per dispatch. A runtime array has
+/// as many elements as the bound set gives it (bounded: the executor holds them all).
+pub(super) fn binding_regions(prog: &Program, memory: &dyn Memory) -> Vec<Vec<Option<Region>>> {
+    const MAX_RESOLVED: u32 = 1 << 20;
+    prog.bindings
+        .iter()
+        .zip(&prog.binding_counts)
+        .map(|(&(s, b), &n)| {
+            let n = if n == 0 { memory.binding_count(s, b).min(MAX_RESOLVED) } else { n };
+            (0..n).map(|e| memory.binding_element(s, b, e)).collect()
+        })
+        .collect()
+}
+
+/// The structure address of every element of every acceleration-structure array, resolved
+/// once per dispatch (0 for an element with nothing bound: a query on it faults).
+pub(super) fn accel_arrays(prog: &Program, memory: &dyn Memory) -> Vec<Vec<u64>> {
+    const MAX_RESOLVED: u32 = 1 << 16;
+    prog.accel_arrays
+        .iter()
+        .map(|&((s, b), n)| {
+            let n = if n == 0 { memory.binding_count(s, b).min(MAX_RESOLVED) } else { n };
+            (0..n).map(|e| memory.acceleration_structure_element(s, b, e).unwrap_or(0)).collect()
+        })
+        .collect()
 }
 
 fn read_le(bytes: &[u8], at: u64, size: usize) -> Option<u64> {

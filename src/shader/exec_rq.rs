@@ -86,6 +86,11 @@ pub(super) fn exec_ray_query<'a>(ctx: &Ctx<'a>, group: &mut Group<'a>, wg: &mut 
             RqKind::Proceed => {
                 slot.candidate = slot.q.proceed();
                 group.regs[op.dst[0] as usize][l] = slot.candidate.is_some() as u64;
+                if let (None, Some(address)) = (wg.unresolved, slot.q.unresolved_reference()) {
+                    let invocation = group.index * LANES as u32 + l as u32;
+                    let kind = FaultKind::UnresolvedInstance;
+                    wg.unresolved = Some(Fault { kind, space: FaultSpace::RayQuery, at: address, len: 0, write: false, workgroup: wg.id, invocation });
+                }
             }
             RqKind::Terminate => slot.q.terminate(),
             RqKind::Confirm => slot.q.confirm(),

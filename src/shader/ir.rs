@@ -49,11 +49,26 @@ pub enum Space {
     Workgroup,
     /// The push-constant block.
     Push,
-    /// A descriptor binding: index into [`Program::bindings`], resolved once per dispatch.
+    /// A descriptor binding: index into [`Program::bindings`], resolved once per dispatch. For
+    /// an array of descriptors the address carries the array element above
+    /// [`ELEMENT_SHIFT`] (the element's byte offset below it).
     Buffer(u16),
     /// PhysicalStorageBuffer64: the register holds a device address.
     Physical,
+    /// An array of acceleration-structure descriptors, `Program::accel_arrays[slot]`: the
+    /// address is element * 8 and a load gives that element's structure address.
+    Accel(u16),
+    /// A texel of storage image (or texel buffer) `Program::images[slot]`, from
+    /// OpImageTexelPointer: the register holds the texel's byte offset in the view (from
+    /// [`Op::ImageTexel`]; the array element above [`ELEMENT_SHIFT`], all ones below it for a
+    /// coordinate outside the view).
+    Image(u16),
 }
+
+/// Bit where the array element of a descriptor-array address starts (`Space::Buffer`):
+/// 2^40 bytes per element is beyond any buffer range Arbor reports, so offset arithmetic stays
+/// inside its element unless it goes out of bounds anyway.
+pub const ELEMENT_SHIFT: u32 = 40;
 
 /// Two-operand ALU ops. Signedness lives in the op, width in the [`Sc`] it is applied to.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -152,12 +167,16 @@ pub enum Op {
     /// OpImageRead of storage image `image` (index into [`Program::images`]) at `coord`
     /// (x, y, z, layer; I32, unused ones a zero constant): `n` components of type `ty` (I32 or
     /// F32) into `dst`, the texel converted from the view's format.
-    ImageRead { image: u16, ty: Sc, n: u8, dst: [Reg; 4], coord: [Reg; 4] },
+    /// `index` holds the element of an array of images (a zero constant for a single one).
+    ImageRead { image: u16, index: Reg, ty: Sc, n: u8, dst: [Reg; 4], coord: [Reg; 4] },
     /// OpImageWrite: `src` (four components of `ty`) converted to the view's format.
-    ImageWrite { image: u16, ty: Sc, coord: [Reg; 4], src: [Reg; 4] },
+    ImageWrite { image: u16, index: Reg, ty: Sc, coord: [Reg; 4], src: [Reg; 4] },
     /// OpImageQuerySize: width, height, depth, layers of the view, those of the image's
     /// dimensionality (`dims`: which of them, in order) into `dst`.
-    ImageSize { image: u16, n: u8, dims: [u8; 4], dst: [Reg; 4] },
+    ImageSize { image: u16, index: Reg, n: u8, dims: [u8; 4], dst: [Reg; 4] },
+    /// OpImageTexelPointer: the byte offset of the texel at `coord` in storage image `image`
+    /// (a `Space::Image` address, the array element above [`ELEMENT_SHIFT`]).
+    ImageTexel { image: u16, index: Reg, dst: Reg, coord: [Reg; 4] },
     /// A ray-query instruction (boxed: rare, and larger than every other op).
     RayQuery(Box<RayQueryOp>),
 }
@@ -306,8 +325,17 @@ pub struct Program {
     /// Descriptor (set, binding) for each `Space::Buffer` index (and every acceleration
     /// structure descriptor, which is in `accel_bindings` too).
     pub bindings: Vec<(u32, u32)>,
+    /// Array length of each `bindings` entry as the shader declares it: 1 for a single
+    /// descriptor, 0 for a runtime array (as many elements as the bound set has).
+    pub binding_counts: Vec<u32>,
     /// Descriptor (set, binding) of each storage image the image ops name.
     pub images: Vec<(u32, u32)>,
+    /// Array length of each `images` entry as declared (1 for a single image, 0 for a
+    /// runtime array).
+    pub image_counts: Vec<u32>,
+    /// Arrays of acceleration-structure descriptors: (set, binding) and the declared length
+    /// (0 for a runtime array), by `Space::Accel` slot.
+    pub accel_arrays: Vec<((u32, u32), u32)>,
     /// Registers holding the device address of the acceleration structure bound at (set,
     /// binding): resolved once per dispatch, filled for every lane when a lane group starts.
     pub accel_bindings: Vec<(Reg, (u32, u32))>,

@@ -29,9 +29,10 @@ const MAX_INLINE_DEPTH: u32 = 64;
 pub enum Val {
     Regs(Vec<Reg>),
     Ptr(Ptr),
-    /// A storage image (its variable or a load of it): index into `Program::images` and the
-    /// OpTypeImage id.
-    Image { slot: u16, ty: u32 },
+    /// A storage image (its variable or a load of it): index into `Program::images`, the
+    /// OpTypeImage id (or the array type's, before an array of images is indexed), and the
+    /// register holding the array element (a zero constant for a single image).
+    Image { slot: u16, ty: u32, index: Reg },
 }
 
 #[derive(Clone, Copy, Debug)]
@@ -82,9 +83,15 @@ pub struct Lowerer<'a> {
     frames: Vec<Frame>,
     lane_frame: Vec<u8>,
     workgroup_bytes: u32,
-    bindings: Vec<(u32, u32)>,
+    pub(super) bindings: Vec<(u32, u32)>,
+    /// Declared array length of each `bindings` entry (see `Program::binding_counts`).
+    pub(super) binding_counts: Vec<u32>,
+    /// Type ids of descriptor arrays of buffers (indexing one steps whole elements).
+    pub(super) descriptor_arrays: Vec<u32>,
     pub(super) images: Vec<(u32, u32)>,
+    pub(super) image_counts: Vec<u32>,
     accel_bindings: Vec<(Reg, (u32, u32))>,
+    pub(super) accel_arrays: Vec<((u32, u32), u32)>,
     push_size: u32,
 }
 
@@ -105,8 +112,12 @@ pub fn lower(m: &Module, consts: &Constants, e: &EntryPoint) -> Result<Lowered, 
         lane_frame: vec![0; bo::END as usize],
         workgroup_bytes: 0,
         bindings: Vec::new(),
+        binding_counts: Vec::new(),
+        descriptor_arrays: Vec::new(),
         images: Vec::new(),
+        image_counts: Vec::new(),
         accel_bindings: Vec::new(),
+        accel_arrays: Vec::new(),
         push_size: 0,
     };
     lw.inline(e.function, Vec::new(), true)?;
@@ -117,8 +128,11 @@ pub fn lower(m: &Module, consts: &Constants, e: &EntryPoint) -> Result<Lowered, 
         lane_frame: lw.lane_frame,
         workgroup_bytes: lw.workgroup_bytes,
         bindings: lw.bindings,
+        binding_counts: lw.binding_counts,
         images: lw.images,
+        image_counts: lw.image_counts,
         accel_bindings: lw.accel_bindings,
+        accel_arrays: lw.accel_arrays,
     };
     Ok(Lowered { program, push_size: lw.push_size })
 }
@@ -241,6 +255,11 @@ impl<'a> Lowerer<'a> {
         let pointee = self.pointee(inst.result_type.unwrap_or(0))?;
         let class = super::parse::storage_class(inst, 0)?;
         let deco = self.m.decorations.get(&id).cloned().unwrap_or_default();
+        if class == StorageClass::UniformConstant {
+            if let Some(v) = self.accel_array(id, (deco.set.unwrap_or(0), deco.binding.unwrap_or(0)), pointee)? {
+                return Ok(v);
+            }
+        }
         if class == StorageClass::UniformConstant && matches!(self.m.ty(pointee)?, Type::AccelerationStructure) {
             return Ok(self.accel_descriptor(deco.set.unwrap_or(0), deco.binding.unwrap_or(0)));
         }
@@ -250,14 +269,7 @@ impl<'a> Lowerer<'a> {
         let (space, addr) = match class {
             StorageClass::StorageBuffer | StorageClass::Uniform => {
                 let key = (deco.set.unwrap_or(0), deco.binding.unwrap_or(0));
-                let slot = match self.bindings.iter().position(|&b| b == key) {
-                    Some(s) => s,
-                    None => {
-                        self.bindings.push(key);
-                        self.bindings.len() - 1
-                    }
-                };
-                (Space::Buffer(slot as u16), 0)
+                (self.buffer_variable(id, key, pointee)?, 0)
             }
             StorageClass::PushConstant => {
                 self.push_size = self.push_size.max(self.l.size_align(pointee)?.0);
@@ -290,6 +302,7 @@ impl<'a> Lowerer<'a> {
         let key = (set, binding);
         if !self.bindings.contains(&key) {
             self.bindings.push(key);
+            self.binding_counts.push(1);
         }
         let r = match self.accel_bindings.iter().find(|(_, k)| *k == key) {
             Some(&(r, _)) => r,
@@ -406,14 +419,17 @@ impl<'a> Lowerer<'a> {
                     p.pointee = member;
                     continue;
                 }
-                Type::Array { elem, .. } | Type::RuntimeArray { elem } => (elem, self.l.stride(p.pointee, elem)?),
-                Type::Vector { elem, .. } => (elem, self.l.size_align(elem)?.0),
+                Type::Array { elem, .. } | Type::RuntimeArray { elem } => match self.descriptor_stride(&p) {
+                    Some(stride) => (elem, stride),
+                    None => (elem, self.l.stride(p.pointee, elem)? as u64),
+                },
+                Type::Vector { elem, .. } => (elem, self.l.size_align(elem)?.0 as u64),
                 Type::Matrix { column, .. } => {
-                    (column, p.matrix_stride.unwrap_or(self.l.size_align(column)?.0))
+                    (column, p.matrix_stride.unwrap_or(self.l.size_align(column)?.0) as u64)
                 }
                 _ => return Err(self.m.malformed(id, "access chain into a scalar")),
             };
-            p.addr = self.index(p.addr, idx, stride as u64, &mut imm)?;
+            p.addr = self.index(p.addr, idx, stride, &mut imm)?;
             if !matches!(self.m.ty(p.pointee)?, Type::Array { .. } | Type::RuntimeArray { .. }) {
                 p.matrix_stride = None;
             }
@@ -632,7 +648,9 @@ impl Lowerer<'_> {
                 }
                 self.define(id, Val::Ptr(p));
             }
-            Op::Load if matches!(self.m.ty(rty)?, Type::AccelerationStructure) => {
+            // A single structure descriptor is its address register; an element of an array of
+            // them is a `Space::Accel` pointer, loaded like memory below.
+            Op::Load if matches!(self.m.ty(rty)?, Type::AccelerationStructure) && !matches!(self.val(id_op(inst, 0)?)?, Val::Ptr(_)) => {
                 let r = self.regs(id_op(inst, 0)?)?;
                 self.define(id, Val::Regs(r));
             }
@@ -640,7 +658,11 @@ impl Lowerer<'_> {
                 let v = self.val(id_op(inst, 0)?)?;
                 self.define(id, v);
             }
-            Op::ImageRead | Op::ImageWrite | Op::ImageQuerySize => self.lower_image(inst)?,
+            Op::ImageRead | Op::ImageFetch | Op::ImageWrite | Op::ImageQuerySize => self.lower_image(inst)?,
+            Op::ImageTexelPointer => {
+                let p = self.texel_pointer(inst)?;
+                self.define(id, Val::Ptr(p));
+            }
             Op::Load => {
                 let src = id_op(inst, 0)?;
                 let p = self.ptr(src, self.type_of(src))?;
@@ -658,6 +680,10 @@ impl Lowerer<'_> {
                 let (pd, ps) = (self.ptr(dst, self.type_of(dst))?, self.ptr(src, self.type_of(src))?);
                 let v = self.load(&ps)?;
                 self.store(&pd, &v)?;
+            }
+            Op::AccessChain | Op::InBoundsAccessChain if matches!(self.val(id_op(inst, 0)?)?, Val::Image { .. }) => {
+                let v = self.image_element(inst)?;
+                self.define(id, v);
             }
             Op::AccessChain | Op::InBoundsAccessChain | Op::PtrAccessChain => {
                 let p = self.access_chain(inst, inst.class.opcode == Op::PtrAccessChain)?;

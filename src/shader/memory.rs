@@ -36,6 +36,21 @@ pub struct Region {
 pub trait Memory: Sync {
     /// The region bound at (set, binding), after dynamic offsets; None when nothing is bound.
     fn binding(&self, set: u32, binding: u32) -> Option<Region>;
+    /// Element `element` of an array of buffer descriptors at (set, binding); None when that
+    /// element has nothing bound. The default knows single descriptors only.
+    fn binding_element(&self, set: u32, binding: u32, element: u32) -> Option<Region> {
+        if element == 0 {
+            self.binding(set, binding)
+        } else {
+            None
+        }
+    }
+    /// How many array elements the binding at (set, binding) has as bound (the length a
+    /// runtime descriptor array of buffers or images takes). The default knows single descriptors only.
+    fn binding_count(&self, set: u32, binding: u32) -> u32 {
+        let _ = (set, binding);
+        1
+    }
     /// The region of the one live buffer containing `[address, address + len)`, with `offset`
     /// the position of `address` in that buffer and `len` the bytes from there to the buffer's
     /// end; None for an unmapped or null address.
@@ -51,6 +66,16 @@ pub trait Memory: Sync {
     /// nothing is bound (a query on it then faults and finds nothing). The default binds none.
     fn acceleration_structure(&self, _set: u32, _binding: u32) -> Option<u64> {
         None
+    }
+
+    /// Element `element` of an array of acceleration-structure descriptors (its length is
+    /// [`Memory::binding_count`]). The default knows single descriptors only.
+    fn acceleration_structure_element(&self, set: u32, binding: u32, element: u32) -> Option<u64> {
+        if element == 0 {
+            self.acceleration_structure(set, binding)
+        } else {
+            None
+        }
     }
 
     /// Ray queries: where traversal finds structures, keyed by device address.
@@ -69,6 +94,16 @@ pub trait Memory: Sync {
     fn image(&self, set: u32, binding: u32) -> Option<ImageBinding> {
         let _ = (set, binding);
         None
+    }
+
+    /// Element `element` of an array of storage images or texel buffers at (set, binding)
+    /// (its length is [`Memory::binding_count`]). The default knows single images only.
+    fn image_element(&self, set: u32, binding: u32, element: u32) -> Option<ImageBinding> {
+        if element == 0 {
+            self.image(set, binding)
+        } else {
+            None
+        }
     }
 }
 
@@ -141,6 +176,8 @@ pub enum FaultKind {
     OutOfBounds,
     /// A descriptor binding the shader uses has nothing bound.
     Unbound,
+    /// A descriptor-array index past the array's end (the access is dropped or reads zero).
+    ArrayIndex,
     /// A device address no live buffer contains (including null).
     Unmapped,
     /// The memory refused an in-range access.
@@ -150,12 +187,18 @@ pub enum FaultKind {
     InvalidStructure,
     /// A ray-query instruction other than Initialize on a query never initialised.
     Uninitialized,
+    /// A top-level structure's instance references an address that is no built bottom-level
+    /// structure (`at`: that address); traversal treats the instance as absent. Reported once
+    /// per workgroup, not per ray; the dispatch turns it into one diagnostic.
+    UnresolvedInstance,
 }
 
 /// Which memory a faulting access went to.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum FaultSpace {
     Binding { set: u32, binding: u32 },
+    /// One element of an array of descriptors; `at` is the offset inside that element.
+    ArrayElement { set: u32, binding: u32, element: u32 },
     DeviceAddress,
     PushConstant,
     Workgroup,
@@ -193,7 +236,11 @@ impl std::fmt::Display for Fault {
 pub struct HostMemory {
     buffers: Vec<HostBuffer>,
     bindings: Vec<((u32, u32), Region)>,
-    images: Vec<((u32, u32), ImageBinding)>,
+    /// Elements of descriptor arrays: ((set, binding, element), region); element 0 of an
+    /// array is in `bindings`.
+    elements: Vec<((u32, u32, u32), Region)>,
+    /// ((set, binding, array element), view).
+    images: Vec<((u32, u32, u32), ImageBinding)>,
 }
 
 struct HostBuffer {
@@ -234,10 +281,25 @@ impl HostMemory {
         self.bindings.push(((set, binding), Region { buffer: index as u64, offset, len }));
     }
 
+    /// Binds the whole of buffer `index` as element `element` of the array at (set, binding).
+    pub fn bind_element(&mut self, set: u32, binding: u32, element: u32, index: usize) {
+        if element == 0 {
+            return self.bind(set, binding, index);
+        }
+        let region = Region { buffer: index as u64, offset: 0, len: self.buffers[index].len };
+        self.elements.retain(|(k, _)| *k != (set, binding, element));
+        self.elements.push(((set, binding, element), region));
+    }
+
     /// Binds a storage image at (set, binding); its texels live in buffer `image.buffer`.
     pub fn bind_image(&mut self, set: u32, binding: u32, image: ImageBinding) {
-        self.images.retain(|(k, _)| *k != (set, binding));
-        self.images.push(((set, binding), image));
+        self.bind_image_element(set, binding, 0, image);
+    }
+
+    /// Binds a storage image as element `element` of the array at (set, binding).
+    pub fn bind_image_element(&mut self, set: u32, binding: u32, element: u32, image: ImageBinding) {
+        self.images.retain(|(k, _)| *k != (set, binding, element));
+        self.images.push(((set, binding, element), image));
     }
 
     pub fn device_address(&self, index: usize) -> u64 {
@@ -272,8 +334,25 @@ impl Memory for HostMemory {
         self.bindings.iter().find(|(k, _)| *k == (set, binding)).map(|(_, r)| *r)
     }
 
+    fn binding_element(&self, set: u32, binding: u32, element: u32) -> Option<Region> {
+        if element == 0 {
+            return self.binding(set, binding);
+        }
+        self.elements.iter().find(|(k, _)| *k == (set, binding, element)).map(|(_, r)| *r)
+    }
+
+    fn binding_count(&self, set: u32, binding: u32) -> u32 {
+        let buffers = self.elements.iter().filter(|((s, b, _), _)| (*s, *b) == (set, binding)).map(|((_, _, e), _)| e + 1);
+        let images = self.images.iter().filter(|((s, b, _), _)| (*s, *b) == (set, binding)).map(|((_, _, e), _)| e + 1);
+        buffers.chain(images).max().unwrap_or(1)
+    }
+
     fn image(&self, set: u32, binding: u32) -> Option<ImageBinding> {
-        self.images.iter().find(|(k, _)| *k == (set, binding)).map(|(_, r)| *r)
+        self.image_element(set, binding, 0)
+    }
+
+    fn image_element(&self, set: u32, binding: u32, element: u32) -> Option<ImageBinding> {
+        self.images.iter().find(|(k, _)| *k == (set, binding, element)).map(|(_, r)| *r)
     }
 
     fn address(&self, address: u64, len: u64) -> Option<Region> {

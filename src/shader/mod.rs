@@ -14,7 +14,12 @@
 //! - `alu`: scalar semantics shared by the executor and the constant folder;
 //! - `memory`: the [`Memory`] trait, [`Fault`]s, and [`HostMemory`] for tests;
 //! - `lower_image`/`exec_image`: storage images (OpImageRead/Write/QuerySize on 1D/2D/3D,
-//!   arrayed or not), texels converted from the [`ImageFormat`] of the bound view.
+//!   arrayed or not) and texel buffers (Dim Buffer, OpImageFetch for uniform ones), texels
+//!   converted from the [`ImageFormat`] of the bound view; OpImageTexelPointer for image
+//!   atomics (a `Space::Image` address);
+//! - `lower_array`: arrays of buffer descriptors (and, in `lower_image`, of images): the
+//!   element rides in the address (buffers, texel pointers) or in a register of the image op,
+//!   and the executor resolves every element once per dispatch.
 //!
 //! Ray queries (SPV_KHR_ray_query, and position fetch): `lower_rq` turns each `OpRayQuery*`
 //! into an IR op naming the query by its variable's lane-frame address; `exec_rq` keeps a
@@ -61,6 +66,7 @@ mod exec_rq;
 pub mod ir;
 mod layout;
 mod lower;
+mod lower_array;
 mod lower_image;
 mod lower_ops;
 mod lower_rq;
@@ -122,6 +128,9 @@ impl std::error::Error for ShaderError {}
 pub struct BindingUse {
     pub set: u32,
     pub binding: u32,
+    /// The array length the shader declares: 1 for a single descriptor, 0 for a runtime
+    /// array.
+    pub count: u32,
 }
 
 /// A compute pipeline: one specialised, lowered entry point. Cheap to clone.
@@ -156,7 +165,10 @@ impl Pipeline {
     /// Descriptor bindings the entry point uses: buffers and acceleration structures in
     /// first-use order, then storage images in first-use order.
     pub fn bindings(&self) -> Vec<BindingUse> {
-        self.program.bindings.iter().chain(&self.program.images).map(|&(set, binding)| BindingUse { set, binding }).collect()
+        let p = &self.program;
+        let buffers = p.bindings.iter().zip(&p.binding_counts).map(|(&(set, binding), &count)| BindingUse { set, binding, count });
+        let images = p.images.iter().zip(&p.image_counts).map(|(&(set, binding), &count)| BindingUse { set, binding, count });
+        buffers.chain(images).collect()
     }
 
     /// Bytes of workgroup shared memory one workgroup needs.

@@ -95,8 +95,25 @@ const CAPABILITIES: &[Capability] = &[
     Capability::ImageQuery,
     Capability::StorageImageReadWithoutFormat,
     Capability::StorageImageWriteWithoutFormat,
+    Capability::ImageBuffer,
+    Capability::SampledBuffer,
     Capability::RayQueryKHR,
     Capability::RayQueryPositionFetchKHR,
+    // Arrays of storage and uniform buffer descriptors, indexed by any value (the executor
+    // resolves the element per lane), sized or runtime.
+    Capability::UniformBufferArrayDynamicIndexing,
+    Capability::StorageBufferArrayDynamicIndexing,
+    Capability::RuntimeDescriptorArray,
+    Capability::ShaderNonUniform,
+    Capability::UniformBufferArrayNonUniformIndexing,
+    Capability::StorageBufferArrayNonUniformIndexing,
+    // Arrays of storage images and texel buffers: each element's view resolved per dispatch.
+    Capability::StorageImageArrayDynamicIndexing,
+    Capability::StorageImageArrayNonUniformIndexing,
+    Capability::UniformTexelBufferArrayDynamicIndexing,
+    Capability::StorageTexelBufferArrayDynamicIndexing,
+    Capability::UniformTexelBufferArrayNonUniformIndexing,
+    Capability::StorageTexelBufferArrayNonUniformIndexing,
 ];
 
 const EXTENSIONS: &[&str] = &[
@@ -108,6 +125,7 @@ const EXTENSIONS: &[&str] = &[
     "SPV_KHR_shader_ballot",
     "SPV_KHR_ray_query",
     "SPV_KHR_ray_tracing_position_fetch",
+    "SPV_EXT_descriptor_indexing",
 ];
 
 /// Opcodes the lowering handles; anything else is rejected with its word offset.
@@ -151,7 +169,7 @@ const OPCODES: &[Op] = {
         GroupNonUniformSMin, GroupNonUniformUMin, GroupNonUniformFMin, GroupNonUniformSMax,
         GroupNonUniformUMax, GroupNonUniformFMax, GroupNonUniformBitwiseAnd,
         GroupNonUniformBitwiseOr, GroupNonUniformBitwiseXor, GroupNonUniformLogicalAnd,
-        GroupNonUniformLogicalOr, GroupNonUniformLogicalXor, TypeImage, ImageRead, ImageWrite,
+        GroupNonUniformLogicalOr, GroupNonUniformLogicalXor, TypeImage, ImageRead, ImageWrite, ImageFetch, ImageTexelPointer,
         ImageQuerySize,
         // SPV_KHR_ray_query (lowered in `lower_rq`) and SPV_KHR_ray_tracing_position_fetch.
         TypeAccelerationStructureKHR, TypeRayQueryKHR, ConvertUToAccelerationStructureKHR,
@@ -456,15 +474,18 @@ fn check_instruction(op: Op, operands: &[u32], at: usize, s: &mut Scan) -> Resul
 }
 
 /// OpTypeImage operands: sampled type, Dim, Depth, Arrayed, MS, Sampled, Format. Only storage
-/// images (Sampled = 2, single-sampled) of Dim 1D/2D/3D are run.
+/// images (Sampled = 2, single-sampled) of Dim 1D/2D/3D and texel buffers are run.
 fn image_type(inst: &Instruction, offset: usize) -> Result<Type, ShaderError> {
     let dim = match inst.operands.get(1) {
         Some(Operand::Dim(d)) => *d,
         _ => return Err(bad(inst, "operand 1 (expected a Dim)")),
     };
     let (arrayed, ms, sampled) = (lit(inst, 3)?, lit(inst, 4)?, lit(inst, 5)?);
-    if !matches!(dim, spirv::Dim::Dim1D | spirv::Dim::Dim2D | spirv::Dim::Dim3D) || ms != 0 || sampled != 2 || (arrayed != 0 && dim == spirv::Dim::Dim3D) {
-        let what = format!("image type (Dim {dim:?}, arrayed {arrayed}, MS {ms}, Sampled {sampled}): only single-sampled 1D/2D/3D storage images");
+    // Texel buffers: storage (Sampled 2) and uniform (Sampled 1, read by OpImageFetch).
+    let texel_buffer = dim == spirv::Dim::DimBuffer && arrayed == 0 && ms == 0 && (sampled == 1 || sampled == 2);
+    let storage = matches!(dim, spirv::Dim::Dim1D | spirv::Dim::Dim2D | spirv::Dim::Dim3D) && ms == 0 && sampled == 2 && !(arrayed != 0 && dim == spirv::Dim::Dim3D);
+    if !(texel_buffer || storage) {
+        let what = format!("image type (Dim {dim:?}, arrayed {arrayed}, MS {ms}, Sampled {sampled}): only single-sampled 1D/2D/3D storage images and texel buffers");
         return Err(ShaderError::Unsupported { what, offset });
     }
     Ok(Type::Image { sampled: id_op(inst, 0)?, dim, arrayed: arrayed != 0 })

@@ -166,8 +166,21 @@ impl Gpu {
             let subgroup_size = sg.subgroup_size;
             let prio = [1.0f32];
             let qci = [vk::DeviceQueueCreateInfo::default().queue_family_index(0).queue_priorities(&prio)];
-            let features = vk::PhysicalDeviceFeatures::default().shader_int64(true).shader_float64(true);
+            let features = vk::PhysicalDeviceFeatures::default()
+                .shader_int64(true)
+                .shader_float64(true)
+                .shader_uniform_buffer_array_dynamic_indexing(true)
+                .shader_storage_buffer_array_dynamic_indexing(true)
+                .shader_storage_image_array_dynamic_indexing(true);
             let mut v12 = vk::PhysicalDeviceVulkan12Features::default()
+                .runtime_descriptor_array(true)
+                .shader_uniform_buffer_array_non_uniform_indexing(true)
+                .shader_storage_buffer_array_non_uniform_indexing(true)
+                .shader_storage_image_array_non_uniform_indexing(true)
+                .shader_uniform_texel_buffer_array_dynamic_indexing(true)
+                .shader_storage_texel_buffer_array_dynamic_indexing(true)
+                .shader_uniform_texel_buffer_array_non_uniform_indexing(true)
+                .shader_storage_texel_buffer_array_non_uniform_indexing(true)
                 .buffer_device_address(true)
                 .shader_buffer_int64_atomics(true)
                 .shader_subgroup_extended_types(true);
@@ -224,19 +237,40 @@ pub struct Binding {
     pub dynamic_offset: u32,
     /// Descriptor range (WHOLE_SIZE by default).
     pub range: u64,
+    /// Array elements of the binding (1 by default): `data` is split into this many equal
+    /// parts, element e bound to the e-th part of the one buffer (offset e * part, range
+    /// part); a dynamic offset applies to each element.
+    pub elements: u32,
+    /// For UNIFORM_/STORAGE_TEXEL_BUFFER: the buffer view's format (the view covers `data`).
+    pub texel: Option<vk::Format>,
 }
 
 impl Binding {
     pub fn storage(data: Vec<u8>) -> Binding {
-        Binding { data, kind: vk::DescriptorType::STORAGE_BUFFER, image: None, dynamic_offset: 0, range: vk::WHOLE_SIZE }
+        Binding { data, kind: vk::DescriptorType::STORAGE_BUFFER, image: None, dynamic_offset: 0, range: vk::WHOLE_SIZE, elements: 1, texel: None }
     }
     pub fn uniform(data: Vec<u8>) -> Binding {
-        Binding { data, kind: vk::DescriptorType::UNIFORM_BUFFER, image: None, dynamic_offset: 0, range: vk::WHOLE_SIZE }
+        Binding { data, kind: vk::DescriptorType::UNIFORM_BUFFER, image: None, dynamic_offset: 0, range: vk::WHOLE_SIZE, elements: 1, texel: None }
     }
     /// A 2D storage image of `format` and `extent` holding `texels` (tightly packed); the job
     /// returns its texels after the dispatch, packed the same way.
     pub fn storage_image(format: vk::Format, extent: [u32; 2], texels: Vec<u8>) -> Binding {
-        Binding { data: texels, kind: vk::DescriptorType::STORAGE_IMAGE, image: Some((format, extent)), dynamic_offset: 0, range: vk::WHOLE_SIZE }
+        Binding { data: texels, kind: vk::DescriptorType::STORAGE_IMAGE, image: Some((format, extent)), dynamic_offset: 0, range: vk::WHOLE_SIZE, elements: 1, texel: None }
+    }
+    /// A uniform texel buffer of `format` over `data`.
+    pub fn uniform_texels(format: vk::Format, data: Vec<u8>) -> Binding {
+        Binding { kind: vk::DescriptorType::UNIFORM_TEXEL_BUFFER, texel: Some(format), ..Binding::storage(data) }
+    }
+    /// A storage texel buffer of `format` over `data`.
+    pub fn storage_texels(format: vk::Format, data: Vec<u8>) -> Binding {
+        Binding { kind: vk::DescriptorType::STORAGE_TEXEL_BUFFER, texel: Some(format), ..Binding::storage(data) }
+    }
+    /// An array of `n` buffer (or texel-buffer) descriptors over equal parts of `data` (see
+    /// `elements`).
+    pub fn array(mut self, n: u32) -> Binding {
+        assert!(n > 0 && self.data.len().is_multiple_of(n as usize) && self.image.is_none());
+        self.elements = n;
+        self
     }
     pub fn dynamic(mut self, offset: u32, range: u64) -> Binding {
         self.kind = match self.kind {

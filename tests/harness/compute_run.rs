@@ -4,7 +4,7 @@
 //! after it, so the staging buffer is what the job returns for that binding.
 use ash::vk;
 
-use super::compute::{Gpu, Job, JobError, Size};
+use super::compute::{Binding, Gpu, Job, JobError, Size};
 
 struct Buffer {
     buffer: vk::Buffer,
@@ -111,6 +111,8 @@ struct Objects {
     layout: vk::PipelineLayout,
     module: vk::ShaderModule,
     pipeline: vk::Pipeline,
+    /// Buffer views of the texel-buffer bindings (null for the others).
+    views: Vec<vk::BufferView>,
 }
 
 fn objects(gpu: &Gpu, job: &Job, buffers: &[Buffer], images: &[Option<Image>]) -> Result<Objects, JobError> {
@@ -119,12 +121,12 @@ fn objects(gpu: &Gpu, job: &Job, buffers: &[Buffer], images: &[Option<Image>]) -
         .bindings
         .iter()
         .enumerate()
-        .map(|(i, b)| vk::DescriptorSetLayoutBinding::default().binding(i as u32).descriptor_type(b.kind).descriptor_count(1).stage_flags(vk::ShaderStageFlags::COMPUTE))
+        .map(|(i, b)| vk::DescriptorSetLayoutBinding::default().binding(i as u32).descriptor_type(b.kind).descriptor_count(b.elements).stage_flags(vk::ShaderStageFlags::COMPUTE))
         .collect();
     // SAFETY: valid create infos; every object is destroyed by `destroy`.
     unsafe {
         let set_layout = d.create_descriptor_set_layout(&vk::DescriptorSetLayoutCreateInfo::default().bindings(&lb), None).unwrap();
-        let sizes: Vec<_> = job.bindings.iter().map(|b| vk::DescriptorPoolSize { ty: b.kind, descriptor_count: 1 }).collect();
+        let sizes: Vec<_> = job.bindings.iter().map(|b| vk::DescriptorPoolSize { ty: b.kind, descriptor_count: b.elements }).collect();
         let pool = if sizes.is_empty() {
             vk::DescriptorPool::null()
         } else {
@@ -136,20 +138,24 @@ fn objects(gpu: &Gpu, job: &Job, buffers: &[Buffer], images: &[Option<Image>]) -
             let layouts = [set_layout];
             d.allocate_descriptor_sets(&vk::DescriptorSetAllocateInfo::default().descriptor_pool(pool).set_layouts(&layouts)).unwrap()[0]
         };
-        let infos: Vec<[vk::DescriptorBufferInfo; 1]> =
-            job.bindings.iter().zip(buffers).map(|(b, buf)| [vk::DescriptorBufferInfo { buffer: buf.buffer, offset: 0, range: b.range }]).collect();
+        let infos: Vec<Vec<vk::DescriptorBufferInfo>> = job.bindings.iter().zip(buffers).map(|(b, buf)| buffer_infos(b, buf.buffer)).collect();
         let image_infos: Vec<[vk::DescriptorImageInfo; 1]> = images
             .iter()
             .map(|i| [vk::DescriptorImageInfo { sampler: vk::Sampler::null(), image_view: i.as_ref().map_or(vk::ImageView::null(), |i| i.view), image_layout: vk::ImageLayout::GENERAL }])
             .collect();
+        let view_infos: Vec<Vec<vk::BufferView>> = job.bindings.iter().zip(buffers).map(|(b, buf)| texel_views(gpu, b, buf.buffer)).collect();
+        let views: Vec<vk::BufferView> = view_infos.iter().flatten().copied().collect();
         let writes: Vec<_> = job
             .bindings
             .iter()
             .zip(infos.iter().zip(&image_infos))
+            .zip(&view_infos)
             .enumerate()
-            .map(|(i, (b, (info, image_info)))| {
+            .map(|(i, ((b, (info, image_info)), view))| {
                 let w = vk::WriteDescriptorSet::default().dst_set(set).dst_binding(i as u32).descriptor_type(b.kind);
-                if b.image.is_some() {
+                if b.texel.is_some() {
+                    w.texel_buffer_view(view)
+                } else if b.image.is_some() {
                     w.image_info(image_info)
                 } else {
                     w.buffer_info(info)
@@ -177,7 +183,7 @@ fn objects(gpu: &Gpu, job: &Job, buffers: &[Buffer], images: &[Option<Image>]) -
         let stage = vk::PipelineShaderStageCreateInfo::default().stage(vk::ShaderStageFlags::COMPUTE).module(module).name(name).specialization_info(&spec);
         let flags = if matches!(job.size, Size::Base { .. }) { vk::PipelineCreateFlags::DISPATCH_BASE } else { vk::PipelineCreateFlags::empty() };
         let ci = [vk::ComputePipelineCreateInfo::default().flags(flags).stage(stage).layout(layout)];
-        let o = |pipeline| Objects { set_layout, pool, set, layout, module, pipeline };
+        let o = |pipeline| Objects { set_layout, pool, set, layout, module, pipeline, views: views.clone() };
         match d.create_compute_pipelines(vk::PipelineCache::null(), &ci, None) {
             Ok(p) => Ok(o(p[0])),
             Err((_, e)) => {
@@ -186,6 +192,30 @@ fn objects(gpu: &Gpu, job: &Job, buffers: &[Buffer], images: &[Option<Image>]) -
             }
         }
     }
+}
+
+/// The buffer views of a texel-buffer binding: the whole buffer, or one per array element
+/// over its part; none for other bindings.
+fn texel_views(gpu: &Gpu, b: &Binding, buffer: vk::Buffer) -> Vec<vk::BufferView> {
+    let Some(format) = b.texel else { return Vec::new() };
+    let part = (b.data.len() / b.elements as usize) as u64;
+    (0..b.elements as u64)
+        .map(|e| {
+            let range = if b.elements == 1 { vk::WHOLE_SIZE } else { part };
+            let ci = vk::BufferViewCreateInfo::default().buffer(buffer).format(format).offset(e * part).range(range);
+            // SAFETY: a live buffer with texel-buffer usage; the view is destroyed with the objects.
+            unsafe { gpu.device.create_buffer_view(&ci, None) }.expect("vkCreateBufferView")
+        })
+        .collect()
+}
+
+/// The descriptors of one buffer binding: the whole range, or one part per array element.
+fn buffer_infos(b: &Binding, buffer: vk::Buffer) -> Vec<vk::DescriptorBufferInfo> {
+    if b.elements == 1 {
+        return vec![vk::DescriptorBufferInfo { buffer, offset: 0, range: b.range }];
+    }
+    let part = (b.data.len() / b.elements as usize) as u64;
+    (0..b.elements as u64).map(|e| vk::DescriptorBufferInfo { buffer, offset: e * part, range: if b.range == vk::WHOLE_SIZE { part } else { b.range } }).collect()
 }
 
 fn destroy(gpu: &Gpu, o: &Objects) {
@@ -197,6 +227,9 @@ fn destroy(gpu: &Gpu, o: &Objects) {
         d.destroy_pipeline_layout(o.layout, None);
         d.destroy_descriptor_pool(o.pool, None);
         d.destroy_descriptor_set_layout(o.set_layout, None);
+        for &v in &o.views {
+            d.destroy_buffer_view(v, None);
+        }
     }
 }
 
@@ -219,7 +252,7 @@ fn submit(gpu: &Gpu, job: &Job, o: &Objects, indirect: &Buffer, buffers: &[Buffe
         }
         d.cmd_bind_pipeline(cb, vk::PipelineBindPoint::COMPUTE, o.pipeline);
         if o.set != vk::DescriptorSet::null() {
-            let dynamic: Vec<u32> = job.bindings.iter().filter(|b| b.kind == vk::DescriptorType::UNIFORM_BUFFER_DYNAMIC || b.kind == vk::DescriptorType::STORAGE_BUFFER_DYNAMIC).map(|b| b.dynamic_offset).collect();
+            let dynamic: Vec<u32> = job.bindings.iter().filter(|b| b.kind == vk::DescriptorType::UNIFORM_BUFFER_DYNAMIC || b.kind == vk::DescriptorType::STORAGE_BUFFER_DYNAMIC).flat_map(|b| vec![b.dynamic_offset; b.elements as usize]).collect();
             d.cmd_bind_descriptor_sets(cb, vk::PipelineBindPoint::COMPUTE, o.layout, 0, &[o.set], &dynamic);
         }
         if !job.push.is_empty() {
@@ -259,7 +292,10 @@ fn submit(gpu: &Gpu, job: &Job, o: &Objects, indirect: &Buffer, buffers: &[Buffe
 
 /// Run `job` on `gpu`; returns every binding's bytes afterwards.
 pub fn run(gpu: &Gpu, job: &Job) -> Result<Vec<Vec<u8>>, JobError> {
-    let usage = vk::BufferUsageFlags::STORAGE_BUFFER | vk::BufferUsageFlags::UNIFORM_BUFFER;
+    let usage = vk::BufferUsageFlags::STORAGE_BUFFER
+        | vk::BufferUsageFlags::UNIFORM_BUFFER
+        | vk::BufferUsageFlags::UNIFORM_TEXEL_BUFFER
+        | vk::BufferUsageFlags::STORAGE_TEXEL_BUFFER;
     let staging = vk::BufferUsageFlags::TRANSFER_SRC | vk::BufferUsageFlags::TRANSFER_DST;
     let buffers: Vec<Buffer> = job.bindings.iter().map(|b| buffer(gpu, &b.data, if b.image.is_some() { staging } else { usage })).collect();
     let images: Vec<Option<Image>> = job

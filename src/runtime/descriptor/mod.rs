@@ -17,7 +17,7 @@ use ash::vk;
 
 mod value;
 
-pub use value::{acceleration_structure_descriptor, buffer_descriptor, is_dynamic, storage_image_descriptor, type_class, BufferLimits, Descriptor, TypeClass, Violation};
+pub use value::{acceleration_structure_descriptor, buffer_descriptor, is_dynamic, storage_image_descriptor, texel_buffer_descriptor, type_class, BufferLimits, Descriptor, TypeClass, Violation};
 use value::violation;
 
 /// One binding of a set layout.

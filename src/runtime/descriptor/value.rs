@@ -11,7 +11,7 @@ use ash::vk;
 
 use crate::memory::Buffer;
 use crate::runtime::accel::AccelerationStructure;
-use crate::runtime::image::ImageView;
+use crate::runtime::image::{BufferView, ImageView};
 
 /// Descriptors Arbor can store. Types Arbor has no objects for yet (samplers, images, texel
 /// buffers) are kept as raw handles so that writes and copies still round-trip.
@@ -25,8 +25,8 @@ pub enum Descriptor {
     Image { sampler: u64, image_view: u64, layout: vk::ImageLayout },
     /// VK_DESCRIPTOR_TYPE_STORAGE_IMAGE: the view, held weakly like buffers.
     StorageImage { view: Weak<ImageView>, handle: u64, layout: vk::ImageLayout },
-    /// Uniform/storage texel buffer: the raw buffer-view handle.
-    TexelBuffer { view: u64 },
+    /// Uniform/storage texel buffer: the view, held weakly like buffers.
+    TexelBuffer { view: Weak<BufferView>, handle: u64 },
     /// VK_DESCRIPTOR_TYPE_ACCELERATION_STRUCTURE_KHR.
     AccelerationStructure { structure: Weak<AccelerationStructure>, handle: u64 },
 }
@@ -58,7 +58,7 @@ impl Descriptor {
                     *sampler
                 }
             }
-            Descriptor::TexelBuffer { view } => *view,
+            Descriptor::TexelBuffer { handle, .. } => *handle,
             Descriptor::AccelerationStructure { handle, .. } | Descriptor::StorageImage { handle, .. } => *handle,
         }
     }
@@ -67,6 +67,14 @@ impl Descriptor {
     pub fn storage_image(&self) -> Option<Arc<ImageView>> {
         match self {
             Descriptor::StorageImage { view, .. } => view.upgrade(),
+            _ => None,
+        }
+    }
+
+    /// The view of a texel-buffer descriptor (None for other kinds or when it was destroyed).
+    pub fn texel_buffer(&self) -> Option<Arc<BufferView>> {
+        match self {
+            Descriptor::TexelBuffer { view, .. } => view.upgrade(),
             _ => None,
         }
     }
@@ -93,7 +101,7 @@ impl PartialEq for Descriptor {
                 Descriptor::Image { sampler: sa, image_view: va, layout: la },
                 Descriptor::Image { sampler: sb, image_view: vb, layout: lb },
             ) => sa == sb && va == vb && la == lb,
-            (Descriptor::TexelBuffer { view: a }, Descriptor::TexelBuffer { view: b }) => a == b,
+            (Descriptor::TexelBuffer { view: a, handle: ha }, Descriptor::TexelBuffer { view: b, handle: hb }) => a.ptr_eq(b) && ha == hb,
             (
                 Descriptor::StorageImage { view: a, handle: ha, layout: la },
                 Descriptor::StorageImage { view: b, handle: hb, layout: lb },
@@ -119,7 +127,9 @@ impl fmt::Debug for Descriptor {
             Descriptor::Image { sampler, image_view, layout } => {
                 write!(f, "Image(sampler {sampler:#x}, view {image_view:#x}, {layout:?})")
             }
-            Descriptor::TexelBuffer { view } => write!(f, "TexelBuffer({view:#x})"),
+            Descriptor::TexelBuffer { view, handle } => {
+                write!(f, "TexelBuffer({handle:#x}{})", if view.strong_count() == 0 { ", destroyed" } else { "" })
+            }
             Descriptor::StorageImage { view, handle, layout } => write!(
                 f,
                 "StorageImage({handle:#x}, {layout:?}{})",
@@ -288,4 +298,21 @@ pub fn storage_image_descriptor(view: Option<Arc<ImageView>>, handle: u64, layou
         return Err(violation("VUID-VkWriteDescriptorSet-descriptorType-04152", format!("imageLayout {layout:?}: storage images must be in VK_IMAGE_LAYOUT_GENERAL")));
     }
     Ok(Descriptor::StorageImage { view: Arc::downgrade(&v), handle, layout })
+}
+
+/// A uniform or storage texel-buffer descriptor (`t` says which) naming `view` (None when
+/// `handle` is no live VkBufferView).
+pub fn texel_buffer_descriptor(t: vk::DescriptorType, view: Option<Arc<BufferView>>, handle: u64) -> Result<Descriptor, Violation> {
+    let Some(v) = view else {
+        return Err(violation("VUID-VkWriteDescriptorSet-descriptorType-02994", format!("pTexelBufferView {handle:#x} is not a live VkBufferView (nullDescriptor is not offered)")));
+    };
+    let (usage, vuid) = if t == vk::DescriptorType::UNIFORM_TEXEL_BUFFER {
+        (vk::BufferUsageFlags::UNIFORM_TEXEL_BUFFER, "VUID-VkWriteDescriptorSet-descriptorType-08765")
+    } else {
+        (vk::BufferUsageFlags::STORAGE_TEXEL_BUFFER, "VUID-VkWriteDescriptorSet-descriptorType-08766")
+    };
+    if !v.buffer.usage.contains(usage) {
+        return Err(violation(vuid, format!("the view's buffer lacks {usage:?} usage")));
+    }
+    Ok(Descriptor::TexelBuffer { view: Arc::downgrade(&v), handle })
 }

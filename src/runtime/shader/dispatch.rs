@@ -89,7 +89,10 @@ fn fault_rule(kind: FaultKind, space: FaultSpace) -> &'static str {
             "VUID-RuntimeSpirv-PhysicalStorageBuffer64-04708 (a PhysicalStorageBuffer access must lie inside a live buffer)"
         }
         (FaultKind::Unbound, _) => "VUID-vkCmdDispatch-None-08114 (the binding has no valid descriptor)",
-        (_, FaultSpace::Binding { .. }) => "robustBufferAccess (out of the descriptor's range: reads return zero, writes are discarded)",
+        (FaultKind::ArrayIndex, _) => {
+            "VUID-vkCmdDispatch-None-10068 (a descriptor-array index must be less than the array's length; the access is discarded)"
+        }
+        (_, FaultSpace::Binding { .. } | FaultSpace::ArrayElement { .. }) => "robustBufferAccess (out of the descriptor's range: reads return zero, writes are discarded)",
         _ => "robustness (out of the block: reads return zero, writes are discarded)",
     }
 }
@@ -125,6 +128,20 @@ impl Exec for Dispatch {
                 diag::Level::Error,
                 self.name,
                 &format!("[{}] {} contained memory fault(s); first: {first}", fault_rule(first.kind, first.space), report.fault_count),
+            );
+        }
+        if let Some(f) = report.unresolved_instance {
+            // One line per dispatch: every ray through that instance meets the same reference.
+            diag::report(
+                diag::Level::Error,
+                self.name,
+                &format!(
+                    "[an instance's accelerationStructureReference must name a built bottom-level structure while the top-level one is traced \
+                     (VUID-vkCmdBuildAccelerationStructuresKHR-pInfos-12281)] a ray query met an instance referencing {:#x}, which is no built \
+                     bottom-level structure (destroyed or rebuilt since the top-level build?); the instance was treated as absent \
+                     (first met by workgroup {:?}, invocation {}; reported once per dispatch)",
+                    f.at, f.workgroup, f.invocation
+                ),
             );
         }
         match report.stopped {

@@ -9,14 +9,16 @@
 //! `resolve_binding` is the one place a descriptor becomes something the shader can reach, and
 //! `DispatchMemory::new` the one loop that collects them. Storage images reach the library
 //! through `Memory::image`, not as buffer regions: they are kept in `images`, and their texel
-//! reads and writes arrive with an id tagged `IMAGE_TAG`.
+//! reads and writes arrive with an id tagged `IMAGE_TAG`. Texel buffers are images to the
+//! library too (one row of texels), but their memory is a buffer: kept in `texels`, their
+//! ids index `buffers` like descriptor buffers.
 use std::sync::Arc;
 
 use crate::accel::DeviceView;
 use crate::memory::{AddressSpace, Buffer};
 use crate::runtime::accel::inputs::DeviceInputs;
 use crate::runtime::descriptor::{is_dynamic, Descriptor};
-use crate::runtime::image::{storage_image_binding, Image};
+use crate::runtime::image::{storage_image_binding, texel_buffer_binding, Image};
 use crate::shader::{ImageBinding, Memory, Region};
 
 use super::BoundSet;
@@ -30,18 +32,28 @@ const ADDRESS_TAG: u64 = 1 << 63;
 /// descriptor buffer ids are small indices, so the three kinds cannot collide.
 const IMAGE_TAG: u64 = 1 << 62;
 
+/// (set, binding, array element) of one resolved descriptor.
+type ElementKey = (u32, u32, u32);
+
 /// One dispatch's memory: the buffers its descriptors name, and the device's address space.
 pub struct DispatchMemory<'a> {
     space: &'a AddressSpace,
-    /// ((set, binding), region) for every binding the pipeline uses that resolved.
-    regions: Vec<((u32, u32), Region)>,
+    /// ((set, binding, array element), region) for every buffer element the pipeline's
+    /// bindings have that resolved.
+    regions: Vec<(ElementKey, Region)>,
+    /// ((set, binding), elements) of every buffer binding: the length a runtime array takes.
+    counts: Vec<((u32, u32), u32)>,
     /// The buffers `regions` refer to, by `Region::buffer`.
     buffers: Vec<Arc<Buffer>>,
     /// ((set, binding), image, its view for the library) for every storage image that resolved;
     /// the binding's id is `IMAGE_TAG | index`.
-    images: Vec<((u32, u32), Arc<Image>, ImageBinding)>,
-    /// ((set, binding), device address) for every acceleration-structure descriptor.
-    structures: Vec<((u32, u32), u64)>,
+    images: Vec<(ElementKey, Arc<Image>, ImageBinding)>,
+    /// ((set, binding), view) of every texel buffer: texels live in `buffers` (the view's
+    /// `buffer` id indexes it), so reads and writes take the descriptor-buffer path.
+    texels: Vec<(ElementKey, ImageBinding)>,
+    /// ((set, binding, array element), device address) of every acceleration-structure
+    /// descriptor.
+    structures: Vec<(ElementKey, u64)>,
     /// Ray queries follow structure addresses (and each TLAS's BLAS references) through the
     /// same view builds use, which pins the buffers it hands out for the dispatch.
     device: DeviceInputs<'a>,
@@ -51,6 +63,8 @@ pub struct DispatchMemory<'a> {
 enum Resolved {
     Buffer(Arc<Buffer>, u64, u64),
     Image(Arc<Image>, ImageBinding),
+    /// A texel buffer: its buffer and its view (whose id is filled in when stored).
+    Texel(Arc<Buffer>, ImageBinding),
     Structure(u64),
 }
 
@@ -77,21 +91,53 @@ impl<'a> DispatchMemory<'a> {
     /// a contained fault).
     pub fn new(space: &'a AddressSpace, sets: &[Option<BoundSet>], used: &[(u32, u32)]) -> (Self, Missing) {
         let device = DeviceInputs::new(space, "vkCmdDispatch");
-        let mut m = DispatchMemory { space, regions: Vec::new(), buffers: Vec::new(), images: Vec::new(), structures: Vec::new(), device };
+        let mut m = DispatchMemory { space, regions: Vec::new(), counts: Vec::new(), buffers: Vec::new(), images: Vec::new(), texels: Vec::new(), structures: Vec::new(), device };
         let mut missing = Vec::new();
         for &(set, binding) in used {
-            match resolve_binding(sets, set, binding, IMAGE_TAG | m.images.len() as u64) {
-                Ok(Resolved::Buffer(buffer, offset, len)) => {
-                    let region = Region { buffer: m.buffers.len() as u64, offset, len };
-                    m.buffers.push(buffer);
-                    m.regions.push(((set, binding), region));
-                }
-                Ok(Resolved::Image(image, view)) => m.images.push(((set, binding), image, view)),
-                Ok(Resolved::Structure(address)) => m.structures.push(((set, binding), address)),
+            if m.array(sets, set, binding) {
+                continue;
+            }
+            match resolve_binding(sets, set, binding, 0, IMAGE_TAG | m.images.len() as u64) {
+                Ok(r) => m.store((set, binding, 0), r),
                 Err(e) => missing.push(((set, binding), e)),
             }
         }
         (m, missing)
+    }
+
+    /// Keeps what element `key` resolved to.
+    fn store(&mut self, key: ElementKey, resolved: Resolved) {
+        match resolved {
+            Resolved::Buffer(buffer, offset, len) => {
+                self.regions.push((key, Region { buffer: self.buffers.len() as u64, offset, len }));
+                self.buffers.push(buffer);
+            }
+            Resolved::Image(image, view) => self.images.push((key, image, view)),
+            Resolved::Texel(buffer, view) => {
+                self.texels.push((key, ImageBinding { buffer: self.buffers.len() as u64, ..view }));
+                self.buffers.push(buffer);
+            }
+            Resolved::Structure(address) => self.structures.push((key, address)),
+        }
+    }
+
+    /// Resolves every element of a binding with more than one descriptor and returns true;
+    /// false for a single descriptor. An array's elements need not all be valid (partially
+    /// bound, or simply not used by this dispatch): one that does not resolve is reported by
+    /// the access that reaches it, as an unbound fault naming the element.
+    fn array(&mut self, sets: &[Option<BoundSet>], set: u32, binding: u32) -> bool {
+        let Some(bound) = sets.get(set as usize).and_then(Option::as_ref) else { return false };
+        let Some(elements) = bound.set.binding(binding) else { return false };
+        if elements.len() == 1 {
+            return false;
+        }
+        self.counts.push(((set, binding), elements.len() as u32));
+        for e in 0..elements.len() as u32 {
+            if let Ok(r) = resolve_binding(sets, set, binding, e, IMAGE_TAG | self.images.len() as u64) {
+                self.store((set, binding, e), r);
+            }
+        }
+        true
     }
 
     /// The buffer of a descriptor region (offsets the library passes are buffer-relative).
@@ -105,20 +151,20 @@ impl<'a> DispatchMemory<'a> {
     }
 }
 
-/// The buffer range a bound descriptor gives the shader: element 0 of the binding, dynamic
-/// offset applied, or the storage image it names (its texels under id `image_id`). Dynamic
-/// offsets are ordered by binding number, then array element.
-fn resolve_binding(sets: &[Option<BoundSet>], set: u32, binding: u32, image_id: u64) -> Result<Resolved, Unresolved> {
+/// The buffer range a bound descriptor gives the shader: array element `element` of the
+/// binding, dynamic offset applied, or the storage image it names (its texels under id
+/// `image_id`). Dynamic offsets are ordered by binding number, then array element.
+fn resolve_binding(sets: &[Option<BoundSet>], set: u32, binding: u32, element: u32, image_id: u64) -> Result<Resolved, Unresolved> {
     let bound = sets.get(set as usize).and_then(Option::as_ref).ok_or(Unresolved::NotBound)?;
     let layout = &bound.set.layout;
     let lb = layout.binding(binding).ok_or(Unresolved::NotBound)?;
     let dynamic = if is_dynamic(lb.descriptor_type) {
         let index: u32 = layout.bindings.iter().take_while(|b| b.binding < binding).filter(|b| is_dynamic(b.descriptor_type)).map(|b| b.count).sum();
-        bound.dynamic_offsets.get(index as usize).copied().unwrap_or(0) as u64
+        bound.dynamic_offsets.get((index + element) as usize).copied().unwrap_or(0) as u64
     } else {
         0
     };
-    match bound.set.descriptor(binding, 0).ok_or(Unresolved::NotBound)? {
+    match bound.set.descriptor(binding, element).ok_or(Unresolved::NotBound)? {
         d @ Descriptor::Buffer { .. } => {
             let (buffer, offset, len) = d.buffer_range(dynamic).ok_or(Unresolved::Empty)?;
             match offset.checked_add(len) {
@@ -134,6 +180,10 @@ fn resolve_binding(sets: &[Option<BoundSet>], set: u32, binding: u32, image_id: 
             let address = d.acceleration_structure().and_then(|s| s.address()).ok_or(Unresolved::Empty)?;
             Ok(Resolved::Structure(address))
         }
+        d @ Descriptor::TexelBuffer { .. } => {
+            let (buffer, view) = texel_buffer_binding(&d, 0).ok_or(Unresolved::Empty)?;
+            Ok(Resolved::Texel(buffer, view))
+        }
         // Samplers and sampled images: the library has no sampling.
         Descriptor::Image { .. } => Err(Unresolved::Image),
         _ => Err(Unresolved::Empty),
@@ -142,7 +192,15 @@ fn resolve_binding(sets: &[Option<BoundSet>], set: u32, binding: u32, image_id: 
 
 impl Memory for DispatchMemory<'_> {
     fn binding(&self, set: u32, binding: u32) -> Option<Region> {
-        self.regions.iter().find(|(k, _)| *k == (set, binding)).map(|(_, r)| *r)
+        self.binding_element(set, binding, 0)
+    }
+
+    fn binding_element(&self, set: u32, binding: u32, element: u32) -> Option<Region> {
+        self.regions.iter().find(|(k, _)| *k == (set, binding, element)).map(|(_, r)| *r)
+    }
+
+    fn binding_count(&self, set: u32, binding: u32) -> u32 {
+        self.counts.iter().find(|(k, _)| *k == (set, binding)).map_or(1, |(_, n)| *n)
     }
 
     fn address(&self, address: u64, len: u64) -> Option<Region> {
@@ -180,15 +238,19 @@ impl Memory for DispatchMemory<'_> {
             let r = self.space.resolve(address, size as u64).ok()?;
             return r.buffer.atomic(r.offset, size, update).ok();
         }
-        // Image atomics are not part of the library's image interface; an image id is no buffer.
+        // Image atomics (OpImageTexelPointer): the executor has checked the texel's format.
         if buffer & IMAGE_TAG != 0 {
-            return None;
+            return self.image_of(buffer)?.storage.atomic(offset, size, update).ok();
         }
         self.buffer(buffer)?.atomic(offset, size, update).ok()
     }
 
     fn acceleration_structure(&self, set: u32, binding: u32) -> Option<u64> {
-        self.structures.iter().find(|(k, _)| *k == (set, binding)).map(|(_, a)| *a)
+        self.acceleration_structure_element(set, binding, 0)
+    }
+
+    fn acceleration_structure_element(&self, set: u32, binding: u32, element: u32) -> Option<u64> {
+        self.structures.iter().find(|(k, _)| *k == (set, binding, element)).map(|(_, a)| *a)
     }
 
     fn acceleration_structures(&self) -> Option<&dyn DeviceView> {
@@ -196,6 +258,12 @@ impl Memory for DispatchMemory<'_> {
     }
 
     fn image(&self, set: u32, binding: u32) -> Option<ImageBinding> {
-        self.images.iter().find(|(k, _, _)| *k == (set, binding)).map(|(_, _, view)| *view)
+        self.image_element(set, binding, 0)
+    }
+
+    fn image_element(&self, set: u32, binding: u32, element: u32) -> Option<ImageBinding> {
+        let key = (set, binding, element);
+        let image = self.images.iter().find(|(k, _, _)| *k == key).map(|(_, _, view)| *view);
+        image.or_else(|| self.texels.iter().find(|(k, _)| *k == key).map(|(_, view)| *view))
     }
 }

@@ -76,10 +76,16 @@ impl ComputePipeline {
         let pipeline = lib::Pipeline::compute(parsed, entry_point, specialization).map_err(PipelineError::Shader)?;
         for b in pipeline.bindings() {
             let found = layout.set_layouts.get(b.set as usize).and_then(|l| l.binding(b.binding));
-            if found.is_none() {
+            let Some(found) = found else {
                 return Err(invalid(
                     "VUID-VkComputePipelineCreateInfo-layout-07988",
                     format!("the shader uses set {} binding {} which the pipeline layout does not declare", b.set, b.binding),
+                ));
+            };
+            if found.count < b.count {
+                return Err(invalid(
+                    "VUID-VkComputePipelineCreateInfo-layout-07991",
+                    format!("the shader declares set {} binding {} as an array of {} but the layout's descriptorCount is {}", b.set, b.binding, b.count, found.count),
                 ));
             }
         }
