@@ -70,6 +70,7 @@ mod lower_array;
 mod lower_image;
 mod lower_ops;
 mod lower_rq;
+mod lower_vars;
 mod memory;
 mod parse;
 mod specialize;
