@@ -125,6 +125,7 @@ pub fn lower(m: &Module, consts: &Constants, e: &EntryPoint) -> Result<Lowered, 
         push_size: 0,
     };
     lw.inline(e.function, Vec::new(), true)?;
+    super::lower_copies::forward(&mut lw.blocks, lw.regs, &lw.const_regs);
     let program = Program {
         blocks: lw.blocks,
         reg_count: lw.regs,

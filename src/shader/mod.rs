@@ -67,6 +67,7 @@ pub mod ir;
 mod layout;
 mod lower;
 mod lower_array;
+mod lower_copies;
 mod lower_image;
 mod lower_ops;
 mod lower_rq;
