@@ -206,3 +206,41 @@ fn replace_reads(op: &mut Op, from: Reg, to: Reg) {
         Op::RayQuery(rq) => [&mut rq.query].into_iter().chain(&mut rq.args).for_each(r),
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::shader::ir::{BinOp, Sc};
+
+    fn block(ops: Vec<Op>) -> Block {
+        Block { ops, term: Term::Exit, phi_in: Vec::new(), edge_moves: Vec::new() }
+    }
+
+    fn add(dst: Reg, a: Reg, b: Reg) -> Op {
+        Op::Bin { op: BinOp::IAdd, ty: Sc::I32, dst, a, b }
+    }
+
+    #[test]
+    fn increments_read_and_write_the_variable_directly() {
+        // t = v; u = t + k; v = u  →  v = v + k
+        let mut b = [block(vec![Op::Mov { dst: 1, src: 0 }, add(3, 1, 2), Op::Mov { dst: 0, src: 3 }])];
+        forward(&mut b, 4, &[(2, 5)]);
+        assert_eq!(b[0].ops, vec![add(0, 0, 2)]);
+    }
+
+    #[test]
+    fn a_value_loaded_before_a_store_keeps_its_copy() {
+        // t = v; v = k; u = t + k: u must see the old v.
+        let ops = vec![Op::Mov { dst: 1, src: 0 }, Op::Mov { dst: 0, src: 2 }, add(3, 1, 2), Op::Store { ty: Sc::I32, space: crate::shader::ir::Space::Lane, addr: 2, src: 3 }];
+        let mut b = [block(ops.clone())];
+        forward(&mut b, 4, &[(2, 5)]);
+        assert_eq!(b[0].ops, ops);
+    }
+
+    #[test]
+    fn a_value_used_in_another_block_keeps_its_copy() {
+        let mut b = [block(vec![Op::Mov { dst: 1, src: 0 }]), block(vec![add(3, 1, 2)])];
+        forward(&mut b, 4, &[(2, 5)]);
+        assert_eq!(b[0].ops, vec![Op::Mov { dst: 1, src: 0 }]);
+    }
+}
