@@ -126,6 +126,7 @@ pub fn lower(m: &Module, consts: &Constants, e: &EntryPoint) -> Result<Lowered, 
     };
     lw.inline(e.function, Vec::new(), true)?;
     super::lower_copies::forward(&mut lw.blocks, lw.regs, &lw.const_regs);
+    super::lower_copies::thread_jumps(&mut lw.blocks);
     let program = Program {
         blocks: lw.blocks,
         reg_count: lw.regs,

@@ -15,6 +15,30 @@ struct Counts {
     defs: Vec<u32>,
 }
 
+/// Branches to an empty block that only jumps forward go straight to its target. A lane there
+/// would wait for every lane behind it before moving on, which it does at the target anyway, so
+/// which lanes run each block together is unchanged; the step for the empty block goes.
+pub(super) fn thread_jumps(blocks: &mut [Block]) {
+    let skip = |blocks: &[Block], mut t: u32| {
+        for _ in 0..blocks.len() {
+            let b = &blocks[t as usize];
+            match b.term {
+                Term::Jump(u) if u > t && b.ops.is_empty() && b.phi_in.is_empty() && b.edge_moves.is_empty() => t = u,
+                _ => break,
+            }
+        }
+        t
+    };
+    for i in 0..blocks.len() {
+        let term = match &blocks[i].term {
+            Term::Jump(t) => Term::Jump(skip(blocks, *t)),
+            Term::Cond { cond, t, f } => Term::Cond { cond: *cond, t: skip(blocks, *t), f: skip(blocks, *f) },
+            other => other.clone(),
+        };
+        blocks[i].term = term;
+    }
+}
+
 pub(super) fn forward(blocks: &mut [Block], reg_count: u32, consts: &[(Reg, u64)]) {
     let mut c = Counts { uses: vec![0; reg_count as usize], defs: vec![0; reg_count as usize] };
     for &(r, _) in consts {
