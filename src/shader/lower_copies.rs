@@ -7,6 +7,7 @@
 //!   `v` and the copy goes (ops read all their operands before writing).
 //!
 //! A value a subgroup op reads stays copied: it may read inactive lanes, whose contents differ.
+//! `thread_jumps` then sends branches past empty blocks that only jump forward.
 use super::ir::{Block, Op, Reg, Term};
 
 /// Use and definition counts of every register over the whole program.
@@ -259,6 +260,16 @@ mod tests {
         let mut b = [block(ops.clone())];
         forward(&mut b, 4, &[(2, 5)]);
         assert_eq!(b[0].ops, ops);
+    }
+
+    #[test]
+    fn only_forward_jumps_out_of_empty_blocks_are_threaded() {
+        let jump = |t| Block { term: Term::Jump(t), ..block(Vec::new()) };
+        // 0 → 1 (empty, → 2) → 2 (empty, back to 1); 3 (→ 2) ends at 2 since 2 jumps back.
+        let mut b = [jump(1), jump(2), jump(1), jump(2), block(Vec::new())];
+        thread_jumps(&mut b);
+        let targets: Vec<Term> = b.iter().map(|b| b.term.clone()).collect();
+        assert_eq!(targets, vec![Term::Jump(2), Term::Jump(2), Term::Jump(2), Term::Jump(2), Term::Exit]);
     }
 
     #[test]
