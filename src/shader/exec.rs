@@ -280,21 +280,14 @@ fn init_group(ctx: &Ctx, group: &mut Group, wg: &Wg, g: u32, n: u32) {
 /// Runs a lane group until none of its lanes is running (all done or at a barrier).
 fn run_group<'a>(ctx: &Ctx<'a>, group: &mut Group<'a>, wg: &mut Wg) {
     loop {
-        // One pass: the lowest cursor among running lanes, and which lanes are there.
-        let (mut min, mut mask) = (u32::MAX, 0u32);
-        for l in 0..LANES {
-            if group.lane[l] == Lane::Running {
-                let c = group.cursor[l];
-                if c < min {
-                    (min, mask) = (c, 1 << l);
-                } else if c == min {
-                    mask |= 1 << l;
-                }
-            }
-        }
-        if mask == 0 {
+        // The lowest cursor among running lanes, and which lanes are there (branch-free
+        // passes over the lanes: the cursors of lanes not running read as u32::MAX).
+        let key: [u32; LANES] = std::array::from_fn(|l| if group.lane[l] == Lane::Running { group.cursor[l] } else { u32::MAX });
+        let min = key.iter().fold(u32::MAX, |m, &k| m.min(k));
+        if min == u32::MAX {
             return;
         }
+        let mask = key.iter().enumerate().fold(0u32, |m, (l, &k)| m | (((k == min) as u32) << l));
         wg.steps += 1;
         if wg.steps.is_multiple_of(CHECK_EVERY) {
             if let Some(stop) = check_watchdog(ctx.watchdog, wg.steps) {
@@ -339,6 +332,26 @@ fn exec_block<'a>(ctx: &Ctx<'a>, group: &mut Group<'a>, wg: &mut Wg, block: &Blo
         exec_op(ctx, group, wg, op, mask);
     }
     let regs = &mut group.regs;
+    // Plain jumps and two-way branches without phi moves: no per-lane bookkeeping.
+    if block.edge_moves.is_empty() {
+        match block.term {
+            Term::Jump(t) => {
+                for (l, c) in group.cursor.iter_mut().enumerate() {
+                    *c = if on(mask, l) { t } else { *c };
+                }
+                return;
+            }
+            Term::Cond { cond, t, f } => {
+                let v = regs[cond as usize];
+                for (l, c) in group.cursor.iter_mut().enumerate() {
+                    let target = if v[l] != 0 { t } else { f };
+                    *c = if on(mask, l) { target } else { *c };
+                }
+                return;
+            }
+            _ => {}
+        }
+    }
     for l in (0..LANES).filter(|&l| on(mask, l)) {
         let target = match &block.term {
             Term::Jump(t) => *t,

@@ -33,6 +33,11 @@ pub(super) fn exec_mem(ctx: &Ctx, group: &mut Group, wg: &mut Wg, op: &Op, mask:
             return;
         }
     }
+    if let (Space::Push, Some(dst), None) = (space, dst, access) {
+        if push_loads(ctx, group, ty, addr, dst, mask) {
+            return;
+        }
+    }
     for l in (0..LANES).filter(|&l| (mask >> l) & 1 != 0) {
         let at = group.regs[addr as usize][l];
         let acc = match access {
@@ -235,6 +240,25 @@ fn lane_loads(group: &mut Group, fs: usize, ty: Sc, addr: u32, dst: u32, mask: u
         }
     }
     group.regs[dst as usize] = out;
+    true
+}
+
+/// Push-constant loads at one address in every active lane (a constant offset, the common
+/// case): one read for the group. Anything else takes the per-lane path.
+fn push_loads(ctx: &Ctx, group: &mut Group, ty: Sc, addr: u32, dst: u32, mask: u32) -> bool {
+    let at = group.regs[addr as usize];
+    let first = at[(mask.trailing_zeros() as usize).min(LANES - 1)];
+    if (0..LANES).any(|l| (mask >> l) & 1 != 0 && at[l] != first) {
+        return false;
+    }
+    let Some(v) = read_le(ctx.push, first, ty.size() as usize) else {
+        return false;
+    };
+    let v = alu::norm(ty, v);
+    let out = &mut group.regs[dst as usize];
+    for (l, o) in out.iter_mut().enumerate() {
+        *o = if (mask >> l) & 1 != 0 { v } else { *o };
+    }
     true
 }
 

@@ -6,13 +6,14 @@
 //! structured order the scheduler relies on survives inlining. Branch targets are SPIR-V labels
 //! while a function body is lowered and are patched to block indices when it is done.
 //! OpPhi: each phi gets a temporary filled on the incoming edge and copied in at block start.
-use std::collections::HashMap;
+use std::collections::{HashMap, HashSet};
 
 use rspirv::dr::Instruction;
 use spirv::{BuiltIn, Op, StorageClass};
 
 use super::ir::{builtin_offset as bo, Block, EdgeMove, Op as IrOp, Program, Reg, Sc, Space, Term};
 use super::layout::Layout;
+use super::lower_vars::VarRegs;
 use super::parse::{id_op, EntryPoint, Module, Type};
 use super::specialize::Constants;
 use super::ShaderError;
@@ -65,6 +66,9 @@ struct Frame {
     /// Registers a callee's OpReturnValue writes.
     ret: Vec<Reg>,
     entry: bool,
+    /// Variables and access chains kept in registers (`lower_vars`), and their registers.
+    promoted: HashSet<u32>,
+    vars: HashMap<u32, VarRegs>,
 }
 
 pub struct Lowerer<'a> {
@@ -121,6 +125,8 @@ pub fn lower(m: &Module, consts: &Constants, e: &EntryPoint) -> Result<Lowered, 
         push_size: 0,
     };
     lw.inline(e.function, Vec::new(), true)?;
+    super::lower_copies::forward(&mut lw.blocks, lw.regs, &lw.const_regs);
+    super::lower_copies::thread_jumps(&mut lw.blocks);
     let program = Program {
         blocks: lw.blocks,
         reg_count: lw.regs,
@@ -195,6 +201,19 @@ impl<'a> Lowerer<'a> {
 
     pub fn define(&mut self, id: u32, v: Val) {
         self.frame().vals.insert(id, v);
+    }
+
+    pub(super) fn define_var(&mut self, id: u32, v: VarRegs) {
+        self.frame().vars.insert(id, v);
+    }
+
+    /// The registers of a promoted variable or access chain.
+    pub(super) fn var(&self, id: u32) -> Option<VarRegs> {
+        self.frames.last().and_then(|f| f.vars.get(&id)).cloned()
+    }
+
+    fn is_promoted(&self, id: u32) -> bool {
+        self.frames.last().is_some_and(|f| f.promoted.contains(&id))
     }
 
     /// The lowered value of `id`: a local, a constant, or a global variable (created on first use).
@@ -477,7 +496,7 @@ impl Lowerer<'_> {
         if f.parameters.len() != args.len() {
             return Err(m.malformed(fid, "argument count"));
         }
-        let mut frame = Frame { entry, ..Frame::default() };
+        let mut frame = Frame { entry, promoted: self.promotable(f), ..Frame::default() };
         for (p, a) in f.parameters.iter().zip(args) {
             frame.vals.insert(p.result_id.unwrap_or(0), a);
         }
@@ -637,6 +656,16 @@ impl Lowerer<'_> {
         let id = inst.result_id.unwrap_or(0);
         let rty = inst.result_type.unwrap_or(0);
         match inst.class.opcode {
+            Op::Variable if self.is_promoted(id) => self.promote_variable(inst)?,
+            Op::AccessChain | Op::InBoundsAccessChain if self.is_promoted(id) => self.promote_chain(inst)?,
+            Op::Load | Op::Store if self.var(id_op(inst, 0)?).is_some() => {
+                let v = self.var(id_op(inst, 0)?).expect("checked by the guard");
+                if inst.class.opcode == Op::Load {
+                    self.load_var(inst, v)?;
+                } else {
+                    self.store_var(inst, v)?;
+                }
+            }
             Op::Variable => {
                 let pointee = self.pointee(rty)?;
                 let at = self.alloc_lane(pointee)?;
