@@ -115,6 +115,7 @@ fn reason(stage: &str, e: &ShaderError) -> String {
         ShaderError::Malformed { reason, .. } => {
             let fixed: String = reason.chars().filter(|c| !c.is_ascii_digit()).collect();
             // rspirv's errors nest their variant names in parentheses: keep the first two.
+            let fixed = fixed.trim_start_matches(['%', ':', ' ']);
             let named = fixed.split(['"', '%']).next().unwrap_or("").splitn(4, '(').take(3).collect::<Vec<_>>().join("(");
             format!("malformed: {}", named.trim_end_matches([',', ' ', ')', '(']).trim())
         }

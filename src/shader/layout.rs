@@ -8,6 +8,9 @@ use super::ShaderError;
 
 /// Nested types deeper than this are rejected (a malformed module could loop otherwise).
 const MAX_DEPTH: u32 = 32;
+/// Scalars in one register value (a whole-composite load, store or constant): far above what
+/// real shaders hold, and a bound on what a malformed array length can make lowering allocate.
+const MAX_SCALARS: usize = 1 << 16;
 
 pub struct Layout<'a> {
     pub m: &'a Module,
@@ -68,7 +71,12 @@ impl Layout<'_> {
             Type::Void | Type::RuntimeArray { .. } | Type::Function | Type::Image { .. } | Type::RayQuery => {
                 return Err(self.m.malformed(ty, "type has no register value"))
             }
-            _ => out.push(self.scalar(ty)?),
+            _ => {
+                if out.len() >= MAX_SCALARS {
+                    return Err(ShaderError::Unsupported { what: format!("a value of more than {MAX_SCALARS} scalars"), offset: self.m.offset_of(ty) });
+                }
+                out.push(self.scalar(ty)?);
+            }
         }
         Ok(())
     }
@@ -82,20 +90,25 @@ impl Layout<'_> {
     pub fn sub_range(&self, mut ty: u32, indices: &[u32]) -> Result<(usize, usize, u32), ShaderError> {
         let mut start = 0;
         for &k in indices {
-            let (elems, elem_ty): (Vec<u32>, u32) = match self.m.ty(ty)?.clone() {
-                Type::Vector { elem, n } | Type::Matrix { column: elem, n } => (vec![elem; n as usize], elem),
-                Type::Array { elem, len } => (vec![elem; self.array_len(len)? as usize], elem),
+            // Homogeneous composites are not expanded: their length may be any literal.
+            let (len, elem_ty, before) = match self.m.ty(ty)?.clone() {
+                Type::Vector { elem, n } | Type::Matrix { column: elem, n } => (n as u64, elem, None),
+                Type::Array { elem, len } => (self.array_len(len)? as u64, elem, None),
                 Type::Struct { members } => {
                     let t = *members.get(k as usize).ok_or_else(|| self.m.malformed(ty, "member index"))?;
-                    (members, t)
+                    (members.len() as u64, t, Some(members[..k as usize].to_vec()))
                 }
                 _ => return Err(self.m.malformed(ty, "index into a scalar")),
             };
-            if k as usize >= elems.len() {
+            if k as u64 >= len {
                 return Err(self.m.malformed(ty, "composite index out of range"));
             }
-            for &e in &elems[..k as usize] {
-                start += self.count(e)?;
+            start += match before {
+                Some(members) => members.iter().map(|&e| self.count(e)).sum::<Result<usize, _>>()?,
+                None => (k as usize).saturating_mul(self.count(elem_ty)?),
+            };
+            if start > MAX_SCALARS {
+                return Err(ShaderError::Unsupported { what: format!("a value of more than {MAX_SCALARS} scalars"), offset: self.m.offset_of(ty) });
             }
             ty = elem_ty;
         }
@@ -212,7 +225,12 @@ impl Layout<'_> {
                     self.fields_into(mt, ms, base + off, out, depth + 1)?;
                 }
             }
-            _ => out.push((self.scalar(ty)?, base)),
+            _ => {
+                if out.len() >= MAX_SCALARS {
+                    return Err(ShaderError::Unsupported { what: format!("a value of more than {MAX_SCALARS} scalars"), offset: self.m.offset_of(ty) });
+                }
+                out.push((self.scalar(ty)?, base));
+            }
         }
         Ok(())
     }

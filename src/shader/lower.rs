@@ -125,6 +125,21 @@ pub fn lower(m: &Module, consts: &Constants, e: &EntryPoint) -> Result<Lowered, 
         push_size: 0,
     };
     lw.inline(e.function, Vec::new(), true)?;
+    // A malformed module can leave a branch to a block that was never made (a call or a return
+    // where none continues): refuse it here rather than let a lane jump past the last block.
+    let n = lw.blocks.len() as u32;
+    let inside = |t: &u32| *t < n;
+    for b in &lw.blocks {
+        let ok = match &b.term {
+            Term::Jump(t) | Term::Barrier(t) => inside(t),
+            Term::Cond { t, f, .. } => inside(t) && inside(f),
+            Term::Switch { default, cases, .. } => inside(default) && cases.iter().all(|(_, t)| inside(t)),
+            Term::Exit => true,
+        };
+        if !ok {
+            return Err(m.malformed(e.function, "a branch leads past the function's last block"));
+        }
+    }
     super::lower_copies::forward(&mut lw.blocks, lw.regs, &lw.const_regs);
     super::lower_copies::thread_jumps(&mut lw.blocks);
     let program = Program {

@@ -22,7 +22,7 @@ struct Counts {
 pub(super) fn thread_jumps(blocks: &mut [Block]) {
     let skip = |blocks: &[Block], mut t: u32| {
         for _ in 0..blocks.len() {
-            let b = &blocks[t as usize];
+            let Some(b) = blocks.get(t as usize) else { break };
             match b.term {
                 Term::Jump(u) if u > t && b.ops.is_empty() && b.phi_in.is_empty() && b.edge_moves.is_empty() => t = u,
                 _ => break,

@@ -245,6 +245,8 @@ impl Module {
     }
 
     fn index_types(&mut self) -> Result<(), ShaderError> {
+        let pointers: std::collections::HashSet<u32> =
+            self.dr.types_global_values.iter().filter(|i| i.class.opcode == Op::TypePointer).filter_map(|i| i.result_id).collect();
         for (i, inst) in self.dr.types_global_values.iter().enumerate() {
             let Some(id) = inst.result_id else { continue };
             let ty = match inst.class.opcode {
@@ -276,6 +278,18 @@ impl Module {
                         offset: self.offset_of(id),
                     });
                 }
+            }
+            // A composite's parts are declared before it (only pointers may be declared after,
+            // through OpTypeForwardPointer), so no type contains itself: the layout's recursion
+            // over parts (which stops at pointers) always ends.
+            let parts: Vec<u32> = match &ty {
+                Type::Vector { elem, .. } | Type::Array { elem, .. } | Type::RuntimeArray { elem } => vec![*elem],
+                Type::Matrix { column, .. } => vec![*column],
+                Type::Struct { members } => members.clone(),
+                _ => Vec::new(),
+            };
+            if parts.iter().any(|p| !self.types.contains_key(p) && !pointers.contains(p)) || self.types.contains_key(&id) {
+                return Err(self.malformed(id, "composite type of a type not declared before it"));
             }
             self.types.insert(id, ty);
         }
