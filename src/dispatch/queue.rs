@@ -76,6 +76,24 @@ fn with_values(sems: &[vk::Semaphore], values: Option<&[u64]>, command: &str, vu
     out
 }
 
+/// The wait and signal value arrays of a VkTimelineSemaphoreSubmitInfo (vkQueueSubmit and
+/// vkQueueBindSparse both take one).
+///
+/// # Safety
+/// `tl`, when present, is a valid VkTimelineSemaphoreSubmitInfo whose arrays hold their counts.
+unsafe fn timeline_values<'a>(tl: Option<&'a vk::TimelineSemaphoreSubmitInfo<'a>>) -> (Option<&'a [u64]>, Option<&'a [u64]>) {
+    match tl {
+        // SAFETY: the caller's promise.
+        Some(t) => unsafe {
+            (
+                Some(util::slice(t.p_wait_semaphore_values, t.wait_semaphore_value_count)),
+                Some(util::slice(t.p_signal_semaphore_values, t.signal_semaphore_value_count)),
+            )
+        },
+        None => (None, None),
+    }
+}
+
 unsafe extern "system" fn queue_submit(queue: vk::Queue, count: u32, p_submits: *const vk::SubmitInfo, fence_h: vk::Fence) -> vk::Result {
     const CMD: &str = "vkQueueSubmit";
     guard(CMD, vk::Result::ERROR_DEVICE_LOST, || {
@@ -93,16 +111,8 @@ unsafe extern "system" fn queue_submit(queue: vk::Queue, count: u32, p_submits: 
                     util::slice(s.p_signal_semaphores, s.signal_semaphore_count),
                 )
             };
-            // SAFETY: the value arrays of a valid VkTimelineSemaphoreSubmitInfo.
-            let (wait_values, signal_values) = unsafe {
-                match tl {
-                    Some(t) => (
-                        Some(util::slice(t.p_wait_semaphore_values, t.wait_semaphore_value_count)),
-                        Some(util::slice(t.p_signal_semaphore_values, t.signal_semaphore_value_count)),
-                    ),
-                    None => (None, None),
-                }
-            };
+            // SAFETY: `tl` is a valid VkTimelineSemaphoreSubmitInfo from the application's chain.
+            let (wait_values, signal_values) = unsafe { timeline_values(tl) };
             batches.push(BatchDesc {
                 waits: with_values(waits, wait_values, CMD, "VUID-VkSubmitInfo-pWaitSemaphores-03239"),
                 command_buffers: command_buffers(cbs.iter().copied(), CMD),
@@ -203,16 +213,8 @@ unsafe extern "system" fn queue_bind_sparse(queue: vk::Queue, count: u32, p_bind
                     util::slice(info.p_buffer_binds, info.buffer_bind_count),
                 )
             };
-            // SAFETY: the value arrays of a valid VkTimelineSemaphoreSubmitInfo.
-            let (wait_values, signal_values) = unsafe {
-                match tl {
-                    Some(t) => (
-                        Some(util::slice(t.p_wait_semaphore_values, t.wait_semaphore_value_count)),
-                        Some(util::slice(t.p_signal_semaphore_values, t.signal_semaphore_value_count)),
-                    ),
-                    None => (None, None),
-                }
-            };
+            // SAFETY: `tl` is a valid VkTimelineSemaphoreSubmitInfo from the application's chain.
+            let (wait_values, signal_values) = unsafe { timeline_values(tl) };
             if info.image_opaque_bind_count > 0 || info.image_bind_count > 0 {
                 diag::report(
                     diag::Level::Error,
