@@ -81,9 +81,30 @@ fn lavapipe_manifest() -> Option<&'static str> {
     LAVAPIPE_MANIFESTS.iter().copied().find(|p| std::path::Path::new(p).exists())
 }
 
+/// A Vulkan 1.2 instance with the validation layer on and a debug messenger collecting every
+/// message into the returned list (also during instance creation and destruction).
+pub(super) fn validated_instance(entry: &ash::Entry) -> (ash::Instance, ash::ext::debug_utils::Instance, vk::DebugUtilsMessengerEXT, Messages) {
+    let messages: Messages = Arc::new(Mutex::new(Vec::new()));
+    let app = vk::ApplicationInfo::default().api_version(vk::API_VERSION_1_2);
+    let layer = CString::new("VK_LAYER_KHRONOS_validation").unwrap();
+    let layers = [layer.as_ptr()];
+    let exts = [ash::ext::debug_utils::NAME.as_ptr()];
+    // The messenger writes through this pointer; the returned Arc keeps the list alive.
+    let sink = Arc::as_ptr(&messages) as *mut c_void;
+    let mut dbg = messenger_info(sink);
+    let ci = vk::InstanceCreateInfo::default().application_info(&app).enabled_layer_names(&layers).enabled_extension_names(&exts).push_next(&mut dbg);
+    // SAFETY: valid create infos; the caller destroys the messenger and the instance.
+    unsafe {
+        let instance = entry.create_instance(&ci, None).expect("vkCreateInstance");
+        let du = ash::ext::debug_utils::Instance::new(entry, &instance);
+        let messenger = du.create_debug_utils_messenger(&messenger_info(sink), None).expect("messenger");
+        (instance, du, messenger, messages)
+    }
+}
+
 /// Make both Arbor and (when installed) lavapipe visible to the loader: once per process,
-/// before any instance exists.
-fn use_drivers() {
+/// before any instance exists (the compute and ray-query harnesses both go through here).
+pub(super) fn use_drivers() {
     static ONCE: OnceLock<()> = OnceLock::new();
     ONCE.get_or_init(|| {
         let arbor = use_arbor_manifest();
@@ -135,19 +156,9 @@ impl Gpu {
         let _serial = lifecycle();
         // SAFETY: loading the system Vulkan loader.
         let entry = unsafe { ash::Entry::load() }.expect("libvulkan.so.1");
-        let messages: Messages = Arc::new(Mutex::new(Vec::new()));
-        let app = vk::ApplicationInfo::default().api_version(vk::API_VERSION_1_2);
-        let layer = CString::new("VK_LAYER_KHRONOS_validation").unwrap();
-        let layers = [layer.as_ptr()];
-        let exts = [ash::ext::debug_utils::NAME.as_ptr()];
-        let sink = Arc::as_ptr(&messages) as *mut c_void;
-        let mut dbg = messenger_info(sink);
-        let ci = vk::InstanceCreateInfo::default().application_info(&app).enabled_layer_names(&layers).enabled_extension_names(&exts).push_next(&mut dbg);
+        let (instance, du, messenger, messages) = validated_instance(&entry);
         // SAFETY: valid create infos; everything is destroyed in Drop.
         unsafe {
-            let instance = entry.create_instance(&ci, None).expect("vkCreateInstance");
-            let du = ash::ext::debug_utils::Instance::new(&entry, &instance);
-            let messenger = du.create_debug_utils_messenger(&messenger_info(sink), None).expect("messenger");
             let wanted = |name: &str| match driver {
                 Driver::Arbor => name == "Arbor (software)",
                 Driver::Lavapipe => name.starts_with("llvmpipe"),

@@ -5,35 +5,18 @@
 //! compute dispatch that traces it through a TLAS descriptor. Every object is owned by the
 //! [`RqGpu`] and destroyed with it.
 use std::cell::RefCell;
-use std::ffi::{c_void, CString};
-use std::sync::{Arc, Mutex, OnceLock};
+use std::ffi::CString;
 
 use arbor::accel::{Geometry, GeometryData, IndexType, VertexFormat};
 use arbor_scene::InstanceRecord;
 use ash::vk;
 
 use super::accel::ALL_USAGE;
-use super::compute::Driver;
-use super::{lifecycle, messenger_info, use_arbor_manifest, Messages};
+use super::compute::{use_drivers, validated_instance, Driver};
+use super::{lifecycle, Messages};
 
 const LAVAPIPE_MANIFESTS: &[&str] = &["/usr/share/vulkan/icd.d/lvp_icd.x86_64.json", "/usr/share/vulkan/icd.d/lvp_icd.json"];
 
-/// Arbor and (when installed) lavapipe visible to the loader, once per process, before any
-/// instance exists (the same choice as `compute::Gpu`'s).
-fn use_drivers() {
-    static ONCE: OnceLock<()> = OnceLock::new();
-    ONCE.get_or_init(|| {
-        let arbor = use_arbor_manifest();
-        if let Some(lvp) = LAVAPIPE_MANIFESTS.iter().find(|p| std::path::Path::new(p).exists()) {
-            let both = format!("{}:{lvp}", arbor.display());
-            // SAFETY: set once, before any loader instance is created in this process.
-            unsafe {
-                std::env::set_var("VK_ICD_FILENAMES", &both);
-                std::env::set_var("VK_DRIVER_FILES", &both);
-            }
-        }
-    });
-}
 
 /// How a scene's structures are made. Every path but `Device` needs a feature lavapipe lacks
 /// (host commands, indirect builds) or is Arbor-only here.
@@ -147,19 +130,9 @@ impl RqGpu {
         let _serial = lifecycle();
         // SAFETY: loading the system Vulkan loader.
         let entry = unsafe { ash::Entry::load() }.expect("libvulkan.so.1");
-        let messages: Messages = Arc::new(Mutex::new(Vec::new()));
-        let app = vk::ApplicationInfo::default().api_version(vk::API_VERSION_1_2);
-        let layer = CString::new("VK_LAYER_KHRONOS_validation").unwrap();
-        let layers = [layer.as_ptr()];
-        let exts = [ash::ext::debug_utils::NAME.as_ptr()];
-        let sink = Arc::as_ptr(&messages) as *mut c_void;
-        let mut dbg = messenger_info(sink);
-        let ci = vk::InstanceCreateInfo::default().application_info(&app).enabled_layer_names(&layers).enabled_extension_names(&exts).push_next(&mut dbg);
+        let (instance, du, messenger, messages) = validated_instance(&entry);
         // SAFETY: valid create infos; everything is destroyed in Drop.
         unsafe {
-            let instance = entry.create_instance(&ci, None).expect("vkCreateInstance");
-            let du = ash::ext::debug_utils::Instance::new(&entry, &instance);
-            let messenger = du.create_debug_utils_messenger(&messenger_info(sink), None).expect("messenger");
             let Some(physical) = RqGpu::find_physical(&instance, driver) else {
                 du.destroy_debug_utils_messenger(messenger, None);
                 instance.destroy_instance(None);
