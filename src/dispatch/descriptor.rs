@@ -10,6 +10,7 @@ use ash::vk::Handle;
 use super::device::device_from;
 use super::handle::{get, register, unregister};
 use super::memory::buffer_from;
+use super::nv_partitioned::{WriteDescriptorSetPartitionedAccelerationStructureNV as PtlasWrite, STRUCTURE_TYPE_WRITE_DESCRIPTOR_SET_PARTITIONED_ACCELERATION_STRUCTURE_NV};
 use super::table::{imp, Implemented};
 use super::{guard, util};
 use crate::diag;
@@ -390,7 +391,8 @@ unsafe extern "system" fn free_descriptor_sets(
 ///
 /// # Safety
 /// `at(i)` must return a pointer valid for a read of the struct type `t` uses
-/// (VkDescriptorBufferInfo, VkDescriptorImageInfo, VkBufferView or VkAccelerationStructureKHR),
+/// (VkDescriptorBufferInfo, VkDescriptorImageInfo, VkBufferView, VkAccelerationStructureKHR, or
+/// the VkDeviceAddress of a partitioned structure),
 /// for i in 0..count.
 unsafe fn convert(t: vk::DescriptorType, count: u32, at: impl Fn(usize) -> *const u8) -> Result<Vec<Descriptor>, Violation> {
     let limits = buffer_limits();
@@ -423,6 +425,11 @@ unsafe fn convert(t: vk::DescriptorType, count: u32, at: impl Fn(usize) -> *cons
                     // SAFETY: see above; a VkAccelerationStructureKHR handle.
                     let h = unsafe { std::ptr::read_unaligned(p as *const vk::AccelerationStructureKHR) };
                     acceleration_structure_descriptor(get::<AccelerationStructure>(h.as_raw()), h.as_raw())
+                }
+                TypeClass::PartitionedAccelerationStructure => {
+                    // SAFETY: see above; a VkDeviceAddress (0: the null descriptor).
+                    let address = unsafe { std::ptr::read_unaligned(p as *const vk::DeviceAddress) };
+                    Ok(Descriptor::PartitionedAccelerationStructure { address })
                 }
                 TypeClass::Unsupported => Err(Violation {
                     vuid: "VUID-VkWriteDescriptorSet-descriptorType-parameter",
@@ -464,6 +471,22 @@ unsafe fn apply_write(w: &vk::WriteDescriptorSet) -> Result<(), Violation> {
                     return Err(Violation {
                         vuid: "VUID-VkWriteDescriptorSet-descriptorType-02382",
                         message: "no VkWriteDescriptorSetAccelerationStructureKHR with accelerationStructureCount == descriptorCount in pNext".into(),
+                    })
+                }
+            }
+        }
+        TypeClass::PartitionedAccelerationStructure => {
+            // SAFETY: valid chain per the spec.
+            let info = unsafe { util::find_in::<PtlasWrite>(w.p_next, STRUCTURE_TYPE_WRITE_DESCRIPTOR_SET_PARTITIONED_ACCELERATION_STRUCTURE_NV) };
+            match info {
+                Some(i) if i.acceleration_structure_count == w.descriptor_count => {
+                    (i.p_acceleration_structures.cast(), std::mem::size_of::<vk::DeviceAddress>(), "VkWriteDescriptorSetPartitionedAccelerationStructureNV-pAccelerationStructures")
+                }
+                // No numbered VUID names this rule; the struct's own text does.
+                _ => {
+                    return Err(Violation {
+                        vuid: "VkWriteDescriptorSetPartitionedAccelerationStructureNV-accelerationStructureCount",
+                        message: "no VkWriteDescriptorSetPartitionedAccelerationStructureNV with accelerationStructureCount == descriptorCount in pNext".into(),
                     })
                 }
             }

@@ -17,7 +17,10 @@ use ash::vk;
 
 mod value;
 
-pub use value::{acceleration_structure_descriptor, buffer_descriptor, is_dynamic, storage_image_descriptor, texel_buffer_descriptor, type_class, BufferLimits, Descriptor, TypeClass, Violation};
+pub use value::{
+    acceleration_structure_descriptor, buffer_descriptor, is_dynamic, storage_image_descriptor, texel_buffer_descriptor, type_class, BufferLimits, Descriptor, TypeClass, Violation,
+    PARTITIONED_ACCELERATION_STRUCTURE_NV,
+};
 use value::violation;
 
 /// One binding of a set layout.
@@ -87,6 +90,7 @@ impl DescriptorSetLayout {
                     vk::DescriptorType::UNIFORM_BUFFER
                         | vk::DescriptorType::STORAGE_BUFFER
                         | vk::DescriptorType::ACCELERATION_STRUCTURE_KHR
+                        | PARTITIONED_ACCELERATION_STRUCTURE_NV
                 )
             {
                 let vuid = match b.descriptor_type {

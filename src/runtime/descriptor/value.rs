@@ -29,7 +29,13 @@ pub enum Descriptor {
     TexelBuffer { view: Weak<BufferView>, handle: u64 },
     /// VK_DESCRIPTOR_TYPE_ACCELERATION_STRUCTURE_KHR.
     AccelerationStructure { structure: Weak<AccelerationStructure>, handle: u64 },
+    /// VK_DESCRIPTOR_TYPE_PARTITIONED_ACCELERATION_STRUCTURE_NV: a PTLAS is no object, only
+    /// bytes at a device address (0: the null descriptor, which the spec allows).
+    PartitionedAccelerationStructure { address: u64 },
 }
+
+/// VK_DESCRIPTOR_TYPE_PARTITIONED_ACCELERATION_STRUCTURE_NV (vk.xml; ash 0.38 lacks it).
+pub const PARTITIONED_ACCELERATION_STRUCTURE_NV: vk::DescriptorType = vk::DescriptorType::from_raw(1000570000);
 
 impl Descriptor {
     /// The buffer and the effective byte range for a buffer descriptor (`dynamic_offset` added
@@ -60,6 +66,7 @@ impl Descriptor {
             }
             Descriptor::TexelBuffer { handle, .. } => *handle,
             Descriptor::AccelerationStructure { handle, .. } | Descriptor::StorageImage { handle, .. } => *handle,
+            Descriptor::PartitionedAccelerationStructure { address } => *address,
         }
     }
 
@@ -110,6 +117,7 @@ impl PartialEq for Descriptor {
                 Descriptor::AccelerationStructure { structure: a, handle: ha },
                 Descriptor::AccelerationStructure { structure: b, handle: hb },
             ) => a.ptr_eq(b) && ha == hb,
+            (Descriptor::PartitionedAccelerationStructure { address: a }, Descriptor::PartitionedAccelerationStructure { address: b }) => a == b,
             _ => false,
         }
     }
@@ -140,6 +148,7 @@ impl fmt::Debug for Descriptor {
                 "AccelerationStructure({handle:#x}{})",
                 if structure.strong_count() == 0 { ", destroyed" } else { "" }
             ),
+            Descriptor::PartitionedAccelerationStructure { address } => write!(f, "PartitionedAccelerationStructure({address:#x})"),
         }
     }
 }
@@ -151,6 +160,8 @@ pub enum TypeClass {
     Image,
     TexelBuffer,
     AccelerationStructure,
+    /// A PTLAS by device address.
+    PartitionedAccelerationStructure,
     /// Types Arbor does not support (inline uniform blocks, mutable, …).
     Unsupported,
 }
@@ -168,6 +179,7 @@ pub fn type_class(t: vk::DescriptorType) -> TypeClass {
         | vk::DescriptorType::INPUT_ATTACHMENT => TypeClass::Image,
         vk::DescriptorType::UNIFORM_TEXEL_BUFFER | vk::DescriptorType::STORAGE_TEXEL_BUFFER => TypeClass::TexelBuffer,
         vk::DescriptorType::ACCELERATION_STRUCTURE_KHR => TypeClass::AccelerationStructure,
+        PARTITIONED_ACCELERATION_STRUCTURE_NV => TypeClass::PartitionedAccelerationStructure,
         _ => TypeClass::Unsupported,
     }
 }

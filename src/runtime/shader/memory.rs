@@ -180,6 +180,9 @@ fn resolve_binding(sets: &[Option<BoundSet>], set: u32, binding: u32, element: u
             let address = d.acceleration_structure().and_then(|s| s.address()).ok_or(Unresolved::Empty)?;
             Ok(Resolved::Structure(address))
         }
+        // A PTLAS descriptor holds the blob's address; traversal recognises the blob from its
+        // bytes. Address 0 is the null descriptor: unbound, as for a destroyed structure.
+        Descriptor::PartitionedAccelerationStructure { address } if address != 0 => Ok(Resolved::Structure(address)),
         d @ Descriptor::TexelBuffer { .. } => {
             let (buffer, view) = texel_buffer_binding(&d, 0).ok_or(Unresolved::Empty)?;
             Ok(Resolved::Texel(buffer, view))
