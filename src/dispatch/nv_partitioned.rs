@@ -148,7 +148,7 @@ pub type PFN_vkCmdBuildPartitionedAccelerationStructuresNV =
     unsafe extern "system" fn(command_buffer: vk::CommandBuffer, p_build_info: *const BuildPartitionedAccelerationStructureInfoNV);
 
 /// The largest `partitionCount + maxInstanceInGlobalPartitionCount` (the spec's minimum, 2^24 − 1).
-pub const MAX_PARTITION_COUNT: u32 = (1 << 24) - 1;
+pub const MAX_PARTITION_COUNT: u32 = rt::MAX_PARTITION_COUNT;
 
 pub fn commands() -> Vec<Implemented> {
     vec![
@@ -220,6 +220,10 @@ unsafe extern "system" fn get_partitioned_acceleration_structures_build_sizes_nv
         }
         // SAFETY: a valid input struct per the spec.
         let input = unsafe { lower_input(&*p_info) };
+        if input.partition_count as u64 + input.max_instance_in_global_partition_count as u64 > MAX_PARTITION_COUNT as u64 {
+            let what = format!("partitionCount {} + maxInstanceInGlobalPartitionCount {} exceeds maxPartitionCount {MAX_PARTITION_COUNT}", input.partition_count, input.max_instance_in_global_partition_count);
+            crate::diag::vuid("VUID-VkPartitionedAccelerationStructureInstancesInputNV-partitionCount-10535", CMD, &what);
+        }
         let s = rt::build_sizes(&input);
         // SAFETY: a valid output struct; sType and pNext are kept.
         unsafe {
@@ -252,7 +256,9 @@ unsafe extern "system" fn cmd_build_partitioned_acceleration_structures_nv(
             src_infos: info.src_infos,
             src_infos_count: info.src_infos_count,
         };
-        cb.record_custom(Box::new(PtlasCommand { build }));
+        // Rules the parameters alone decide are reported now; the queue skips the build.
+        let rejected = rt::record_check(&build).map(|(vuid, message)| crate::diag::vuid(&vuid, CMD, &format!("{message}; build skipped"))).is_some();
+        cb.record_custom(Box::new(PtlasCommand { build, rejected }));
     })
 }
 

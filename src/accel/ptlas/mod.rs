@@ -12,6 +12,7 @@
 //! Must not touch: device memory (the caller hands in the records' bytes and a `DeviceView` for
 //! the BLAS bounds), diagnostics, anything of the driver.
 mod build;
+mod check;
 mod layout;
 mod tree;
 
@@ -20,6 +21,7 @@ mod tests;
 
 use bytemuck::{Pod, Zeroable};
 
+pub use check::{check_ops, RecordNotes, RecordViolation, INSTANCE_FLAGS_ALL};
 pub use layout::{PtlasHeader, NO_ROOT, PTLAS_MAGIC, PTLAS_VERSION};
 
 /// VK_PARTITIONED_ACCELERATION_STRUCTURE_PARTITION_INDEX_GLOBAL_NV.

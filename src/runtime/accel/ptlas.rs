@@ -41,9 +41,41 @@ pub fn build_sizes(input: &PtlasInput) -> BuildSizes {
     ptlas::build_sizes(input)
 }
 
-/// The recorded command.
+/// The largest `partitionCount + maxInstanceInGlobalPartitionCount` (the spec's minimum for
+/// maxPartitionCount, 2^24 − 1).
+pub const MAX_PARTITION_COUNT: u32 = (1 << 24) - 1;
+
+/// The rules the recorded parameters alone decide, checked when the command is recorded:
+/// Some((VUID, message)) for the first one broken.
+pub fn record_check(b: &PtlasBuild) -> Option<(String, String)> {
+    if b.dst == 0 {
+        return Some(("VUID-VkBuildPartitionedAccelerationStructureInfoNV-dstAccelerationStructureData-10561".into(), "dstAccelerationStructureData is NULL".into()));
+    }
+    // The scratch size is never 0, so scratchData may never be NULL.
+    if b.scratch == 0 {
+        return Some(("VUID-VkBuildPartitionedAccelerationStructureInfoNV-scratchData-10558".into(), "scratchData is NULL (the queried buildScratchSize is not 0)".into()));
+    }
+    for (address, n, what) in [(b.scratch, 10542, "scratchData"), (b.src, 10544, "srcAccelerationStructureData"), (b.dst, 10545, "dstAccelerationStructureData")] {
+        if !address.is_multiple_of(PTLAS_ALIGNMENT) {
+            return Some((vuid_name(n), format!("{what} {address:#x} is not aligned to 256 bytes")));
+        }
+    }
+    if !b.src_infos_count.is_multiple_of(4) {
+        return Some(("VUID-VkBuildPartitionedAccelerationStructureInfoNV-srcInfosCount-10563".into(), format!("srcInfosCount {:#x} is not aligned to 4 bytes", b.src_infos_count)));
+    }
+    let i = &b.input;
+    if i.partition_count as u64 + i.max_instance_in_global_partition_count as u64 > MAX_PARTITION_COUNT as u64 {
+        let what = format!("partitionCount {} + maxInstanceInGlobalPartitionCount {} exceeds maxPartitionCount {MAX_PARTITION_COUNT}", i.partition_count, i.max_instance_in_global_partition_count);
+        return Some(("VUID-VkPartitionedAccelerationStructureInstancesInputNV-partitionCount-10535".into(), what));
+    }
+    None
+}
+
+/// The recorded command. `rejected`: a rule `record_check` decides was broken (and reported
+/// when recorded); the build is skipped when the queue reaches it.
 pub struct PtlasCommand {
     pub build: PtlasBuild,
+    pub rejected: bool,
 }
 
 impl Exec for PtlasCommand {
@@ -51,13 +83,20 @@ impl Exec for PtlasCommand {
         CMD
     }
     fn execute(&self, ctx: &ExecContext<'_>) -> Result<(), ExecError> {
-        if !ctx.device.extension_enabled(EXTENSION) {
-            diag::vuid("VUID-vkCmdBuildPartitionedAccelerationStructuresNV-partitionedAccelerationStructure-10536", CMD, "VK_NV_partitioned_acceleration_structure is not enabled");
-        }
         let inputs = DeviceInputs::new(ctx.memory(), CMD);
-        let ok = crate::threads::run_parallel(false, || execute(&inputs, &self.build));
-        if !ok && diag::strict() {
-            return Err(ExecError::Invalid { vuid: "strict", message: "a partitioned acceleration-structure build broke a valid-usage rule (ARBOR_STRICT)".into() });
+        let ok = if self.rejected {
+            false
+        } else if !ctx.device.extension_enabled(EXTENSION) {
+            diag::vuid("VUID-vkCmdBuildPartitionedAccelerationStructuresNV-partitionedAccelerationStructure-10536", CMD, "VK_NV_partitioned_acceleration_structure is not enabled; build skipped");
+            false
+        } else {
+            crate::threads::run_parallel(false, || execute(&inputs, &self.build))
+        };
+        if !ok {
+            invalidate(&inputs, &self.build);
+            if diag::strict() {
+                return Err(ExecError::Invalid { vuid: "strict", message: "a partitioned acceleration-structure build broke a valid-usage rule (ARBOR_STRICT)".into() });
+            }
         }
         Ok(())
     }
@@ -69,9 +108,33 @@ impl Exec for PtlasCommand {
     }
 }
 
+/// A skipped build marks its destination invalid: the header of a PTLAS at dst is cleared (a
+/// destination that holds none is left as it is, so nothing but a PTLAS header is written).
+fn invalidate(mem: &DeviceInputs<'_>, b: &PtlasBuild) {
+    let len = ptlas::HEADER_SIZE as u64;
+    if b.dst == 0 || mem.view.bytes(b.dst, len).and_then(ptlas::header).is_none() {
+        return;
+    }
+    if let Ok(r) = Region::of_device(mem.space, b.dst, len) {
+        r.write_with(ptlas::mark_invalid);
+    }
+}
+
+/// A usage-flag mismatch real clients commit (nv-usage.md): reported as a warning, never a
+/// reason to skip.
+fn usage_note(mem: &DeviceInputs<'_>, address: u64, usage: vk::BufferUsageFlags, vuid: u32, what: &str) {
+    if address == 0 {
+        return;
+    }
+    if let Err(Ok(found)) = mem.space.resolve_with_usage(address, 1, usage) {
+        diag::report(diag::Level::Warn, CMD, &format!("[{}] {what} lies in a buffer without {usage:?} (has {found:?}); used anyway", vuid_name(vuid)));
+    }
+}
+
 /// Device bytes an input lives in: a usage mismatch is reported (real clients commit it) and
-/// the bytes are read anyway; an unresolvable range is reported and gives None.
-fn read_input<'m>(mem: &'m DeviceInputs<'_>, address: u64, len: u64, what: &str) -> Option<&'m [u8]> {
+/// the bytes are read anyway; an unresolvable range is reported (with `vuid` where one names
+/// it) and gives None.
+fn read_input<'m>(mem: &'m DeviceInputs<'_>, address: u64, len: u64, what: &str, vuid: Option<&str>) -> Option<&'m [u8]> {
     match mem.input(address, len, vk::BufferUsageFlags::ACCELERATION_STRUCTURE_BUILD_INPUT_READ_ONLY_KHR) {
         Ok(b) => Some(b),
         Err(InputError::Usage(u)) => {
@@ -79,36 +142,43 @@ fn read_input<'m>(mem: &'m DeviceInputs<'_>, address: u64, len: u64, what: &str)
             mem.view.bytes(address, len)
         }
         Err(e) => {
-            diag::report(diag::Level::Error, CMD, &format!("{what} at {address:#x} ({len} bytes) does not resolve: {e}; build skipped"));
+            let message = format!("{what} at {address:#x} ({len} bytes) does not resolve: {e}; build skipped");
+            match vuid {
+                Some(v) => diag::vuid(v, CMD, &message),
+                None => diag::report(diag::Level::Error, CMD, &message),
+            }
             None
         }
     }
 }
 
+const OP_TYPE_VUID: &str = "VUID-VkBuildPartitionedAccelerationStructureIndirectCommandNV-opType-parameter";
+const UNIQUE_OP_VUID: &str = "VUID-VkBuildPartitionedAccelerationStructureInfoNV-srcInfos-10564";
+
 /// The op records of one build: the count, then each command's strided records.
 fn read_ops<'m>(mem: &'m DeviceInputs<'_>, b: &PtlasBuild) -> Option<Ops<'m>> {
-    if !b.src_infos_count.is_multiple_of(4) {
-        diag::report(diag::Level::Error, CMD, "srcInfosCount is not aligned to 4 bytes; build skipped");
-        return None;
-    }
-    let count = u32::from_le_bytes(read_input(mem, b.src_infos_count, 4, "the srcInfosCount word")?.try_into().ok()?);
+    let word = read_input(mem, b.src_infos_count, 4, "the srcInfosCount word", Some("VUID-VkBuildPartitionedAccelerationStructureInfoNV-srcInfosCount-parameter"))?;
+    let count = u32::from_le_bytes(word.try_into().ok()?);
     let mut ops = Ops::default();
     if count == 0 {
         return Some(ops);
     }
     if count > 3 {
-        diag::report(diag::Level::Error, CMD, &format!("srcInfosCount is {count}: more op records than op types (each may appear once); build skipped"));
+        diag::vuid(UNIQUE_OP_VUID, CMD, &format!("srcInfosCount is {count}: more elements than op types, so some opType repeats; build skipped"));
         return None;
     }
     let size = std::mem::size_of::<IndirectCommand>() as u64;
-    let infos = read_input(mem, b.src_infos, size * count as u64, "the srcInfos array")?;
+    let infos = read_input(mem, b.src_infos, size * count as u64, &format!("the srcInfos array of {count} elements"), Some(&vuid_name(10546)))?;
     let mut seen = [false; 3];
     for k in 0..count {
         let cmd: IndirectCommand = Strided { data: infos, count, stride: size }.get(k)?;
         let op = cmd.op_type as usize;
-        if op > 2 || seen[op] {
-            let msg = format!("srcInfos[{k}].opType {} is unknown or repeats an earlier element's (each element must have a distinct opType); build skipped", cmd.op_type);
-            diag::report(diag::Level::Error, CMD, &msg);
+        if op > 2 {
+            diag::vuid(OP_TYPE_VUID, CMD, &format!("srcInfos[{k}].opType {} is not a VkPartitionedAccelerationStructureOpTypeNV; build skipped", cmd.op_type));
+            return None;
+        }
+        if seen[op] {
+            diag::vuid(UNIQUE_OP_VUID, CMD, &format!("srcInfos[{k}].opType {} repeats an earlier element's; build skipped", cmd.op_type));
             return None;
         }
         seen[op] = true;
@@ -119,7 +189,7 @@ fn read_ops<'m>(mem: &'m DeviceInputs<'_>, b: &PtlasBuild) -> Option<Ops<'m>> {
             1 => Strided::span::<UpdateInstance>(cmd.arg_count, stride),
             _ => Strided::span::<WriteTranslation>(cmd.arg_count, stride),
         };
-        let data = if span == 0 { &[][..] } else { read_input(mem, cmd.start_address, span, &format!("srcInfos[{k}].argData"))? };
+        let data = if span == 0 { &[][..] } else { read_input(mem, cmd.start_address, span, &format!("srcInfos[{k}].argData"), None)? };
         let s = Strided { data, count: cmd.arg_count, stride };
         match op {
             0 => ops.writes = s,
@@ -130,6 +200,28 @@ fn read_ops<'m>(mem: &'m DeviceInputs<'_>, b: &PtlasBuild) -> Option<Ops<'m>> {
     Some(ops)
 }
 
+/// The records' own rules (`accel::ptlas::check_ops`), before anything is written.
+fn check_records(input: &PtlasInput, ops: &Ops) -> bool {
+    match ptlas::check_ops(input, ops) {
+        Ok(notes) => {
+            if let Some(i) = notes.written_and_updated.first() {
+                let n = notes.written_and_updated.len();
+                let msg = format!("{n} instance(s) (first {i}) both written and updated by this build: valid Vulkan usage (the write applies first), but one write or update per instance per build is what the driver feature allows elsewhere (NVAPI)");
+                diag::report(diag::Level::Warn, CMD, &msg);
+            }
+            true
+        }
+        Err(v) => {
+            let message = format!("{}; build skipped", v.message);
+            match v.vuid {
+                Some(vuid) => diag::vuid(vuid, CMD, &message),
+                None => diag::report(diag::Level::Error, CMD, &message),
+            }
+            false
+        }
+    }
+}
+
 fn overlaps(a: u64, alen: u64, b: u64, blen: u64) -> bool {
     a < b.saturating_add(blen) && b < a.saturating_add(alen)
 }
@@ -137,24 +229,43 @@ fn overlaps(a: u64, alen: u64, b: u64, blen: u64) -> bool {
 /// A source blob's bytes and its used size.
 type SourceBytes<'m> = Option<(&'m [u8], u64)>;
 
+/// The count fields of the input against the capacities a source blob was laid out for:
+/// the first that exceeds them, with its VUID (10537–10540: each count must not exceed what
+/// the memory was sized for).
+fn over_capacity(input: &PtlasInput, h: &ptlas::PtlasHeader) -> Option<(u32, &'static str, u32, u32)> {
+    [
+        (10537, "instanceCount", input.instance_count, h.instance_capacity),
+        (10538, "maxInstancePerPartitionCount", input.max_instance_per_partition_count, h.partition_capacity),
+        (10539, "partitionCount", input.partition_count, h.partition_count),
+        (10540, "maxInstanceInGlobalPartitionCount", input.max_instance_in_global_partition_count, h.global_capacity),
+    ]
+    .into_iter()
+    .find(|&(_, _, got, cap)| got > cap)
+}
+
 /// The source's bytes (with its used size) when it is another blob, and how many bytes of dst
 /// the build may use: up to the layout of a grown source, at least `needed`. None: reported.
 fn source_and_destination<'m>(mem: &'m DeviceInputs<'_>, b: &PtlasBuild, needed: u64) -> Option<(SourceBytes<'m>, u64)> {
     let header_at = |address: u64| mem.view.bytes(address, ptlas::HEADER_SIZE as u64).and_then(ptlas::header);
+    let prior = if b.src == 0 { None } else { header_at(b.src) };
+    if b.src != 0 && prior.is_none() {
+        let which = if b.src == b.dst { "srcAccelerationStructureData (== dst, an in-place build)" } else { "srcAccelerationStructureData" };
+        diag::vuid(SOURCE_VUID, CMD, &format!("{which} {:#x} holds no valid partitioned acceleration structure; build skipped", b.src));
+        return None;
+    }
     let src = if b.src == 0 || b.src == b.dst {
         None
     } else {
-        let used = header_at(b.src).map(|h| h.used_size);
-        match used.and_then(|u| mem.view.bytes(b.src, u).map(|s| (s, u))) {
-            Some(s) => Some(s),
+        let used = prior.map(|h| h.used_size).unwrap_or(0);
+        match mem.view.bytes(b.src, used) {
+            Some(s) => Some((s, used)),
             None => {
-                diag::report(diag::Level::Error, CMD, &format!("srcAccelerationStructureData {:#x} holds no valid partitioned acceleration structure; build skipped", b.src));
+                diag::vuid(SOURCE_VUID, CMD, &format!("srcAccelerationStructureData {:#x}: its {used} bytes do not resolve; build skipped", b.src));
                 return None;
             }
         }
     };
     // dst may be laid out for a grown source's capacities: give it what its buffer holds, up to that.
-    let prior = if b.src == 0 { None } else { header_at(b.src) };
     let mut want = needed;
     if let Some(h) = prior {
         let grown = ptlas::Input {
@@ -168,21 +279,28 @@ fn source_and_destination<'m>(mem: &'m DeviceInputs<'_>, b: &PtlasBuild, needed:
     }
     let room = mem.space.resolve(b.dst, 1).map(|r| r.buffer.size - r.offset).unwrap_or(0);
     if room < needed {
-        diag::vuid(&vuid_name(10543), CMD, &format!("dstAccelerationStructureData has {room} bytes; the build needs {needed}; build skipped"));
+        if let Some((n, field, got, cap)) = prior.as_ref().and_then(|h| over_capacity(&b.input, h)) {
+            let what = format!("input.{field} {got} exceeds the {cap} the source structure was sized for, and dst ({room} bytes) cannot hold the larger layout ({needed} bytes); build skipped");
+            diag::vuid(&vuid_name(n), CMD, &what);
+        } else {
+            diag::vuid(&vuid_name(10543), CMD, &format!("dstAccelerationStructureData has {room} bytes; the build needs {needed}; build skipped"));
+        }
         return None;
     }
     Some((src, want.min(room)))
 }
 
+const SOURCE_VUID: &str = "VUID-VkBuildPartitionedAccelerationStructureInfoNV-srcAccelerationStructureData-10560";
+
 /// Checks, then runs one build. Returns false when anything was invalid (reported once).
 fn execute(mem: &DeviceInputs<'_>, b: &PtlasBuild) -> bool {
-    for (address, n, what) in [(b.scratch, 10542, "scratchData"), (b.src, 10544, "srcAccelerationStructureData"), (b.dst, 10545, "dstAccelerationStructureData")] {
-        if !address.is_multiple_of(PTLAS_ALIGNMENT) {
-            diag::vuid(&vuid_name(n), CMD, &format!("{what} {address:#x} is not aligned to 256 bytes; build skipped"));
-            return false;
-        }
-    }
+    usage_note(mem, b.scratch, vk::BufferUsageFlags::STORAGE_BUFFER, 10550, "scratchData");
+    usage_note(mem, b.src, vk::BufferUsageFlags::ACCELERATION_STRUCTURE_STORAGE_KHR, 10552, "srcAccelerationStructureData");
+    usage_note(mem, b.dst, vk::BufferUsageFlags::ACCELERATION_STRUCTURE_STORAGE_KHR, 10552, "dstAccelerationStructureData");
     let Some(ops) = read_ops(mem, b) else { return false };
+    if !check_records(&b.input, &ops) {
+        return false;
+    }
     let sizes = ptlas::build_sizes(&b.input);
     let Some((src, dst_len)) = source_and_destination(mem, b, sizes.acceleration_structure_size) else { return false };
     if let Some((_, used)) = src {
@@ -198,7 +316,7 @@ fn execute(mem: &DeviceInputs<'_>, b: &PtlasBuild) -> bool {
     let dst = match Region::of_device(mem.space, b.dst, dst_len) {
         Ok(r) => r,
         Err(e) => {
-            diag::report(diag::Level::Error, CMD, &format!("dstAccelerationStructureData does not resolve ({e}); build skipped"));
+            diag::vuid("VUID-VkBuildPartitionedAccelerationStructureInfoNV-dstAccelerationStructureData-parameter", CMD, &format!("dstAccelerationStructureData does not resolve ({e}); build skipped"));
             return false;
         }
     };
