@@ -173,12 +173,9 @@ fn read_ops<'m>(mem: &'m DeviceInputs<'_>, b: &PtlasBuild) -> Option<Ops<'m>> {
     for k in 0..count {
         let cmd: IndirectCommand = Strided { data: infos, count, stride: size }.get(k)?;
         let op = cmd.op_type as usize;
-        if op > 2 {
-            diag::vuid(OP_TYPE_VUID, CMD, &format!("srcInfos[{k}].opType {} is not a VkPartitionedAccelerationStructureOpTypeNV; build skipped", cmd.op_type));
-            return None;
-        }
-        if seen[op] {
-            diag::vuid(UNIQUE_OP_VUID, CMD, &format!("srcInfos[{k}].opType {} repeats an earlier element's; build skipped", cmd.op_type));
+        if op > 2 || seen[op] {
+            let (vuid, why) = if op > 2 { (OP_TYPE_VUID, "not a VkPartitionedAccelerationStructureOpTypeNV") } else { (UNIQUE_OP_VUID, "each element must have a distinct opType") };
+            diag::vuid(vuid, CMD, &format!("srcInfos[{k}].opType {} is unknown or repeats an earlier element's ({why}); build skipped", cmd.op_type));
             return None;
         }
         seen[op] = true;

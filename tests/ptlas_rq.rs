@@ -1,0 +1,294 @@
+//! A PTLAS bound with VK_DESCRIPTOR_TYPE_PARTITIONED_ACCELERATION_STRUCTURE_NV, through the
+//! loader with validation on: a ray-query compute shader (tests/shaders/ptlas_rq_desc.comp)
+//! traces the PTLAS reached by that descriptor, by a copy of it (vkUpdateDescriptorSets with a
+//! VkCopyDescriptorSet), and by its address converted in the shader
+//! (OpConvertUToAccelerationStructureKHR), and gets, ray by ray, the hits of a KHR TLAS of the
+//! equivalent instance list (translations applied, disabled slots inactive) bound with an
+//! ordinary acceleration-structure descriptor to the same shader.
+//!
+//! The validation layer here (Debian 12's, 1.3.239) predates the extension. Besides the
+//! harness's filter of its "extension not supported" warning, this file drops, after each call
+//! that passes the NV descriptor type or the NV write struct, exactly the messages in which the
+//! layer says it does not know them (`LAYER_UNKNOWN`: an unknown VkDescriptorType value
+//! 1000570000 or pNext sType 1000570002); any other message still fails the test.
+mod harness;
+mod reference;
+
+use std::collections::HashMap;
+use std::ffi::c_void;
+
+use arbor::accel::Ray;
+use arbor_scene::{InstanceRecord, Rng};
+use ash::vk;
+use harness::vuid::*;
+
+const EXT: &str = "VK_NV_partitioned_acceleration_structure";
+const GLOBAL: u32 = u32::MAX;
+const PTLAS_DESCRIPTOR: vk::DescriptorType = vk::DescriptorType::from_raw(1000570000);
+const WRITE_PTLAS_STYPE: vk::StructureType = vk::StructureType::from_raw(1000570002);
+
+#[repr(C)]
+#[derive(Clone, Copy)]
+struct InstancesInput {
+    s_type: i32,
+    p_next: *const c_void,
+    flags: u32,
+    instance_count: u32,
+    max_instance_per_partition_count: u32,
+    partition_count: u32,
+    max_instance_in_global_partition_count: u32,
+}
+
+#[repr(C)]
+struct TranslationFlags {
+    s_type: i32,
+    p_next: *const c_void,
+    enable_partition_translation: u32,
+}
+
+#[repr(C)]
+struct BuildInfo {
+    s_type: i32,
+    p_next: *const c_void,
+    input: InstancesInput,
+    src: u64,
+    dst: u64,
+    scratch: u64,
+    src_infos: u64,
+    src_infos_count: u64,
+}
+
+/// VkWriteDescriptorSetPartitionedAccelerationStructureNV.
+#[repr(C)]
+struct WritePtlas {
+    s_type: vk::StructureType,
+    p_next: *const c_void,
+    acceleration_structure_count: u32,
+    p_acceleration_structures: *const u64,
+}
+
+type PfnSizes = unsafe extern "system" fn(vk::Device, *const InstancesInput, *mut vk::AccelerationStructureBuildSizesInfoKHR<'_>);
+type PfnBuild = unsafe extern "system" fn(vk::CommandBuffer, *const BuildInfo);
+
+/// What the layer of this machine says about the NV descriptor type and write struct, which
+/// postdate it: only that it does not know the enum value or the sType. Each entry is every
+/// phrase of one message.
+const LAYER_UNKNOWN: &[&[&str]] = &[&["1000570000"], &["1000570002"]];
+
+/// Drops the messages of `LAYER_UNKNOWN` from the context's record (others stay and fail).
+fn drop_unknown_nv_messages(ctx: &harness::Context) {
+    ctx.messages.lock().unwrap().retain(|m| !LAYER_UNKNOWN.iter().any(|phrases| phrases.iter().all(|p| m.contains(p))));
+}
+
+/// One PTLAS instance as the test knows it.
+#[derive(Clone, Copy)]
+struct Inst {
+    transform: [f32; 12],
+    id: u32,
+    flags: u32,
+    index: u32,
+    partition: u32,
+    blas: u64,
+}
+
+fn write_record(i: &Inst) -> Vec<u8> {
+    let mut b: Vec<u8> = i.transform.iter().chain(&[0.0f32; 6]).flat_map(|x| x.to_le_bytes()).collect();
+    for w in [i.id, 0xFF, 0, i.flags, i.index, i.partition] {
+        b.extend(w.to_le_bytes());
+    }
+    b.extend(i.blas.to_le_bytes());
+    b
+}
+
+fn instances(rng: &mut Rng, n: u32, partitions: u32, blas: u64) -> Vec<Inst> {
+    (0..n)
+        .filter(|_| rng.below(6) != 0)
+        .map(|index| {
+            let (t, s) = ([rng.range(-3.0, 3.0), rng.range(-3.0, 3.0), rng.range(-3.0, 3.0)], rng.range(0.5, 1.5));
+            Inst {
+                transform: [s, 0.0, 0.0, t[0], 0.0, s, 0.0, t[1], 0.0, 0.0, s, t[2]],
+                id: rng.next_u32() & 0xFF_FFFF,
+                flags: rng.below(4),
+                index,
+                partition: if rng.below(4) == 0 { GLOBAL } else { rng.below(partitions) },
+                blas: if rng.below(8) == 0 { 0 } else { blas },
+            }
+        })
+        .collect()
+}
+
+/// The equivalent KHR instance list: translation added, unwritten slots inactive.
+fn equivalent(n: u32, written: &[Inst], translations: &HashMap<u32, [f32; 3]>) -> Vec<InstanceRecord> {
+    let mut records = vec![InstanceRecord { transform: IDENTITY, custom_index: 0, mask: 0, sbt_offset: 0, flags: 0, reference: 0 }; n as usize];
+    for i in written {
+        let (mut m, t) = (i.transform, translations.get(&i.partition).copied().unwrap_or([0.0; 3]));
+        (m[3], m[7], m[11]) = (m[3] + t[0], m[7] + t[1], m[11] + t[2]);
+        records[i.index as usize] = InstanceRecord { transform: m, custom_index: i.id, mask: 0xFF, sbt_offset: 0, flags: i.flags as u8, reference: i.blas };
+    }
+    records
+}
+
+/// Builds the PTLAS of `written` and `translations` from scratch; its region.
+fn build_ptlas(a: &Accel, n: u32, partitions: u32, written: &[Inst], translations: &HashMap<u32, [f32; 3]>) -> Region {
+    let ctx = a.ctx;
+    let get = |name: &std::ffi::CStr| {
+        // SAFETY: a live device; the name is a command of an enabled extension.
+        unsafe { ctx.instance.get_device_proc_addr(ctx.device.handle(), name.as_ptr()) }.unwrap()
+    };
+    // SAFETY: the pointers are the commands of these names, with these signatures.
+    let (sizes_fn, build_fn) = unsafe {
+        (
+            std::mem::transmute::<unsafe extern "system" fn(), PfnSizes>(get(c"vkGetPartitionedAccelerationStructuresBuildSizesNV")),
+            std::mem::transmute::<unsafe extern "system" fn(), PfnBuild>(get(c"vkCmdBuildPartitionedAccelerationStructuresNV")),
+        )
+    };
+    let flags = TranslationFlags { s_type: 1000570005, p_next: std::ptr::null(), enable_partition_translation: 1 };
+    let input = InstancesInput { s_type: 1000570003, p_next: &flags as *const _ as *const c_void, flags: 0, instance_count: n, max_instance_per_partition_count: n, partition_count: partitions, max_instance_in_global_partition_count: n };
+    let mut sizes = vk::AccelerationStructureBuildSizesInfoKHR::default();
+    // SAFETY: valid input and output structs.
+    unsafe { sizes_fn(ctx.device.handle(), &input, &mut sizes) };
+    let (dst, scratch) = (guarded(a, sizes.acceleration_structure_size), guarded(a, sizes.build_scratch_size));
+    let writes = guarded_data(a, &written.iter().flat_map(write_record).collect::<Vec<u8>>());
+    let t_bytes: Vec<u8> = translations.iter().flat_map(|(p, t)| [p.to_le_bytes(), t[0].to_le_bytes(), t[1].to_le_bytes(), t[2].to_le_bytes()].concat()).collect();
+    let t_reg = guarded_data(a, &t_bytes);
+    let op = |op: u32, count: usize, r: &Region, stride: u64| [op.to_le_bytes().as_slice(), &(count as u32).to_le_bytes(), &r.address(a).to_le_bytes(), &stride.to_le_bytes()].concat();
+    let ops = guarded_data(a, &[op(0, written.len(), &writes, 104), op(2, translations.len(), &t_reg, 16)].concat());
+    let count = guarded_data(a, &2u32.to_le_bytes());
+    let info = BuildInfo { s_type: 1000570004, p_next: std::ptr::null(), input, src: 0, dst: dst.address(a), scratch: scratch.address(a), src_infos: ops.address(a), src_infos_count: count.address(a) };
+    // SAFETY: a valid command buffer; the info lives through the call.
+    a.submit(|cb| unsafe { build_fn(cb, &info) });
+    dst
+}
+
+/// A KHR TLAS of `records` built through the API.
+fn build_tlas(a: &Accel, records: &[InstanceRecord]) -> Dst {
+    let inst = guarded_data(a, &records.iter().flat_map(|r| r.to_bytes()).collect::<Vec<u8>>());
+    let geoms = [instances_geom(inst.address(a), false)];
+    let inf = info(TLAS, NO_FLAGS, &geoms);
+    let n = records.len() as u32;
+    let sizes = a.sizes(DEVICE, &inf, &[n]);
+    let tlas = guarded_structure(a, TLAS, sizes.acceleration_structure_size);
+    let scratch = guarded(a, sizes.build_scratch_size);
+    cmd_build(a, &[inf.dst_acceleration_structure(tlas.s).scratch_data(madr(scratch.address(a)))], &[&[range(n)]]);
+    tlas
+}
+
+/// How binding 2 of the set the shader traces is filled.
+enum Scene {
+    /// A PTLAS descriptor written with this address; `copied`: the set traced is a copy.
+    Ptlas { address: u64, copied: bool },
+    Khr(vk::AccelerationStructureKHR),
+}
+
+/// The shader over `rays` with binding 2 filled per `scene`, or through `by_address` when it is
+/// non-zero; the hits buffer.
+// One function: the objects of one dispatch, created and destroyed around it.
+fn trace(a: &Accel, scene: &Scene, by_address: u64, rays: &[Ray]) -> Vec<u8> {
+    let (d, ctx) = (&a.ctx.device, a.ctx);
+    let ray_bytes: Vec<u8> = rays.iter().flat_map(|r| [r.origin.x, r.origin.y, r.origin.z, r.tmin, r.direction.x, r.direction.y, r.direction.z, r.tmax]).flat_map(f32::to_le_bytes).collect();
+    let (rb, hb) = (a.upload(&ray_bytes), a.buffer(16 * rays.len() as u64));
+    let spirv = harness::compute::glsl("ptlas_rq_desc.comp");
+    let stage = vk::ShaderStageFlags::COMPUTE;
+    let as_type = if matches!(scene, Scene::Khr(_)) { vk::DescriptorType::ACCELERATION_STRUCTURE_KHR } else { PTLAS_DESCRIPTOR };
+    let types = [vk::DescriptorType::STORAGE_BUFFER, vk::DescriptorType::STORAGE_BUFFER, as_type];
+    let bindings = [0, 1, 2].map(|b| vk::DescriptorSetLayoutBinding::default().binding(b).descriptor_type(types[b as usize]).descriptor_count(1).stage_flags(stage));
+    // SAFETY: valid create infos and pNext chains; everything is destroyed before returning, after the wait.
+    unsafe {
+        let set_layout = d.create_descriptor_set_layout(&vk::DescriptorSetLayoutCreateInfo::default().bindings(&bindings), None).unwrap();
+        let sizes = [vk::DescriptorPoolSize { ty: vk::DescriptorType::STORAGE_BUFFER, descriptor_count: 4 }, vk::DescriptorPoolSize { ty: as_type, descriptor_count: 2 }];
+        let pool = d.create_descriptor_pool(&vk::DescriptorPoolCreateInfo::default().max_sets(2).pool_sizes(&sizes), None).unwrap();
+        let layouts = [set_layout, set_layout];
+        let sets = d.allocate_descriptor_sets(&vk::DescriptorSetAllocateInfo::default().descriptor_pool(pool).set_layouts(&layouts)).unwrap();
+        let infos = [rb, hb].map(|b| [vk::DescriptorBufferInfo { buffer: a.buf(b).buffer, offset: 0, range: vk::WHOLE_SIZE }]);
+        let mut writes: Vec<vk::WriteDescriptorSet> = (0..2).map(|k| vk::WriteDescriptorSet::default().dst_set(sets[0]).dst_binding(k as u32).descriptor_type(vk::DescriptorType::STORAGE_BUFFER).buffer_info(&infos[k])).collect();
+        let handles: [vk::AccelerationStructureKHR; 1];
+        let mut khr_write;
+        let addresses: [u64; 1];
+        let ptlas_write;
+        let structure = vk::WriteDescriptorSet::default().dst_set(sets[0]).dst_binding(2).descriptor_type(as_type).descriptor_count(1);
+        match scene {
+            Scene::Khr(s) => {
+                handles = [*s];
+                khr_write = vk::WriteDescriptorSetAccelerationStructureKHR::default().acceleration_structures(&handles);
+                writes.push(structure.push_next(&mut khr_write));
+            }
+            Scene::Ptlas { address, .. } => {
+                addresses = [*address];
+                ptlas_write = WritePtlas { s_type: WRITE_PTLAS_STYPE, p_next: std::ptr::null(), acceleration_structure_count: 1, p_acceleration_structures: addresses.as_ptr() };
+                writes.push(vk::WriteDescriptorSet { p_next: &ptlas_write as *const _ as *const c_void, ..structure });
+            }
+        }
+        d.update_descriptor_sets(&writes, &[]);
+        let copied = matches!(scene, Scene::Ptlas { copied: true, .. });
+        if copied {
+            let copy = [vk::CopyDescriptorSet::default().src_set(sets[0]).dst_set(sets[1]).descriptor_count(1)];
+            let copies: Vec<vk::CopyDescriptorSet> = (0..3).map(|b| vk::CopyDescriptorSet { src_binding: b, dst_binding: b, ..copy[0] }).collect();
+            d.update_descriptor_sets(&[], &copies);
+        }
+        drop_unknown_nv_messages(ctx);
+        let set = sets[copied as usize];
+        let ranges = [vk::PushConstantRange { stage_flags: stage, offset: 0, size: 16 }];
+        let layout = d.create_pipeline_layout(&vk::PipelineLayoutCreateInfo::default().set_layouts(&layouts[..1]).push_constant_ranges(&ranges), None).unwrap();
+        let module = d.create_shader_module(&vk::ShaderModuleCreateInfo::default().code(&spirv), None).unwrap();
+        let ci = [vk::ComputePipelineCreateInfo::default().stage(vk::PipelineShaderStageCreateInfo::default().stage(stage).module(module).name(c"main")).layout(layout)];
+        let pipeline = d.create_compute_pipelines(vk::PipelineCache::null(), &ci, None).map_err(|(_, e)| e).unwrap()[0];
+        drop_unknown_nv_messages(ctx);
+        let push: Vec<u8> = [by_address as u32, (by_address >> 32) as u32, rays.len() as u32, (by_address != 0) as u32].iter().flat_map(|x| x.to_le_bytes()).collect();
+        a.submit(|cb| {
+            d.cmd_bind_pipeline(cb, vk::PipelineBindPoint::COMPUTE, pipeline);
+            d.cmd_bind_descriptor_sets(cb, vk::PipelineBindPoint::COMPUTE, layout, 0, &[set], &[]);
+            d.cmd_push_constants(cb, layout, stage, 0, &push);
+            d.cmd_dispatch(cb, (rays.len() as u32).div_ceil(64), 1, 1);
+            let barrier = [vk::MemoryBarrier::default().src_access_mask(vk::AccessFlags::SHADER_WRITE).dst_access_mask(vk::AccessFlags::HOST_READ)];
+            d.cmd_pipeline_barrier(cb, vk::PipelineStageFlags::COMPUTE_SHADER, vk::PipelineStageFlags::HOST, vk::DependencyFlags::empty(), &barrier, &[], &[]);
+        });
+        drop_unknown_nv_messages(ctx);
+        d.destroy_pipeline(pipeline, None);
+        d.destroy_shader_module(module, None);
+        d.destroy_pipeline_layout(layout, None);
+        d.destroy_descriptor_pool(pool, None);
+        d.destroy_descriptor_set_layout(set_layout, None);
+        drop_unknown_nv_messages(ctx);
+    }
+    a.buf(hb).read(0, 16 * rays.len())
+}
+
+#[test]
+fn ptlas_descriptor_copy_and_address_trace_like_the_khr_tlas() {
+    let mut exts = harness::default_device_extensions();
+    exts.push(EXT);
+    exts.push("VK_KHR_ray_query");
+    let ctx = harness::Context::new(harness::Options { acceleration_structure: true, device_extensions: exts, ..Default::default() });
+    let a = Accel::new(&ctx);
+    let mesh = upload_grid(&a);
+    let (blas, _) = valid_blas(&a, &mesh, NO_FLAGS);
+    let blas_address = a.address_of(blas.s);
+    let (n, partitions) = (40u32, 4u32);
+    let written = instances(&mut Rng::new(2024), n, partitions, blas_address);
+    let translations: HashMap<u32, [f32; 3]> = [(1, [0.75, -0.5, 0.25]), (GLOBAL, [-0.5, 0.25, 1.0])].into_iter().collect();
+    let ptlas = build_ptlas(&a, n, partitions, &written, &translations);
+    let tlas = build_tlas(&a, &equivalent(n, &written, &translations));
+    let rays = reference::random_rays([-4.0, -4.0, -4.0, 5.0, 5.0, 5.0], 256, 11);
+    let address = ptlas.address(&a);
+    let khr = trace(&a, &Scene::Khr(tlas.s), 0, &rays);
+    let runs = [
+        ("descriptor", trace(&a, &Scene::Ptlas { address, copied: false }, 0, &rays)),
+        ("copied descriptor", trace(&a, &Scene::Ptlas { address, copied: true }, 0, &rays)),
+        ("converted address", trace(&a, &Scene::Ptlas { address: 0, copied: false }, address, &rays)),
+    ];
+    let word = |h: &[u8], k: usize| u32::from_le_bytes(h[4 * k..4 * k + 4].try_into().unwrap());
+    let hits = khr.chunks(16).filter(|h| word(h, 2) != u32::MAX).count();
+    assert!(hits > 30 && hits < rays.len() - 30, "{hits} of {} rays hit the KHR TLAS: the scene is not exercised", rays.len());
+    for (how, got) in &runs {
+        for (i, (p, k)) in got.chunks(16).zip(khr.chunks(16)).enumerate() {
+            let fields = |h: &[u8]| (word(h, 0), word(h, 1), word(h, 2), word(h, 3));
+            assert_eq!(fields(p), fields(k), "ray {i}: the PTLAS by {how} and the KHR TLAS disagree (t bits, primitive, instance, custom index)");
+        }
+    }
+    for r in [ptlas, tlas.r] {
+        assert_guards(&a, r);
+    }
+    drop_unknown_nv_messages(&ctx);
+    a.destroy();
+    ctx.finish();
+}
