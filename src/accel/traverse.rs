@@ -372,7 +372,28 @@ fn make_level<'a>(s: (Parsed<'a>, Option<Side<'a>>), org: Vec3, dir: Vec3) -> Le
 
 impl<'a> RayQuery<'a> {
     pub fn new(structure: &'a [u8], view: &'a dyn DeviceView, ray: Ray, flags: RayFlags, cull_mask: u8) -> Self {
-        RayQuery::fresh(structure, view, ray, flags, cull_mask, (Vec::with_capacity(64), open_top(structure), None))
+        let mut q = RayQuery {
+            top: None,
+            view,
+            ray,
+            flags: flags.0,
+            cull_mask,
+            tmax: ray.tmax,
+            stack: Vec::with_capacity(64),
+            inst: None,
+            candidate: None,
+            committed: None,
+            done: false,
+            collect_all: false,
+            budget_top: 0,
+            budget_inner: 0,
+            unresolved: None,
+            source: structure,
+            top_opened: open_top(structure),
+            blas: None,
+        };
+        q.start();
+        q
     }
 
 

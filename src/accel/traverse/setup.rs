@@ -80,46 +80,48 @@ pub(super) fn resolve_instance_in<'a>(l: &Level<'a>, slot: u32, view: &'a dyn De
 }
 
 impl<'a> RayQuery<'a> {
-    /// A query on `ray` with what it keeps from an earlier ray: the stack (emptied), the opened
-    /// top level of `source` and the last BLAS entered through `view`.
-    pub(super) fn fresh(source: &'a [u8], view: &'a dyn DeviceView, ray: Ray, flags: RayFlags, cull_mask: u8, kept: (Vec<Item>, Option<Opened<'a>>, BlasMemo<'a>)) -> Self {
-        let (mut stack, top_opened, blas) = kept;
-        stack.clear();
-        let top = top_opened.map(|o| level_of(&o, ray.origin, ray.direction));
-        let mut q = RayQuery {
-            top,
-            view,
-            ray,
-            flags: flags.0,
-            cull_mask,
-            tmax: ray.tmax,
-            stack,
-            inst: None,
-            candidate: None,
-            committed: None,
-            done: false,
-            collect_all: false,
-            budget_top: top.map_or(0, |l| l.s.raw.node_count as u64 + l.s.raw.primitive_count as u64),
-            budget_inner: 0,
-            unresolved: None,
-            source,
-            top_opened,
-            blas,
-        };
-        match top {
-            Some(l) if ray_ok(&ray) && l.s.raw.node_count > 0 => q.stack.push(Item::Node { node: 0, inner: false, tnear: ray.tmin }),
-            _ => q.done = true,
-        }
-        q
-    }
-
     /// This query started afresh on a new ray, exactly as `RayQuery::new` would start it, but
     /// keeping its stack's allocation and, while `structure` and `view` are the ones it had,
-    /// the opened top level and the last BLAS entered.
+    /// the opened top level and the last BLAS entered. Field by field, in place: the query is
+    /// a few kilobytes, which a move per ray would copy.
     pub fn restart(&mut self, structure: &'a [u8], view: &'a dyn DeviceView, ray: Ray, flags: RayFlags, cull_mask: u8) {
-        let blas = if std::ptr::addr_eq(view, self.view) { self.blas } else { None };
-        let top = if std::ptr::eq(structure, self.source) { self.top_opened } else { open_top(structure) };
-        let stack = std::mem::take(&mut self.stack);
-        *self = RayQuery::fresh(structure, view, ray, flags, cull_mask, (stack, top, blas));
+        if !std::ptr::addr_eq(view, self.view) {
+            self.blas = None;
+        }
+        if !std::ptr::eq(structure, self.source) {
+            self.top_opened = open_top(structure);
+        }
+        self.source = structure;
+        self.view = view;
+        self.ray = ray;
+        self.flags = flags.0;
+        self.cull_mask = cull_mask;
+        self.tmax = ray.tmax;
+        self.stack.clear();
+        self.inst = None;
+        self.candidate = None;
+        self.committed = None;
+        self.done = false;
+        self.collect_all = false;
+        self.budget_inner = 0;
+        self.unresolved = None;
+        self.start();
+    }
+
+    /// The top level for this ray, and the root on the stack (or done, when there is nothing
+    /// to traverse). The rest of the state is that of a fresh query.
+    pub(super) fn start(&mut self) {
+        let ray = self.ray;
+        self.top = self.top_opened.as_ref().map(|o| level_of(o, ray.origin, ray.direction));
+        let (budget, walk) = match &self.top {
+            Some(l) => (l.s.raw.node_count as u64 + l.s.raw.primitive_count as u64, ray_ok(&ray) && l.s.raw.node_count > 0),
+            None => (0, false),
+        };
+        self.budget_top = budget;
+        if walk {
+            self.stack.push(Item::Node { node: 0, inner: false, tnear: ray.tmin });
+        } else {
+            self.done = true;
+        }
     }
 }
