@@ -161,8 +161,8 @@ fn restarted_query_matches_a_fresh_one() {
     // One query restarted on every ray, switching structure, view, flags and mask at random
     // (also in the middle of a traversal), against a fresh query for each.
     for k in 0..2000 {
-        let s = &structures[if rng.next_u32() % 4 == 0 { rng.next_u32() as usize % 4 } else { 3 }];
-        let v: &dyn DeviceView = if rng.next_u32() % 8 == 0 { &empty } else { &view };
+        let s = &structures[if rng.next_u32().is_multiple_of(4) { rng.next_u32() as usize % 4 } else { 3 }];
+        let v: &dyn DeviceView = if rng.next_u32().is_multiple_of(8) { &empty } else { &view };
         let (f, mask) = (FLAGS[rng.next_u32() as usize % FLAGS.len()], [0xff, 0x05, 0x3a][rng.next_u32() as usize % 3]);
         let r = rays[k % rays.len()];
         q.restart(s, v, r, RayFlags(f), mask);
