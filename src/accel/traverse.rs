@@ -8,13 +8,14 @@
 //! which is, numerically, `dot((v1 - v0) x (v2 - v0), direction) < 0`; the instance flag
 //! TRIANGLE_FLIP_FACING (2, formerly FRONT_COUNTERCLOCKWISE) inverts it. Instance transforms do
 //! not change facing; geometry transforms (applied at build time) do.
-use super::input::{transform_dir, transform_point};
 use super::clas::{self, Side};
 use super::layout::{self, InstanceRecord, Parsed, CHILD_INTERNAL};
 use super::{DeviceView, GeometryFlags};
 use glam::{DVec3, Vec3, Vec4};
+use setup::{level_of, open_top, opened, resolve_instance_in, BlasMemo, Opened};
 
 mod closest;
+mod setup;
 #[cfg(test)]
 mod tests;
 
@@ -294,7 +295,7 @@ struct Level<'a> {
     dir: Vec3,
     inv: Vec3,
     sh: Shear,
-    /// Some(flags) when every geometry of this BLAS is triangles with these same flags.
+    /// See `Opened::uni_tri`.
     uni_tri: Option<u32>,
     /// A cluster BLAS: per-triangle cluster ID, geometry index, flags and index in cluster.
     cluster: Option<Side<'a>>,
@@ -334,6 +335,11 @@ pub struct RayQuery<'a> {
     /// The first instance reference met that names no built bottom-level structure (its
     /// instance was treated as absent), for the caller to report once.
     unresolved: Option<u64>,
+    /// The structure slice the query was started on, the walkable top level found in it, and
+    /// the last BLAS entered: kept by `restart` while the structure and view stay the same.
+    source: &'a [u8],
+    top_opened: Option<Opened<'a>>,
+    blas: BlasMemo<'a>,
 }
 
 fn ray_ok(r: &Ray) -> bool {
@@ -360,20 +366,14 @@ fn uniform_triangles(s: &Parsed<'_>) -> Option<u32> {
 }
 
 #[inline(always)]
-fn make_level<'a>((s, cluster): (Parsed<'a>, Option<Side<'a>>), org: Vec3, dir: Vec3) -> Level<'a> {
-    let inv = Vec3::ONE / dir;
-    let (org4, inv4) = ([0, 1, 2].map(|a| Vec4::splat(org[a])), [0, 1, 2].map(|a| Vec4::splat(inv[a])));
-    let uni_tri = if cluster.is_some() { None } else { uniform_triangles(&s) };
-    Level { s, org, dir, inv, sh: shear(dir), uni_tri, cluster, org4, inv4, finite: org.is_finite() && inv.is_finite() }
+fn make_level<'a>(s: (Parsed<'a>, Option<Side<'a>>), org: Vec3, dir: Vec3) -> Level<'a> {
+    level_of(&opened(s), org, dir)
 }
 
 impl<'a> RayQuery<'a> {
     pub fn new(structure: &'a [u8], view: &'a dyn DeviceView, ray: Ray, flags: RayFlags, cull_mask: u8) -> Self {
-        // A PTLAS is walked through the top-level structure it embeds.
-        let structure = super::ptlas::traversable(structure).unwrap_or(structure);
-        let top = clas::open_walkable(structure).map(|s| make_level(s, ray.origin, ray.direction));
         let mut q = RayQuery {
-            top,
+            top: None,
             view,
             ray,
             flags: flags.0,
@@ -385,16 +385,17 @@ impl<'a> RayQuery<'a> {
             committed: None,
             done: false,
             collect_all: false,
-            budget_top: top.map_or(0, |l| l.s.raw.node_count as u64 + l.s.raw.primitive_count as u64),
+            budget_top: 0,
             budget_inner: 0,
             unresolved: None,
+            source: structure,
+            top_opened: open_top(structure),
+            blas: None,
         };
-        match top {
-            Some(l) if ray_ok(&ray) && l.s.raw.node_count > 0 => q.stack.push(Item::Node { node: 0, inner: false, tnear: ray.tmin }),
-            _ => q.done = true,
-        }
+        q.start();
         q
     }
+
 
     #[inline(always)]
     fn level_ref(&self, inner: bool) -> Option<&Level<'a>> {
@@ -473,7 +474,7 @@ impl<'a> RayQuery<'a> {
         if self.inst.is_some() {
             return;
         }
-        match resolve_instance(&l, slot, self.view, &self.ray, self.cull_mask) {
+        match resolve_instance_in(&l, slot, self.view, &self.ray, self.cull_mask, &mut self.blas) {
             Entered::Absent => {}
             Entered::Unresolved(addr) => {
                 self.unresolved.get_or_insert(addr);
@@ -571,24 +572,7 @@ enum Entered<'a> {
 }
 
 fn resolve_instance<'a>(l: &Level<'a>, slot: u32, view: &'a dyn DeviceView, ray: &Ray, cull_mask: u8) -> Entered<'a> {
-    let Some(rec) = l.s.instance(slot) else { return Entered::Absent };
-    if rec.mask & cull_mask as u32 == 0 {
-        return Entered::Absent;
-    }
-    let Some(addr) = l.s.blas_address(rec.blas_index) else { return Entered::Absent };
-    // A reference that resolves to no built BLAS is never followed: the instance is absent.
-    let Some(blas) = view.acceleration_structure(addr).and_then(clas::open_walkable).filter(|b| !b.0.is_tlas()) else {
-        return Entered::Unresolved(addr);
-    };
-    if blas.0.raw.node_count == 0 {
-        return Entered::Absent;
-    }
-    let org = transform_point(&rec.world_to_object, ray.origin);
-    let dir = transform_dir(&rec.world_to_object, ray.direction);
-    if org.is_nan() || dir.is_nan() || dir == Vec3::ZERO {
-        return Entered::Absent;
-    }
-    Entered::Blas(rec, make_level(blas, org, dir))
+    resolve_instance_in(l, slot, view, ray, cull_mask, &mut None)
 }
 
 /// Opacity after instance and ray flags; None when the ray culls it.

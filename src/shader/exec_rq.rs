@@ -28,33 +28,64 @@ pub(super) struct Slot<'a> {
 }
 
 /// The ray queries of one lane group: per lane, (query address, state). Shaders use one or
-/// two queries, so a short list beats a map. Also the last structure an Initialize resolved and
-/// found valid, (address, bytes): every ray of a dispatch usually names the same one, and the
-/// memory view's lookup takes a lock shared by all worker threads. Its bytes stay valid for the
-/// whole dispatch (`'a`), across workgroups.
-pub(super) struct Queries<'a>([Vec<(u64, Slot<'a>)>; LANES], Option<(u64, &'a [u8])>);
+/// two queries, so a short list beats a map. The first `live[lane]` slots are the current
+/// workgroup's; the rest are kept from earlier workgroups, whose queries a new Initialize
+/// restarts instead of allocating a new one (each keeps its stack and the structures it
+/// opened: nothing is allocated or looked up in shared state per ray).
+///
+/// Also the last structure an Initialize resolved and found valid, (address, bytes): every ray
+/// of a dispatch usually names the same one. Its bytes stay valid for the whole dispatch
+/// (`'a`), across workgroups.
+pub(super) struct Queries<'a> {
+    lanes: [Vec<(u64, Slot<'a>)>; LANES],
+    live: [usize; LANES],
+    last: Option<(u64, &'a [u8])>,
+}
+
+/// What an Initialize starts a query on.
+struct Start<'a> {
+    bytes: &'a [u8],
+    view: &'a dyn DeviceView,
+    ray: Ray,
+    flags: u32,
+    cull: u8,
+}
 
 impl<'a> Queries<'a> {
     pub fn new() -> Self {
-        Queries(std::array::from_fn(|_| Vec::new()), None)
+        Queries { lanes: std::array::from_fn(|_| Vec::new()), live: [0; LANES], last: None }
     }
 
     /// Forgets every query (a new workgroup starts with none initialised).
     pub fn clear(&mut self) {
-        for lane in &mut self.0 {
-            lane.clear();
-        }
+        self.live = [0; LANES];
     }
 
     fn get(&mut self, lane: usize, at: u64) -> Option<&mut Slot<'a>> {
-        self.0[lane].iter_mut().find(|(a, _)| *a == at).map(|(_, s)| s)
+        self.lanes[lane][..self.live[lane]].iter_mut().find(|(a, _)| *a == at).map(|(_, s)| s)
     }
 
-    fn set(&mut self, lane: usize, at: u64, slot: Slot<'a>) {
-        match self.get(lane, at) {
-            Some(s) => *s = slot,
-            None => self.0[lane].push((at, slot)),
-        }
+    /// Lane `lane`'s query at `at` started: the live slot of that address restarted, else a
+    /// kept slot taken over, else a new one.
+    fn start(&mut self, lane: usize, at: u64, s: Start<'a>) {
+        let (slots, live) = (&mut self.lanes[lane], &mut self.live[lane]);
+        let i = match slots[..*live].iter().position(|(a, _)| *a == at) {
+            Some(i) => i,
+            None if *live < slots.len() => {
+                slots[*live].0 = at;
+                *live += 1;
+                *live - 1
+            }
+            None => {
+                let q = RayQuery::new(s.bytes, s.view, s.ray, RayFlags(s.flags), s.cull);
+                slots.push((at, Slot { q, ray: s.ray, flags: s.flags, candidate: None }));
+                *live += 1;
+                return;
+            }
+        };
+        let slot = &mut slots[i].1;
+        slot.q.restart(s.bytes, s.view, s.ray, RayFlags(s.flags), s.cull);
+        (slot.ray, slot.flags, slot.candidate) = (s.ray, s.flags, None);
     }
 }
 
@@ -70,8 +101,8 @@ pub(super) fn exec_ray_query<'a>(ctx: &Ctx<'a>, group: &mut Group<'a>, wg: &mut 
     for l in (0..LANES).filter(|&l| (mask >> l) & 1 != 0) {
         let at = group.regs[op.query as usize][l];
         if op.kind == RqKind::Initialize {
-            let slot = initialize(ctx, &mut *group, wg, op, l);
-            group.queries.set(l, at, slot);
+            let start = initialize(ctx, &mut *group, wg, op, l);
+            group.queries.start(l, at, start);
             continue;
         }
         let Some(slot) = group.queries.get(l, at) else {
@@ -109,9 +140,9 @@ pub(super) fn exec_ray_query<'a>(ctx: &Ctx<'a>, group: &mut Group<'a>, wg: &mut 
     }
 }
 
-/// OpRayQueryInitializeKHR for lane `l`: resolves the structure (faulting when it cannot) and
-/// starts a traversal, which finds nothing when the structure is missing.
-fn initialize<'a>(ctx: &Ctx<'a>, group: &mut Group<'a>, wg: &mut Wg, op: &RayQueryOp, l: usize) -> Slot<'a> {
+/// OpRayQueryInitializeKHR for lane `l`: resolves the structure (faulting when it cannot) for
+/// a traversal, which finds nothing when the structure is missing.
+fn initialize<'a>(ctx: &Ctx<'a>, group: &mut Group<'a>, wg: &mut Wg, op: &RayQueryOp, l: usize) -> Start<'a> {
     let a = |k: usize| group.regs[op.args[k] as usize][l];
     let f = |k: usize| f32::from_bits(a(k) as u32);
     let address = a(0);
@@ -120,8 +151,8 @@ fn initialize<'a>(ctx: &Ctx<'a>, group: &mut Group<'a>, wg: &mut Wg, op: &RayQue
     let cull = a(2) as u8;
     let ray = Ray { origin: Vec3::new(f(3), f(4), f(5)), tmin: f(6), direction: Vec3::new(f(7), f(8), f(9)), tmax: f(10) };
     let view: &'a dyn DeviceView = ctx.mem.acceleration_structures().unwrap_or(&NoDevice);
-    if let Some((_, bytes)) = group.queries.1.filter(|(at, _)| *at == address) {
-        return Slot { q: RayQuery::new(bytes, view, ray, RayFlags(flags), cull), ray, flags, candidate: None };
+    if let Some((_, bytes)) = group.queries.last.filter(|(at, _)| *at == address) {
+        return Start { bytes, view, ray, flags, cull };
     }
     let bytes: &'a [u8] = match view.acceleration_structure(address) {
         None => {
@@ -133,11 +164,11 @@ fn initialize<'a>(ctx: &Ctx<'a>, group: &mut Group<'a>, wg: &mut Wg, op: &RayQue
             &[]
         }
         Some(b) => {
-            group.queries.1 = Some((address, b));
+            group.queries.last = Some((address, b));
             b
         }
     };
-    Slot { q: RayQuery::new(bytes, view, ray, RayFlags(flags), cull), ray, flags, candidate: None }
+    Start { bytes, view, ray, flags, cull }
 }
 
 fn f32s(out: &mut [u64], v: &[f32]) {

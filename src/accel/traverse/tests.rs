@@ -1,6 +1,7 @@
 //! The plain closest/any-hit loop against the resumable query with every candidate confirmed
 //! (its definition): the same hit, bit for bit, over triangles (uniform and mixed geometry
-//! flags), AABBs, instances with every flag, masks, ray flags, and corrupted structures.
+//! flags), AABBs, instances with every flag, masks, ray flags, and corrupted structures; and a
+//! query restarted from ray to ray against a fresh one.
 use super::*;
 use crate::accel::tests::{build_ok, f32_bytes, tri_geom, Rng};
 use crate::accel::{AsType, BuildFlags, Geometry, GeometryData, GeometryFlags, MapView, NoDevice};
@@ -132,4 +133,48 @@ fn plain_loop_matches_ray_query_on_corrupt_structures() {
             compare(&c, &view, &rays);
         }
     }
+}
+
+/// Every candidate (each confirmed) and the committed hit and unresolved reference of a query.
+fn trail(q: &mut RayQuery<'_>) -> Vec<Option<Vec<u32>>> {
+    let mut out = Vec::new();
+    while let Some(c) = q.proceed() {
+        out.push(key(&Some(c)));
+        match c.kind {
+            HitKind::Triangle => q.confirm(),
+            HitKind::Aabb => q.generate_intersection(c.t),
+        }
+    }
+    out.push(key(&q.committed()));
+    out.push(q.unresolved_reference().map(|a| vec![a as u32, (a >> 32) as u32]));
+    out
+}
+
+#[test]
+fn restarted_query_matches_a_fresh_one() {
+    let (structures, view) = scene();
+    let rays = rays(&mut Rng::new(13), 60);
+    let empty = MapView::new();
+    let mut rng = Rng::new(17);
+    let mut q = RayQuery::new(&structures[3], &view, rays[0], RayFlags(0), 0xff);
+    let mut hits = 0;
+    // One query restarted on every ray, switching structure, view, flags and mask at random
+    // (also in the middle of a traversal), against a fresh query for each.
+    for k in 0..2000 {
+        let s = &structures[if rng.next_u32().is_multiple_of(4) { rng.next_u32() as usize % 4 } else { 3 }];
+        let v: &dyn DeviceView = if rng.next_u32().is_multiple_of(8) { &empty } else { &view };
+        let (f, mask) = (FLAGS[rng.next_u32() as usize % FLAGS.len()], [0xff, 0x05, 0x3a][rng.next_u32() as usize % 3]);
+        let r = rays[k % rays.len()];
+        q.restart(s, v, r, RayFlags(f), mask);
+        if k % 7 == 3 {
+            // Abandoned after its first candidate: the next restart must not see its state.
+            q.proceed();
+            continue;
+        }
+        let restarted = trail(&mut q);
+        let fresh = trail(&mut RayQuery::new(s, v, r, RayFlags(f), mask));
+        assert_eq!(restarted, fresh, "ray {k}: flags {f:#x}, mask {mask:#x}, {r:?}");
+        hits += (fresh[fresh.len() - 2].is_some()) as usize;
+    }
+    assert!(hits > 300, "{hits} rays hit");
 }
