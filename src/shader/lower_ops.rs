@@ -259,7 +259,7 @@ impl Lowerer<'_> {
                     Some(Type::Matrix { n, .. }) => *n as usize,
                     _ => return Err(self.m.malformed(src, "transpose of a non-matrix")),
                 };
-                if cols == 0 || m.len() % cols != 0 {
+                if cols == 0 || !m.len().is_multiple_of(cols) {
                     return Err(shape_error(self, inst, "matrix of no columns or uneven columns"));
                 }
                 let rows = m.len() / cols;
@@ -388,7 +388,7 @@ impl Lowerer<'_> {
                 Some(Type::Matrix { n, .. }) => *n as usize,
                 _ => 1,
             };
-            if c == 0 || len == 0 || len % c != 0 {
+            if c == 0 || len == 0 || !len.is_multiple_of(c) {
                 return Err(shape_error(lw, inst, "matrix of no columns or uneven columns"));
             }
             Ok(c)

@@ -99,7 +99,7 @@ fn node_bound_holds_for_adversarial_trees_across_the_emission_cut() {
         match n {
             1 => Shape::Leaf,
             2 => Shape::Node(Box::new(Shape::Leaf), Box::new(Shape::Leaf)),
-            _ if n > crate::accel::params::EMIT_CUT || n % 8 != 0 => Shape::Node(Box::new(adversarial(n / 2)), Box::new(adversarial(n - n / 2))),
+            _ if n > crate::accel::params::EMIT_CUT || !n.is_multiple_of(8) => Shape::Node(Box::new(adversarial(n / 2)), Box::new(adversarial(n - n / 2))),
             _ => {
                 let q = n / 4;
                 let half = |a: u32, b: u32| Shape::Node(Box::new(adversarial(a)), Box::new(adversarial(b)));
