@@ -259,6 +259,9 @@ pub fn build_once(rng: &mut Rng, counts: &mut Counts) {
             }
             trace(s, &view, rng);
         }
+        // The size query is a true upper bound: only a destination made smaller than it may
+        // be too small.
+        Err(e @ (BuildError::DestinationTooSmall { .. } | BuildError::ScratchTooSmall { .. })) if shrink == 0 => panic!("a build into the queried sizes failed: {e:?}"),
         Err(e) => counts.reject(build_reason(&e)),
     }
 }

@@ -146,21 +146,27 @@ fn memory_for(p: &Pipeline, rng: &mut Rng) -> HostMemory {
     mem
 }
 
-/// Parses, lowers and (when accepted and within the device limits) dispatches one module.
-fn execute(words: &[u32], rng: &mut Rng, counts: &mut Counts, outcomes: &mut BTreeMap<String, u64>) {
+/// The rejection `Pipeline::compute` gives when its backstop caught a panic in lowering: a
+/// check missing, counted as a crash.
+pub const BACKSTOP: &str = "lowering failed";
+
+/// Parses, lowers and (when accepted and within the device limits) dispatches one module;
+/// returns the rejection reason, if any.
+fn execute(words: &[u32], rng: &mut Rng, counts: &mut Counts, outcomes: &mut BTreeMap<String, u64>) -> Option<String> {
     counts.executions += 1;
     let module = match Module::parse(words) {
         Ok(m) => m,
-        Err(e) => return counts.reject(reason("parse", &e)),
+        Err(e) => return Some(reason("parse", &e)),
     };
     let spec: Vec<(u32, Vec<u8>)> = if rng.below(4) == 0 { vec![(rng.below(4) as u32, (rng.next() as u32).to_le_bytes().to_vec())] } else { Vec::new() };
     let pipeline = match Pipeline::compute(&module, "main", &spec) {
         Ok(p) => p,
-        Err(e) => return counts.reject(reason("pipeline", &e)),
+        Err(e) if e.to_string().contains(BACKSTOP) => panic!("the lowering backstop caught a panic: {e}"),
+        Err(e) => return Some(reason("pipeline", &e)),
     };
     let invocations: u64 = pipeline.local_size.iter().map(|&n| n as u64).product();
     if invocations == 0 || invocations > MAX_INVOCATIONS || pipeline.workgroup_memory_size() > MAX_SHARED_BYTES {
-        return counts.reject("pipeline: beyond the device limits".into());
+        return Some("pipeline: beyond the device limits".into());
     }
     counts.accepted += 1;
     let mem = memory_for(&pipeline, rng);
@@ -174,13 +180,23 @@ fn execute(words: &[u32], rng: &mut Rng, counts: &mut Counts, outcomes: &mut BTr
         (None, None) => "clean".to_string(),
     };
     *outcomes.entry(outcome).or_default() += 1;
+    None
 }
 
 /// `iterations` executions from `seed`: one to four mutations of a seed module each (one in
 /// sixteen runs unmutated, so the seeds' own paths stay covered). Returns the counts and the
 /// dispatch outcomes of accepted modules.
 pub fn run(iterations: u64, seed: u64) -> (Counts, BTreeMap<String, u64>) {
+    let (counts, outcomes, _) = run_saving(iterations, seed, None);
+    (counts, outcomes)
+}
+
+/// `run`, also returning the first module whose rejection reason contains `wanted` (to keep a
+/// case as a test). A crash (a panic, or a panic the lowering backstop caught) prints the
+/// execution's index and the module's words before it fails the run.
+pub fn run_saving(iterations: u64, seed: u64, wanted: Option<&str>) -> (Counts, BTreeMap<String, u64>, Option<Vec<u32>>) {
     let seeds = seeds();
+    let mut saved = None;
     let mut rng = Rng::new(seed ^ 0x5350_4952_5621);
     let mut counts = Counts::default();
     let mut outcomes = BTreeMap::new();
@@ -193,8 +209,22 @@ pub fn run(iterations: u64, seed: u64) -> (Counts, BTreeMap<String, u64>) {
                 mutate(&mut rng, &mut words, other);
             }
         }
-        execute(&words, &mut rng, &mut counts, &mut outcomes);
+        let index = counts.executions;
+        let result = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| execute(&words, &mut rng, &mut counts, &mut outcomes)));
+        match result {
+            Ok(Some(r)) => {
+                if saved.is_none() && wanted.is_some_and(|w| r.contains(w)) {
+                    saved = Some(words.clone());
+                }
+                counts.reject(r);
+            }
+            Ok(None) => {}
+            Err(panic) => {
+                eprintln!("crash at execution {index} (seed {seed}); module words: {words:08x?}");
+                std::panic::resume_unwind(panic);
+            }
+        }
     }
-    (counts, outcomes)
+    (counts, outcomes, saved)
 }
 

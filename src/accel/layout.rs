@@ -1,6 +1,7 @@
 //! The stored format: header, BVH4 nodes with quantised child boxes, primitive data, records,
 //! geometry table, instance table, BLAS address table. All offsets are relative to the blob
 //! start so clone/compact are byte copies. Everything is `#[repr(C)]` + Pod with size asserts.
+use super::params::{EMIT_CUT, PRE_BYTES_PER_PRIM};
 use super::{AsType, BuildFlags, BuildSizes, GeometryShape};
 use bytemuck::{Pod, Zeroable};
 
@@ -200,14 +201,37 @@ pub fn sections(ty: AsType, nodes: u64, prims: u64, geometries: u64) -> Sections
     Sections { nodes: nodes_off, prims: prims_off, records: records_off, geometries: geo_off, instances: inst_off, blas_table: blas_off, end: off }
 }
 
-/// Worst-case wide node count for n stored primitives: every wide node has at least two
-/// children except a root holding one leaf, so internal nodes <= max(1, n - 1).
+/// Worst-case wide node count for n stored primitives, for any binary tree the builder can
+/// make (leaves of at least one primitive) collapsed by `tree::wide_children` (derivation in
+/// docs/ACCEL_API.md, "Sizes"): a wide node of fewer than four children has only leaves and
+/// cut roots below it, which caps the count at (2L - 1 + K) / 3 for L <= n leaves and
+/// K <= 3·floor(n / (EMIT_CUT + 1)) cut roots under such nodes; a root leaf takes one node.
 pub fn max_nodes(n: u64) -> u64 {
     if n == 0 {
-        0
-    } else {
-        (n - 1).max(1)
+        return 0;
     }
+    let cut_children = 3 * (n / (EMIT_CUT as u64 + 1));
+    // A size query's n may be near u64::MAX (saturated sums); such sizes saturate anyway.
+    ((2 * n.min(u64::MAX / 4) - 1 + cut_children) / 3).max(1)
+}
+
+/// Bytes of the node section a build of `n` primitives may need: the worst-case nodes, and for
+/// a BLAS at least the staging area ingest keeps there until the leaf data is written
+/// (STAGE_SIZE per primitive; it decides whether a build stages, so it must fit at the
+/// queried size whatever the tree).
+pub fn node_area_bound(ty: AsType, n: u64) -> u64 {
+    let nodes = max_nodes(n).saturating_mul(NODE_SIZE as u64);
+    if ty == AsType::BottomLevel {
+        nodes.max(n.saturating_mul(STAGE_SIZE as u64))
+    } else {
+        nodes
+    }
+}
+
+/// The size query's acceleration-structure size: every section at its worst case.
+pub fn structure_size_bound(ty: AsType, n: u64, geometries: u64) -> u64 {
+    let s = sections(ty, 0, n, geometries);
+    s.nodes.saturating_add(node_area_bound(ty, n)).saturating_add(SECTION_ALIGN - 1) / SECTION_ALIGN * SECTION_ALIGN
 }
 
 pub const SCRATCH_SLACK: u64 = 64;
@@ -220,31 +244,41 @@ pub const STAGE_SIZE: usize = 40;
 pub fn build_scratch_size(n: u64) -> u64 {
     // Primitive references, then up to 2n binary nodes (slot scheme: a subtree over k
     // primitives owns 2k-1 consecutive slots), then n + 1 words for the primitives per
-    // reference of clustered builds, each region aligned.
+    // reference of clustered builds, then the pre-emission area (PRE_BYTES_PER_PRIM per
+    // primitive: cut roots encoded while the tree is built), each region aligned.
     SCRATCH_SLACK
         .saturating_add(n.saturating_mul(PRIMREF_SIZE))
         .saturating_add(SCRATCH_SLACK)
         .saturating_add(n.saturating_mul(2).saturating_mul(BINNODE_SIZE))
         .saturating_add(SCRATCH_SLACK)
         .saturating_add(n.saturating_add(1).saturating_mul(4))
+        .saturating_add(SCRATCH_SLACK)
+        .saturating_add(n.saturating_mul(PRE_BYTES_PER_PRIM as u64))
 }
 
 pub fn update_scratch_size(ty: AsType, n: u64) -> u64 {
     // A TLAS sorts one 8-byte key per instance and keeps each instance's new box (24 bytes) for
-    // the node pass; node boxes are refitted subtree by subtree in registers, so a BLAS needs
-    // none of it (16 B per primitive reserved).
-    let per = if ty == AsType::TopLevel { 32 } else { 16 };
-    SCRATCH_SLACK.saturating_add(n.saturating_mul(per))
+    // the node pass, two aligned arrays; a BLAS refits in place, node boxes subtree by subtree
+    // in registers, and uses no scratch (the slack keeps the size non-zero, a buffer to bind).
+    if ty == AsType::TopLevel {
+        SCRATCH_SLACK.saturating_add(n.saturating_mul(32))
+    } else {
+        SCRATCH_SLACK
+    }
 }
 
+/// Sizes for the size query. They do not depend on the flags: the bound holds for any tree
+/// (FAST_BUILD's own trees need fewer nodes, but the staging area, which every BLAS tier
+/// keeps in the node section, is larger than that), and none of ALLOW_UPDATE,
+/// ALLOW_COMPACTION or ALLOW_DATA_ACCESS stores anything more.
 pub fn build_sizes(ty: AsType, _flags: BuildFlags, shapes: &[GeometryShape], max_primitive_counts: &[u32]) -> BuildSizes {
     let n: u64 = shapes
         .iter()
         .enumerate()
         .map(|(i, _)| max_primitive_counts.get(i).copied().unwrap_or(0) as u64)
         .fold(0u64, |a, b| a.saturating_add(b));
-    let s = sections(ty, max_nodes(n), n, shapes.len() as u64);
-    BuildSizes { acceleration_structure_size: s.end, build_scratch_size: build_scratch_size(n), update_scratch_size: update_scratch_size(ty, n) }
+    let size = structure_size_bound(ty, n, shapes.len() as u64);
+    BuildSizes { acceleration_structure_size: size, build_scratch_size: build_scratch_size(n), update_scratch_size: update_scratch_size(ty, n) }
 }
 
 /// A validated header with the section slices it promises.

@@ -371,10 +371,15 @@ impl<'a> Lowerer<'a> {
     }
 
     fn alloc_lane(&mut self, ty: u32) -> Result<u32, ShaderError> {
+        // Each invocation gets a copy of the frame: capped like a register value (found by the
+        // SPIR-V fuzzer: a 4 GiB function variable aborted the process on allocation).
+        const MAX_LANE_BYTES: u64 = 1 << 18;
         let (size, align) = self.l.size_align(ty)?;
-        let at = (self.lane_frame.len() as u32).div_ceil(align) * align;
-        self.lane_frame.resize((at + size) as usize, 0);
-        Ok(at)
+        let at = (self.lane_frame.len() as u64).div_ceil(align.max(1) as u64) * align.max(1) as u64;
+        let end = Some(at + size as u64).filter(|&e| e <= MAX_LANE_BYTES);
+        let end = end.ok_or_else(|| self.err(ty, format!("private and function variables of more than {MAX_LANE_BYTES} bytes per invocation")))?;
+        self.lane_frame.resize(end as usize, 0);
+        Ok(at as u32)
     }
 
     fn write_lane_init(&mut self, at: u32, ty: u32, init: u32) -> Result<(), ShaderError> {

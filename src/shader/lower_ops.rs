@@ -119,6 +119,21 @@ impl Lowerer<'_> {
         self.l.components(ty)
     }
 
+    /// The scalar type of `id`'s first component (the element type of a vector or matrix).
+    fn sc1(&self, inst: &Instruction, id: u32) -> Result<Sc, ShaderError> {
+        self.sc_of(id)?.first().copied().ok_or_else(|| shape_error(self, inst, "an operand without components"))
+    }
+
+    /// Rejects `inst` unless every operand length in `lens` is `n` and `n` is not 0: lowering
+    /// indexes operands component by component, and a module that passes the parse checks may
+    /// still give mismatched ones.
+    fn same_counts(&self, inst: &Instruction, n: usize, lens: &[usize]) -> Result<(), ShaderError> {
+        if n == 0 || lens.iter().any(|&l| l != n) {
+            return Err(shape_error(self, inst, "operand and result component counts differ"));
+        }
+        Ok(())
+    }
+
     /// Registers of `id`, repeated to `n` components when it is a scalar (VectorTimesScalar,
     /// a scalar Select condition).
     fn regs_splat(&mut self, id: u32, n: usize) -> Result<Vec<Reg>, ShaderError> {
@@ -144,14 +159,15 @@ impl Lowerer<'_> {
         dst
     }
 
-    /// Σ a[i]·b[i] in order (OpDot, matrix products).
-    fn dot(&mut self, ty: Sc, a: &[Reg], b: &[Reg]) -> Reg {
+    /// Σ a[i]·b[i] in order (OpDot, matrix products); `inst` is rejected when the sizes differ.
+    fn dot(&mut self, inst: &Instruction, ty: Sc, a: &[Reg], b: &[Reg]) -> Result<Reg, ShaderError> {
+        self.same_counts(inst, a.len(), &[b.len()])?;
         let mut acc = self.bin(BinOp::FMul, ty, a[0], b[0]);
         for i in 1..a.len() {
             let p = self.bin(BinOp::FMul, ty, a[i], b[i]);
             acc = self.bin(BinOp::FAdd, ty, acc, p);
         }
-        acc
+        Ok(acc)
     }
 
     pub fn lower_op(&mut self, inst: &Instruction) -> Result<(), ShaderError> {
@@ -233,6 +249,7 @@ impl Lowerer<'_> {
                 let a = self.regs(id_op(inst, 1)?)?;
                 let b = self.regs(id_op(inst, 2)?)?;
                 let c = self.regs_splat(id_op(inst, 0)?, a.len())?;
+                self.same_counts(inst, a.len(), &[b.len(), c.len()])?;
                 Val::Regs((0..a.len()).map(|i| self.select(c[i], a[i], b[i])).collect())
             }
             Op::Transpose => {
@@ -242,13 +259,17 @@ impl Lowerer<'_> {
                     Some(Type::Matrix { n, .. }) => *n as usize,
                     _ => return Err(self.m.malformed(src, "transpose of a non-matrix")),
                 };
+                if cols == 0 || !m.len().is_multiple_of(cols) {
+                    return Err(shape_error(self, inst, "matrix of no columns or uneven columns"));
+                }
                 let rows = m.len() / cols;
                 Val::Regs((0..rows * cols).map(|k| m[(k % cols) * rows + k / cols]).collect())
             }
             Op::Any | Op::All => {
                 let v = self.regs(id_op(inst, 0)?)?;
                 let bop = if op == Op::Any { BinOp::LOr } else { BinOp::LAnd };
-                let mut acc = v[0];
+                let Some(&first) = v.first() else { return Err(shape_error(self, inst, "an empty vector")) };
+                let mut acc = first;
                 for &c in &v[1..] {
                     acc = self.bin(bop, Sc::Bool, acc, c);
                 }
@@ -266,7 +287,7 @@ impl Lowerer<'_> {
         let extract = inst.class.opcode == Op::VectorExtractDynamic;
         let v = self.regs(id_op(inst, 0)?)?;
         let idx_id = id_op(inst, if extract { 1 } else { 2 })?;
-        let idx_sc = self.sc_of(idx_id)?[0];
+        let idx_sc = self.sc1(inst, idx_id)?;
         let idx = self.reg1(idx_id)?;
         let obj = if extract { None } else { Some(self.reg1(id_op(inst, 1)?)?) };
         let mut acc = v.first().copied().ok_or_else(|| self.m.malformed(idx_id, "empty vector"))?;
@@ -291,17 +312,17 @@ impl Lowerer<'_> {
         let v = match op {
             Op::Dot => {
                 let (a, b) = (id_op(inst, 0)?, id_op(inst, 1)?);
-                let ty = self.sc_of(a)?[0];
+                let ty = self.sc1(inst, a)?;
                 let (a, b) = (self.regs(a)?, self.regs(b)?);
                 if a.is_empty() || a.len() != b.len() {
                     return Err(self.m.malformed(id, "OpDot of vectors of different sizes"));
                 }
-                vec![self.dot(ty, &a, &b)]
+                vec![self.dot(inst, ty, &a, &b)?]
             }
             Op::VectorTimesScalar | Op::MatrixTimesScalar => {
                 let a = self.regs(id_op(inst, 0)?)?;
                 let s = self.reg1(id_op(inst, 1)?)?;
-                let ty = self.sc_of(id_op(inst, 1)?)?[0];
+                let ty = self.sc1(inst, id_op(inst, 1)?)?;
                 a.iter().map(|&c| self.bin(BinOp::FMul, ty, c, s)).collect()
             }
             Op::MatrixTimesVector | Op::VectorTimesMatrix | Op::MatrixTimesMatrix => self.matrix_product(inst)?,
@@ -309,6 +330,9 @@ impl Lowerer<'_> {
                 let (a_id, b_id) = (id_op(inst, 0)?, id_op(inst, 1)?);
                 let sc = self.sc_of(a_id)?;
                 let (a, b) = (self.regs(a_id)?, self.regs(b_id)?);
+                self.same_counts(inst, a.len(), &[b.len(), sc.len()])?;
+                // The result is a struct of two members of the operands' type.
+                self.same_counts(inst, 2 * a.len(), &[self.l.components(rty)?.len()])?;
                 let (lo_op, hi_op) = match op {
                     Op::IAddCarry => (BinOp::IAdd, BinOp::AddCarry),
                     Op::ISubBorrow => (BinOp::ISub, BinOp::SubBorrow),
@@ -324,6 +348,7 @@ impl Lowerer<'_> {
                 let base = self.regs(id_op(inst, 0)?)?;
                 let ins = self.regs(id_op(inst, 1)?)?;
                 let (offset, count) = (self.reg1(id_op(inst, 2)?)?, self.reg1(id_op(inst, 3)?)?);
+                self.same_counts(inst, base.len(), &[ins.len(), sc.len()])?;
                 let mut out = Vec::new();
                 for i in 0..base.len() {
                     let dst = self.reg();
@@ -336,6 +361,7 @@ impl Lowerer<'_> {
                 let sc = self.l.components(rty)?;
                 let base = self.regs(id_op(inst, 0)?)?;
                 let (offset, count) = (self.reg1(id_op(inst, 1)?)?, self.reg1(id_op(inst, 2)?)?);
+                self.same_counts(inst, base.len(), &[sc.len()])?;
                 let top = if op == Op::BitFieldSExtract { TriOp::BitFieldSExtract } else { TriOp::BitFieldUExtract };
                 let mut out = Vec::new();
                 for i in 0..base.len() {
@@ -354,38 +380,44 @@ impl Lowerer<'_> {
 
     fn matrix_product(&mut self, inst: &Instruction) -> Result<Vec<Reg>, ShaderError> {
         let (a_id, b_id) = (id_op(inst, 0)?, id_op(inst, 1)?);
-        let ty = self.sc_of(a_id)?[0];
+        let ty = self.sc1(inst, a_id)?;
         let (a, b) = (self.regs(a_id)?, self.regs(b_id)?);
-        let cols = |lw: &Self, id: u32| -> Result<usize, ShaderError> {
-            match lw.type_of(id).map(|t| lw.m.ty(t)).transpose()? {
-                Some(Type::Matrix { n, .. }) => Ok(*n as usize),
-                _ => Ok(1),
+        // Columns of a matrix operand (1 for a vector), which must divide its components.
+        let cols = |lw: &Self, id: u32, len: usize| -> Result<usize, ShaderError> {
+            let c = match lw.type_of(id).map(|t| lw.m.ty(t)).transpose()? {
+                Some(Type::Matrix { n, .. }) => *n as usize,
+                _ => 1,
+            };
+            if c == 0 || len == 0 || !len.is_multiple_of(c) {
+                return Err(shape_error(lw, inst, "matrix of no columns or uneven columns"));
             }
+            Ok(c)
         };
         Ok(match inst.class.opcode {
             // M (c columns of r rows) × v (c) → r
             Op::MatrixTimesVector => {
-                let c = cols(self, a_id)?;
+                let c = cols(self, a_id, a.len())?;
                 let r = a.len() / c;
                 (0..r).map(|i| {
                     let row: Vec<Reg> = (0..c).map(|j| a[j * r + i]).collect();
-                    self.dot(ty, &row, &b)
-                }).collect()
+                    self.dot(inst, ty, &row, &b)
+                }).collect::<Result<_, _>>()?
             }
             // v (r) × M (c columns of r rows) → c
             Op::VectorTimesMatrix => {
-                let c = cols(self, b_id)?;
+                let c = cols(self, b_id, b.len())?;
                 let r = b.len() / c;
-                (0..c).map(|j| self.dot(ty, &a, &b[j * r..(j + 1) * r])).collect()
+                (0..c).map(|j| self.dot(inst, ty, &a, &b[j * r..(j + 1) * r])).collect::<Result<_, _>>()?
             }
             _ => {
-                let (ac, bc) = (cols(self, a_id)?, cols(self, b_id)?);
+                let (ac, bc) = (cols(self, a_id, a.len())?, cols(self, b_id, b.len())?);
+                self.same_counts(inst, ac * bc, &[b.len()])?;
                 let r = a.len() / ac;
                 let mut out = Vec::new();
                 for j in 0..bc {
                     for i in 0..r {
                         let row: Vec<Reg> = (0..ac).map(|k| a[k * r + i]).collect();
-                        out.push(self.dot(ty, &row, &b[j * ac..(j + 1) * ac]));
+                        out.push(self.dot(inst, ty, &row, &b[j * ac..(j + 1) * ac])?);
                     }
                 }
                 out
@@ -399,7 +431,7 @@ impl Lowerer<'_> {
         let args: Vec<u32> = (2..inst.operands.len()).map(|k| id_op(inst, k)).collect::<Result<_, _>>()?;
         let out = self.l.components(inst.result_type.unwrap_or(0))?;
         let a_sc = self.sc_of(*args.first().ok_or_else(|| self.m.malformed(id, "no operands"))?)?;
-        let ty = a_sc[0];
+        let ty = self.sc1(inst, args[0])?;
         let regs: Vec<Vec<Reg>> = args.iter().map(|&a| self.regs_splat(a, a_sc.len())).collect::<Result<_, _>>()?;
         let arity = match (glsl_alu(n), n) {
             (Some(GlslOp::U(_)), _) | (None, 66 | 69) => 1,
@@ -423,15 +455,15 @@ impl Lowerer<'_> {
             }
             return Ok(dst);
         }
-        let length = |lw: &mut Self, v: &[Reg]| {
-            let d = lw.dot(ty, v, v);
-            lw.un(UnOp::Sqrt, ty, ty, d)
+        let length = |lw: &mut Self, v: &[Reg]| -> Result<Reg, ShaderError> {
+            let d = lw.dot(inst, ty, v, v)?;
+            Ok(lw.un(UnOp::Sqrt, ty, ty, d))
         };
         Ok(match n {
-            66 => vec![length(self, &regs[0])],
+            66 => vec![length(self, &regs[0])?],
             67 => {
                 let d: Vec<Reg> = (0..regs[0].len()).map(|i| self.bin(BinOp::FSub, ty, regs[0][i], regs[1][i])).collect();
-                vec![length(self, &d)]
+                vec![length(self, &d)?]
             }
             68 => {
                 let (a, b) = (&regs[0], &regs[1]);
@@ -444,12 +476,12 @@ impl Lowerer<'_> {
                 c
             }
             69 => {
-                let len = length(self, &regs[0]);
+                let len = length(self, &regs[0])?;
                 regs[0].clone().into_iter().map(|c| self.bin(BinOp::FDiv, ty, c, len)).collect()
             }
             70 => {
                 // faceforward(N, I, Nref) = dot(Nref, I) < 0 ? N : -N
-                let d = self.dot(ty, &regs[2], &regs[1]);
+                let d = self.dot(inst, ty, &regs[2], &regs[1])?;
                 let zero = self.konst(0);
                 let neg = self.bin(BinOp::FOrdLt, ty, d, zero);
                 regs[0].clone().into_iter().map(|c| {
@@ -459,7 +491,7 @@ impl Lowerer<'_> {
             }
             71 => {
                 // reflect(I, N) = I - 2·dot(N, I)·N
-                let d = self.dot(ty, &regs[1], &regs[0]);
+                let d = self.dot(inst, ty, &regs[1], &regs[0])?;
                 let two = self.konst(super::alu::from_f(ty, 2.0));
                 let d2 = self.bin(BinOp::FMul, ty, d, two);
                 (0..regs[0].len()).map(|i| {
@@ -550,6 +582,7 @@ impl Lowerer<'_> {
         let v: Vec<Reg> = if let Some(sg) = sg {
             let a = if inst.operands.len() > 1 { self.regs(operand(1)?)? } else { vec![0; out.len()] };
             let b = if inst.operands.len() > 2 { self.reg1(operand(2)?)? } else { 0 };
+            self.same_counts(inst, out.len(), &[a.len()])?;
             (0..out.len())
                 .map(|i| {
                     let dst = self.reg();
@@ -563,6 +596,7 @@ impl Lowerer<'_> {
                     let a_id = operand(1)?;
                     let sc = self.sc_of(a_id)?;
                     let a = self.regs(a_id)?;
+                    self.same_counts(inst, a.len(), &[sc.len()])?;
                     let mut acc = self.konst(1);
                     for i in 0..a.len() {
                         let dst = self.reg();
@@ -650,6 +684,8 @@ impl Lowerer<'_> {
         let a_id = id_op(inst, 2)?;
         let sc = self.sc_of(a_id)?;
         let a = self.regs(a_id)?;
+        let out = self.l.components(inst.result_type.unwrap_or(0))?;
+        self.same_counts(inst, a.len(), &[sc.len(), out.len()])?;
         let v = (0..a.len())
             .map(|i| {
                 let dst = self.reg();
@@ -660,4 +696,10 @@ impl Lowerer<'_> {
         self.define(id, Val::Regs(v));
         Ok(())
     }
+}
+
+/// A rejection of `inst` whose operands do not have the shape its lowering needs: names the
+/// opcode; the offset is the instruction's word offset (through its result id).
+fn shape_error(lw: &Lowerer<'_>, inst: &Instruction, what: &str) -> ShaderError {
+    lw.m.malformed(inst.result_id.unwrap_or(0), &format!("Op{}: {what}", inst.class.opname))
 }

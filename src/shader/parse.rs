@@ -406,6 +406,7 @@ fn scan(words: &[u32]) -> Result<Scan, ShaderError> {
         };
         check_instruction(op, operands, at, &mut s)?;
         if op == Op::SpecConstantOp {
+            check_spec_op(&words[at..at + count], at)?;
             spec_op_literals(words, at, &mut s);
         }
         if let Some(g) = rspirv::grammar::INSTRUCTION_TABLE.lookup_opcode(code) {
@@ -421,6 +422,21 @@ fn scan(words: &[u32]) -> Result<Scan, ShaderError> {
         at += count;
     }
     Ok(s)
+}
+
+/// OpSpecConstantOp wraps only what specialization folds (the composite opcodes and the ALU
+/// ones; anything else fails there anyway): rspirv 0.13's parser panics on some other opcodes
+/// (operand kinds it cannot read inside OpSpecConstantOp), so they are refused before it runs.
+fn check_spec_op(inst: &[u32], at: usize) -> Result<(), ShaderError> {
+    let Some(&code) = inst.get(3) else {
+        return Err(ShaderError::Malformed { offset: at, reason: "OpSpecConstantOp without an opcode".into() });
+    };
+    let folded = Op::from_u32(code).is_some_and(|op| matches!(op, Op::VectorShuffle | Op::CompositeExtract | Op::CompositeInsert | Op::Select) || super::lower_ops::alu_of(op).is_some());
+    if !folded {
+        let name = rspirv::grammar::INSTRUCTION_TABLE.lookup_opcode(code).map_or_else(|| format!("opcode {code}"), |g| format!("Op{}", g.opname));
+        return Err(ShaderError::Unsupported { what: format!("OpSpecConstantOp of {name}"), offset: at });
+    }
+    Ok(())
 }
 
 /// rspirv 0.13 reads each operand of the opcode nested in OpSpecConstantOp once, so a

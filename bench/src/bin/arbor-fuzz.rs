@@ -3,6 +3,10 @@
 //! front end and executor of `arbor::shader` (see `fuzz_spirv.rs`).
 //!
 //!   cargo run --release --bin arbor-fuzz -- [--spirv] --iterations N --seed S
+//!       [--save-rejection TEXT --save-to FILE]
+//!
+//! With `--spirv`, `--save-rejection` writes the first module whose rejection reason contains
+//! TEXT to FILE (little-endian words), to keep a case as a seed or test.
 //!
 //! Prints executions, accepted inputs and rejections by reason. A crash is a panic (the process
 //! fails); a hang would be a run that never ends (traversal and checks are bounded).
@@ -21,7 +25,21 @@ fn main() {
     let seed = arg(&args, "--seed", 1);
     let spirv = args.iter().any(|a| a == "--spirv");
     let start = std::time::Instant::now();
-    let (counts, outcomes) = if spirv { fuzz_spirv::run(iterations, seed) } else { (fuzz::run(iterations, seed), Default::default()) };
+    let wanted = args.iter().position(|a| a == "--save-rejection").and_then(|i| args.get(i + 1));
+    let save_to = args.iter().position(|a| a == "--save-to").and_then(|i| args.get(i + 1));
+    let (counts, outcomes) = if spirv && wanted.is_none() {
+        fuzz_spirv::run(iterations, seed)
+    } else if spirv {
+        let (counts, outcomes, saved) = fuzz_spirv::run_saving(iterations, seed, wanted.map(String::as_str));
+        if let (Some(words), Some(path)) = (saved, save_to) {
+            let bytes: Vec<u8> = words.iter().flat_map(|w| w.to_le_bytes()).collect();
+            std::fs::write(path, bytes).unwrap_or_else(|e| panic!("writing {path}: {e}"));
+            println!("saved the first module rejected with {:?} to {path}", wanted.map_or("", |w| w.as_str()));
+        }
+        (counts, outcomes)
+    } else {
+        (fuzz::run(iterations, seed), Default::default())
+    };
     let secs = start.elapsed().as_secs_f64();
     let what = if spirv { " --spirv" } else { "" };
     println!("arbor-fuzz{what} --iterations {iterations} --seed {seed}: {} executions in {secs:.1} s ({:.0}/s)", counts.executions, counts.executions as f64 / secs);

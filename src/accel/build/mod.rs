@@ -17,7 +17,7 @@ pub mod subtree;
 #[cfg(test)]
 mod tests;
 
-use super::encode::{self, LeafSource, PreArea, Summary};
+use super::encode::{self, LeafSource, Summary};
 use super::geometry::{Aabb, PrimRef};
 use super::layout::{self, STAGE_SIZE};
 use super::params::{BuildParams, CLUSTER_MIN, MAX_CLUSTER, MAX_CLUSTER_GEOMETRIES, PRE_BYTES_PER_PRIM};
@@ -41,7 +41,8 @@ pub fn build(desc: &BuildDesc, view: &dyn DeviceView, dst: &mut [u8], scratch: &
     let (ingested, plan, top_planned) = ingest_and_plan(desc, view, &lowered, &params, clustering, &mut work, dst)?;
     let t_ingest = Instant::now();
     let ctx = context(&params, clustering, &ingested);
-    let (sah_sum, forked_buckets) = build_subtrees(desc, &ctx, plan, &ingested, &mut work, dst, pre_area(&lowered, ingested.active, dst.len()));
+    let pre_len = pre_len(&lowered, ingested.active);
+    let (sah_sum, forked_buckets) = build_subtrees(desc, &ctx, plan, &ingested, &mut work, pre_len);
     let (references, active) = (ingested.references, ingested.active);
     let tree = &work.nodes[..(2 * references).saturating_sub(1)];
     let map = ctx.clustered.then(|| leaf_map(&work.refs[..references], &mut work.prefix[..=references]));
@@ -56,7 +57,7 @@ pub fn build(desc: &BuildDesc, view: &dyn DeviceView, dst: &mut [u8], scratch: &
     }
     let t_leaf = Instant::now();
     let nodes_at = layout::sections(desc.ty, 0, active as u64, lowered.ngeo).nodes as usize;
-    let (node_count, leaf_count) = if active > 0 { encode::wide_nodes(tree, dst, nodes_at, pre_area(&lowered, active, dst.len()), map)? } else { (0, 0) };
+    let (node_count, leaf_count) = if active > 0 { encode::wide_nodes(tree, dst, nodes_at, &work.pre[..pre_len], map)? } else { (0, 0) };
     let t_nodes = Instant::now();
     let max_leaf_size = if ctx.clustered { ctx.params.max_leaf * params.max_cluster.clamp(1, MAX_CLUSTER) } else { params.max_leaf };
     let summary = Summary { active, total: lowered.total, node_count, leaf_count, bounds: ingested.bounds, sah_sum, max_leaf_size, nodes_at };
@@ -92,7 +93,7 @@ fn lower(desc: &BuildDesc, dst_len: usize, scratch_len: usize) -> Result<Lowered
     if (scratch_len as u64) < need_scratch {
         return Err(BuildError::ScratchTooSmall { needed: need_scratch, got: scratch_len as u64 });
     }
-    let worst = layout::sections(desc.ty, layout::max_nodes(total), total, ngeo).end;
+    let worst = layout::structure_size_bound(desc.ty, total, ngeo);
     if (dst_len as u64) < worst {
         return Err(BuildError::DestinationTooSmall { needed: worst, got: dst_len as u64 });
     }
@@ -103,20 +104,22 @@ fn lower(desc: &BuildDesc, dst_len: usize, scratch_len: usize) -> Result<Lowered
 }
 
 /// The build's arrays in scratch: a reference per primitive, two node slots per primitive,
-/// and a word per primitive (kept counts per ingest chunk, the plan's cells and bucket bytes,
-/// then the prefix of primitives per cluster reference).
+/// a word per primitive (kept counts per ingest chunk, the plan's cells and bucket bytes,
+/// then the prefix of primitives per cluster reference), and the pre-emission area.
 struct Work<'s> {
     refs: &'s mut [PrimRef],
     nodes: &'s mut [BinNode],
     prefix: &'s mut [u32],
+    pre: &'s mut [u8],
 }
 impl<'s> Work<'s> {
     fn carve(scratch: &'s mut [u8], lowered: &Lowered) -> Result<Self, BuildError> {
         let short = BuildError::ScratchTooSmall { needed: lowered.need_scratch, got: 0 };
         let (refs, rest) = layout::carve::<PrimRef>(scratch, lowered.total).ok_or(short.clone())?;
         let (nodes, rest) = layout::carve::<BinNode>(rest, 2 * lowered.total).ok_or(short.clone())?;
-        let (prefix, _) = layout::carve::<u32>(rest, lowered.total + 1).ok_or(short)?;
-        Ok(Work { refs, nodes, prefix })
+        let (prefix, rest) = layout::carve::<u32>(rest, lowered.total + 1).ok_or(short.clone())?;
+        let (pre, _) = layout::carve::<u8>(rest, lowered.total * PRE_BYTES_PER_PRIM).ok_or(short)?;
+        Ok(Work { refs, nodes, prefix, pre })
     }
 }
 
@@ -213,25 +216,28 @@ fn context(params: &BuildParams, clustering: Clustering, ingested: &Ingested) ->
     BuildContext { params: bparams, total: ingested.references, threads: rayon::current_num_threads().max(1), clustered, prim_traversal_cost: params.traversal_cost }
 }
 
-/// The pre-emission area (see `subtree::finish_split`): after the staging area in the (still
-/// unused) node section of dst. Whether a block fits there never changes the output bytes.
-/// Without staging the area would start where the final nodes start, so no block could ever
-/// be used: then there is none, and nothing is encoded twice.
-fn pre_area(lowered: &Lowered, active: usize, dst_len: usize) -> PreArea {
-    let at = (lowered.stage_at + if lowered.staged { lowered.total * STAGE_SIZE } else { 0 }).min(dst_len);
-    let len = if lowered.staged { (dst_len - at).min(PRE_BYTES_PER_PRIM * active) } else { 0 };
-    PreArea { at, len }
+/// Bytes of the pre-emission area (see `subtree::finish_split`) at the start of
+/// `Work::pre`, in scratch, so that dst needs no room beyond the finished structure's worst
+/// case. Whether a block fits there never changes the output bytes. Builds that stage nothing
+/// (every TLAS) pre-emit nothing, as before the area moved to scratch (`a46ebe2`: their
+/// blocks could not be used where the final nodes overlapped the area).
+fn pre_len(lowered: &Lowered, active: usize) -> usize {
+    if lowered.staged {
+        PRE_BYTES_PER_PRIM * active
+    } else {
+        0
+    }
 }
 
 /// Builds the binary tree over the ingested references into the node slots: below the
 /// planned top's buckets when there is a plan that applies, else from the root. Returns the
 /// tree's unnormalised SAH sum and how many buckets split further in parallel.
-fn build_subtrees(desc: &BuildDesc, ctx: &BuildContext, plan: Option<TopPlan>, ingested: &Ingested, work: &mut Work<'_>, dst: &mut [u8], pre: PreArea) -> (f64, u32) {
+fn build_subtrees(desc: &BuildDesc, ctx: &BuildContext, plan: Option<TopPlan>, ingested: &Ingested, work: &mut Work<'_>, pre_len: usize) -> (f64, u32) {
     let built = ingested.references;
     if built == 0 {
         return (0.0, 0);
     }
-    let pre_area = &mut dst[pre.at..pre.at + pre.len];
+    let pre_area = &mut work.pre[..pre_len];
     let chunks = plan::chunk_count(desc);
     let planned = plan.as_ref().and_then(|pl| {
         let (kept, rest) = work.prefix.split_at_mut(chunks);

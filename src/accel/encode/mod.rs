@@ -47,27 +47,19 @@ pub fn leaf_data(desc: &BuildDesc, dst: &mut [u8], stage_at: usize, total: usize
     }
 }
 
-/// The pre-emission area: `len` bytes at `at` of dst (PRE_BYTES_PER_PRIM per primitive), where
-/// cut roots were encoded while the tree was built.
-#[derive(Clone, Copy)]
-pub struct PreArea {
-    pub at: usize,
-    pub len: usize,
-}
-
 /// Emits the wide nodes of `tree` (non-empty) at `nodes_at` of dst, in preorder; returns the
-/// node count and the leaf count. Pre-emitted blocks are used when the final node range ends
-/// before the pre-emission area.
-pub fn wide_nodes(tree: &[BinNode], dst: &mut [u8], nodes_at: usize, pre: PreArea, map: Option<&[u32]>) -> Result<(u32, u32), BuildError> {
+/// node count and the leaf count. `pre` is the pre-emission area (in scratch,
+/// PRE_BYTES_PER_PRIM per reference; empty when nothing was pre-emitted), where cut roots
+/// were encoded while the tree was built; their blocks are copied from there.
+pub fn wide_nodes(tree: &[BinNode], dst: &mut [u8], nodes_at: usize, pre: &[u8], map: Option<&[u32]>) -> Result<(u32, u32), BuildError> {
     let node_count = wide_size(tree);
     let end = nodes_at.saturating_add(node_count as usize * NODE_SIZE);
     let got = dst.len() as u64;
     if end > dst.len() || nodes_at > end {
         return Err(BuildError::DestinationTooSmall { needed: end as u64, got });
     }
-    let (head, tail) = dst.split_at_mut(pre.at.max(end));
-    let out = &mut head[nodes_at..end];
-    let pre_area = (end <= pre.at).then(|| &tail[..pre.len]);
+    let out = &mut dst[nodes_at..end];
+    let pre_area = (!pre.is_empty()).then_some(pre);
     let root_block = match (pre_area, tree.first()) {
         (Some(p), Some(root)) if is_cut(u32::MAX, root.count) => pre_block(root, p.len()).and_then(|r| p.get(r)),
         _ => None,

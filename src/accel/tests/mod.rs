@@ -8,6 +8,7 @@ mod inputs;
 mod integrity;
 mod quality;
 mod refit;
+mod sizes;
 mod tlas;
 
 /// Small deterministic generator (no dev-dependencies needed).
