@@ -35,6 +35,8 @@ pub struct EnabledFeatures {
     pub acceleration_structure_capture_replay: bool,
     pub acceleration_structure_indirect_build: bool,
     pub acceleration_structure_host_commands: bool,
+    /// VkPhysicalDeviceClusterAccelerationStructureFeaturesNV::clusterAccelerationStructure.
+    pub cluster_acceleration_structure: bool,
 }
 
 impl Device {
