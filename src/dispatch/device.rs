@@ -84,7 +84,7 @@ unsafe fn enabled_features(info: &vk::DeviceCreateInfo) -> EnabledFeatures {
                 }
                 s if s == super::nv_cluster::STYPE_FEATURES => {
                     let s = &*(p as *const super::nv_cluster::PhysicalDeviceClusterAccelerationStructureFeaturesNV);
-                    f.cluster_acceleration_structure |= s.cluster_acceleration_structure != 0;
+                    f.cluster_acceleration_structure = Some(f.cluster_acceleration_structure.unwrap_or(false) | (s.cluster_acceleration_structure != 0));
                 }
                 _ => {}
             }

@@ -278,8 +278,11 @@ unsafe extern "system" fn get_cluster_acceleration_structure_build_sizes_nv(
             diag::vuid("VUID-VkClusterAccelerationStructureInputInfoNV-opType-parameter", CMD, "unknown opType, opMode or move type, or no op input");
             return;
         };
-        if device::device_from(device).is_some_and(|d| !d.features.cluster_acceleration_structure) {
-            diag::vuid("VUID-vkGetClusterAccelerationStructureBuildSizesNV-clusterAccelerationStructure-10438", CMD, "the clusterAccelerationStructure feature is not enabled");
+        let vuid = "VUID-vkGetClusterAccelerationStructureBuildSizesNV-clusterAccelerationStructure-10438";
+        match device::device_from(device).map(|d| d.features.cluster_acceleration_structure) {
+            Some(Some(false)) => diag::vuid(vuid, CMD, "the clusterAccelerationStructure feature is not enabled"),
+            Some(None) => crate::runtime::accel::clas::feature_struct_missing(vuid, CMD),
+            _ => {}
         }
         // SAFETY: as for size_input.
         if let Some((vuid, message)) = unsafe { triangle_input_violation(&*p_info) } {
