@@ -9,6 +9,7 @@
 
 pub mod accel;
 pub mod child;
+pub mod clas;
 pub mod compute;
 pub mod compute_run;
 pub mod rq;
@@ -37,6 +38,11 @@ const LAYER_PREDATES: &[&[&str]] = &[
     &["VUID-VkPhysicalDeviceProperties2-pNext-pNext", "unknown VkStructureType (1000569001)"],
     // The cluster feature struct in vkCreateDevice's chain (the layer then drops it).
     &["VUID-VkDeviceCreateInfo-pNext-pNext", "unknown VkStructureType (1000569000)"],
+    // A shader using the cluster ID: its capability (5437, RayTracingClusterAccelerationStructureNV)
+    // and extension, which the layer's SPIR-V tables lack.
+    &["UNASSIGNED-CoreValidation-Shader-InconsistentSpirv", "Invalid capability operand: 5437"],
+    &["VUID-VkShaderModuleCreateInfo-pCode-01090", "A SPIR-V Capability (Unhandled OpCapability) was declared"],
+    &["VUID-VkShaderModuleCreateInfo-pCode-04146", "A SPIR-V Extension (SPV_NV_cluster_acceleration_structure) was declared"],
 ];
 
 /// Path of the built driver for this test profile (target/<profile>/libvulkan_arbor.so).
