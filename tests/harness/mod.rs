@@ -153,11 +153,13 @@ pub struct Options {
     pub acceleration_structure: bool,
     /// Enable the core sparseBinding feature.
     pub sparse_binding: bool,
+    /// With VK_NV_cluster_acceleration_structure: chain its feature struct with the feature off.
+    pub cluster_feature_off: bool,
 }
 
 impl Default for Options {
     fn default() -> Self {
-        Options { validation: true, device_extensions: default_device_extensions(), instance_extensions: vec![], queue_count: 4, acceleration_structure: false, sparse_binding: false }
+        Options { validation: true, device_extensions: default_device_extensions(), instance_extensions: vec![], queue_count: 4, acceleration_structure: false, sparse_binding: false, cluster_feature_off: false }
     }
 }
 
@@ -285,7 +287,7 @@ fn create_device(instance: &ash::Instance, physical: vk::PhysicalDevice, opts: &
         dci = dci.push_next(&mut rq);
     }
     // VkPhysicalDeviceClusterAccelerationStructureFeaturesNV (ash 0.38 lacks it), linked by hand.
-    let mut cluster = ClusterFeatures { s_type: 1_000_569_000, p_next: std::ptr::null(), cluster_acceleration_structure: vk::TRUE };
+    let mut cluster = ClusterFeatures { s_type: 1_000_569_000, p_next: std::ptr::null(), cluster_acceleration_structure: (!opts.cluster_feature_off).into() };
     if has("VK_NV_cluster_acceleration_structure") {
         cluster.p_next = dci.p_next;
         dci.p_next = &cluster as *const ClusterFeatures as *const c_void;
