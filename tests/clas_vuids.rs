@@ -28,6 +28,7 @@ const TEMPLATE_VUID: &str = "VUID-VkClusterAccelerationStructureBuildTriangleClu
 const INFO_VUID: &str = "VUID-VkClusterAccelerationStructureCommandsInfoNV-";
 const CMD_VUID: &str = "VUID-vkCmdBuildClusterAccelerationStructureIndirectNV-";
 const INPUT_VUID: &str = "VUID-VkClusterAccelerationStructureTriangleClusterInputNV-";
+const RESERVED: &str = "VUID-VkClusterAccelerationStructureGeometryIndexAndGeometryFlagsNV-reserved-10487";
 
 /// What a broken rule does to the command.
 #[derive(Clone, Copy, PartialEq, Eq, Debug)]
@@ -284,13 +285,15 @@ fn expect(ctx: &harness::Context, api: &Nv, a: &Accel, f: &Fixture, c: Case, vui
     let mark = harness::diagnostics().len();
     let (regs, snap) = run(ctx, api, a, &c);
     let tail = harness::diagnostics()[mark..].to_string();
-    let named: Vec<&str> = tail.lines().filter(|l| l.contains(&format!("[{vuid}]"))).collect();
+    // A rule without a VUID is named by a phrase of its message instead.
+    let tag = if vuid.starts_with("VUID-") { format!("[{vuid}]") } else { vuid.to_string() };
+    let named: Vec<&str> = tail.lines().filter(|l| l.contains(&tag)).collect();
     assert!(!named.is_empty(), "no diagnostic names [{vuid}]; the driver reported:\n{tail}");
     let ours = |l: &&str| ["arbor: error: ", "arbor: warning: "].iter().any(|p| l.starts_with(&format!("{p}{CMD}: ")) || l.starts_with(&format!("{p}vkGetClusterAccelerationStructureBuildSizesNV: ")));
     assert!(named.iter().all(ours), "{tail}");
     assert!(named.iter().any(|l| l.contains(CMD)), "the command names [{vuid}]:\n{tail}");
     for l in tail.lines().filter(|l| l.starts_with("arbor: error:")) {
-        assert!(l.contains(&format!("[{vuid}]")), "another error besides [{vuid}]: {l}");
+        assert!(l.contains(&tag), "another error besides [{vuid}]: {l}");
     }
     let slots = |r: &Region, k: u64, w: u64| Region { buf: r.buf, offset: r.offset + k * w, len: w };
     match outcome {
@@ -427,5 +430,137 @@ vuid_test!(explicit_destination_too_small, BuildTriangleCluster, ExplicitDestina
 vuid_test!(explicit_destinations_overlap, BuildTriangleCluster, ExplicitDestinations, cat(INFO_VUID, "opMode-12315"), Element1, |_, _, c| c.destination1(|_| 64));
 vuid_test!(explicit_destination_overlaps_scratch, BuildTriangleCluster, ExplicitDestinations, cat(CMD_VUID, "dstAddressesArray-10455"), Element1, |_, _, mut c| {
     c.tweak = Some(Box::new(|_, r, a| r.addrs.write(a, 8, &r.scratch.address(a).to_le_bytes())));
+    c
+});
+
+// The rules of one CLAS record (element 1 broken, element 0 built).
+fn clas1(c: Case, change: impl FnOnce(&mut BuildTriangleClusterInfo)) -> Case {
+    c.record1(change)
+}
+fn tpl1(c: Case, change: impl FnOnce(&mut BuildTriangleClusterInfo)) -> Case {
+    c.record1(|r: &mut BuildTriangleClusterTemplateInfo| change(&mut r.cluster))
+}
+fn counts(r: &mut BuildTriangleClusterInfo, t: u32, v: u32, bits: u32, it: u32, omm: u32) {
+    r.counts = pack_counts(t, v, bits, it, omm);
+}
+
+vuid_test!(clas_cluster_id_all_ones, BuildTriangleCluster, ImplicitDestinations, cat(CLAS_VUID, "clusterID-10488"), Element1, |_, _, c| clas1(c, |r| r.cluster_id = u32::MAX));
+vuid_test!(clas_triangle_count_over_the_limit, BuildTriangleCluster, ImplicitDestinations, cat(CLAS_VUID, "triangleCount-10489"), Element1, |_, _, c| clas1(c, |r| counts(r, 300, 9, 0, 2, 0)));
+vuid_test!(clas_vertex_count_over_the_limit, BuildTriangleCluster, ImplicitDestinations, cat(CLAS_VUID, "vertexCount-10490"), Element1, |_, _, c| clas1(c, |r| counts(r, 8, 300, 0, 2, 0)));
+vuid_test!(clas_index_type_not_one_bit, BuildTriangleCluster, ImplicitDestinations, cat(CLAS_VUID, "indexType-10491"), Element1, |_, _, c| clas1(c, |r| counts(r, 8, 9, 0, 3, 0)));
+vuid_test!(clas_omm_index_type_not_one_bit, BuildTriangleCluster, ImplicitDestinations, cat(CLAS_VUID, "opacityMicromapIndexType-10492"), Element1, |_, _, mut c| {
+    c.flags = arbor::accel::clas::check::ALLOW_CLUSTER_OPACITY_MICROMAPS;
+    clas1(c, |r| {
+        counts(r, 8, 9, 0, 2, 6);
+        r.opacity_micromap_array = 0x1000;
+    })
+});
+vuid_test!(clas_truncation_below_the_input_minimum, BuildTriangleCluster, ImplicitDestinations, cat(CLAS_VUID, "positionTruncateBitCount-10493"), Element1, |_, _, mut c| {
+    c.tri.min_position_truncate_bit_count = 0;
+    clas1(c, |r| counts(r, 8, 9, 33, 2, 0))
+});
+vuid_test!(clas_index_stride_not_a_multiple, BuildTriangleCluster, ImplicitDestinations, cat(CLAS_VUID, "indexBufferStride-10494"), Element1, |_, _, c| clas1(c, |r| r.index_buffer_stride = 3));
+vuid_test!(clas_vertex_stride_not_a_multiple, BuildTriangleCluster, ImplicitDestinations, cat(CLAS_VUID, "vertexBufferStride-10495"), Element1, |_, _, c| clas1(c, |r| r.vertex_buffer_stride = 14));
+vuid_test!(clas_geometry_index_over_the_limit, BuildTriangleCluster, ImplicitDestinations, cat(CLAS_VUID, "baseGeometryIndex-10496"), Element1, |f, a, c| {
+    f.words.write(a, 0, &bytes_of(&[1u32; 8]));
+    let words = f.words.address(a);
+    clas1(c, move |r| {
+        r.base_geometry_index_and_geometry_flags = GeometryIndexAndFlags::new((1 << 24) - 2, 0);
+        r.geometry_index_and_flags_buffer = words;
+    })
+});
+vuid_test!(clas_opacity_micromap_without_the_flag, BuildTriangleCluster, ImplicitDestinations, cat(CLAS_VUID, "opacityMicromapArray-10881"), Element1, |_, _, c| clas1(c, |r| r.opacity_micromap_array = 0x1000));
+vuid_test!(clas_base_geometry_word_reserved_bits, BuildTriangleCluster, ImplicitDestinations, RESERVED.to_string(), Element1, |_, _, c| clas1(c, |r| r.base_geometry_index_and_geometry_flags = GeometryIndexAndFlags(1 << 25)));
+vuid_test!(clas_triangle_geometry_word_reserved_bits, BuildTriangleCluster, ImplicitDestinations, RESERVED.to_string(), Element1, |f, a, c| {
+    f.words.write(a, 12, &(1u32 << 26).to_le_bytes());
+    let words = f.words.address(a);
+    clas1(c, move |r| r.geometry_index_and_flags_buffer = words)
+});
+vuid_test!(clas_triangles_over_the_input_bound, BuildTriangleCluster, ImplicitDestinations, "exceeds the input's maxClusterTriangleCount".to_string(), Element1, |_, _, mut c| {
+    c.tri.max_cluster_triangle_count = 8;
+    clas1(c, |r| counts(r, 9, 9, 0, 2, 0))
+});
+vuid_test!(clas_total_triangles_over_the_input_bound, BuildTriangleCluster, ImplicitDestinations, "against the input's maxTotalTriangleCount".to_string(), Element1, |_, _, mut c| {
+    c.tri.max_total_triangle_count = 12;
+    c
+});
+
+// The same rules as a template names them, and its own (10505).
+vuid_test!(template_cluster_id_all_ones, BuildTriangleClusterTemplate, ImplicitDestinations, cat(TEMPLATE_VUID, "clusterID-10497"), Element1, |_, _, c| tpl1(c, |r| r.cluster_id = u32::MAX));
+vuid_test!(template_triangle_count_over_the_limit, BuildTriangleClusterTemplate, ImplicitDestinations, cat(TEMPLATE_VUID, "triangleCount-10498"), Element1, |_, _, c| tpl1(c, |r| counts(r, 300, 9, 0, 2, 0)));
+vuid_test!(template_vertex_count_over_the_limit, BuildTriangleClusterTemplate, ImplicitDestinations, cat(TEMPLATE_VUID, "vertexCount-10499"), Element1, |_, _, c| tpl1(c, |r| counts(r, 8, 300, 0, 2, 0)));
+vuid_test!(template_index_type_not_one_bit, BuildTriangleClusterTemplate, ImplicitDestinations, cat(TEMPLATE_VUID, "indexType-10500"), Element1, |_, _, c| tpl1(c, |r| counts(r, 8, 9, 0, 0, 0)));
+vuid_test!(template_omm_index_type_not_one_bit, BuildTriangleClusterTemplate, ImplicitDestinations, cat(TEMPLATE_VUID, "opacityMicromapIndexType-10501"), Element1, |_, _, mut c| {
+    c.flags = arbor::accel::clas::check::ALLOW_CLUSTER_OPACITY_MICROMAPS;
+    tpl1(c, |r| {
+        counts(r, 8, 9, 0, 2, 0);
+        r.opacity_micromap_array = 0x1000;
+    })
+});
+vuid_test!(template_truncation_over_32, BuildTriangleClusterTemplate, ImplicitDestinations, cat(TEMPLATE_VUID, "positionTruncateBitCount-10502"), Element1, |_, _, c| tpl1(c, |r| counts(r, 8, 9, 40, 2, 0)));
+vuid_test!(template_index_stride_not_a_multiple, BuildTriangleClusterTemplate, ImplicitDestinations, cat(TEMPLATE_VUID, "indexBufferStride-10503"), Element1, |_, _, c| tpl1(c, |r| r.index_buffer_stride = 5));
+vuid_test!(template_vertex_stride_not_a_multiple, BuildTriangleClusterTemplate, ImplicitDestinations, cat(TEMPLATE_VUID, "vertexBufferStride-10504"), Element1, |_, _, c| tpl1(c, |r| r.vertex_buffer_stride = 13));
+vuid_test!(template_bounds_misaligned, BuildTriangleClusterTemplate, ImplicitDestinations, cat(TEMPLATE_VUID, "instantiationBoundingBoxLimit-10505"), Element1, |f, a, c| {
+    let at = f.words.address(a) + 4;
+    c.record1(move |r: &mut BuildTriangleClusterTemplateInfo| r.instantiation_bounding_box_limit = at)
+});
+vuid_test!(template_geometry_index_over_the_limit, BuildTriangleClusterTemplate, ImplicitDestinations, cat(TEMPLATE_VUID, "baseGeometryIndex-10506"), Element1, |_, _, c| tpl1(c, |r| r.base_geometry_index_and_geometry_flags = GeometryIndexAndFlags::new((1 << 24) - 1, 0)));
+vuid_test!(template_opacity_micromap_without_the_flag, BuildTriangleClusterTemplate, ImplicitDestinations, cat(TEMPLATE_VUID, "opacityMicromapArray-10882"), Element1, |_, _, c| tpl1(c, |r| r.opacity_micromap_array = 0x1000));
+
+// Instantiation against its template.
+const INSTANTIATE_VUID: &str = "VUID-VkClusterAccelerationStructureInstantiateClusterInfoNV-";
+vuid_test!(instantiation_without_vertices_from_a_template_without, InstantiateTriangleCluster, ImplicitDestinations, cat(INSTANTIATE_VUID, "vertexBuffer-10507"), Element1, |f, _, c| {
+    let t = f.template_without;
+    c.record1(move |r: &mut InstantiateClusterInfo| {
+        r.cluster_template_address = t;
+        r.vertex_buffer.start_address = 0;
+    })
+});
+vuid_test!(instantiation_with_another_vertex_format, InstantiateTriangleCluster, ImplicitDestinations, cat(INSTANTIATE_VUID, "vertexBuffer-10508"), Element1, |_, _, mut c| {
+    // Element 0 reads the template's own vertices: the format is only compared when new ones come.
+    c.tri.vertex_format = vk::Format::R32G32_SFLOAT.as_raw();
+    let r0: InstantiateClusterInfo = bytemuck::pod_read_unaligned(&c.records[0]);
+    c.records[0] = bytemuck::bytes_of(&InstantiateClusterInfo { vertex_buffer: StridedDeviceAddress::default(), ..r0 }).to_vec();
+    c
+});
+vuid_test!(instantiation_reserved_bits, InstantiateTriangleCluster, ImplicitDestinations, cat(INSTANTIATE_VUID, "reserved-10509"), Element1, |_, _, c| c.record1(|r: &mut InstantiateClusterInfo| r.geometry_word = 1 << 28));
+vuid_test!(instantiation_geometry_offset_out_of_range, InstantiateTriangleCluster, ImplicitDestinations, cat(INSTANTIATE_VUID, "geometryIndexOffset-10510"), Element1, |_, _, c| {
+    c.record1(|r: &mut InstantiateClusterInfo| r.geometry_word = InstantiateClusterInfo::pack_geometry_index_offset(-1))
+});
+
+// Cluster BLAS records.
+const BLAS_VUID: &str = "VUID-VkClusterAccelerationStructureBuildClustersBottomLevelInfoNV-";
+vuid_test!(blas_duplicate_references, BuildClustersBottomLevel, ImplicitDestinations, cat(BLAS_VUID, "clusterReferences-10484"), Element1, |f, a, c| {
+    let refs = guarded_data(a, &bytes_of(&[f.clas[0], f.clas[0]])).address(a);
+    c.record1(move |r: &mut BuildClustersBottomLevelInfo| r.cluster_references = refs)
+});
+vuid_test!(blas_references_short_of_the_count, BuildClustersBottomLevel, ImplicitDestinations, cat(BLAS_VUID, "clusterReferences-10485"), Element1, |f, a, c| {
+    // The references end where their buffer ends.
+    let r = harness::vuid::guarded(a, 8);
+    let end = a.buf(r.buf).address + a.buf(r.buf).size - 8;
+    a.buf(r.buf).write((a.buf(r.buf).size - 8) as usize, &f.clas[0].to_le_bytes());
+    c.record1(move |x: &mut BuildClustersBottomLevelInfo| x.cluster_references = end)
+});
+vuid_test!(blas_reference_stride_below_8, BuildClustersBottomLevel, ImplicitDestinations, cat(BLAS_VUID, "clusterReferencesStride-10486"), Element1, |_, _, c| c.record1(|r: &mut BuildClustersBottomLevelInfo| r.cluster_references_stride = 4));
+vuid_test!(blas_references_over_the_per_structure_bound, BuildClustersBottomLevel, ImplicitDestinations, cat(INFO_VUID, "input-12323"), Element1, |_, _, mut c| {
+    c.bl.max_cluster_count_per_acceleration_structure = 1;
+    c
+});
+vuid_test!(blas_references_over_the_total_bound, BuildClustersBottomLevel, ImplicitDestinations, cat(INFO_VUID, "input-12323"), Element1, |_, _, mut c| {
+    c.bl.max_total_cluster_count = 2;
+    c
+});
+
+// Moves and template indices.
+vuid_test!(move_of_another_object_type, MoveObjects, ImplicitDestinations, "VUID-VkClusterAccelerationStructureMoveObjectsInfoNV-srcAccelerationStructure-10483".to_string(), Element1, |f, _, mut c| {
+    c.records[1] = f.template_with.to_le_bytes().to_vec();
+    c
+});
+vuid_test!(move_over_max_moved_bytes, MoveObjects, ImplicitDestinations, cat(INFO_VUID, "input-10469"), Element1, |_, _, mut c| {
+    c.mv.max_moved_bytes = clas::clas_size(8) + 16;
+    c
+});
+vuid_test!(template_indices_of_a_clas, GetClusterTemplateIndices, ImplicitDestinations, "VUID-VkClusterAccelerationStructureGetTemplateIndicesInfoNV-clusterTemplateAddress-10833".to_string(), Element1, |f, _, mut c| {
+    c.records[1] = f.clas[0].to_le_bytes().to_vec();
     c
 });
