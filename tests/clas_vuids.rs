@@ -102,11 +102,14 @@ struct Case {
     records: [Vec<u8>; 2],
     src_stride: u64,
     /// Applied to the command after its regions are placed.
-    tweak: Option<Box<dyn Fn(&mut CommandsInfo, &Regions, &Accel)>>,
+    tweak: Option<Tweak>,
     dst_usage: vk::BufferUsageFlags,
     scratch_usage: vk::BufferUsageFlags,
     src_usage: vk::BufferUsageFlags,
 }
+
+/// A change to the command once its regions are placed.
+type Tweak = Box<dyn Fn(&mut CommandsInfo, &Regions, &Accel)>;
 
 /// Where a case's command reads and writes.
 struct Regions {
@@ -324,10 +327,14 @@ macro_rules! vuid_test {
             scenario(false, |ctx, api, a, f| {
                 let make: &dyn Fn(&Fixture, &Accel, Case) -> Case = &$make;
                 let c = make(f, a, case(f, a, OpType::$op, OpMode::$mode));
-                expect(ctx, api, a, f, c, &$vuid, Outcome::$outcome);
+                expect(ctx, api, a, f, c, name($vuid).as_str(), Outcome::$outcome);
             });
         }
     };
+}
+
+fn name(s: impl AsRef<str>) -> String {
+    s.as_ref().to_string()
 }
 
 fn cat(a: &str, b: &str) -> String {
@@ -470,17 +477,17 @@ vuid_test!(clas_geometry_index_over_the_limit, BuildTriangleCluster, ImplicitDes
     })
 });
 vuid_test!(clas_opacity_micromap_without_the_flag, BuildTriangleCluster, ImplicitDestinations, cat(CLAS_VUID, "opacityMicromapArray-10881"), Element1, |_, _, c| clas1(c, |r| r.opacity_micromap_array = 0x1000));
-vuid_test!(clas_base_geometry_word_reserved_bits, BuildTriangleCluster, ImplicitDestinations, RESERVED.to_string(), Element1, |_, _, c| clas1(c, |r| r.base_geometry_index_and_geometry_flags = GeometryIndexAndFlags(1 << 25)));
-vuid_test!(clas_triangle_geometry_word_reserved_bits, BuildTriangleCluster, ImplicitDestinations, RESERVED.to_string(), Element1, |f, a, c| {
+vuid_test!(clas_base_geometry_word_reserved_bits, BuildTriangleCluster, ImplicitDestinations, RESERVED, Element1, |_, _, c| clas1(c, |r| r.base_geometry_index_and_geometry_flags = GeometryIndexAndFlags(1 << 25)));
+vuid_test!(clas_triangle_geometry_word_reserved_bits, BuildTriangleCluster, ImplicitDestinations, RESERVED, Element1, |f, a, c| {
     f.words.write(a, 12, &(1u32 << 26).to_le_bytes());
     let words = f.words.address(a);
     clas1(c, move |r| r.geometry_index_and_flags_buffer = words)
 });
-vuid_test!(clas_triangles_over_the_input_bound, BuildTriangleCluster, ImplicitDestinations, "exceeds the input's maxClusterTriangleCount".to_string(), Element1, |_, _, mut c| {
+vuid_test!(clas_triangles_over_the_input_bound, BuildTriangleCluster, ImplicitDestinations, "exceeds the input's maxClusterTriangleCount", Element1, |_, _, mut c| {
     c.tri.max_cluster_triangle_count = 8;
     clas1(c, |r| counts(r, 9, 9, 0, 2, 0))
 });
-vuid_test!(clas_total_triangles_over_the_input_bound, BuildTriangleCluster, ImplicitDestinations, "against the input's maxTotalTriangleCount".to_string(), Element1, |_, _, mut c| {
+vuid_test!(clas_total_triangles_over_the_input_bound, BuildTriangleCluster, ImplicitDestinations, "against the input's maxTotalTriangleCount", Element1, |_, _, mut c| {
     c.tri.max_total_triangle_count = 12;
     c
 });
@@ -552,7 +559,7 @@ vuid_test!(blas_references_over_the_total_bound, BuildClustersBottomLevel, Impli
 });
 
 // Moves and template indices.
-vuid_test!(move_of_another_object_type, MoveObjects, ImplicitDestinations, "VUID-VkClusterAccelerationStructureMoveObjectsInfoNV-srcAccelerationStructure-10483".to_string(), Element1, |f, _, mut c| {
+vuid_test!(move_of_another_object_type, MoveObjects, ImplicitDestinations, "VUID-VkClusterAccelerationStructureMoveObjectsInfoNV-srcAccelerationStructure-10483", Element1, |f, _, mut c| {
     c.records[1] = f.template_with.to_le_bytes().to_vec();
     c
 });
@@ -560,7 +567,7 @@ vuid_test!(move_over_max_moved_bytes, MoveObjects, ImplicitDestinations, cat(INF
     c.mv.max_moved_bytes = clas::clas_size(8) + 16;
     c
 });
-vuid_test!(template_indices_of_a_clas, GetClusterTemplateIndices, ImplicitDestinations, "VUID-VkClusterAccelerationStructureGetTemplateIndicesInfoNV-clusterTemplateAddress-10833".to_string(), Element1, |f, _, mut c| {
+vuid_test!(template_indices_of_a_clas, GetClusterTemplateIndices, ImplicitDestinations, "VUID-VkClusterAccelerationStructureGetTemplateIndicesInfoNV-clusterTemplateAddress-10833", Element1, |f, _, mut c| {
     c.records[1] = f.clas[0].to_le_bytes().to_vec();
     c
 });

@@ -413,7 +413,7 @@ impl ClusterCommand {
             None
         };
         if let Some((vuid, message)) = &broken {
-            diag::vuid(&vuid, CMD, &format!("{message}; command skipped"));
+            diag::vuid(vuid, CMD, &format!("{message}; command skipped"));
         }
         broken.is_none()
     }
