@@ -172,7 +172,8 @@ fn cluster_commands_through_the_loader() {
     let api = nv(&ctx);
     let a = Accel::new(&ctx);
 
-    // Inputs: 24 clusters, truncated by 4 bits, per-cluster geometry index and flags.
+    // Inputs: 24 clusters, truncated by 4 bits, per-cluster geometry index (from 1, so the
+    // instantiation's offset of -1 stays in range: VUID 10510) and flags.
     let cl = clusters(24);
     let (mut ib, mut vb) = (Vec::new(), Vec::new());
     let mut offsets = Vec::new();
@@ -190,7 +191,7 @@ fn cluster_commands_through_the_loader() {
         .map(|(k, ((v, i), (io, vo)))| BuildTriangleClusterInfo {
             cluster_id: 500 + k as u32,
             counts: pack_counts(i.len() as u32 / 3, v.len() as u32, 4, 2, 0),
-            base_geometry_index_and_geometry_flags: GeometryIndexAndFlags::new(k as u32, if k % 2 == 0 { GeometryIndexAndFlags::OPAQUE } else { 0 }),
+            base_geometry_index_and_geometry_flags: GeometryIndexAndFlags::new(k as u32 + 1, if k % 2 == 0 { GeometryIndexAndFlags::OPAQUE } else { 0 }),
             index_buffer: ia + io,
             vertex_buffer: va + vo,
             ..Default::default()
@@ -303,7 +304,7 @@ fn cluster_commands_through_the_loader() {
         let through = accel::closest_hit(&tlas_bytes, &tview, ray, RayFlags(0), 0xff);
         assert_eq!(direct.map(|h| (h.t, h.cluster_id, h.primitive_index, h.geometry_index)), through.map(|h| (h.t, h.cluster_id, h.primitive_index, h.geometry_index)));
         if let Some(h) = through {
-            assert!((500..500 + n as i32).contains(&h.cluster_id) && h.geometry_index == (h.cluster_id - 500) as u32);
+            assert!((500..500 + n as i32).contains(&h.cluster_id) && h.geometry_index == (h.cluster_id - 500) as u32 + 1);
             assert_eq!(h.instance_custom_index, 3);
             hits += 1;
         }

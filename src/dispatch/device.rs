@@ -82,6 +82,10 @@ unsafe fn enabled_features(info: &vk::DeviceCreateInfo) -> EnabledFeatures {
                     f.acceleration_structure_indirect_build |= s.acceleration_structure_indirect_build != 0;
                     f.acceleration_structure_host_commands |= s.acceleration_structure_host_commands != 0;
                 }
+                s if s == super::nv_cluster::STYPE_FEATURES => {
+                    let s = &*(p as *const super::nv_cluster::PhysicalDeviceClusterAccelerationStructureFeaturesNV);
+                    f.cluster_acceleration_structure = Some(f.cluster_acceleration_structure.unwrap_or(false) | (s.cluster_acceleration_structure != 0));
+                }
                 _ => {}
             }
             p = base.p_next as *const std::ffi::c_void;

@@ -12,13 +12,14 @@ use ash::vk;
 use ash::vk::Handle;
 
 use super::handle::{self, dispatchable};
+use super::device;
 use super::table::{Implemented, VoidFn};
 use super::{guard, util};
 use crate::accel::clas::args::{ObjectType, OpMode, OpType};
 use crate::accel::clas::{self, SizeInput};
 use crate::accel::VertexFormat;
 use crate::diag;
-use crate::runtime::accel::clas::{ClusterCommand, Strided};
+use crate::runtime::accel::clas::{ClusterCommand, InputBounds, Strided};
 use crate::runtime::command::CommandBuffer;
 
 pub const EXTENSION_NAME: &str = "VK_NV_cluster_acceleration_structure";
@@ -228,12 +229,42 @@ unsafe fn size_input(info: &ClusterAccelerationStructureInputInfoNV) -> Option<S
     Some(s)
 }
 
+/// The rules of VkClusterAccelerationStructureTriangleClusterInputNV (10439-10442), broken or
+/// not; the command checks the same on its copy when it runs.
+///
+/// # Safety
+/// `info.op_input` points to the struct its opType names (or is null).
+unsafe fn triangle_input_violation(info: &ClusterAccelerationStructureInputInfoNV) -> Option<(&'static str, String)> {
+    let op = OpType::from_vk(info.op_type)?;
+    if matches!(op, OpType::MoveObjects | OpType::BuildClustersBottomLevel) || info.op_input.is_null() {
+        return None;
+    }
+    // SAFETY: the union member opType names, per the caller's promise.
+    let t = unsafe { &*(info.op_input as *const ClusterAccelerationStructureTriangleClusterInputNV) };
+    if VertexFormat::from_vk(t.vertex_format.as_raw()).is_none() {
+        return Some((concat!("VUID-VkClusterAccelerationStructureTriangleClusterInputNV-", "vertexFormat-10439"), format!("vertexFormat {:?} lacks ACCELERATION_STRUCTURE_VERTEX_BUFFER", t.vertex_format)));
+    }
+    if t.max_cluster_triangle_count > clas::MAX_TRIANGLES {
+        let m = format!("maxClusterTriangleCount {} exceeds maxTrianglesPerCluster {}", t.max_cluster_triangle_count, clas::MAX_TRIANGLES);
+        return Some((concat!("VUID-VkClusterAccelerationStructureTriangleClusterInputNV-", "maxClusterTriangleCount-10440"), m));
+    }
+    if t.max_cluster_vertex_count > clas::MAX_VERTICES {
+        let m = format!("maxClusterVertexCount {} exceeds maxVerticesPerCluster {}", t.max_cluster_vertex_count, clas::MAX_VERTICES);
+        return Some((concat!("VUID-VkClusterAccelerationStructureTriangleClusterInputNV-", "maxClusterVertexCount-10441"), m));
+    }
+    if t.min_position_truncate_bit_count > 32 {
+        let m = format!("minPositionTruncateBitCount {} exceeds 32", t.min_position_truncate_bit_count);
+        return Some((concat!("VUID-VkClusterAccelerationStructureTriangleClusterInputNV-", "minPositionTruncateBitCount-10442"), m));
+    }
+    None
+}
+
 /// `vkGetClusterAccelerationStructureBuildSizesNV`.
 ///
 /// # Safety
 /// The command's valid-usage rules hold for its pointer parameters.
 unsafe extern "system" fn get_cluster_acceleration_structure_build_sizes_nv(
-    _device: vk::Device,
+    device: vk::Device,
     p_info: *const ClusterAccelerationStructureInputInfoNV,
     p_size_info: *mut vk::AccelerationStructureBuildSizesInfoKHR,
 ) {
@@ -247,6 +278,16 @@ unsafe extern "system" fn get_cluster_acceleration_structure_build_sizes_nv(
             diag::vuid("VUID-VkClusterAccelerationStructureInputInfoNV-opType-parameter", CMD, "unknown opType, opMode or move type, or no op input");
             return;
         };
+        let vuid = "VUID-vkGetClusterAccelerationStructureBuildSizesNV-clusterAccelerationStructure-10438";
+        match device::device_from(device).map(|d| d.features.cluster_acceleration_structure) {
+            Some(Some(false)) => diag::vuid(vuid, CMD, "the clusterAccelerationStructure feature is not enabled"),
+            Some(None) => crate::runtime::accel::clas::feature_struct_missing(vuid, CMD),
+            _ => {}
+        }
+        // SAFETY: as for size_input.
+        if let Some((vuid, message)) = unsafe { triangle_input_violation(&*p_info) } {
+            diag::vuid(vuid, CMD, &message);
+        }
         let sizes = clas::cluster_build_sizes(&s);
         // SAFETY: a valid output struct; its sType and pNext stay.
         let out = unsafe { &mut *p_size_info };
@@ -269,6 +310,7 @@ unsafe fn lower(info: &ClusterAccelerationStructureCommandsInfoNV) -> Result<Clu
     let op = OpType::from_vk(input.op_type).ok_or("opType")?;
     let mode = OpMode::from_vk(input.op_mode).ok_or("opMode")?;
     let (mut vertex_format, mut move_type) = (None, ObjectType::TriangleCluster);
+    let mut bounds = InputBounds::default();
     if input.op_input.is_null() {
         return Err("opInput");
     }
@@ -278,11 +320,22 @@ unsafe fn lower(info: &ClusterAccelerationStructureCommandsInfoNV) -> Result<Clu
             OpType::MoveObjects => {
                 let m = &*(input.op_input as *const ClusterAccelerationStructureMoveObjectsInputNV);
                 move_type = ObjectType::from_vk(m.ty).ok_or("move type")?;
+                bounds.max_moved_bytes = m.max_moved_bytes;
             }
-            OpType::BuildClustersBottomLevel => {}
+            OpType::BuildClustersBottomLevel => {
+                let b = &*(input.op_input as *const ClusterAccelerationStructureClustersBottomLevelInputNV);
+                bounds.max_total_clusters = b.max_total_cluster_count;
+                bounds.max_clusters_per_blas = b.max_cluster_count_per_acceleration_structure;
+            }
             _ => {
                 let t = &*(input.op_input as *const ClusterAccelerationStructureTriangleClusterInputNV);
                 vertex_format = VertexFormat::from_vk(t.vertex_format.as_raw());
+                bounds.vertex_format = t.vertex_format.as_raw();
+                bounds.max_cluster_triangles = t.max_cluster_triangle_count;
+                bounds.max_cluster_vertices = t.max_cluster_vertex_count;
+                bounds.max_total_triangles = t.max_total_triangle_count;
+                bounds.max_total_vertices = t.max_total_vertex_count;
+                bounds.min_truncate_bits = t.min_position_truncate_bit_count;
             }
         }
     }
@@ -300,6 +353,9 @@ unsafe fn lower(info: &ClusterAccelerationStructureCommandsInfoNV) -> Result<Clu
         src_infos: strided(&info.src_infos_array),
         src_infos_count: info.src_infos_count,
         address_resolution: info.address_resolution_flags,
+        bounds,
+        // SAFETY: the same op input, per the caller's promise.
+        queried_size: unsafe { size_input(input) }.map_or(0, |s| clas::cluster_build_sizes(&s).acceleration_structure_size),
     })
 }
 

@@ -35,6 +35,9 @@ pub struct EnabledFeatures {
     pub acceleration_structure_capture_replay: bool,
     pub acceleration_structure_indirect_build: bool,
     pub acceleration_structure_host_commands: bool,
+    /// VkPhysicalDeviceClusterAccelerationStructureFeaturesNV::clusterAccelerationStructure;
+    /// None when the struct was not in the chain (a layer that predates the extension drops it).
+    pub cluster_acceleration_structure: Option<bool>,
 }
 
 impl Device {

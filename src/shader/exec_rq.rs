@@ -201,6 +201,8 @@ fn get(slot: &Slot<'_>, value: RqValue, committed: bool, out: &mut [u64; 12]) {
         }
         // Nothing committed: the committed t is the ray's tmax (what traversal still accepts).
         RqValue::T if committed && hit.is_none() => f32s(out, &[slot.ray.tmax]),
+        // No intersection is no cluster: -1, as for ordinary geometry.
+        RqValue::ClusterId if hit.is_none() => out[0] = alu::norm(Sc::I32, u64::MAX),
         _ => {
             if let Some(h) = hit {
                 hit_value(&h, value, out);
@@ -225,6 +227,7 @@ fn hit_value(h: &Hit, value: RqValue, out: &mut [u64; 12]) {
         RqValue::ObjectRayDirection => f32s(out, &h.object_ray_direction.to_array()),
         RqValue::ObjectToWorld => f32s(out, &columns(&h.object_to_world)),
         RqValue::WorldToObject => f32s(out, &columns(&h.world_to_object)),
+        RqValue::ClusterId => out[0] = alu::norm(Sc::I32, h.cluster_id as i64 as u64),
         RqValue::TriangleVertexPositions => {
             let v = h.vertices;
             f32s(out, &[v[0].x, v[0].y, v[0].z, v[1].x, v[1].y, v[1].z, v[2].x, v[2].y, v[2].z]);

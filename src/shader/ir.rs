@@ -231,6 +231,8 @@ pub enum RqValue {
     WorldToObject,
     /// Three vertices of 3 floats (VK_KHR_ray_tracing_position_fetch).
     TriangleVertexPositions,
+    /// The hit cluster's ID, -1 for other geometry (SPV_NV_cluster_acceleration_structure).
+    ClusterId,
 }
 
 impl RqValue {

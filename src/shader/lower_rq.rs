@@ -1,4 +1,5 @@
-//! SPV_KHR_ray_query (and the ray-query half of SPV_KHR_ray_tracing_position_fetch) → IR.
+//! SPV_KHR_ray_query (and the ray-query halves of SPV_KHR_ray_tracing_position_fetch and
+//! SPV_NV_cluster_acceleration_structure) → IR.
 //!
 //! A ray query is only ever reached through a pointer (a Private global from glslang, a
 //! Function variable passed by pointer into helpers from naga): the pointer's lane-frame
@@ -49,6 +50,7 @@ fn kind_of(op: Op) -> Option<(RqKind, bool)> {
         Op::RayQueryGetIntersectionObjectToWorldKHR => get(ObjectToWorld, true),
         Op::RayQueryGetIntersectionWorldToObjectKHR => get(WorldToObject, true),
         Op::RayQueryGetIntersectionTriangleVertexPositionsKHR => get(TriangleVertexPositions, true),
+        Op::RayQueryGetIntersectionClusterIdNV => get(ClusterId, true),
         _ => None,
     }
 }

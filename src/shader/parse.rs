@@ -99,6 +99,8 @@ const CAPABILITIES: &[Capability] = &[
     Capability::SampledBuffer,
     Capability::RayQueryKHR,
     Capability::RayQueryPositionFetchKHR,
+    // OpRayQueryGetIntersectionClusterIdNV only (no ray-tracing pipelines, no hit objects).
+    Capability::RayTracingClusterAccelerationStructureNV,
     // Arrays of storage and uniform buffer descriptors, indexed by any value (the executor
     // resolves the element per lane), sized or runtime.
     Capability::UniformBufferArrayDynamicIndexing,
@@ -125,6 +127,7 @@ const EXTENSIONS: &[&str] = &[
     "SPV_KHR_shader_ballot",
     "SPV_KHR_ray_query",
     "SPV_KHR_ray_tracing_position_fetch",
+    "SPV_NV_cluster_acceleration_structure",
     "SPV_EXT_descriptor_indexing",
 ];
 
@@ -184,6 +187,7 @@ const OPCODES: &[Op] = {
         RayQueryGetIntersectionObjectRayOriginKHR, RayQueryGetWorldRayDirectionKHR,
         RayQueryGetWorldRayOriginKHR, RayQueryGetIntersectionObjectToWorldKHR,
         RayQueryGetIntersectionWorldToObjectKHR, RayQueryGetIntersectionTriangleVertexPositionsKHR,
+        RayQueryGetIntersectionClusterIdNV,
     ]
 };
 

@@ -9,6 +9,7 @@
 
 pub mod accel;
 pub mod child;
+pub mod clas;
 pub mod compute;
 pub mod compute_run;
 pub mod rq;
@@ -35,6 +36,13 @@ const LAYER_PREDATES: &[&[&str]] = &[
     &["Device Extension VK_NV_cluster_acceleration_structure is not supported by this layer"],
     &["Device Extension VK_NV_partitioned_acceleration_structure is not supported by this layer"],
     &["VUID-VkPhysicalDeviceProperties2-pNext-pNext", "unknown VkStructureType (1000569001)"],
+    // The cluster feature struct in vkCreateDevice's chain (the layer then drops it).
+    &["VUID-VkDeviceCreateInfo-pNext-pNext", "unknown VkStructureType (1000569000)"],
+    // A shader using the cluster ID: its capability (5437, RayTracingClusterAccelerationStructureNV)
+    // and extension, which the layer's SPIR-V tables lack.
+    &["UNASSIGNED-CoreValidation-Shader-InconsistentSpirv", "Invalid capability operand: 5437"],
+    &["VUID-VkShaderModuleCreateInfo-pCode-01090", "A SPIR-V Capability (Unhandled OpCapability) was declared"],
+    &["VUID-VkShaderModuleCreateInfo-pCode-04146", "A SPIR-V Extension (SPV_NV_cluster_acceleration_structure) was declared"],
 ];
 
 /// Path of the built driver for this test profile (target/<profile>/libvulkan_arbor.so).
@@ -145,11 +153,13 @@ pub struct Options {
     pub acceleration_structure: bool,
     /// Enable the core sparseBinding feature.
     pub sparse_binding: bool,
+    /// With VK_NV_cluster_acceleration_structure: chain its feature struct with the feature off.
+    pub cluster_feature_off: bool,
 }
 
 impl Default for Options {
     fn default() -> Self {
-        Options { validation: true, device_extensions: default_device_extensions(), instance_extensions: vec![], queue_count: 4, acceleration_structure: false, sparse_binding: false }
+        Options { validation: true, device_extensions: default_device_extensions(), instance_extensions: vec![], queue_count: 4, acceleration_structure: false, sparse_binding: false, cluster_feature_off: false }
     }
 }
 
@@ -234,6 +244,13 @@ fn arbor_physical_device(instance: &ash::Instance) -> vk::PhysicalDevice {
         .expect("Arbor's physical device")
 }
 
+#[repr(C)]
+struct ClusterFeatures {
+    s_type: i32,
+    p_next: *const c_void,
+    cluster_acceleration_structure: vk::Bool32,
+}
+
 /// The device: `queue_count` queues of family 0, the options' extensions (with the
 /// acceleration-structure set if asked for) and the features those extensions bring.
 fn create_device(instance: &ash::Instance, physical: vk::PhysicalDevice, opts: &Options) -> ash::Device {
@@ -268,6 +285,12 @@ fn create_device(instance: &ash::Instance, physical: vk::PhysicalDevice, opts: &
     let has = |e: &str| dev_exts.contains(&e);
     if has("VK_KHR_ray_query") {
         dci = dci.push_next(&mut rq);
+    }
+    // VkPhysicalDeviceClusterAccelerationStructureFeaturesNV (ash 0.38 lacks it), linked by hand.
+    let mut cluster = ClusterFeatures { s_type: 1_000_569_000, p_next: std::ptr::null(), cluster_acceleration_structure: (!opts.cluster_feature_off).into() };
+    if has("VK_NV_cluster_acceleration_structure") {
+        cluster.p_next = dci.p_next;
+        dci.p_next = &cluster as *const ClusterFeatures as *const c_void;
     }
     if opts.acceleration_structure {
         dci = dci.push_next(&mut asf).push_next(&mut rtm1);

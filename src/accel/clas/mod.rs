@@ -8,6 +8,7 @@
 //! BVH built through `accel::build`). Unrelated to `build/cluster.rs`, the KHR builder's stage
 //! that groups neighbouring primitives.
 pub mod args;
+pub mod check;
 mod blas;
 mod build;
 mod format;
