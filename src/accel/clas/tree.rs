@@ -4,10 +4,10 @@
 //!
 //! A CLAS tree has a shape that depends on the triangle count alone (leaves of up to four
 //! triangles, nodes filled four-wide from the left), so a CLAS's size is a function of its
-//! triangle count and COMPUTE_SIZES stays exact; recursive median splits on the centroids decide
-//! which triangles share a leaf. Nodes use the KHR node format (`layout::WideNode`) with local
-//! indices: internal children name a node of the CLAS tree, leaves a slot of the CLAS's order
-//! table. Must not touch: the blob sections (format.rs) or the gathering of a BLAS (blas.rs).
+//! triangle count and COMPUTE_SIZES stays exact; the Morton order of the centroids decides which
+//! triangles share a leaf. The top tree uses recursive median splits of the CLAS box centres.
+//! Nodes use the KHR node format (`layout::WideNode`) with local indices: internal children name
+//! a node of the CLAS tree, leaves a slot of the CLAS's order table. Must not touch: the blob sections (format.rs) or the gathering of a BLAS (blas.rs).
 use crate::accel::encode::quantize::quantize_node;
 use crate::accel::geometry::{triangle_bounds, Aabb};
 use crate::accel::layout::{WideNode, CHILD_INTERNAL};
@@ -118,14 +118,14 @@ pub struct LocalTree {
     pub bounds: [f32; 6],
 }
 
-struct Local<'a> {
-    order: Vec<u32>,
-    boxes: &'a [Option<Aabb>],
-    centroids: &'a [[f32; 3]],
+struct Local {
+    order: Vec<u8>,
+    /// Boxes in slot order.
+    boxes: Vec<Option<Aabb>>,
     nodes: Vec<WideNode>,
 }
 
-impl Local<'_> {
+impl Local {
     fn slots(&self, first_leaf: u32, leaves: u32) -> std::ops::Range<usize> {
         let n = self.order.len();
         (first_leaf * LEAF) as usize..(((first_leaf + leaves) * LEAF) as usize).min(n)
@@ -134,20 +134,12 @@ impl Local<'_> {
     /// Emits the node over `leaves` leaves from `first_leaf`; returns its index and box.
     fn node(&mut self, first_leaf: u32, leaves: u32) -> (u32, Aabb) {
         let me = self.nodes.len() as u32;
-        self.nodes.push(WideNode { child_count: 0, ..bytemuck::Zeroable::zeroed() });
-        let kids: Vec<u32> = children_of(leaves).collect();
-        let range = self.slots(first_leaf, leaves);
-        let sizes: Vec<usize> = kids.iter().scan(first_leaf, |f, &m| {
-            let r = self.slots(*f, m);
-            *f += m;
-            Some(r.len())
-        }).collect();
-        partition(&mut self.order[range], self.centroids, &sizes);
+        self.nodes.push(bytemuck::Zeroable::zeroed());
         let (mut clo, mut chi) = ([Vec3A::ZERO; 4], [Vec3A::ZERO; 4]);
         let (mut child, mut kind) = ([0u32; 4], [0u8; 4]);
         let mut whole = Aabb::EMPTY;
-        let mut f = first_leaf;
-        for (c, &m) in kids.iter().enumerate() {
+        let (mut f, mut count) = (first_leaf, 0);
+        for (c, m) in children_of(leaves).enumerate() {
             let b = if m > 1 {
                 let (i, b) = self.node(f, m);
                 (child[c], kind[c]) = (i, CHILD_INTERNAL);
@@ -155,31 +147,54 @@ impl Local<'_> {
             } else {
                 let r = self.slots(f, 1);
                 (child[c], kind[c]) = (r.start as u32, r.len() as u8);
-                finite_box(self.order[r].iter().filter_map(|&i| self.boxes[i as usize]).fold(Aabb::EMPTY, |a, b| a.union(&b)))
+                finite_box(self.boxes[r].iter().flatten().fold(Aabb::EMPTY, |a, b| a.union(b)))
             };
             (clo[c], chi[c]) = (Vec3A::from_array(b.lo), Vec3A::from_array(b.hi));
             whole = whole.union(&b);
             f += m;
+            count = c + 1;
         }
-        for c in kids.len()..4 {
+        for c in count..4 {
             (clo[c], chi[c]) = (Vec3A::from_array(whole.lo), Vec3A::from_array(whole.lo));
         }
-        self.nodes[me as usize] = quantize_node(&whole, &clo, &chi, kids.len(), &child, &kind);
+        self.nodes[me as usize] = quantize_node(&whole, &clo, &chi, count, &child, &kind);
         (me, whole)
     }
 }
 
-/// The tree of a CLAS over `tris` (at most 256: slots are bytes).
+/// Spreads the low 10 bits of `x` to every third bit.
+fn spread(x: u32) -> u32 {
+    let mut v = x & 0x3ff;
+    v = (v | v << 16) & 0x0300_00ff;
+    v = (v | v << 8) & 0x0300_f00f;
+    v = (v | v << 4) & 0x030c_30c3;
+    (v | v << 2) & 0x0924_9249
+}
+
+/// The tree of a CLAS over `tris` (at most 256: slots are bytes). Slots follow the Morton order
+/// of the centroids in the cluster's centroid box (ties by triangle index), cut into the fixed
+/// shape: one sort per cluster, the cost instantiation pays for a BLAS that need not sort.
 pub fn build_local(tris: &[[f32; 9]]) -> LocalTree {
     let boxes: Vec<Option<Aabb>> = tris.iter().map(tri_box).collect();
     let centroids: Vec<[f32; 3]> = boxes.iter().map(centroid_of).collect();
-    let mut l = Local { order: (0..tris.len() as u32).collect(), boxes: &boxes, centroids: &centroids, nodes: Vec::new() };
+    let (mut lo, mut hi) = ([f32::INFINITY; 3], [f32::NEG_INFINITY; 3]);
+    for c in &centroids {
+        for a in 0..3 {
+            (lo[a], hi[a]) = (lo[a].min(c[a]), hi[a].max(c[a]));
+        }
+    }
+    let scale: [f32; 3] = std::array::from_fn(|a| if hi[a] > lo[a] { 1023.0 / (hi[a] - lo[a]) } else { 0.0 });
+    let cell = |c: &[f32; 3], a: usize| (((c[a] - lo[a]) * scale[a]).clamp(0.0, 1023.0)) as u32;
+    let mut keys: Vec<u64> = centroids.iter().enumerate().map(|(i, c)| ((spread(cell(c, 0)) | spread(cell(c, 1)) << 1 | spread(cell(c, 2)) << 2) as u64) << 8 | i as u64).collect();
+    keys.sort_unstable();
+    let order: Vec<u8> = keys.iter().map(|&k| k as u8).collect();
+    let mut l = Local { boxes: order.iter().map(|&i| boxes[i as usize]).collect(), order, nodes: Vec::with_capacity(local_node_count(tris.len() as u64) as usize) };
     let mut bounds = [0.0; 6];
     if !tris.is_empty() {
         let (_, b) = l.node(0, (tris.len() as u32).div_ceil(LEAF));
         bounds = [b.lo[0], b.lo[1], b.lo[2], b.hi[0], b.hi[1], b.hi[2]];
     }
-    LocalTree { order: l.order.iter().map(|&i| i as u8).collect(), nodes: l.nodes, bounds }
+    LocalTree { order: l.order, nodes: l.nodes, bounds }
 }
 
 /// A child of a top-tree node: another top node, or CLAS `k` of the input.
