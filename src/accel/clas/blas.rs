@@ -79,7 +79,7 @@ fn copy_cluster(p: &Part<'_>, node_shift: u32, (side, prims, recs, nodes): Regio
 }
 
 /// Splits `region` into consecutive pieces of `per` × the parts' triangle or node counts.
-fn pieces<'d>(mut region: &'d mut [u8], counts: impl Iterator<Item = usize>, per: usize) -> Vec<&'d mut [u8]> {
+fn pieces(mut region: &mut [u8], counts: impl Iterator<Item = usize>, per: usize) -> Vec<&mut [u8]> {
     counts
         .map(|n| {
             let (a, b) = std::mem::take(&mut region).split_at_mut(n * per);

@@ -57,6 +57,12 @@ pub fn local_node_bound(clusters: u64, triangles: u64) -> u64 {
 /// A triangle's box for the tree: NaN coordinates never hit, so such a triangle adds nothing;
 /// infinities are clamped to the largest finite values (as the KHR builder does).
 fn tri_box(t: &[f32; 9]) -> Option<Aabb> {
+    // A finite sum means every coordinate is finite (the common case, min/max exact).
+    if t.iter().sum::<f32>().is_finite() {
+        let lo = std::array::from_fn(|a| t[a].min(t[a + 3]).min(t[a + 6]));
+        let hi = std::array::from_fn(|a| t[a].max(t[a + 3]).max(t[a + 6]));
+        return Some(Aabb { lo, hi });
+    }
     if t.iter().any(|x| x.is_nan()) {
         return None;
     }
