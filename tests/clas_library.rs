@@ -143,60 +143,162 @@ fn global(e: &Expected, h: &Hit) -> usize {
     e.facts.iter().position(|f| f.0 == h.cluster_id && f.1 == h.primitive_index).expect("hit names a cluster triangle")
 }
 
-// One function: the two truncations and both ray-flag settings share the built inputs.
-#[test]
-fn cluster_blas_of_the_bunny_traverses_like_khr_blas_and_brute_force() {
-    let mesh = arbor_scene::load(concat!(env!("CARGO_MANIFEST_DIR"), "/data/bunny.ply")).unwrap();
-    let c = cut(&mesh);
+/// Whether a cluster triangle with `facts` that brute force hits (facing `front`) is a
+/// candidate for ray flags `f`, and whether it is opaque: the spec's rules with the cluster's
+/// per-triangle flags (OPAQUE 4, CULL_DISABLE 1), written here from the extension's text.
+fn cluster_rules(f: u32, facts: (i32, u32, u32, u32), front: bool) -> Option<bool> {
+    let mut opaque = facts.3 & 4 != 0;
+    if f & RayFlags::OPAQUE != 0 {
+        opaque = true;
+    } else if f & RayFlags::NO_OPAQUE != 0 {
+        opaque = false;
+    }
+    if (opaque && f & RayFlags::CULL_OPAQUE != 0) || (!opaque && f & RayFlags::CULL_NO_OPAQUE != 0) {
+        return None;
+    }
+    let culled = (f & RayFlags::CULL_BACK_FACING_TRIANGLES != 0 && !front) || (f & RayFlags::CULL_FRONT_FACING_TRIANGLES != 0 && front);
+    (!culled || facts.3 & 1 != 0).then_some(opaque)
+}
+
+const RAY_FLAGS: [u32; 8] = [
+    0,
+    RayFlags::CULL_BACK_FACING_TRIANGLES,
+    RayFlags::CULL_FRONT_FACING_TRIANGLES,
+    RayFlags::OPAQUE,
+    RayFlags::NO_OPAQUE,
+    RayFlags::CULL_OPAQUE,
+    RayFlags::CULL_NO_OPAQUE,
+    RayFlags::CULL_BACK_FACING_TRIANGLES | RayFlags::CULL_OPAQUE,
+];
+
+/// Every candidate of the cluster BLAS along `rays` (ray flags in turn from RAY_FLAGS), mapped
+/// to global triangles, against brute force over the expected triangles with the cluster rules
+/// applied by hand; and with ray flags 0 the closest hit against a KHR BLAS over the same
+/// triangles (t and vertices bit for bit). Returns the closest hits found.
+fn check_blas(blas: &[u8], e: &Expected, rays: &[Ray], what: &str) -> usize {
+    let khr_data = khr_of(e);
+    let khr = reference::build_blas(0, &[khr_data.geometry()]);
+    let geoms = [khr_data.geometry()];
+    let scene = RefScene::Blas(&geoms);
+    let mut hits = 0;
+    for (n, &ray) in rays.iter().enumerate() {
+        let flags = RAY_FLAGS[n % RAY_FLAGS.len()];
+        let mut got: Vec<(usize, u32, bool)> = accel::all_hits(blas, &accel::NoDevice, ray, RayFlags(flags), 0xff)
+            .iter()
+            .map(|h| {
+                let g = global(e, h);
+                assert_eq!((h.geometry_index, h.cluster_id), (e.facts[g].2, e.facts[g].0), "{what} ray {n}");
+                assert_eq!(h.vertices, e.tris[g], "{what} ray {n}: truncated positions");
+                (g, h.t.to_bits(), h.opaque)
+            })
+            .collect();
+        got.sort();
+        let reference = brute(&scene, &ray, 0, 0xff);
+        let mut want: Vec<(usize, u32, bool)> = reference
+            .hits
+            .iter()
+            .filter_map(|r| {
+                let g = r.id.primitive as usize;
+                cluster_rules(flags, e.facts[g], r.front).map(|opaque| (g, r.t.to_bits(), opaque))
+            })
+            .collect();
+        want.sort();
+        assert_eq!(got, want, "{what} ray {n} flags {flags:#x}");
+        if flags == 0 {
+            // The KHR BLAS holds the same triangles, all non-opaque: compare t and the triangle.
+            let a = accel::closest_hit(blas, &accel::NoDevice, ray, RayFlags(0), 0xff);
+            let b = accel::closest_hit(&khr.bytes, &accel::NoDevice, ray, RayFlags(0), 0xff);
+            assert_eq!(a.map(|h| h.t.to_bits()), b.map(|h| h.t.to_bits()), "{what} ray {n}");
+            if let (Some(a), Some(b)) = (a, b) {
+                assert_eq!(a.vertices, b.vertices, "{what} ray {n}");
+                assert_eq!(a.cluster_id, e.facts[global(e, &a)].0);
+                assert_eq!(b.cluster_id, -1);
+                hits += 1;
+            }
+        }
+    }
+    hits
+}
+
+fn check_mesh(mesh: &arbor_scene::Mesh, rays_per_side: usize, what: &str) {
+    let c = cut(mesh);
     for bits in [0, 9] {
         let inp = inputs(&c, bits, 1.0);
         let clases = build_clases(&inp);
         let addrs: Vec<(u64, &[u8])> = clases.iter().enumerate().map(|(k, b)| (0x10_0000 * (k as u64 + 1), b.as_slice())).collect();
         let blas = cluster_blas(&addrs);
         let e = expected(&c, bits, 1.0);
-        let khr_data = khr_of(&e);
-        let khr = reference::build_blas(0, &[khr_data.geometry()]);
-        let geoms = [khr_data.geometry()];
-        let scene = RefScene::Blas(&geoms);
-        let mut hits = 0;
-        for (n, ray) in rays(mesh.bounds(), 48).into_iter().enumerate() {
-            let flags = if n % 2 == 0 { 0 } else { RayFlags::CULL_BACK_FACING_TRIANGLES };
-            // Every candidate, mapped to global triangles, against brute force with the cluster
-            // rules applied by hand (CULL_DISABLE is per triangle here).
-            let mut got: Vec<(usize, u32, bool)> = accel::all_hits(&blas, &accel::NoDevice, ray, RayFlags(flags), 0xff)
-                .iter()
-                .map(|h| {
-                    let g = global(&e, h);
-                    assert_eq!((h.geometry_index, h.cluster_id), (e.facts[g].2, e.facts[g].0), "bits {bits} ray {n}");
-                    (g, h.t.to_bits(), h.opaque)
-                })
-                .collect();
-            got.sort();
-            let reference = brute(&scene, &ray, 0, 0xff);
-            let mut want: Vec<(usize, u32, bool)> = reference
-                .hits
-                .iter()
-                .filter(|r| flags == 0 || r.front || e.facts[r.id.primitive as usize].3 & 1 != 0)
-                .map(|r| (r.id.primitive as usize, r.t.to_bits(), e.facts[r.id.primitive as usize].3 & 4 != 0))
-                .collect();
-            want.sort();
-            assert_eq!(got, want, "bits {bits} ray {n}");
-            // Closest hit against the KHR BLAS over the same triangles (all non-opaque there:
-            // compare t and the triangle).
-            let a = accel::closest_hit(&blas, &accel::NoDevice, ray, RayFlags(flags), 0xff);
-            let b = accel::closest_hit(&khr.bytes, &accel::NoDevice, ray, RayFlags(flags), 0xff);
-            if flags == 0 {
-                assert_eq!(a.map(|h| h.t.to_bits()), b.map(|h| h.t.to_bits()), "bits {bits} ray {n}");
-                if let (Some(a), Some(b)) = (a, b) {
-                    assert_eq!(a.vertices, b.vertices);
-                    assert_eq!(a.cluster_id, e.facts[global(&e, &a)].0);
-                    assert_eq!(b.cluster_id, -1);
-                    hits += 1;
-                }
-            }
-        }
-        assert!(hits > 300, "the rays must hit the bunny ({hits})");
+        let mut rays = rays(mesh.bounds(), rays_per_side);
+        rays.extend(reference::random_rays(mesh.bounds(), rays.len() / 4, 7 + bits as u64));
+        let hits = check_blas(&blas, &e, &rays, &format!("{what} bits {bits}"));
+        assert!(hits > rays.len() / 40, "the rays must hit the {what} ({hits})");
     }
+}
+
+#[test]
+fn cluster_blas_of_the_bunny_traverses_like_khr_blas_and_brute_force() {
+    check_mesh(&arbor_scene::load(concat!(env!("CARGO_MANIFEST_DIR"), "/data/bunny.ply")).unwrap(), 48, "bunny");
+}
+
+#[test]
+fn cluster_blas_of_the_dragon_traverses_like_khr_blas_and_brute_force() {
+    check_mesh(&arbor_scene::load(concat!(env!("CARGO_MANIFEST_DIR"), "/data/dragon_vrip_res3.ply.gz")).unwrap(), 32, "dragon res3");
+}
+
+/// Clusters of random triangles: sizes from 0 to 256 triangles over up to 256 shared vertices,
+/// some degenerate (a repeated index), in overlapping boxes.
+fn random_cut(seed: u64, clusters: usize) -> Cut {
+    let mut rng = arbor_scene::Rng::new(seed);
+    let mut out = Vec::new();
+    for k in 0..clusters {
+        let t = match k % 5 {
+            0 => 256,
+            1 => 0,
+            _ => 1 + rng.below(200) as usize,
+        };
+        let nv = (3 * t).clamp(3, 256);
+        let centre = Vec3::new(rng.range(-1.0, 1.0), rng.range(-1.0, 1.0), rng.range(-1.0, 1.0));
+        let size = rng.range(0.1, 0.8);
+        let verts: Vec<[f32; 3]> = (0..nv).map(|_| (centre + size * Vec3::new(rng.range(-1.0, 1.0), rng.range(-1.0, 1.0), rng.range(-1.0, 1.0))).to_array()).collect();
+        let mut idx = Vec::new();
+        for j in 0..t {
+            let mut tri = [0, 1, 2].map(|_| rng.below(nv as u32) as u16);
+            if j % 17 == 5 {
+                tri[2] = tri[0];
+            }
+            idx.extend(tri);
+        }
+        out.push((verts, idx));
+    }
+    Cut { clusters: out }
+}
+
+#[test]
+fn cluster_blas_of_random_clusters_and_every_flag_traverses_like_brute_force() {
+    for (seed, bits) in [(1u64, 0u32), (2, 5), (3, 17)] {
+        let c = random_cut(seed, 23);
+        let inp = inputs(&c, bits, 1.0);
+        let clases = build_clases(&inp);
+        let addrs: Vec<(u64, &[u8])> = clases.iter().enumerate().map(|(k, b)| (0x10_0000 * (k as u64 + 1), b.as_slice())).collect();
+        let blas = cluster_blas(&addrs);
+        // Deterministic: the same inputs give the same bytes.
+        assert_eq!(blas, cluster_blas(&addrs));
+        let e = expected(&c, bits, 1.0);
+        let rays = reference::random_rays([-2.0, -2.0, -2.0, 2.0, 2.0, 2.0], 600, seed);
+        let hits = check_blas(&blas, &e, &rays, &format!("random seed {seed}"));
+        assert!(hits > 20, "{hits}");
+    }
+    // One cluster alone, and a BLAS of empty clusters only.
+    let c = random_cut(4, 1);
+    let clases = build_clases(&inputs(&c, 0, 1.0));
+    let one = cluster_blas(&[(0x1000, clases[0].as_slice())]);
+    check_blas(&one, &expected(&c, 0, 1.0), &reference::random_rays([-2.0, -2.0, -2.0, 2.0, 2.0, 2.0], 200, 4), "one cluster");
+    let c = Cut { clusters: vec![(Vec::new(), Vec::new()); 3] };
+    let clases = build_clases(&inputs(&c, 0, 1.0));
+    let empty = cluster_blas(&clases.iter().map(|b| (0x1000, b.as_slice())).collect::<Vec<_>>());
+    let ray = Ray { origin: Vec3::ZERO, direction: Vec3::X, tmin: 0.0, tmax: f32::INFINITY };
+    assert_eq!(accel::closest_hit(&empty, &accel::NoDevice, ray, RayFlags(0), 0xff), None);
+    assert_eq!(accel::header(&empty).map(|h| h.primitive_count), Some(0));
 }
 
 // One function: each case builds on the template of the case before.
@@ -353,6 +455,105 @@ fn moves_are_byte_copies_and_a_tlas_instances_a_cluster_blas() {
     }
     assert!(n_hits > 50);
     assert_eq!(accel::header(&blas).map(|h| (h.ty, h.used_size)), Some((AsType::BottomLevel, blas.len() as u64)));
+}
+
+/// Instances of two cluster BLASes as (transform, custom index, BLAS address).
+fn placements(a: u64, b: u64) -> Vec<([f32; 12], u32, u64)> {
+    vec![
+        ([1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0], 1, a),
+        ([1.0, 0.0, 0.0, 0.3, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.05], 2, a),
+        ([0.0, -1.5, 0.0, -0.1, 1.5, 0.0, 0.0, 0.1, 0.0, 0.0, 1.5, 0.0], 3, b),
+    ]
+}
+
+fn khr_tlas(p: &[([f32; 12], u32, u64)], view: &MapView) -> Vec<u8> {
+    let records: Vec<arbor_scene::InstanceRecord> =
+        p.iter().map(|&(transform, custom_index, reference)| arbor_scene::InstanceRecord { transform, custom_index, mask: 0xff, sbt_offset: 0, flags: 0, reference }).collect();
+    let bytes = arbor_scene::InstanceRecord::pack(&records);
+    let g = accel::Geometry { flags: accel::GeometryFlags(0), primitive_count: p.len() as u32, data: accel::GeometryData::Instances { array_of_pointers: false, data: &bytes } };
+    reference::build(AsType::TopLevel, 0, &[g], view).bytes
+}
+
+fn ptlas_of(p: &[([f32; 12], u32, u64)], view: &MapView) -> Vec<u8> {
+    use arbor::accel::ptlas;
+    let writes: Vec<ptlas::WriteInstance> = p
+        .iter()
+        .enumerate()
+        .map(|(k, &(transform, id, blas))| ptlas::WriteInstance {
+            transform,
+            explicit_aabb: [0.0; 6],
+            instance_id: id,
+            instance_mask: 0xff,
+            instance_contribution_to_hit_group_index: 0,
+            instance_flags: 0,
+            instance_index: k as u32,
+            partition_index: k as u32 % 2,
+            acceleration_structure: blas,
+        })
+        .collect();
+    let input = ptlas::Input { flags: 0, instance_count: 4, max_instance_per_partition_count: 4, partition_count: 2, max_instance_in_global_partition_count: 1, translation: false };
+    let sizes = ptlas::build_sizes(&input);
+    let (mut dst, mut scratch) = (vec![0u8; sizes.acceleration_structure_size as usize], vec![0u8; sizes.build_scratch_size as usize]);
+    let ops = ptlas::Ops { writes: ptlas::Strided { data: bytemuck::cast_slice(&writes), count: writes.len() as u32, stride: 0 }, ..Default::default() };
+    ptlas::build(&input, &ops, view, ptlas::Source::Empty, &mut dst, &mut scratch).unwrap();
+    dst
+}
+
+type HitKey = (u32, u32, i32, u32, u32, u32, bool);
+
+fn hit_keys(top: &[u8], view: &MapView, ray: Ray, flags: u32) -> Vec<HitKey> {
+    let mut v: Vec<HitKey> = accel::all_hits(top, view as &dyn DeviceView, ray, RayFlags(flags), 0xff)
+        .iter()
+        .map(|h| (h.instance_index, h.instance_custom_index, h.cluster_id, h.primitive_index, h.geometry_index, h.t.to_bits(), h.opaque))
+        .collect();
+    v.sort();
+    v
+}
+
+// One function: the moved copies are checked against the structures built before the move.
+#[test]
+fn a_khr_tlas_and_a_ptlas_over_cluster_blases_trace_alike_before_and_after_moves() {
+    let mesh = arbor_scene::load(concat!(env!("CARGO_MANIFEST_DIR"), "/data/bunny.ply")).unwrap();
+    let c = cut(&mesh);
+    let inp = inputs(&c, 2, 1.0);
+    let clases = build_clases(&inp);
+    let half = clases.len() / 2;
+    let at = |r: std::ops::Range<usize>| -> Vec<(u64, &[u8])> { clases[r].iter().enumerate().map(|(k, b)| (0x10_0000 + 0x1000 * k as u64, b.as_slice())).collect() };
+    let (blas_a, blas_b) = (cluster_blas(&at(0..half)), cluster_blas(&at(half..clases.len())));
+    let (addr_a, addr_b) = (0x4000_0000u64, 0x5000_0000u64);
+    let mut view = MapView::new();
+    view.insert(addr_a, blas_a.clone());
+    view.insert(addr_b, blas_b.clone());
+    let p = placements(addr_a, addr_b);
+    let (tlas, pt) = (khr_tlas(&p, &view), ptlas_of(&p, &view));
+    // MOVE_OBJECTS is a byte copy: the BLASes at new addresses, the tops rebuilt over them.
+    let (moved_a, moved_b) = (0x6000_0040u64, 0x6100_0000u64);
+    let mut moved = MapView::new();
+    moved.insert(moved_a, blas_a.clone());
+    moved.insert(moved_b, blas_b.clone());
+    let q = placements(moved_a, moved_b);
+    let (tlas2, pt2) = (khr_tlas(&q, &moved), ptlas_of(&q, &moved));
+    let e = expected(&c, 2, 1.0);
+    let b = mesh.bounds();
+    let wide = [b[0] - 0.2, b[1] - 0.2, b[2] - 0.2, b[3] + 0.4, b[4] + 0.2, b[5] + 0.2];
+    let mut hits = 0;
+    for (n, ray) in reference::random_rays(wide, 400, 11).into_iter().enumerate() {
+        let flags = RAY_FLAGS[n % RAY_FLAGS.len()];
+        let want = hit_keys(&tlas, &view, ray, flags);
+        assert_eq!(hit_keys(&pt, &view, ray, flags), want, "PTLAS ray {n}");
+        assert_eq!(hit_keys(&tlas2, &moved, ray, flags), want, "moved, KHR TLAS ray {n}");
+        assert_eq!(hit_keys(&pt2, &moved, ray, flags), want, "moved, PTLAS ray {n}");
+        // The first instance is the identity: its hits are the BLAS's own.
+        let own: Vec<HitKey> = hit_keys(&blas_a, &MapView::new(), ray, flags).into_iter().map(|k| (0, 1, k.2, k.3, k.4, k.5, k.6)).collect();
+        let first: Vec<HitKey> = want.iter().filter(|k| k.0 == 0).copied().collect();
+        assert_eq!(first, own, "instance 0 ray {n}");
+        for k in &want {
+            let f = e.facts.iter().find(|f| f.0 == k.2 && f.1 == k.3).expect("a hit names a cluster triangle");
+            assert_eq!(f.2, k.4);
+        }
+        hits += want.len();
+    }
+    assert!(hits > 100, "{hits}");
 }
 
 /// Throughput figures (not a test of speed: it asserts nothing about time). Run with

@@ -36,7 +36,8 @@ Drivers (default: arbor, the libvulkan_arbor.so beside this program):
   --compare-show N     mismatching rays printed per comparison (default 10)
 Scenes (default: bunny):
   --scene LIST         bunny (embedded Stanford bunny), soup (random triangle soup), terrain
-                       (tessellated heightfield), instances (TLAS of instances over 3 BLASes), all
+                       (tessellated heightfield), instances (TLAS of instances over 3 BLASes),
+                       clusters (the full dragon of data/, for the cluster workloads), all
   --mesh FILE          a PLY (ASCII/binary) or OBJ mesh, gzip allowed (repeatable)
   --soup N             triangles of the soup (default 1000000)
   --terrain N          terrain grid cells per side, 2 triangles each (default 512)
@@ -48,6 +49,10 @@ Workloads (default: all; unsupported ones are reported as \"not supported\"):
                        trace-primary, trace-random (ray queries from a compute shader over the
                        scene's TLAS, Mrays/s; not in the default set)
   --rays N             rays per trace workload (default 1000000)
+                       clas-build, clas-instantiate, cluster-blas, clas-move-compact, khr-blas
+                       or clusters (all five): VK_NV_cluster_acceleration_structure over the
+                       mesh cut into 128-triangle clusters, and the KHR BLAS (PREFER_FAST_BUILD)
+                       of the same triangles; not in the default set
                        compute-alu, compute-memory, compute-divergent, compute-first-dispatch
                        or compute (all four): compute shaders, once per driver, no scene;
                        the Mprim/s column is then M invocations/s
@@ -201,6 +206,8 @@ impl Args {
                         self.workloads.extend(Workload::ALL);
                     } else if w == "compute" {
                         self.workloads.extend(Workload::COMPUTE);
+                    } else if w == "clusters" {
+                        self.workloads.extend(Workload::CLUSTERS);
                     } else {
                         self.workloads.push(Workload::parse(&w).ok_or_else(|| format!("unknown workload {w}"))?);
                     }
@@ -357,7 +364,9 @@ fn load_scenes(a: &Args) -> Result<Vec<Scene>, String> {
                 count: a.instances,
                 seed: 1,
             },
-            other => return Err(format!("unknown scene {other} (bunny, soup, terrain, instances, all; or --mesh FILE)")),
+            // The full dragon, for the cluster workloads (cut into clusters by those).
+            "clusters" => SceneKind::Mesh(arbor_scene::load(concat!(env!("CARGO_MANIFEST_DIR"), "/../data/dragon_vrip.ply.gz")).map_err(|e| format!("dragon: {e}"))?),
+            other => return Err(format!("unknown scene {other} (bunny, soup, terrain, instances, clusters, all; or --mesh FILE)")),
         };
         out.push(Scene { name: s.clone(), kind });
     }

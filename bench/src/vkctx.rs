@@ -36,6 +36,8 @@ pub struct Gpu {
     pub ext: ash::khr::acceleration_structure::Device,
     pub deferred: ash::khr::deferred_host_operations::Device,
     pub bda: ash::khr::buffer_device_address::Device,
+    /// The instance's vkGetDeviceProcAddr, for extension commands ash does not wrap.
+    pub get_device_proc_addr: vk::PFN_vkGetDeviceProcAddr,
     mem: vk::PhysicalDeviceMemoryProperties,
 }
 
@@ -127,6 +129,7 @@ impl Gpu {
                 ext,
                 deferred,
                 bda,
+                get_device_proc_addr: instance.fp_v1_0().get_device_proc_addr,
                 mem,
             })
         }
@@ -417,6 +420,7 @@ fn create_device(
             ash::khr::deferred_host_operations::NAME,
             ash::khr::buffer_device_address::NAME,
             ash::ext::descriptor_indexing::NAME,
+            crate::work::clusters::EXTENSION,
         ] {
             if has(e.to_str().unwrap_or("")) {
                 names.push(e);

@@ -3,6 +3,7 @@
 //! joined by N threads), Arbor's library called directly, ray-query trace workloads and
 //! compute-shader workloads. Each returns one report row; features a driver lacks give a
 //! "not supported" row.
+pub mod clusters;
 pub mod compute;
 mod device;
 mod host;
@@ -67,6 +68,13 @@ pub enum Workload {
     ComputeMemory,
     ComputeDivergent,
     ComputeFirstDispatch,
+    /// VK_NV_cluster_acceleration_structure over the mesh cut into clusters (`clusters`), and
+    /// the KHR BLAS build (PREFER_FAST_BUILD) of the same triangles to compare with.
+    ClasBuild,
+    ClasInstantiate,
+    ClusterBlas,
+    ClasMoveCompact,
+    KhrBlas,
 }
 
 impl Workload {
@@ -98,13 +106,20 @@ impl Workload {
             Workload::ComputeMemory => "compute-memory",
             Workload::ComputeDivergent => "compute-divergent",
             Workload::ComputeFirstDispatch => "compute-first-dispatch",
+            Workload::ClasBuild => "clas-build",
+            Workload::ClasInstantiate => "clas-instantiate",
+            Workload::ClusterBlas => "cluster-blas",
+            Workload::ClasMoveCompact => "clas-move-compact",
+            Workload::KhrBlas => "khr-blas",
         }
     }
     pub fn parse(s: &str) -> Option<Workload> {
-        Workload::ALL.iter().chain(&[Workload::LibFastTrace, Workload::LibFastBuild]).chain(&Workload::TRACE).chain(&Workload::COMPUTE).copied().find(|w| w.name() == s)
+        Workload::ALL.iter().chain(&[Workload::LibFastTrace, Workload::LibFastBuild]).chain(&Workload::TRACE).chain(&Workload::COMPUTE).chain(&Workload::CLUSTERS).copied().find(|w| w.name() == s)
     }
     /// The compute-shader workloads ("--workloads compute").
     pub const COMPUTE: [Workload; 4] = [Workload::ComputeAlu, Workload::ComputeMemory, Workload::ComputeDivergent, Workload::ComputeFirstDispatch];
+    /// The cluster workloads ("--workloads clusters").
+    pub const CLUSTERS: [Workload; 5] = [Workload::ClasBuild, Workload::ClasInstantiate, Workload::ClusterBlas, Workload::ClasMoveCompact, Workload::KhrBlas];
     pub fn is_compute(self) -> bool {
         Workload::COMPUTE.contains(&self)
     }
@@ -328,6 +343,8 @@ fn run_workload(
         }
         Workload::LibFastTrace | Workload::LibFastBuild => library::library_build(gpu, scene, w, opts, row),
         Workload::TracePrimary | Workload::TraceRandom => trace::trace(gpu, inputs, scene, w, opts, row),
+        Workload::ClasBuild | Workload::ClasInstantiate | Workload::ClusterBlas | Workload::ClasMoveCompact => clusters::run(gpu, scene, w, opts, row),
+        Workload::KhrBlas => device::device_build(gpu, inputs, Workload::FastBuild, opts, row, None, scene),
         Workload::ComputeAlu | Workload::ComputeMemory | Workload::ComputeDivergent | Workload::ComputeFirstDispatch => {
             Err("compute workloads run once per device (run_compute)".into())
         }

@@ -2,7 +2,8 @@
 //! `DeviceView::bytes` at the addresses the argument records name; every read is checked and a
 //! failure is a typed `ClusterError`, never a panic. The bytes written depend on the input only.
 use super::args::{BuildTriangleClusterInfo, GeometryIndexAndFlags, InstantiateClusterInfo};
-use super::format::{self, clas_size, new_header, open, put_u32, template_size, truncate, ClusterHeader, Kind, HEADER_SIZE, TRIANGLE_SIZE};
+use super::format::{self, clas_nodes_offset, clas_order_offset, clas_size, new_header, open, put_u32, template_size, truncate, ClusterHeader, Kind, HEADER_SIZE, TRIANGLE_SIZE};
+use super::tree::build_local;
 use super::{ClusterError, MAX_TRIANGLES, MAX_VERTICES};
 use crate::accel::input::decode_vertex;
 use crate::accel::{DeviceView, VertexFormat};
@@ -29,6 +30,27 @@ fn vertex(view: &dyn DeviceView, format: VertexFormat, start: u64, stride: u64, 
 /// The triangles of `indices` read from `start` + index × `stride`, truncated.
 fn fetch_triangles(view: &dyn DeviceView, format: VertexFormat, start: u64, stride: u64, indices: &[u32], bits: u32) -> Result<Vec<[f32; 9]>, ClusterError> {
     let stride = if stride == 0 { format.size() as u64 } else { stride & 0xffff_ffff };
+    // One read of the span the indices reach (a cluster's vertices are usually one small
+    // range), decoded from there; the per-vertex reads below remain for a span that is not.
+    let max = indices.iter().copied().max().unwrap_or(0) as u64;
+    let span = (max * stride).checked_add(format.size() as u64);
+    if let Some(b) = span.and_then(|len| view.bytes(start, len)) {
+        let fetch = |i: u32| -> Option<[f32; 3]> {
+            let at = (i as u64 * stride) as usize;
+            let v = decode_vertex(format, b.get(at..at + format.size() as usize)?)?;
+            Some([truncate(v.x, bits), truncate(v.y, bits), truncate(v.z, bits)])
+        };
+        let tris: Option<Vec<[f32; 9]>> = indices
+            .chunks_exact(3)
+            .map(|t| {
+                let (p, q, r) = (fetch(t[0])?, fetch(t[1])?, fetch(t[2])?);
+                Some([p[0], p[1], p[2], q[0], q[1], q[2], r[0], r[1], r[2]])
+            })
+            .collect();
+        if let Some(t) = tris {
+            return Ok(t);
+        }
+    }
     indices
         .chunks_exact(3)
         .map(|t| {
@@ -59,9 +81,16 @@ fn gather(a: &BuildTriangleClusterInfo, format: VertexFormat, view: &dyn DeviceV
     }
     let istride = if a.index_buffer_stride == 0 { isize as u64 } else { a.index_buffer_stride as u64 };
     let mut indices = Vec::with_capacity(3 * t as usize);
-    for k in 0..3 * t as u64 {
-        let b = read(view, a.index_buffer.wrapping_add(k * istride), isize as u64, "index")?;
-        indices.push(b.iter().rev().fold(0u32, |acc, &x| (acc << 8) | x as u32));
+    let le = |b: &[u8]| b.iter().rev().fold(0u32, |acc, &x| (acc << 8) | x as u32);
+    // All indices in one read where the span is readable, else one read each.
+    let span = (3 * t as u64).saturating_sub(1) * istride + isize as u64;
+    match view.bytes(a.index_buffer, span).filter(|_| t > 0) {
+        Some(b) => indices.extend((0..3 * t as usize).map(|k| le(&b[k * istride as usize..][..isize as usize]))),
+        None => {
+            for k in 0..3 * t as u64 {
+                indices.push(le(read(view, a.index_buffer.wrapping_add(k * istride), isize as u64, "index")?));
+            }
+        }
     }
     let base = a.base_geometry_index_and_geometry_flags;
     let gstride = if a.geometry_index_and_flags_buffer_stride == 0 { 4 } else { a.geometry_index_and_flags_buffer_stride as u64 };
@@ -82,22 +111,6 @@ fn gather(a: &BuildTriangleClusterInfo, format: VertexFormat, view: &dyn DeviceV
         _ => Some(fetch_triangles(view, format, a.vertex_buffer, a.vertex_buffer_stride as u64, &indices, bits)?),
     };
     Ok(Gathered { indices, words, triangles })
-}
-
-fn bounds(tris: &[[f32; 9]]) -> [f32; 6] {
-    if tris.is_empty() {
-        return [0.0; 6];
-    }
-    let mut b = [f32::INFINITY, f32::INFINITY, f32::INFINITY, f32::NEG_INFINITY, f32::NEG_INFINITY, f32::NEG_INFINITY];
-    for t in tris {
-        for v in t.chunks_exact(3) {
-            for a in 0..3 {
-                b[a] = b[a].min(v[a]);
-                b[a + 3] = b[a + 3].max(v[a]);
-            }
-        }
-    }
-    b
 }
 
 fn check_dst(dst: &[u8], needed: u64) -> Result<(), ClusterError> {
@@ -121,16 +134,27 @@ fn put_words(dst: &mut [u8], at: u64, words: &[u32]) {
     }
 }
 
-/// Writes a CLAS of `tris` (geometry words `words`) at the start of `dst`; returns its size.
+/// Writes a CLAS of `tris` (geometry words `words`) and its tree at the start of `dst`;
+/// returns its size.
 fn write_clas(dst: &mut [u8], mut h: ClusterHeader, tris: &[[f32; 9]], words: &[u32]) -> Result<u64, ClusterError> {
-    let size = clas_size(tris.len() as u64);
+    let t = tris.len() as u64;
+    if t > MAX_TRIANGLES as u64 {
+        return Err(ClusterError::TooManyTriangles(t as u32));
+    }
+    let size = clas_size(t);
     check_dst(dst, size)?;
+    let tree = build_local(tris);
     h.used_size = size;
-    h.triangle_count = tris.len() as u32;
-    h.bounds = bounds(tris);
+    h.triangle_count = t as u32;
+    h.bounds = tree.bounds;
     format::write_header(dst, &h);
     put_triangles(dst, HEADER_SIZE, tris);
-    put_words(dst, HEADER_SIZE + tris.len() as u64 * TRIANGLE_SIZE, words);
+    put_words(dst, HEADER_SIZE + t * TRIANGLE_SIZE, words);
+    let order_at = clas_order_offset(t) as usize;
+    let nodes_at = clas_nodes_offset(t) as usize;
+    dst[order_at..order_at + tree.order.len()].copy_from_slice(&tree.order);
+    dst[order_at + tree.order.len()..nodes_at].fill(0);
+    dst[nodes_at..size as usize].copy_from_slice(bytemuck::cast_slice(&tree.nodes));
     Ok(size)
 }
 

@@ -4,10 +4,12 @@
 //! three words sit where a KHR structure keeps magic, version and type: `layout::parse` refuses
 //! the cluster kinds, `open` below accepts only them.
 use super::super::layout::{KIND_CLAS, KIND_CLUSTER_BLAS, KIND_CLUSTER_TEMPLATE, MAGIC};
+use super::tree::local_node_count;
+use crate::accel::layout::WideNode;
 use bytemuck::{Pod, Zeroable};
 
 /// Bump whenever a cluster layout or its meaning changes.
-pub const CLUSTER_FORMAT_VERSION: u32 = 1;
+pub const CLUSTER_FORMAT_VERSION: u32 = 2;
 const VALID: u32 = 0x434c_5553;
 
 #[repr(C)]
@@ -52,13 +54,16 @@ pub const WORD_SIZE: u64 = 4;
 /// Cluster BLAS: one entry per stored triangle (cluster ID, geometry word, index in cluster,
 /// cluster ordinal).
 pub const SIDE_SIZE: u64 = 16;
+/// A CLAS tree node (`layout::WideNode`).
+pub const NODE_SIZE: u64 = 64;
 
 /// What the kinds hold, beside the header:
-/// CLAS: triangles (36 B each), then geometry words (4 B each).
+/// CLAS: triangles (36 B each), then geometry words (4 B each), the slot order of its tree (one
+/// byte per triangle, padded to 4) and the tree's nodes (`tree::local_node_count`).
 /// Template: raw indices as u32 (12 B per triangle), geometry words, then (with vertices) the
 /// truncated triangles as a CLAS stores them.
-/// Cluster BLAS: CLAS address table (8 B per reference), side table (16 B per triangle), then the
-/// embedded BVH at a 64-byte boundary.
+/// Cluster BLAS: CLAS address table (8 B per reference), side table (16 B per triangle, in the
+/// embedded BVH's slot order), then the embedded BVH at a 64-byte boundary.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Kind {
     Clas,
@@ -79,7 +84,15 @@ impl Kind {
 }
 
 pub fn clas_size(triangles: u64) -> u64 {
-    HEADER_SIZE + triangles * (TRIANGLE_SIZE + WORD_SIZE)
+    clas_nodes_offset(triangles).saturating_add(local_node_count(triangles).saturating_mul(NODE_SIZE))
+}
+/// CLAS: offset of the tree's slot order.
+pub fn clas_order_offset(triangles: u64) -> u64 {
+    HEADER_SIZE.saturating_add(triangles.saturating_mul(TRIANGLE_SIZE + WORD_SIZE))
+}
+/// CLAS: offset of the tree's nodes.
+pub fn clas_nodes_offset(triangles: u64) -> u64 {
+    clas_order_offset(triangles).saturating_add(triangles.next_multiple_of(4))
 }
 pub fn template_size(triangles: u64, has_vertices: bool) -> u64 {
     HEADER_SIZE + triangles * (12 + WORD_SIZE) + if has_vertices { triangles * TRIANGLE_SIZE } else { 0 }
@@ -108,6 +121,10 @@ pub fn open(bytes: &[u8]) -> Option<Blob<'_>> {
     }
     let kind = Kind::from_code(h.kind)?;
     let t = h.triangle_count as u64;
+    // A CLAS tree's slots are bytes.
+    if kind == Kind::Clas && t > super::MAX_TRIANGLES as u64 {
+        return None;
+    }
     let need = match kind {
         Kind::Clas => clas_size(t),
         Kind::Template => template_size(t, h.has_vertices != 0),
@@ -164,6 +181,24 @@ impl Blob<'_> {
             _ => HEADER_SIZE + t * 12,
         };
         rd_u32(self.bytes, base + i as u64 * WORD_SIZE)
+    }
+    /// CLAS: the triangle in slot `s` of its tree.
+    pub fn slot(&self, s: u32) -> u32 {
+        self.bytes[(clas_order_offset(self.header.triangle_count as u64) + s as u64) as usize] as u32
+    }
+    /// CLAS: the slot order of its tree (one byte per triangle).
+    pub fn order(&self) -> &[u8] {
+        let at = clas_order_offset(self.header.triangle_count as u64) as usize;
+        &self.bytes[at..at + self.header.triangle_count as usize]
+    }
+    /// CLAS: node `i` of its tree (local indices).
+    pub fn node(&self, i: u32) -> WideNode {
+        let at = (clas_nodes_offset(self.header.triangle_count as u64) + i as u64 * NODE_SIZE) as usize;
+        bytemuck::pod_read_unaligned(&self.bytes[at..at + NODE_SIZE as usize])
+    }
+    /// CLAS: the bytes of its tree's nodes.
+    pub fn node_bytes(&self) -> &[u8] {
+        &self.bytes[clas_nodes_offset(self.header.triangle_count as u64) as usize..]
     }
     /// Template: the k-th raw index (3 per triangle).
     pub fn index(&self, k: u32) -> u32 {

@@ -13,6 +13,7 @@ mod blas;
 mod build;
 mod format;
 mod sizes;
+mod tree;
 
 pub use blas::{blas_size_bound, blas_size_for, build_cluster_blas, cluster_references, open_walkable, Side, SideEntry, FLAG_CULL_DISABLE};
 pub use build::{build_clas, build_template, instantiate, object_size, template_indices, template_indices_size};

@@ -38,10 +38,12 @@ fn bounds(s: &SizeInput) -> (u64, u64) {
     let per_cluster = (s.max_cluster_triangles.min(MAX_TRIANGLES)) as u64;
     let total_tris = (s.max_total_triangles as u64).min(count.saturating_mul(per_cluster));
     // Each result is a header plus a per-triangle part, padded to its alignment.
-    let tri_op = |per_tri: u64, align: u64, one: u64| (one.next_multiple_of(align), count.saturating_mul(HEADER_SIZE + align).saturating_add(total_tris.saturating_mul(per_tri)));
+    let tri_op = |per_tri: u64, extra: u64, align: u64, one: u64| (one.next_multiple_of(align), count.saturating_mul(HEADER_SIZE + extra + align).saturating_add(total_tris.saturating_mul(per_tri)));
     match s.op {
-        OpType::BuildTriangleCluster | OpType::InstantiateTriangleCluster => tri_op(TRIANGLE_SIZE + WORD_SIZE, CLAS_ALIGNMENT, clas_size(per_cluster)),
-        OpType::BuildTriangleClusterTemplate => tri_op(12 + WORD_SIZE + TRIANGLE_SIZE, TEMPLATE_ALIGNMENT, template_size(per_cluster, true)),
+        // A CLAS's tree: one order byte per triangle (padded to 4) and at most
+        // ceil(T / 12) + 1 nodes of 64 bytes, under 6 T + 128.
+        OpType::BuildTriangleCluster | OpType::InstantiateTriangleCluster => tri_op(TRIANGLE_SIZE + WORD_SIZE + 1 + 6, 3 + 128, CLAS_ALIGNMENT, clas_size(per_cluster)),
+        OpType::BuildTriangleClusterTemplate => tri_op(12 + WORD_SIZE + TRIANGLE_SIZE, 0, TEMPLATE_ALIGNMENT, template_size(per_cluster, true)),
         OpType::GetClusterTemplateIndices => {
             let one = 12 * per_cluster;
             (one, count.saturating_mul(4).saturating_add(total_tris.saturating_mul(12)))

@@ -41,3 +41,64 @@ fn truncation_clears_low_bits() {
     assert_eq!(truncate(-3.75, 32).to_bits(), 0);
     assert_eq!(truncate(f32::from_bits(0x4049_0FDB), 8).to_bits(), 0x4049_0F00);
 }
+
+#[test]
+fn clas_tree_node_counts_stay_under_the_size_query_bound() {
+    for t in 0..=MAX_TRIANGLES as u64 {
+        let nodes = super::tree::local_node_count(t);
+        assert!(nodes <= t.div_ceil(12) + 1, "{t} triangles: {nodes} nodes");
+        assert!(nodes <= super::tree::local_node_bound(1, t));
+        let exact = super::format::clas_nodes_offset(t) + 64 * nodes;
+        assert_eq!(clas_size(t), exact);
+        assert!(clas_size(t) <= HEADER_SIZE + 47 * t + 131, "{t}");
+    }
+}
+
+/// Every slot of a CLAS tree lies in exactly one leaf, inside every box on its path, and the
+/// order is a permutation of the triangles; brute force over the tree for each count.
+#[test]
+fn clas_trees_cover_every_triangle_once_inside_their_boxes() {
+    let mut seed = 0x9E37_79B9_7F4A_7C15u64;
+    let mut next = move || {
+        seed ^= seed << 13;
+        seed ^= seed >> 7;
+        seed ^= seed << 17;
+        (seed >> 40) as f32 / (1u64 << 24) as f32 * 4.0 - 2.0
+    };
+    for t in [1usize, 3, 4, 5, 16, 17, 63, 64, 65, 128, 200, 256] {
+        let tris: Vec<[f32; 9]> = (0..t).map(|_| std::array::from_fn(|_| next())).collect();
+        let tree = super::tree::build_local(&tris);
+        assert_eq!(tree.nodes.len() as u64, super::tree::local_node_count(t as u64));
+        let mut order: Vec<u32> = tree.order.iter().map(|&i| i as u32).collect();
+        order.sort_unstable();
+        assert_eq!(order, (0..t as u32).collect::<Vec<_>>());
+        let mut seen = vec![0u32; t];
+        // (node, boxes of the path)
+        let mut stack = vec![(0u32, Vec::<[f32; 6]>::new())];
+        while let Some((n, path)) = stack.pop() {
+            let node = tree.nodes[n as usize];
+            for c in 0..node.child_count as usize {
+                let mut p = path.clone();
+                p.push(node.child_box(c));
+                match node.kind[c] {
+                    crate::accel::layout::CHILD_INTERNAL => {
+                        assert!(node.child[c] > n);
+                        stack.push((node.child[c], p));
+                    }
+                    k => {
+                        for s in node.child[c]..node.child[c] + k as u32 {
+                            seen[s as usize] += 1;
+                            let tri = tris[tree.order[s as usize] as usize];
+                            for b in &p {
+                                for v in tri.chunks_exact(3) {
+                                    assert!((0..3).all(|a| b[a] <= v[a] && v[a] <= b[a + 3]), "{t} triangles: slot {s} outside its box");
+                                }
+                            }
+                        }
+                    }
+                }
+            }
+        }
+        assert!(seen.iter().all(|&k| k == 1), "{t} triangles: {seen:?}");
+    }
+}
