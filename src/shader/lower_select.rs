@@ -49,7 +49,9 @@ struct Cfg {
 
 pub(super) fn simplify(blocks: &mut [Block], reg_count: &mut u32, consts: &mut Vec<(Reg, u64)>, bounds: &Bounds) {
     fold_offsets(blocks, *reg_count, consts);
-    let consts: HashMap<Reg, u64> = consts.iter().copied().collect();
+    let consts_list = consts.clone();
+    let consts: HashMap<Reg, u64> = consts_list.iter().copied().collect();
+    hoist_push_loads(blocks, *reg_count, &consts, bounds);
     for _ in 0..MAX_ROUNDS {
         let mut changed = false;
         let mut cfg = analyse(blocks, *reg_count);
@@ -59,6 +61,9 @@ pub(super) fn simplify(blocks: &mut [Block], reg_count: &mut u32, consts: &mut V
                 cfg = analyse(blocks, *reg_count);
             }
         }
+        // Copies left by merged blocks go before headers are copied, so the copies do not
+        // define their registers twice.
+        super::lower_copies::forward(blocks, *reg_count, &consts_list);
         for x in 0..blocks.len() {
             changed |= cfg.reachable[x] && rotate(blocks, x);
         }
@@ -93,6 +98,31 @@ fn fold_offsets(blocks: &mut [Block], reg_count: u32, consts: &mut Vec<(Reg, u64
             }
             _ => true,
         });
+    }
+}
+
+/// Push constants do not change during a dispatch: loads of them at constant in-range
+/// addresses move to the start of the entry block, which every lane runs first, so loops do
+/// not repeat them and arms holding them can be converted.
+fn hoist_push_loads(blocks: &mut [Block], reg_count: u32, consts: &HashMap<Reg, u64>, bounds: &Bounds) {
+    let mut defs = vec![0u32; reg_count as usize];
+    for b in blocks.iter() {
+        b.phi_in.iter().for_each(|&(d, _)| defs[d as usize] += 1);
+        b.ops.iter().for_each(|op| writes(op, &mut |r| defs[r as usize] += 1));
+        b.edge_moves.iter().for_each(|m| defs[m.dst as usize] += 1);
+    }
+    let mut hoisted = Vec::new();
+    for b in blocks.iter_mut().skip(1) {
+        b.ops.retain(|op| match *op {
+            Op::Load { space: Space::Push, dst, .. } if defs[dst as usize] == 1 && speculable(op, consts, bounds) => {
+                hoisted.push(op.clone());
+                false
+            }
+            _ => true,
+        });
+    }
+    if let Some(entry) = blocks.first_mut() {
+        entry.ops.splice(0..0, hoisted);
     }
 }
 
