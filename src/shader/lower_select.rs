@@ -371,7 +371,7 @@ mod tests {
         for i in 0..n {
             let a = v[i];
             let b = a.wrapping_mul(2654435761);
-            let mut c = if b & 7 != 0 { a / (b & 7) } else { a.wrapping_add(k) };
+            let mut c = a.checked_div(b & 7).unwrap_or(a.wrapping_add(k));
             if a > k {
                 c = c.wrapping_add(a % 13);
             }
