@@ -134,6 +134,15 @@ pub fn dispatch(
     watchdog: &Watchdog,
 ) -> DispatchReport {
     let prog = &*pipeline.program;
+    // Push-constant bytes the program reads but the caller left out read as zero, as the
+    // runtime pads them: loads of them may run speculatively (`lower_select`).
+    let padded: Vec<u8>;
+    let push_constants = if push_constants.len() < pipeline.push_constant_size as usize {
+        padded = push_constants.iter().copied().chain(std::iter::repeat(0)).take(pipeline.push_constant_size as usize).collect();
+        &padded[..]
+    } else {
+        push_constants
+    };
     let ctx = Ctx {
         prog,
         mem: memory,
@@ -278,24 +287,57 @@ fn init_group(ctx: &Ctx, group: &mut Group, wg: &Wg, g: u32, n: u32) {
 }
 
 /// Runs a lane group until none of its lanes is running (all done or at a barrier).
+///
+/// Finding the lowest cursor is a pass over the lanes; it is needed only when lanes that ran
+/// apart may meet. While the lanes of the mask go on to a block below every other running
+/// lane's cursor (a uniform branch, a loop whose lanes keep going together, the lower side of
+/// a split), `exec_block` names the next block and mask itself.
 fn run_group<'a>(ctx: &Ctx<'a>, group: &mut Group<'a>, wg: &mut Wg) {
     loop {
-        // The lowest cursor among running lanes, and which lanes are there (branch-free
-        // passes over the lanes: the cursors of lanes not running read as u32::MAX).
+        // The lowest cursor among running lanes, which lanes are there, and the lowest cursor
+        // of the others (branch-free passes over the lanes: the cursors of lanes not running
+        // read as u32::MAX).
         let key: [u32; LANES] = std::array::from_fn(|l| if group.lane[l] == Lane::Running { group.cursor[l] } else { u32::MAX });
         let min = key.iter().fold(u32::MAX, |m, &k| m.min(k));
         if min == u32::MAX {
             return;
         }
-        let mask = key.iter().enumerate().fold(0u32, |m, (l, &k)| m | (((k == min) as u32) << l));
-        wg.steps += 1;
-        if wg.steps.is_multiple_of(CHECK_EVERY) {
-            if let Some(stop) = check_watchdog(ctx.watchdog, wg.steps) {
-                wg.stopped = Some(stop);
-                return;
-            }
+        let mut mask = 0u32;
+        let mut rest = u32::MAX;
+        for (l, &k) in key.iter().enumerate() {
+            mask |= ((k == min) as u32) << l;
+            rest = rest.min(if k == min { u32::MAX } else { k });
         }
-        exec_block(ctx, group, wg, &ctx.prog.blocks[min as usize], mask);
+        let mut next = Some(Next { block: min, mask, rest });
+        while let Some(n) = next {
+            wg.steps += 1;
+            if wg.steps.is_multiple_of(CHECK_EVERY) {
+                if let Some(stop) = check_watchdog(ctx.watchdog, wg.steps) {
+                    wg.stopped = Some(stop);
+                    return;
+                }
+            }
+            next = exec_block(ctx, group, wg, n);
+        }
+    }
+}
+
+/// A block to run, the lanes that run it, and the lowest cursor of the other running lanes
+/// (`block` is below it).
+#[derive(Clone, Copy)]
+struct Next {
+    block: u32,
+    mask: u32,
+    rest: u32,
+}
+
+impl Next {
+    /// The step after lanes `lo` go to block `a` and lanes `hi` to block `b` (either mask may
+    /// be empty), when that is one of the two blocks and below every other cursor.
+    fn after(a: u32, lo: u32, b: u32, hi: u32, rest: u32) -> Option<Next> {
+        let (a, lo, b, hi) = if lo == 0 || (hi != 0 && b < a) { (b, hi, a, lo) } else { (a, lo, b, hi) };
+        let rest = if hi != 0 { rest.min(b) } else { rest };
+        (lo != 0 && a < rest).then_some(Next { block: a, mask: lo, rest })
     }
 }
 
@@ -317,7 +359,9 @@ fn on(mask: u32, l: usize) -> bool {
     (mask >> l) & 1 != 0
 }
 
-fn exec_block<'a>(ctx: &Ctx<'a>, group: &mut Group<'a>, wg: &mut Wg, block: &Block, mask: u32) {
+fn exec_block<'a>(ctx: &Ctx<'a>, group: &mut Group<'a>, wg: &mut Wg, next: Next) -> Option<Next> {
+    let Next { block: index, mask, rest } = next;
+    let block = &ctx.prog.blocks[index as usize];
     let regs = &mut group.regs;
     for &(dst, tmp) in &block.phi_in {
         let t = regs[tmp as usize];
@@ -331,27 +375,37 @@ fn exec_block<'a>(ctx: &Ctx<'a>, group: &mut Group<'a>, wg: &mut Wg, block: &Blo
     for op in &block.ops {
         exec_op(ctx, group, wg, op, mask);
     }
-    let regs = &mut group.regs;
-    // Plain jumps and two-way branches without phi moves: no per-lane bookkeeping.
-    if block.edge_moves.is_empty() {
-        match block.term {
-            Term::Jump(t) => {
-                for (l, c) in group.cursor.iter_mut().enumerate() {
-                    *c = if on(mask, l) { t } else { *c };
-                }
-                return;
-            }
-            Term::Cond { cond, t, f } => {
-                let v = regs[cond as usize];
-                for (l, c) in group.cursor.iter_mut().enumerate() {
-                    let target = if v[l] != 0 { t } else { f };
-                    *c = if on(mask, l) { target } else { *c };
-                }
-                return;
-            }
-            _ => {}
+    // Jumps and two-way branches as masks: each edge's lanes move (and fill its phi
+    // temporaries) together.
+    let (t, f, to_t) = match block.term {
+        Term::Jump(t) => (t, t, mask),
+        Term::Cond { cond, t, f } => {
+            let v = &group.regs[cond as usize];
+            (t, f, (0..LANES).fold(0u32, |m, l| m | (((v[l] != 0) as u32) << l)) & mask)
+        }
+        _ => {
+            per_lane_term(group, block, mask);
+            return None;
+        }
+    };
+    let to_f = mask & !to_t;
+    for m in &block.edge_moves {
+        let lanes = if m.target == t { to_t } else { 0 } | if m.target == f { to_f } else { 0 };
+        let s = group.regs[m.src as usize];
+        let d = &mut group.regs[m.dst as usize];
+        for l in 0..LANES {
+            d[l] = if on(lanes, l) { s[l] } else { d[l] };
         }
     }
+    for (l, c) in group.cursor.iter_mut().enumerate() {
+        *c = if on(to_t, l) { t } else if on(to_f, l) { f } else { *c };
+    }
+    Next::after(t, to_t, f, to_f, rest)
+}
+
+/// Switches, exits and barriers: each lane of the mask on its own.
+fn per_lane_term(group: &mut Group, block: &Block, mask: u32) {
+    let regs = &mut group.regs;
     for l in (0..LANES).filter(|&l| on(mask, l)) {
         let target = match &block.term {
             Term::Jump(t) => *t,

@@ -140,6 +140,8 @@ pub fn lower(m: &Module, consts: &Constants, e: &EntryPoint) -> Result<Lowered, 
             return Err(m.malformed(e.function, "a branch leads past the function's last block"));
         }
     }
+    let bounds = super::lower_select::Bounds { push: lw.push_size, frame: lw.lane_frame.len() as u32 };
+    super::lower_select::simplify(&mut lw.blocks, &mut lw.regs, &mut lw.const_regs, &bounds);
     super::lower_copies::forward(&mut lw.blocks, lw.regs, &lw.const_regs);
     super::lower_copies::thread_jumps(&mut lw.blocks);
     let program = Program {

@@ -140,7 +140,7 @@ fn fold_stores(b: &mut Block, c: &Counts) {
 }
 
 /// The result register of an op that writes exactly one register from lane-wise operands.
-fn result_mut(op: &mut Op) -> Option<&mut Reg> {
+pub(super) fn result_mut(op: &mut Op) -> Option<&mut Reg> {
     match op {
         Op::Mov { dst, .. }
         | Op::Un { dst, .. }
@@ -164,7 +164,7 @@ fn term_reads(t: &Term, f: &mut impl FnMut(Reg)) {
 }
 
 /// Every register `op` reads.
-fn reads(op: &Op, f: &mut impl FnMut(Reg)) {
+pub(super) fn reads(op: &Op, f: &mut impl FnMut(Reg)) {
     match op {
         Op::Mov { src, .. } => f(*src),
         Op::Un { a, .. } | Op::AddImm { a, .. } | Op::Ballot { a, .. } => f(*a),
@@ -185,7 +185,7 @@ fn reads(op: &Op, f: &mut impl FnMut(Reg)) {
 }
 
 /// Every register `op` writes.
-fn writes(op: &Op, f: &mut impl FnMut(Reg)) {
+pub(super) fn writes(op: &Op, f: &mut impl FnMut(Reg)) {
     match op {
         Op::Store { .. } | Op::ImageWrite { .. } => {}
         Op::Ballot { dst, .. } | Op::ImageRead { dst, .. } | Op::ImageSize { dst, .. } => dst.iter().copied().for_each(f),
@@ -207,7 +207,7 @@ fn writes(op: &Op, f: &mut impl FnMut(Reg)) {
 }
 
 /// Rewrites reads of `from` in `op` to `to`; only reached for ops `forwardable` accepted.
-fn replace_reads(op: &mut Op, from: Reg, to: Reg) {
+pub(super) fn replace_reads(op: &mut Op, from: Reg, to: Reg) {
     let r = |x: &mut Reg| {
         if *x == from {
             *x = to;

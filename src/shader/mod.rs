@@ -71,6 +71,7 @@ mod lower_copies;
 mod lower_image;
 mod lower_ops;
 mod lower_rq;
+mod lower_select;
 mod lower_vars;
 mod memory;
 mod parse;
