@@ -112,3 +112,93 @@ fn node(entries: &mut [Entry], base: u32, out: &mut Vec<WideNode>) -> Aabb {
     out[me] = quantize_node(&bounds, &clo, &chi, cnt, &child, &kind);
     bounds
 }
+
+/// Why a partition tree cannot be refitted and must be rebuilt.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum RefitRefused {
+    /// The stored nodes do not form a tree of this region (a corrupted or foreign blob).
+    Malformed,
+}
+
+/// The nodes a refit rewrote (node index, new node) and the new root bounds.
+pub struct Refit {
+    pub nodes: Vec<(u32, WideNode)>,
+    pub bounds: Aabb,
+}
+
+/// Refits the tree in `region` (its root at node index `base`, nodes in pre-order so children
+/// follow their parent) after the leaves in `changed` (sorted slots) moved: only the nodes on
+/// paths from those leaves to the root are rewritten. A rewritten node takes its leaf
+/// children's boxes from `leaf_box` (exact, so siblings never drift) and an untouched internal
+/// child's box as the union of that child's own decoded child boxes (stable while the child is
+/// untouched, so slack does not accumulate across refits). Changed leaves that no node holds
+/// are ignored. Never panics on any bytes.
+pub fn refit(region: &[WideNode], base: u32, changed: &[u32], leaf_box: &mut dyn FnMut(u32) -> Aabb) -> Result<Refit, RefitRefused> {
+    let n = region.len();
+    if n == 0 {
+        return Err(RefitRefused::Malformed);
+    }
+    let local = |child: u32| child.checked_sub(base).map(|k| k as usize).filter(|&k| k < n);
+    let mut parent = vec![usize::MAX; n];
+    let mut dirty = vec![false; n];
+    for (k, node) in region.iter().enumerate() {
+        for c in 0..(node.child_count as usize).min(4) {
+            if node.kind[c] == CHILD_INTERNAL {
+                // Children always follow their parent, and each node has one parent.
+                let j = local(node.child[c]).filter(|&j| j > k && parent[j] == usize::MAX).ok_or(RefitRefused::Malformed)?;
+                parent[j] = k;
+            } else if node.kind[c] != 0 && changed.binary_search(&node.child[c]).is_ok() {
+                dirty[k] = true;
+            }
+        }
+    }
+    // Parents precede children: one backward pass marks every ancestor of a dirty node.
+    for k in (1..n).rev() {
+        if dirty[k] && parent[k] != usize::MAX {
+            dirty[parent[k]] = true;
+        }
+    }
+    let mut boxes = vec![Aabb::EMPTY; n];
+    let mut nodes = Vec::new();
+    for k in (0..n).rev().filter(|&k| dirty[k]) {
+        let node = &region[k];
+        let cnt = (node.child_count as usize).min(4);
+        let mut clo = [Vec3A::ZERO; 4];
+        let mut chi = [Vec3A::ZERO; 4];
+        let mut bounds = Aabb::EMPTY;
+        for c in 0..cnt {
+            let b = if node.kind[c] == CHILD_INTERNAL {
+                let j = local(node.child[c]).ok_or(RefitRefused::Malformed)?;
+                if dirty[j] {
+                    boxes[j]
+                } else {
+                    decoded_union(&region[j])
+                }
+            } else {
+                leaf_box(node.child[c])
+            };
+            clo[c] = Vec3A::from(b.lo);
+            chi[c] = Vec3A::from(b.hi);
+            bounds.grow(&b.lo, &b.hi);
+        }
+        for c in cnt..4 {
+            clo[c] = Vec3A::from(bounds.lo);
+            chi[c] = Vec3A::from(bounds.lo);
+        }
+        boxes[k] = bounds;
+        nodes.push((base + k as u32, quantize_node(&bounds, &clo, &chi, cnt, &node.child, &node.kind)));
+    }
+    let bounds = if dirty[0] { boxes[0] } else { decoded_union(&region[0]) };
+    nodes.reverse();
+    Ok(Refit { nodes, bounds })
+}
+
+/// The union of a node's decoded child boxes: a box holding everything below it.
+fn decoded_union(node: &WideNode) -> Aabb {
+    let mut b = Aabb::EMPTY;
+    for c in 0..(node.child_count as usize).min(4) {
+        let x = node.child_box(c);
+        b.grow(&[x[0], x[1], x[2]], &[x[3], x[4], x[5]]);
+    }
+    b
+}
