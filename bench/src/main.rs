@@ -36,11 +36,14 @@ Drivers (default: arbor, the libvulkan_arbor.so beside this program):
   --compare-show N     mismatching rays printed per comparison (default 10)
 Scenes (default: bunny):
   --scene LIST         bunny (embedded Stanford bunny), soup (random triangle soup), terrain
-                       (tessellated heightfield), instances (TLAS of instances over 3 BLASes), all
+                       (tessellated heightfield), instances (TLAS of instances over 3 BLASes), all;
+                       ptlas (the same BLASes, --ptlas-instances instances; not in all)
   --mesh FILE          a PLY (ASCII/binary) or OBJ mesh, gzip allowed (repeatable)
   --soup N             triangles of the soup (default 1000000)
   --terrain N          terrain grid cells per side, 2 triangles each (default 512)
   --instances N        instances of the TLAS scene (default 10000)
+  --ptlas-instances N  instances of the ptlas scene (default 1000000)
+  --partitions N       partitions of the ptlas workloads (default 1024)
 Workloads (default: all; unsupported ones are reported as \"not supported\"):
   --workloads LIST     fast-trace, fast-build, update, compact, indirect, host, host-deferred;
                        also lib-fast-trace, lib-fast-build (Arbor: arbor::accel::build called
@@ -48,6 +51,10 @@ Workloads (default: all; unsupported ones are reported as \"not supported\"):
                        trace-primary, trace-random (ray queries from a compute shader over the
                        scene's TLAS, Mrays/s; not in the default set)
   --rays N             rays per trace workload (default 1000000)
+                       ptlas-build, ptlas-update-1pct, ptlas-khr-tlas or ptlas (all three):
+                       VK_NV_partitioned_acceleration_structure over an instance scene: a build
+                       from scratch, 1 % of the instances rewritten in place, and the KHR TLAS
+                       build of the same instances (not in the default set)
                        compute-alu, compute-memory, compute-divergent, compute-first-dispatch
                        or compute (all four): compute shaders, once per driver, no scene;
                        the Mprim/s column is then M invocations/s
@@ -82,6 +89,8 @@ struct Args {
     soup: usize,
     terrain: u32,
     instances: usize,
+    ptlas_instances: usize,
+    partitions: u32,
     workloads: Vec<Workload>,
     repeat: usize,
     warmup: usize,
@@ -150,6 +159,8 @@ impl Args {
             soup: 1_000_000,
             terrain: 512,
             instances: 10_000,
+            ptlas_instances: 1_000_000,
+            partitions: 1024,
             workloads: Vec::new(),
             repeat: 5,
             warmup: 1,
@@ -188,6 +199,8 @@ impl Args {
             "--soup" => self.soup = num("--soup", value("--soup")?)?.max(1),
             "--terrain" => self.terrain = num("--terrain", value("--terrain")?)?.max(1) as u32,
             "--instances" => self.instances = num("--instances", value("--instances")?)?.max(1),
+            "--ptlas-instances" => self.ptlas_instances = num("--ptlas-instances", value("--ptlas-instances")?)?.max(1),
+            "--partitions" => self.partitions = num("--partitions", value("--partitions")?)?.clamp(1, u32::MAX as usize) as u32,
             _ => return Ok(false),
         }
         Ok(true)
@@ -201,6 +214,8 @@ impl Args {
                         self.workloads.extend(Workload::ALL);
                     } else if w == "compute" {
                         self.workloads.extend(Workload::COMPUTE);
+                    } else if w == "ptlas" {
+                        self.workloads.extend(Workload::PTLAS);
                     } else {
                         self.workloads.push(Workload::parse(&w).ok_or_else(|| format!("unknown workload {w}"))?);
                     }
@@ -357,7 +372,12 @@ fn load_scenes(a: &Args) -> Result<Vec<Scene>, String> {
                 count: a.instances,
                 seed: 1,
             },
-            other => return Err(format!("unknown scene {other} (bunny, soup, terrain, instances, all; or --mesh FILE)")),
+            "ptlas" => SceneKind::Instances {
+                blases: vec![work::normalized(&bunny()?), arbor_scene::terrain(64), arbor_scene::random_soup(4096, 7)],
+                count: a.ptlas_instances,
+                seed: 1,
+            },
+            other => return Err(format!("unknown scene {other} (bunny, soup, terrain, instances, ptlas, all; or --mesh FILE)")),
         };
         out.push(Scene { name: s.clone(), kind });
     }
@@ -567,6 +587,7 @@ fn measure(
         keep_hits: args.compare.is_some(),
         compute_invocations: args.compute_invocations,
         compute_memory_bytes: args.compute_memory_mib << 20,
+        partitions: args.partitions,
     };
     let (compute, scene_work): (Vec<work::Workload>, Vec<work::Workload>) = args.workloads.iter().partition(|w| w.is_compute());
     let total = devices.len() * (scenes.len() * scene_work.len() + compute.len());

@@ -8,6 +8,7 @@ mod device;
 mod host;
 mod inputs;
 mod library;
+mod ptlas;
 pub mod trace;
 
 use arbor_scene::{InstanceRecord, Mesh};
@@ -67,6 +68,10 @@ pub enum Workload {
     ComputeMemory,
     ComputeDivergent,
     ComputeFirstDispatch,
+    /// VK_NV_partitioned_acceleration_structure (instance scenes): see `ptlas`.
+    PtlasBuild,
+    PtlasUpdate1pct,
+    PtlasKhrTlas,
 }
 
 impl Workload {
@@ -98,13 +103,18 @@ impl Workload {
             Workload::ComputeMemory => "compute-memory",
             Workload::ComputeDivergent => "compute-divergent",
             Workload::ComputeFirstDispatch => "compute-first-dispatch",
+            Workload::PtlasBuild => "ptlas-build",
+            Workload::PtlasUpdate1pct => "ptlas-update-1pct",
+            Workload::PtlasKhrTlas => "ptlas-khr-tlas",
         }
     }
     pub fn parse(s: &str) -> Option<Workload> {
-        Workload::ALL.iter().chain(&[Workload::LibFastTrace, Workload::LibFastBuild]).chain(&Workload::TRACE).chain(&Workload::COMPUTE).copied().find(|w| w.name() == s)
+        Workload::ALL.iter().chain(&[Workload::LibFastTrace, Workload::LibFastBuild]).chain(&Workload::TRACE).chain(&Workload::COMPUTE).chain(&Workload::PTLAS).copied().find(|w| w.name() == s)
     }
     /// The compute-shader workloads ("--workloads compute").
     pub const COMPUTE: [Workload; 4] = [Workload::ComputeAlu, Workload::ComputeMemory, Workload::ComputeDivergent, Workload::ComputeFirstDispatch];
+    /// The partitioned-TLAS workloads ("--workloads ptlas"; not in ALL).
+    pub const PTLAS: [Workload; 3] = [Workload::PtlasBuild, Workload::PtlasUpdate1pct, Workload::PtlasKhrTlas];
     pub fn is_compute(self) -> bool {
         Workload::COMPUTE.contains(&self)
     }
@@ -202,6 +212,8 @@ pub struct Options {
     pub compute_invocations: u64,
     /// Bytes compute-memory streams through.
     pub compute_memory_bytes: u64,
+    /// Partitions of the ptlas workloads.
+    pub partitions: u32,
 }
 
 /// Runs the chosen workloads of one scene on one device. `progress` is called before each.
@@ -328,6 +340,7 @@ fn run_workload(
         }
         Workload::LibFastTrace | Workload::LibFastBuild => library::library_build(gpu, scene, w, opts, row),
         Workload::TracePrimary | Workload::TraceRandom => trace::trace(gpu, inputs, scene, w, opts, row),
+        Workload::PtlasBuild | Workload::PtlasUpdate1pct | Workload::PtlasKhrTlas => ptlas::run(gpu, inputs, w, opts, row),
         Workload::ComputeAlu | Workload::ComputeMemory | Workload::ComputeDivergent | Workload::ComputeFirstDispatch => {
             Err("compute workloads run once per device (run_compute)".into())
         }
