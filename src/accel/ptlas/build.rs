@@ -8,7 +8,7 @@ use bytemuck::Zeroable;
 use rayon::prelude::*;
 
 use super::layout::{self, Capacities, PartitionRecord, PtlasHeader, Sections, StoredInstance, NO_ROOT, PARTITION_RECORD_SIZE, STORED_INSTANCE_SIZE};
-use super::tree::{self, Entry};
+use super::tree::{self, Changed, Entry};
 use super::{BuildReport, Ops, PtlasError, Source, UpdateInstance, WriteInstance, WriteTranslation};
 use super::{INSTANCE_FLAGS_SHARED_WITH_KHR, INSTANCE_FLAG_EXPLICIT_BOUNDING_BOX, OP_UPDATE_INSTANCE, OP_WRITE_INSTANCE, OP_WRITE_PARTITION_TRANSLATION, PARTITION_INDEX_GLOBAL};
 use crate::accel::geometry::{instance_bounds_of, sanitize, Aabb, BlasBoundsMemo};
@@ -229,8 +229,9 @@ struct Dirty {
     touched: Vec<bool>,
     /// Its member set, its set of active members or its translation changed: the tree is rebuilt.
     reshaped: Vec<bool>,
-    /// (partition, slot) of records that changed while the partition's leaf set stayed.
-    changed: Vec<(u32, u32)>,
+    /// (partition, slot and its box in the tree) of records that changed while the partition's
+    /// leaf set stayed.
+    changed: Vec<(u32, Changed)>,
 }
 
 impl Dirty {
@@ -238,19 +239,26 @@ impl Dirty {
         self.touched[p as usize] = true;
         self.reshaped[p as usize] = true;
     }
-    /// `slot` of partition p changed; its leaf set changed too when `flipped`.
-    fn change(&mut self, p: u32, slot: u32, flipped: bool) {
+    /// `slot` of partition p changed from `old` to `new`; its leaf set changed too when the
+    /// slot's activity flipped. The box `old` had in the tree is kept to find its leaf.
+    fn change(&mut self, blob: &Blob, p: u32, slot: u32, old: &StoredInstance, new: &StoredInstance, memo: &mut BlasBoundsMemo, view: &dyn DeviceView) {
         self.touched[p as usize] = true;
-        if flipped {
+        if active(old) != active(new) {
             self.reshaped[p as usize] = true;
-        } else {
-            self.changed.push((p, slot));
+        } else if !self.reshaped[p as usize] {
+            let previous = active(old).then(|| {
+                let t = blob.partition(p).translation;
+                let (lo, hi) = leaf_bounds(old, &translated(old, t), t, memo, view);
+                Aabb { lo, hi }
+            });
+            self.changed.push((p, Changed { slot, previous }));
         }
     }
 }
 
-fn apply_writes(blob: &mut Blob, input: &Input, ops: &Ops, dirty: &mut Dirty) -> Result<(), PtlasError> {
+fn apply_writes(blob: &mut Blob, input: &Input, ops: &Ops, dirty: &mut Dirty, view: &dyn DeviceView) -> Result<(), PtlasError> {
     let op = OP_WRITE_INSTANCE;
+    let mut memo = BlasBoundsMemo::new();
     for k in 0..ops.writes.count {
         let w: WriteInstance = ops.writes.get(k).ok_or(PtlasError::RecordUnreadable { op, record: k })?;
         if w.instance_index >= input.instance_count {
@@ -285,15 +293,16 @@ fn apply_writes(blob: &mut Blob, input: &Input, ops: &Ops, dirty: &mut Dirty) ->
         if moved {
             dirty.reshape(np);
         } else {
-            dirty.change(np, slot, active(&old) != active(&st));
+            dirty.change(blob, np, slot, &old, &st, &mut memo, view);
         }
         blob.set_stored(slot, &st);
     }
     Ok(())
 }
 
-fn apply_updates(blob: &mut Blob, input: &Input, ops: &Ops, dirty: &mut Dirty, ignored: &mut u32) -> Result<(), PtlasError> {
+fn apply_updates(blob: &mut Blob, input: &Input, ops: &Ops, dirty: &mut Dirty, ignored: &mut u32, view: &dyn DeviceView) -> Result<(), PtlasError> {
     let op = OP_UPDATE_INSTANCE;
+    let mut memo = BlasBoundsMemo::new();
     for k in 0..ops.updates.count {
         let u: UpdateInstance = ops.updates.get(k).ok_or(PtlasError::RecordUnreadable { op, record: k })?;
         if u.instance_index >= input.instance_count {
@@ -304,11 +313,11 @@ fn apply_updates(blob: &mut Blob, input: &Input, ops: &Ops, dirty: &mut Dirty, i
             *ignored += 1;
             continue;
         }
-        let was_active = active(&st);
+        let old = st;
         st.sbt_offset = u.instance_contribution_to_hit_group_index;
         st.blas = u.acceleration_structure;
         blob.set_stored(u.instance_index, &st);
-        dirty.change(slot_of(&blob.c, st.partition_index), u.instance_index, was_active != active(&st));
+        dirty.change(blob, slot_of(&blob.c, st.partition_index), u.instance_index, &old, &st, &mut memo, view);
     }
     Ok(())
 }
@@ -353,10 +362,7 @@ fn traversal_record(slot: u32, st: &StoredInstance, t: [f32; 3], memo: &mut Blas
     if !active(st) {
         return (rec, 0, None);
     }
-    let mut world = st.transform;
-    world[3] += t[0];
-    world[7] += t[1];
-    world[11] += t[2];
+    let world = translated(st, t);
     rec.object_to_world = world;
     rec.world_to_object = invert_transform(&world);
     rec.custom_index = st.instance_id & 0x00ff_ffff;
@@ -366,6 +372,15 @@ fn traversal_record(slot: u32, st: &StoredInstance, t: [f32; 3], memo: &mut Blas
     rec.blas_index = slot;
     let (lo, hi) = leaf_bounds(st, &world, t, memo, view);
     (rec, st.blas, Some(Aabb { lo, hi }))
+}
+
+/// The stored transform with the partition translation added.
+fn translated(st: &StoredInstance, t: [f32; 3]) -> [f32; 12] {
+    let mut world = st.transform;
+    world[3] += t[0];
+    world[7] += t[1];
+    world[11] += t[2];
+    world
 }
 
 /// The box of an active instance: its explicit AABB (translated) or its BLAS through `world`.
@@ -435,10 +450,10 @@ struct Refitted {
     bounds: Aabb,
 }
 
-/// Refits partition p, whose leaf set is unchanged, after the records of `changed` (sorted,
-/// deduplicated slots) changed. None: the tree must be rebuilt instead (malformed nodes, or
+/// Refits partition p, whose leaf set is unchanged, after the records of `changed` (sorted by
+/// slot, each once) changed. None: the tree must be rebuilt instead (malformed nodes, or
 /// the partition's box grew past REFIT_AREA_LIMIT).
-fn refit(blob: &Blob, p: u32, changed: &[u32], view: &dyn DeviceView) -> Option<Refitted> {
+fn refit(blob: &Blob, p: u32, changed: &[Changed], view: &dyn DeviceView) -> Option<Refitted> {
     let rec = blob.partition(p);
     if rec.root == NO_ROOT || p >= blob.c.partitions {
         return None;
@@ -447,7 +462,7 @@ fn refit(blob: &Blob, p: u32, changed: &[u32], view: &dyn DeviceView) -> Option<
     let mut memo = BlasBoundsMemo::new();
     let records: Vec<(u32, InstanceRecord, u64)> = changed
         .iter()
-        .map(|&slot| {
+        .map(|&Changed { slot, .. }| {
             let (r, blas, _) = traversal_record(slot, &blob.stored(slot), t, &mut memo, view);
             (slot, r, blas)
         })
@@ -466,11 +481,7 @@ fn refit(blob: &Blob, p: u32, changed: &[u32], view: &dyn DeviceView) -> Option<
     };
     let mut leaf_box = |slot: u32| {
         let st = blob.stored(slot);
-        let mut world = st.transform;
-        world[3] += t[0];
-        world[7] += t[1];
-        world[11] += t[2];
-        let (lo, hi) = leaf_bounds(&st, &world, t, &mut memo, view);
+        let (lo, hi) = leaf_bounds(&st, &translated(&st, t), t, &mut memo, view);
         Aabb { lo, hi }
     };
     let r = tree::refit(region, first as u32, changed, &mut leaf_box).ok()?;
@@ -500,7 +511,7 @@ enum Redone {
 
 /// Redoes partition p: a refit when only records of its leaves changed and refits are allowed,
 /// else a rebuild.
-fn redo(blob: &Blob, p: u32, dirty: &Dirty, changed: &[u32], may_refit: bool, view: &dyn DeviceView) -> Redone {
+fn redo(blob: &Blob, p: u32, dirty: &Dirty, changed: &[Changed], may_refit: bool, view: &dyn DeviceView) -> Redone {
     if may_refit && !dirty.reshaped[p as usize] {
         if let Some(r) = refit(blob, p, changed, view) {
             return Redone::Refitted(r);
@@ -579,21 +590,22 @@ pub fn build(input: &Input, ops: &Ops, view: &dyn DeviceView, source: Source, ds
     let (mut blob, touched, relaid) = open(input, source, dst)?;
     let mut dirty = Dirty { reshaped: touched.clone(), touched, changed: Vec::new() };
     let mut report = BuildReport { relaid, ..BuildReport::default() };
-    apply_writes(&mut blob, input, ops, &mut dirty)?;
-    apply_updates(&mut blob, input, ops, &mut dirty, &mut report.ignored_updates)?;
+    apply_writes(&mut blob, input, ops, &mut dirty, view)?;
+    apply_updates(&mut blob, input, ops, &mut dirty, &mut report.ignored_updates, view)?;
     apply_translations(&mut blob, input, ops, &mut dirty)?;
     // The global partition's instances are top-level entries: their boxes are needed every build.
     let global = blob.c.partitions;
     dirty.reshape(global);
-    dirty.changed.sort_unstable();
-    dirty.changed.dedup();
+    // A slot changed twice (written, then updated) keeps its first entry: the box in the tree.
+    dirty.changed.sort_by_key(|&(p, c)| (p, c.slot));
+    dirty.changed.dedup_by_key(|&mut (p, c)| (p, c.slot));
     // Slots changed per partition: a run of `changed` each (it is sorted by partition).
     let mut runs = vec![(0usize, 0usize); global as usize + 1];
     for (k, &(p, _)) in dirty.changed.iter().enumerate() {
         let r = &mut runs[p as usize];
         *r = if r.1 == 0 { (k, k + 1) } else { (r.0, k + 1) };
     }
-    let slots: Vec<u32> = dirty.changed.iter().map(|&(_, s)| s).collect();
+    let slots: Vec<Changed> = dirty.changed.iter().map(|&(_, c)| c).collect();
     // PREFER_FAST_TRACE rebuilds every touched partition: bytes then depend on the state alone.
     let may_refit = input.flags & crate::accel::BuildFlags::PREFER_FAST_TRACE == 0;
     let list: Vec<u32> = (0..=global).filter(|&p| dirty.touched[p as usize]).collect();

@@ -432,3 +432,66 @@ fn a_partition_whose_box_grows_past_the_bound_is_rebuilt() {
     let mut rng = Rng::new(51);
     assert_same_traversal(&dst, &model.khr_tlas(&view), &view, &mut rng, 300);
 }
+
+/// Every leaf box lies inside the decoded child boxes of all its ancestors (`path`: those above
+/// node k), walked from `base`: what conservative traversal needs.
+fn assert_leaves_contained(nodes: &[crate::accel::layout::WideNode], base: u32, k: usize, path: &mut Vec<[f32; 6]>, boxes: &std::collections::HashMap<u32, crate::accel::geometry::Aabb>) {
+    let n = nodes[k];
+    for c in 0..n.child_count as usize {
+        path.push(n.child_box(c));
+        if n.kind[c] == crate::accel::layout::CHILD_INTERNAL {
+            assert_leaves_contained(nodes, base, (n.child[c] - base) as usize, path, boxes);
+        } else {
+            let l = boxes[&n.child[c]];
+            for b in path.iter() {
+                assert!((0..3).all(|a| b[a] <= l.lo[a] && l.hi[a] <= b[a + 3]), "leaf {} outside an ancestor's box", n.child[c]);
+            }
+        }
+        path.pop();
+    }
+}
+
+#[test]
+fn tree_refit_finds_leaves_by_their_previous_box_or_by_scanning_alike() {
+    use super::tree::{self, Changed, Entry};
+    use crate::accel::geometry::Aabb;
+    let mut rng = Rng::new(60);
+    let base = 7u32;
+    let mut boxes = std::collections::HashMap::new();
+    let mut entries: Vec<Entry> = (0..300u32)
+        .map(|slot| {
+            let c = rng.v3(20.0);
+            let e = rng.range(0.1, 2.0);
+            let (lo, hi) = ((c - e).to_array(), (c + e).to_array());
+            boxes.insert(slot, Aabb { lo, hi });
+            Entry { lo, hi, child: slot, kind: 1 }
+        })
+        .collect();
+    let mut nodes = Vec::new();
+    tree::build(&mut entries, base, &mut nodes);
+    for round in 0..20 {
+        let mut slots: Vec<u32> = (0..12).map(|_| rng.next_u32() % 300).collect();
+        slots.sort_unstable();
+        slots.dedup();
+        let previous: Vec<Changed> = slots.iter().map(|&slot| Changed { slot, previous: Some(boxes[&slot]) }).collect();
+        // A previous box no node contains: the search misses and the refit scans.
+        let wrong: Vec<Changed> = slots.iter().map(|&slot| Changed { slot, previous: Some(Aabb { lo: [1e6; 3], hi: [1e6 + 1.0; 3] }) }).collect();
+        for &slot in &slots {
+            let d = rng.v3(1.5);
+            let b = boxes.get_mut(&slot).unwrap();
+            b.lo = (glam::Vec3::from(b.lo) + d).to_array();
+            b.hi = (glam::Vec3::from(b.hi) + d).to_array();
+        }
+        let mut leaf = |slot: u32| boxes[&slot];
+        let by_search = tree::refit(&nodes, base, &previous, &mut leaf).unwrap();
+        let by_scan = tree::refit(&nodes, base, &wrong, &mut leaf).unwrap();
+        assert_eq!(by_search.nodes, by_scan.nodes, "round {round}");
+        assert_eq!(by_search.bounds, by_scan.bounds);
+        assert!(!by_search.nodes.is_empty() && by_search.nodes[0].0 == base, "the root is on every path");
+        for (k, node) in by_search.nodes {
+            nodes[(k - base) as usize] = node;
+        }
+        let b = by_search.bounds;
+        assert_leaves_contained(&nodes, base, 0, &mut vec![[b.lo[0], b.lo[1], b.lo[2], b.hi[0], b.hi[1], b.hi[2]]], &boxes);
+    }
+}
