@@ -232,6 +232,8 @@ struct Dirty {
     /// (partition, slot and its box in the tree) of records that changed while the partition's
     /// leaf set stayed.
     changed: Vec<(u32, Changed)>,
+    /// BLAS bounds for the boxes of `changed`.
+    memo: BlasBoundsMemo,
 }
 
 impl Dirty {
@@ -241,14 +243,14 @@ impl Dirty {
     }
     /// `slot` of partition p changed from `old` to `new`; its leaf set changed too when the
     /// slot's activity flipped. The box `old` had in the tree is kept to find its leaf.
-    fn change(&mut self, blob: &Blob, p: u32, slot: u32, old: &StoredInstance, new: &StoredInstance, memo: &mut BlasBoundsMemo, view: &dyn DeviceView) {
+    fn change(&mut self, blob: &Blob, p: u32, slot: u32, old: &StoredInstance, new: &StoredInstance, view: &dyn DeviceView) {
         self.touched[p as usize] = true;
         if active(old) != active(new) {
             self.reshaped[p as usize] = true;
         } else if !self.reshaped[p as usize] {
             let previous = active(old).then(|| {
                 let t = blob.partition(p).translation;
-                let (lo, hi) = leaf_bounds(old, &translated(old, t), t, memo, view);
+                let (lo, hi) = leaf_bounds(old, &translated(old, t), t, &mut self.memo, view);
                 Aabb { lo, hi }
             });
             self.changed.push((p, Changed { slot, previous }));
@@ -258,7 +260,6 @@ impl Dirty {
 
 fn apply_writes(blob: &mut Blob, input: &Input, ops: &Ops, dirty: &mut Dirty, view: &dyn DeviceView) -> Result<(), PtlasError> {
     let op = OP_WRITE_INSTANCE;
-    let mut memo = BlasBoundsMemo::new();
     for k in 0..ops.writes.count {
         let w: WriteInstance = ops.writes.get(k).ok_or(PtlasError::RecordUnreadable { op, record: k })?;
         if w.instance_index >= input.instance_count {
@@ -293,7 +294,7 @@ fn apply_writes(blob: &mut Blob, input: &Input, ops: &Ops, dirty: &mut Dirty, vi
         if moved {
             dirty.reshape(np);
         } else {
-            dirty.change(blob, np, slot, &old, &st, &mut memo, view);
+            dirty.change(blob, np, slot, &old, &st, view);
         }
         blob.set_stored(slot, &st);
     }
@@ -302,7 +303,6 @@ fn apply_writes(blob: &mut Blob, input: &Input, ops: &Ops, dirty: &mut Dirty, vi
 
 fn apply_updates(blob: &mut Blob, input: &Input, ops: &Ops, dirty: &mut Dirty, ignored: &mut u32, view: &dyn DeviceView) -> Result<(), PtlasError> {
     let op = OP_UPDATE_INSTANCE;
-    let mut memo = BlasBoundsMemo::new();
     for k in 0..ops.updates.count {
         let u: UpdateInstance = ops.updates.get(k).ok_or(PtlasError::RecordUnreadable { op, record: k })?;
         if u.instance_index >= input.instance_count {
@@ -317,7 +317,7 @@ fn apply_updates(blob: &mut Blob, input: &Input, ops: &Ops, dirty: &mut Dirty, i
         st.sbt_offset = u.instance_contribution_to_hit_group_index;
         st.blas = u.acceleration_structure;
         blob.set_stored(u.instance_index, &st);
-        dirty.change(blob, slot_of(&blob.c, st.partition_index), u.instance_index, &old, &st, &mut memo, view);
+        dirty.change(blob, slot_of(&blob.c, st.partition_index), u.instance_index, &old, &st, view);
     }
     Ok(())
 }
@@ -588,7 +588,7 @@ pub fn build(input: &Input, ops: &Ops, view: &dyn DeviceView, source: Source, ds
         return Err(PtlasError::ScratchTooSmall { needed: scratch_size(&c), got: scratch.len() as u64 });
     }
     let (mut blob, touched, relaid) = open(input, source, dst)?;
-    let mut dirty = Dirty { reshaped: touched.clone(), touched, changed: Vec::new() };
+    let mut dirty = Dirty { reshaped: touched.clone(), touched, changed: Vec::new(), memo: BlasBoundsMemo::new() };
     let mut report = BuildReport { relaid, ..BuildReport::default() };
     apply_writes(&mut blob, input, ops, &mut dirty, view)?;
     apply_updates(&mut blob, input, ops, &mut dirty, &mut report.ignored_updates, view)?;
