@@ -37,11 +37,14 @@ Drivers (default: arbor, the libvulkan_arbor.so beside this program):
 Scenes (default: bunny):
   --scene LIST         bunny (embedded Stanford bunny), soup (random triangle soup), terrain
                        (tessellated heightfield), instances (TLAS of instances over 3 BLASes),
-                       clusters (the full dragon of data/, for the cluster workloads), all
+                       clusters (the full dragon of data/, for the cluster workloads), all;
+                       ptlas (the same BLASes, --ptlas-instances instances; not in all)
   --mesh FILE          a PLY (ASCII/binary) or OBJ mesh, gzip allowed (repeatable)
   --soup N             triangles of the soup (default 1000000)
   --terrain N          terrain grid cells per side, 2 triangles each (default 512)
   --instances N        instances of the TLAS scene (default 10000)
+  --ptlas-instances N  instances of the ptlas scene (default 1000000)
+  --partitions N       partitions of the ptlas workloads (default 1024)
 Workloads (default: all; unsupported ones are reported as \"not supported\"):
   --workloads LIST     fast-trace, fast-build, update, compact, indirect, host, host-deferred;
                        also lib-fast-trace, lib-fast-build (Arbor: arbor::accel::build called
@@ -53,6 +56,10 @@ Workloads (default: all; unsupported ones are reported as \"not supported\"):
                        or clusters (all five): VK_NV_cluster_acceleration_structure over the
                        mesh cut into 128-triangle clusters, and the KHR BLAS (PREFER_FAST_BUILD)
                        of the same triangles; not in the default set
+                       ptlas-build, ptlas-update-1pct, ptlas-khr-tlas or ptlas (all three):
+                       VK_NV_partitioned_acceleration_structure over an instance scene: a build
+                       from scratch, 1 % of the instances rewritten in place, and the KHR TLAS
+                       build of the same instances (not in the default set)
                        compute-alu, compute-memory, compute-divergent, compute-first-dispatch
                        or compute (all four): compute shaders, once per driver, no scene;
                        the Mprim/s column is then M invocations/s
@@ -87,6 +94,8 @@ struct Args {
     soup: usize,
     terrain: u32,
     instances: usize,
+    ptlas_instances: usize,
+    partitions: u32,
     workloads: Vec<Workload>,
     repeat: usize,
     warmup: usize,
@@ -155,6 +164,8 @@ impl Args {
             soup: 1_000_000,
             terrain: 512,
             instances: 10_000,
+            ptlas_instances: 1_000_000,
+            partitions: 1024,
             workloads: Vec::new(),
             repeat: 5,
             warmup: 1,
@@ -193,6 +204,8 @@ impl Args {
             "--soup" => self.soup = num("--soup", value("--soup")?)?.max(1),
             "--terrain" => self.terrain = num("--terrain", value("--terrain")?)?.max(1) as u32,
             "--instances" => self.instances = num("--instances", value("--instances")?)?.max(1),
+            "--ptlas-instances" => self.ptlas_instances = num("--ptlas-instances", value("--ptlas-instances")?)?.max(1),
+            "--partitions" => self.partitions = num("--partitions", value("--partitions")?)?.clamp(1, u32::MAX as usize) as u32,
             _ => return Ok(false),
         }
         Ok(true)
@@ -208,6 +221,8 @@ impl Args {
                         self.workloads.extend(Workload::COMPUTE);
                     } else if w == "clusters" {
                         self.workloads.extend(Workload::CLUSTERS);
+                    } else if w == "ptlas" {
+                        self.workloads.extend(Workload::PTLAS);
                     } else {
                         self.workloads.push(Workload::parse(&w).ok_or_else(|| format!("unknown workload {w}"))?);
                     }
@@ -366,7 +381,12 @@ fn load_scenes(a: &Args) -> Result<Vec<Scene>, String> {
             },
             // The full dragon, for the cluster workloads (cut into clusters by those).
             "clusters" => SceneKind::Mesh(arbor_scene::load(concat!(env!("CARGO_MANIFEST_DIR"), "/../data/dragon_vrip.ply.gz")).map_err(|e| format!("dragon: {e}"))?),
-            other => return Err(format!("unknown scene {other} (bunny, soup, terrain, instances, clusters, all; or --mesh FILE)")),
+            "ptlas" => SceneKind::Instances {
+                blases: vec![work::normalized(&bunny()?), arbor_scene::terrain(64), arbor_scene::random_soup(4096, 7)],
+                count: a.ptlas_instances,
+                seed: 1,
+            },
+            other => return Err(format!("unknown scene {other} (bunny, soup, terrain, instances, clusters, ptlas, all; or --mesh FILE)")),
         };
         out.push(Scene { name: s.clone(), kind });
     }
@@ -576,6 +596,7 @@ fn measure(
         keep_hits: args.compare.is_some(),
         compute_invocations: args.compute_invocations,
         compute_memory_bytes: args.compute_memory_mib << 20,
+        partitions: args.partitions,
     };
     let (compute, scene_work): (Vec<work::Workload>, Vec<work::Workload>) = args.workloads.iter().partition(|w| w.is_compute());
     let total = devices.len() * (scenes.len() * scene_work.len() + compute.len());

@@ -7,6 +7,16 @@ use std::time::Instant;
 
 use ash::vk;
 
+/// VkPhysicalDevicePartitionedAccelerationStructureFeaturesNV (ash 0.38 lacks it), chained by hand.
+#[repr(C)]
+struct PtlasFeatures {
+    s_type: vk::StructureType,
+    p_next: *const std::ffi::c_void,
+    partitioned_acceleration_structure: vk::Bool32,
+}
+
+pub const PTLAS_EXTENSION: &str = "VK_NV_partitioned_acceleration_structure";
+
 /// What a driver offers for the acceleration-structure work.
 #[derive(Clone, Debug, Default)]
 pub struct Caps {
@@ -21,6 +31,8 @@ pub struct Caps {
     pub max_instance_count: u64,
     /// VK_KHR_ray_query with its rayQuery feature (the trace workloads).
     pub ray_query: bool,
+    /// VK_NV_partitioned_acceleration_structure (the ptlas workloads).
+    pub ptlas: bool,
     /// Why the AS work cannot run at all (extension or feature missing).
     pub missing: Option<String>,
 }
@@ -36,7 +48,7 @@ pub struct Gpu {
     pub ext: ash::khr::acceleration_structure::Device,
     pub deferred: ash::khr::deferred_host_operations::Device,
     pub bda: ash::khr::buffer_device_address::Device,
-    /// The instance's vkGetDeviceProcAddr, for extension commands ash does not wrap.
+    /// vkGetDeviceProcAddr, for extension commands ash does not wrap (the NV cluster and partitioned ones).
     pub get_device_proc_addr: vk::PFN_vkGetDeviceProcAddr,
     mem: vk::PhysicalDeviceMemoryProperties,
 }
@@ -101,6 +113,7 @@ impl Gpu {
         let has = |e: &str| exts.iter().any(|x| x == e);
         let mut caps = as_caps(instance, physical, &has);
         caps.ray_query = caps.acceleration_structure && props.api_version >= vk::API_VERSION_1_2 && ray_query_feature(instance, physical, &has);
+        caps.ptlas = caps.acceleration_structure && has(PTLAS_EXTENSION);
         let family = compute_family(instance, physical, &props, &mut caps)?;
         let device = create_device(instance, physical, family, &caps, &has)?;
         // SAFETY: a live device; everything created here is destroyed by `destroy`.
@@ -430,6 +443,9 @@ fn create_device(
     if caps.ray_query {
         names.push(ash::khr::ray_query::NAME);
     }
+    if caps.ptlas {
+        names.push(c"VK_NV_partitioned_acceleration_structure");
+    }
     let name_ptrs: Vec<*const std::ffi::c_char> = names.iter().map(|c| c.as_ptr()).collect();
     let prio = [1.0f32];
     let qci = [vk::DeviceQueueCreateInfo::default().queue_family_index(family).queue_priorities(&prio)];
@@ -445,6 +461,15 @@ fn create_device(
     let mut rq_on = vk::PhysicalDeviceRayQueryFeaturesKHR::default().ray_query(true);
     if caps.ray_query {
         dci = dci.push_next(&mut rq_on);
+    }
+    let ptlas_on = PtlasFeatures { s_type: vk::StructureType::from_raw(1_000_570_000), p_next: dci.p_next, partitioned_acceleration_structure: vk::TRUE };
+    if caps.ptlas {
+        dci.p_next = (&ptlas_on as *const PtlasFeatures).cast();
+    }
+    // VkPhysicalDeviceClusterAccelerationStructureFeaturesNV has the same shape: sType, pNext, one Bool32.
+    let clusters_on = PtlasFeatures { s_type: vk::StructureType::from_raw(1_000_569_000), p_next: dci.p_next, partitioned_acceleration_structure: vk::TRUE };
+    if names.contains(&crate::work::clusters::EXTENSION) {
+        dci.p_next = (&clusters_on as *const PtlasFeatures).cast();
     }
     // SAFETY: valid create info; the caller destroys the device (`Gpu::destroy`).
     unsafe { instance.create_device(physical, &dci, None) }.map_err(vk_err("vkCreateDevice"))

@@ -9,6 +9,7 @@ mod device;
 mod host;
 mod inputs;
 mod library;
+mod ptlas;
 pub mod trace;
 
 use arbor_scene::{InstanceRecord, Mesh};
@@ -75,6 +76,10 @@ pub enum Workload {
     ClusterBlas,
     ClasMoveCompact,
     KhrBlas,
+    /// VK_NV_partitioned_acceleration_structure (instance scenes): see `ptlas`.
+    PtlasBuild,
+    PtlasUpdate1pct,
+    PtlasKhrTlas,
 }
 
 impl Workload {
@@ -111,15 +116,28 @@ impl Workload {
             Workload::ClusterBlas => "cluster-blas",
             Workload::ClasMoveCompact => "clas-move-compact",
             Workload::KhrBlas => "khr-blas",
+            Workload::PtlasBuild => "ptlas-build",
+            Workload::PtlasUpdate1pct => "ptlas-update-1pct",
+            Workload::PtlasKhrTlas => "ptlas-khr-tlas",
         }
     }
     pub fn parse(s: &str) -> Option<Workload> {
-        Workload::ALL.iter().chain(&[Workload::LibFastTrace, Workload::LibFastBuild]).chain(&Workload::TRACE).chain(&Workload::COMPUTE).chain(&Workload::CLUSTERS).copied().find(|w| w.name() == s)
+        Workload::ALL
+            .iter()
+            .chain(&[Workload::LibFastTrace, Workload::LibFastBuild])
+            .chain(&Workload::TRACE)
+            .chain(&Workload::COMPUTE)
+            .chain(&Workload::CLUSTERS)
+            .chain(&Workload::PTLAS)
+            .copied()
+            .find(|w| w.name() == s)
     }
     /// The compute-shader workloads ("--workloads compute").
     pub const COMPUTE: [Workload; 4] = [Workload::ComputeAlu, Workload::ComputeMemory, Workload::ComputeDivergent, Workload::ComputeFirstDispatch];
     /// The cluster workloads ("--workloads clusters").
     pub const CLUSTERS: [Workload; 5] = [Workload::ClasBuild, Workload::ClasInstantiate, Workload::ClusterBlas, Workload::ClasMoveCompact, Workload::KhrBlas];
+    /// The partitioned-TLAS workloads ("--workloads ptlas"; not in ALL).
+    pub const PTLAS: [Workload; 3] = [Workload::PtlasBuild, Workload::PtlasUpdate1pct, Workload::PtlasKhrTlas];
     pub fn is_compute(self) -> bool {
         Workload::COMPUTE.contains(&self)
     }
@@ -217,6 +235,8 @@ pub struct Options {
     pub compute_invocations: u64,
     /// Bytes compute-memory streams through.
     pub compute_memory_bytes: u64,
+    /// Partitions of the ptlas workloads.
+    pub partitions: u32,
 }
 
 /// Runs the chosen workloads of one scene on one device. `progress` is called before each.
@@ -345,6 +365,7 @@ fn run_workload(
         Workload::TracePrimary | Workload::TraceRandom => trace::trace(gpu, inputs, scene, w, opts, row),
         Workload::ClasBuild | Workload::ClasInstantiate | Workload::ClusterBlas | Workload::ClasMoveCompact => clusters::run(gpu, scene, w, opts, row),
         Workload::KhrBlas => device::device_build(gpu, inputs, Workload::FastBuild, opts, row, None, scene),
+        Workload::PtlasBuild | Workload::PtlasUpdate1pct | Workload::PtlasKhrTlas => ptlas::run(gpu, inputs, w, opts, row),
         Workload::ComputeAlu | Workload::ComputeMemory | Workload::ComputeDivergent | Workload::ComputeFirstDispatch => {
             Err("compute workloads run once per device (run_compute)".into())
         }

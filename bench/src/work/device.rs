@@ -7,7 +7,7 @@ use super::inputs::{build_sizes, device_target, Inputs};
 use super::{Options, RenderData, Row, Scene, SceneKind, Stats, Workload};
 use crate::vkctx::{payload, Arena, Gpu, Place};
 
-fn fill_times(row: &mut Row, times: &[(Option<f64>, f64)]) {
+pub(super) fn fill_times(row: &mut Row, times: &[(Option<f64>, f64)]) {
     let wall: Vec<f64> = times.iter().map(|t| t.1).collect();
     let ts: Vec<f64> = times.iter().filter_map(|t| t.0).collect();
     row.wall = Stats::of(&wall);

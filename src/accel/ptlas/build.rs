@@ -8,7 +8,7 @@ use bytemuck::Zeroable;
 use rayon::prelude::*;
 
 use super::layout::{self, Capacities, PartitionRecord, PtlasHeader, Sections, StoredInstance, NO_ROOT, PARTITION_RECORD_SIZE, STORED_INSTANCE_SIZE};
-use super::tree::{self, Entry};
+use super::tree::{self, Changed, Entry};
 use super::{BuildReport, Ops, PtlasError, Source, UpdateInstance, WriteInstance, WriteTranslation};
 use super::{INSTANCE_FLAGS_SHARED_WITH_KHR, INSTANCE_FLAG_EXPLICIT_BOUNDING_BOX, OP_UPDATE_INSTANCE, OP_WRITE_INSTANCE, OP_WRITE_PARTITION_TRANSLATION, PARTITION_INDEX_GLOBAL};
 use crate::accel::geometry::{instance_bounds_of, sanitize, Aabb, BlasBoundsMemo};
@@ -223,7 +223,42 @@ fn open<'a>(input: &Input, source: Source, dst: &'a mut [u8]) -> Result<(Blob<'a
     Ok((blob, dirty, relaid))
 }
 
-fn apply_writes(blob: &mut Blob, input: &Input, ops: &Ops, dirty: &mut [bool]) -> Result<(), PtlasError> {
+/// What the ops of one build did to each partition (index `partitions`: the global one).
+struct Dirty {
+    /// Its records, tree or bounds must be redone.
+    touched: Vec<bool>,
+    /// Its member set, its set of active members or its translation changed: the tree is rebuilt.
+    reshaped: Vec<bool>,
+    /// (partition, slot and its box in the tree) of records that changed while the partition's
+    /// leaf set stayed.
+    changed: Vec<(u32, Changed)>,
+    /// BLAS bounds for the boxes of `changed`.
+    memo: BlasBoundsMemo,
+}
+
+impl Dirty {
+    fn reshape(&mut self, p: u32) {
+        self.touched[p as usize] = true;
+        self.reshaped[p as usize] = true;
+    }
+    /// `slot` of partition p changed from `old` to `new`; its leaf set changed too when the
+    /// slot's activity flipped. The box `old` had in the tree is kept to find its leaf.
+    fn change(&mut self, blob: &Blob, p: u32, slot: u32, old: &StoredInstance, new: &StoredInstance, view: &dyn DeviceView) {
+        self.touched[p as usize] = true;
+        if active(old) != active(new) {
+            self.reshaped[p as usize] = true;
+        } else if !self.reshaped[p as usize] {
+            let previous = active(old).then(|| {
+                let t = blob.partition(p).translation;
+                let (lo, hi) = leaf_bounds(old, &translated(old, t), t, &mut self.memo, view);
+                Aabb { lo, hi }
+            });
+            self.changed.push((p, Changed { slot, previous }));
+        }
+    }
+}
+
+fn apply_writes(blob: &mut Blob, input: &Input, ops: &Ops, dirty: &mut Dirty, view: &dyn DeviceView) -> Result<(), PtlasError> {
     let op = OP_WRITE_INSTANCE;
     for k in 0..ops.writes.count {
         let w: WriteInstance = ops.writes.get(k).ok_or(PtlasError::RecordUnreadable { op, record: k })?;
@@ -236,15 +271,13 @@ fn apply_writes(blob: &mut Blob, input: &Input, ops: &Ops, dirty: &mut [bool]) -
         let slot = w.instance_index;
         let np = slot_of(&blob.c, w.partition_index);
         let old = blob.stored(slot);
-        if old.written != 0 {
+        let moved = old.written == 0 || slot_of(&blob.c, old.partition_index) != np;
+        if old.written != 0 && moved {
             let op_ = slot_of(&blob.c, old.partition_index);
-            if op_ != np {
-                blob.remove(op_, slot);
-                dirty[op_ as usize] = true;
-            }
+            blob.remove(op_, slot);
+            dirty.reshape(op_);
         }
         blob.insert(np, slot, k)?;
-        dirty[np as usize] = true;
         let st = StoredInstance {
             transform: w.transform,
             explicit_aabb: w.explicit_aabb,
@@ -258,12 +291,17 @@ fn apply_writes(blob: &mut Blob, input: &Input, ops: &Ops, dirty: &mut [bool]) -
             written: 1,
             reserved: 0,
         };
+        if moved {
+            dirty.reshape(np);
+        } else {
+            dirty.change(blob, np, slot, &old, &st, view);
+        }
         blob.set_stored(slot, &st);
     }
     Ok(())
 }
 
-fn apply_updates(blob: &mut Blob, input: &Input, ops: &Ops, dirty: &mut [bool], ignored: &mut u32) -> Result<(), PtlasError> {
+fn apply_updates(blob: &mut Blob, input: &Input, ops: &Ops, dirty: &mut Dirty, ignored: &mut u32, view: &dyn DeviceView) -> Result<(), PtlasError> {
     let op = OP_UPDATE_INSTANCE;
     for k in 0..ops.updates.count {
         let u: UpdateInstance = ops.updates.get(k).ok_or(PtlasError::RecordUnreadable { op, record: k })?;
@@ -275,15 +313,16 @@ fn apply_updates(blob: &mut Blob, input: &Input, ops: &Ops, dirty: &mut [bool], 
             *ignored += 1;
             continue;
         }
+        let old = st;
         st.sbt_offset = u.instance_contribution_to_hit_group_index;
         st.blas = u.acceleration_structure;
         blob.set_stored(u.instance_index, &st);
-        dirty[slot_of(&blob.c, st.partition_index) as usize] = true;
+        dirty.change(blob, slot_of(&blob.c, st.partition_index), u.instance_index, &old, &st, view);
     }
     Ok(())
 }
 
-fn apply_translations(blob: &mut Blob, input: &Input, ops: &Ops, dirty: &mut [bool]) -> Result<(), PtlasError> {
+fn apply_translations(blob: &mut Blob, input: &Input, ops: &Ops, dirty: &mut Dirty) -> Result<(), PtlasError> {
     let op = OP_WRITE_PARTITION_TRANSLATION;
     for k in 0..ops.translations.count {
         let t: WriteTranslation = ops.translations.get(k).ok_or(PtlasError::RecordUnreadable { op, record: k })?;
@@ -297,7 +336,7 @@ fn apply_translations(blob: &mut Blob, input: &Input, ops: &Ops, dirty: &mut [bo
         let mut r = blob.partition(p);
         r.translation = t.partition_translation;
         blob.set_partition(p, &r);
-        dirty[p as usize] = true;
+        dirty.reshape(p);
     }
     Ok(())
 }
@@ -316,6 +355,44 @@ struct Rebuilt {
     entries: Vec<Entry>,
 }
 
+/// The traversal record of one slot of a partition translated by `t`, its BLAS table entry,
+/// and its leaf box when active.
+fn traversal_record(slot: u32, st: &StoredInstance, t: [f32; 3], memo: &mut BlasBoundsMemo, view: &dyn DeviceView) -> (InstanceRecord, u64, Option<Aabb>) {
+    let mut rec = InstanceRecord { instance_index: slot, ..InstanceRecord::zeroed() };
+    if !active(st) {
+        return (rec, 0, None);
+    }
+    let world = translated(st, t);
+    rec.object_to_world = world;
+    rec.world_to_object = invert_transform(&world);
+    rec.custom_index = st.instance_id & 0x00ff_ffff;
+    rec.mask = st.mask & 0xff;
+    rec.sbt_offset = st.sbt_offset & 0x00ff_ffff;
+    rec.flags = st.flags & INSTANCE_FLAGS_SHARED_WITH_KHR;
+    rec.blas_index = slot;
+    let (lo, hi) = leaf_bounds(st, &world, t, memo, view);
+    (rec, st.blas, Some(Aabb { lo, hi }))
+}
+
+/// The stored transform with the partition translation added.
+fn translated(st: &StoredInstance, t: [f32; 3]) -> [f32; 12] {
+    let mut world = st.transform;
+    world[3] += t[0];
+    world[7] += t[1];
+    world[11] += t[2];
+    world
+}
+
+/// The box of an active instance: its explicit AABB (translated) or its BLAS through `world`.
+fn leaf_bounds(st: &StoredInstance, world: &[f32; 12], t: [f32; 3], memo: &mut BlasBoundsMemo, view: &dyn DeviceView) -> ([f32; 3], [f32; 3]) {
+    if st.flags & INSTANCE_FLAG_EXPLICIT_BOUNDING_BOX != 0 {
+        let b = st.explicit_aabb;
+        sanitize([b[0] + t[0], b[1] + t[1], b[2] + t[2]], [b[3] + t[0], b[4] + t[1], b[5] + t[2]])
+    } else {
+        instance_bounds_of(world, memo.get(st.blas, view))
+    }
+}
+
 fn rebuild(blob: &Blob, p: u32, view: &dyn DeviceView) -> Rebuilt {
     let members = blob.members(p);
     let t = blob.partition(p).translation;
@@ -323,31 +400,11 @@ fn rebuild(blob: &Blob, p: u32, view: &dyn DeviceView) -> Rebuilt {
     let mut entries = Vec::with_capacity(members.len());
     let mut memo = BlasBoundsMemo::new();
     for &slot in &members {
-        let st = blob.stored(slot);
-        let mut rec = InstanceRecord { instance_index: slot, ..InstanceRecord::zeroed() };
-        if !active(&st) {
-            records.push((slot, rec, 0));
-            continue;
+        let (rec, blas, b) = traversal_record(slot, &blob.stored(slot), t, &mut memo, view);
+        records.push((slot, rec, blas));
+        if let Some(b) = b {
+            entries.push(Entry { lo: b.lo, hi: b.hi, child: slot, kind: 1 });
         }
-        let mut world = st.transform;
-        world[3] += t[0];
-        world[7] += t[1];
-        world[11] += t[2];
-        rec.object_to_world = world;
-        rec.world_to_object = invert_transform(&world);
-        rec.custom_index = st.instance_id & 0x00ff_ffff;
-        rec.mask = st.mask & 0xff;
-        rec.sbt_offset = st.sbt_offset & 0x00ff_ffff;
-        rec.flags = st.flags & INSTANCE_FLAGS_SHARED_WITH_KHR;
-        rec.blas_index = slot;
-        let (lo, hi) = if st.flags & INSTANCE_FLAG_EXPLICIT_BOUNDING_BOX != 0 {
-            let b = st.explicit_aabb;
-            sanitize([b[0] + t[0], b[1] + t[1], b[2] + t[2]], [b[3] + t[0], b[4] + t[1], b[5] + t[2]])
-        } else {
-            instance_bounds_of(&world, memo.get(st.blas, view))
-        };
-        records.push((slot, rec, st.blas));
-        entries.push(Entry { lo, hi, child: slot, kind: 1 });
     }
     let mut nodes = Vec::new();
     let bounds = if p < blob.c.partitions {
@@ -376,8 +433,91 @@ fn write_rebuilt(blob: &mut Blob, r: &Rebuilt) {
         rec.node_count = r.nodes.len() as u32;
         rec.root = if r.nodes.is_empty() { NO_ROOT } else { base as u32 };
         rec.bounds = r.bounds.map_or([0.0; 6], |b| [b.lo[0], b.lo[1], b.lo[2], b.hi[0], b.hi[1], b.hi[2]]);
+        rec.rebuilt_area = r.bounds.map_or(0.0, |b| b.half_area());
     }
     blob.set_partition(r.p, &rec);
+}
+
+/// A refit may grow a partition's box to this many times its half-area at the last rebuild;
+/// past it the partition is rebuilt (a deterministic rule: it reads only stored state).
+const REFIT_AREA_LIMIT: f32 = 1.5;
+
+/// One refitted partition: the records of its changed slots, its rewritten nodes, its bounds.
+struct Refitted {
+    p: u32,
+    records: Vec<(u32, InstanceRecord, u64)>,
+    nodes: Vec<(u32, WideNode)>,
+    bounds: Aabb,
+}
+
+/// Refits partition p, whose leaf set is unchanged, after the records of `changed` (sorted by
+/// slot, each once) changed. None: the tree must be rebuilt instead (malformed nodes, or
+/// the partition's box grew past REFIT_AREA_LIMIT).
+fn refit(blob: &Blob, p: u32, changed: &[Changed], view: &dyn DeviceView) -> Option<Refitted> {
+    let rec = blob.partition(p);
+    if rec.root == NO_ROOT || p >= blob.c.partitions {
+        return None;
+    }
+    let t = rec.translation;
+    let mut memo = BlasBoundsMemo::new();
+    let records: Vec<(u32, InstanceRecord, u64)> = changed
+        .iter()
+        .map(|&Changed { slot, .. }| {
+            let (r, blas, _) = traversal_record(slot, &blob.stored(slot), t, &mut memo, view);
+            (slot, r, blas)
+        })
+        .collect();
+    let first = blob.s.top_nodes + p as u64 * blob.s.partition_nodes;
+    let count = (rec.node_count as u64).min(blob.s.partition_nodes);
+    let at = (blob.s.tlas + blob.s.tlas_nodes + first * NODE_SIZE as u64) as usize;
+    let raw = &blob.bytes[at..at + count as usize * NODE_SIZE];
+    let copied: Vec<WideNode>;
+    let region: &[WideNode] = match bytemuck::try_cast_slice(raw) {
+        Ok(r) => r,
+        Err(_) => {
+            copied = raw.chunks_exact(NODE_SIZE).map(bytemuck::pod_read_unaligned).collect();
+            &copied
+        }
+    };
+    let mut leaf_box = |slot: u32| {
+        let st = blob.stored(slot);
+        let (lo, hi) = leaf_bounds(&st, &translated(&st, t), t, &mut memo, view);
+        Aabb { lo, hi }
+    };
+    let r = tree::refit(region, first as u32, changed, &mut leaf_box).ok()?;
+    (r.bounds.half_area() <= REFIT_AREA_LIMIT * rec.rebuilt_area).then_some(Refitted { p, records, nodes: r.nodes, bounds: r.bounds })
+}
+
+fn write_refitted(blob: &mut Blob, r: &Refitted) {
+    let ts = blob.s.tlas;
+    for (slot, rec, blas) in &r.records {
+        wr(blob.bytes, ts + blob.s.tlas_instances + *slot as u64 * INSTANCE_RECORD_SIZE as u64, rec);
+        wr(blob.bytes, ts + blob.s.tlas_blas_table + *slot as u64 * 8, blas);
+    }
+    for (k, node) in &r.nodes {
+        wr(blob.bytes, ts + blob.s.tlas_nodes + *k as u64 * NODE_SIZE as u64, node);
+    }
+    let mut rec = blob.partition(r.p);
+    let b = r.bounds;
+    rec.bounds = [b.lo[0], b.lo[1], b.lo[2], b.hi[0], b.hi[1], b.hi[2]];
+    blob.set_partition(r.p, &rec);
+}
+
+/// A partition redone by this build.
+enum Redone {
+    Rebuilt(Rebuilt),
+    Refitted(Refitted),
+}
+
+/// Redoes partition p: a refit when only records of its leaves changed and refits are allowed,
+/// else a rebuild.
+fn redo(blob: &Blob, p: u32, dirty: &Dirty, changed: &[Changed], may_refit: bool, view: &dyn DeviceView) -> Redone {
+    if may_refit && !dirty.reshaped[p as usize] {
+        if let Some(r) = refit(blob, p, changed, view) {
+            return Redone::Refitted(r);
+        }
+    }
+    Redone::Rebuilt(rebuild(blob, p, view))
 }
 
 /// Nodes at node index `first` of a region of `capacity`, the rest of the region zeroed.
@@ -447,31 +587,52 @@ pub fn build(input: &Input, ops: &Ops, view: &dyn DeviceView, source: Source, ds
     if (scratch.len() as u64) < scratch_size(&c) {
         return Err(PtlasError::ScratchTooSmall { needed: scratch_size(&c), got: scratch.len() as u64 });
     }
-    let (mut blob, mut dirty, relaid) = open(input, source, dst)?;
+    let (mut blob, touched, relaid) = open(input, source, dst)?;
+    let mut dirty = Dirty { reshaped: touched.clone(), touched, changed: Vec::new(), memo: BlasBoundsMemo::new() };
     let mut report = BuildReport { relaid, ..BuildReport::default() };
-    apply_writes(&mut blob, input, ops, &mut dirty)?;
-    apply_updates(&mut blob, input, ops, &mut dirty, &mut report.ignored_updates)?;
+    apply_writes(&mut blob, input, ops, &mut dirty, view)?;
+    apply_updates(&mut blob, input, ops, &mut dirty, &mut report.ignored_updates, view)?;
     apply_translations(&mut blob, input, ops, &mut dirty)?;
     // The global partition's instances are top-level entries: their boxes are needed every build.
     let global = blob.c.partitions;
-    dirty[global as usize] = true;
-    let list: Vec<u32> = (0..=global).filter(|&p| dirty[p as usize]).collect();
-    let rebuilt: Vec<Rebuilt> = {
-        let b = &blob;
-        list.par_iter().map(|&p| rebuild(b, p, view)).collect()
+    dirty.reshape(global);
+    // A slot changed twice (written, then updated) keeps its first entry: the box in the tree.
+    dirty.changed.sort_by_key(|&(p, c)| (p, c.slot));
+    dirty.changed.dedup_by_key(|&mut (p, c)| (p, c.slot));
+    // Slots changed per partition: a run of `changed` each (it is sorted by partition).
+    let mut runs = vec![(0usize, 0usize); global as usize + 1];
+    for (k, &(p, _)) in dirty.changed.iter().enumerate() {
+        let r = &mut runs[p as usize];
+        *r = if r.1 == 0 { (k, k + 1) } else { (r.0, k + 1) };
+    }
+    let slots: Vec<Changed> = dirty.changed.iter().map(|&(_, c)| c).collect();
+    // PREFER_FAST_TRACE rebuilds every touched partition: bytes then depend on the state alone.
+    let may_refit = input.flags & crate::accel::BuildFlags::PREFER_FAST_TRACE == 0;
+    let list: Vec<u32> = (0..=global).filter(|&p| dirty.touched[p as usize]).collect();
+    let redone: Vec<Redone> = {
+        let (b, d) = (&blob, &dirty);
+        list.par_iter().map(|&p| redo(b, p, d, &slots[runs[p as usize].0..runs[p as usize].1], may_refit, view)).collect()
     };
     let mut global_entries = Vec::new();
-    for r in &rebuilt {
-        write_rebuilt(&mut blob, r);
-        if r.p == global {
-            global_entries = r.entries.clone();
+    for r in &redone {
+        match r {
+            Redone::Rebuilt(r) => {
+                write_rebuilt(&mut blob, r);
+                report.rebuilt_partitions += 1;
+                if r.p == global {
+                    global_entries = r.entries.clone();
+                }
+            }
+            Redone::Refitted(r) => {
+                write_refitted(&mut blob, r);
+                report.refitted_partitions += 1;
+            }
         }
     }
     let bounds = build_top(&mut blob, &global_entries);
     let active: u32 = (0..=global).map(|p| blob.partition(p).active_count).sum();
     finish(&mut blob, bounds, active);
     report.used_size = blob.s.end;
-    report.rebuilt_partitions = rebuilt.len() as u32;
     report.active_instances = active;
     Ok(report)
 }

@@ -81,7 +81,8 @@ pub struct PartitionRecord {
     pub root: u32,
     pub active_count: u32,
     pub node_count: u32,
-    pub reserved: u32,
+    /// Half-area of `bounds` when the tree was last rebuilt: refits past a bound of it rebuild.
+    pub rebuilt_area: f32,
 }
 pub const PARTITION_RECORD_SIZE: usize = 56;
 const _: () = assert!(std::mem::size_of::<PartitionRecord>() == PARTITION_RECORD_SIZE);

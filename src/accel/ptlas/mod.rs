@@ -176,6 +176,8 @@ pub struct BuildReport {
     pub used_size: u64,
     /// Partitions whose subtree was rebuilt (the global partition counts as one).
     pub rebuilt_partitions: u32,
+    /// Partitions whose tree was refitted (only records of existing leaves changed).
+    pub refitted_partitions: u32,
     pub active_instances: u32,
     /// UPDATE_INSTANCE records naming a slot never written (ignored).
     pub ignored_updates: u32,

@@ -106,8 +106,11 @@ fn ops<'a>(w: &'a [WriteInstance], u: &'a [UpdateInstance], t: &'a [WriteTransla
     }
 }
 
+/// PREFER_FAST_TRACE: every touched partition rebuilt, never refitted.
+const FAST_TRACE: u32 = crate::accel::BuildFlags::PREFER_FAST_TRACE;
+
 fn input(n: u32, per: u32, partitions: u32, global: u32) -> Input {
-    Input { flags: 0, instance_count: n, max_instance_per_partition_count: per, partition_count: partitions, max_instance_in_global_partition_count: global, translation: true }
+    Input { flags: FAST_TRACE, instance_count: n, max_instance_per_partition_count: per, partition_count: partitions, max_instance_in_global_partition_count: global, translation: true }
 }
 
 fn build_from(inp: &Input, o: &Ops, view: &MapView, source: Source, dst: &mut [u8]) -> BuildReport {
@@ -250,6 +253,7 @@ fn only_dirty_partitions_are_rebuilt() {
     // Slot 11 rewritten in its own partition (3): that partition plus the (empty) global one.
     let r = build_from(&inp, &ops(&one, &[], &[]), &view, Source::InPlace, &mut dst);
     assert_eq!(r.rebuilt_partitions, 2);
+    assert_eq!(r.refitted_partitions, 0, "PREFER_FAST_TRACE never refits");
     let moved = [WriteInstance { partition_index: 5, ..random_write(&mut rng, 11, 8) }];
     let r = build_from(&inp, &ops(&moved, &[], &[]), &view, Source::InPlace, &mut dst);
     assert_eq!(r.rebuilt_partitions, 3);
@@ -290,4 +294,204 @@ fn sizes_errors_and_growth() {
     assert!(r.relaid);
     assert_eq!(header(&grown).unwrap().instance_capacity, 20);
     assert_eq!(r.active_instances, 1);
+}
+
+/// A refit round: `count` distinct slots rewritten in their own partition with a moved
+/// transform (some with the other BLAS, some through UPDATE_INSTANCE); with `reshape`, one slot
+/// also moves partition or is disabled, so that partition is rebuilt while others refit.
+fn refit_round(rng: &mut Rng, model: &mut Model, count: u32, reshape: bool, partitions: u32) -> (Vec<WriteInstance>, Vec<UpdateInstance>) {
+    let n = model.slots.len() as u32;
+    let mut touched = std::collections::BTreeSet::new();
+    let (mut writes, mut updates) = (Vec::new(), Vec::new());
+    for _ in 0..count {
+        let i = rng.next_u32() % n;
+        let Some(old) = model.slots[i as usize] else { continue };
+        if !touched.insert(i) {
+            continue;
+        }
+        if rng.next_u32().is_multiple_of(4) {
+            let blas = if old.acceleration_structure == BLAS_A { BLAS_B } else { BLAS_A };
+            let u = UpdateInstance { instance_index: i, instance_contribution_to_hit_group_index: rng.next_u32() & 0xfff, acceleration_structure: if old.acceleration_structure == 0 { 0 } else { blas } };
+            let w = model.slots[i as usize].as_mut().unwrap();
+            w.acceleration_structure = u.acceleration_structure;
+            w.instance_contribution_to_hit_group_index = u.instance_contribution_to_hit_group_index;
+            updates.push(u);
+            continue;
+        }
+        let mut w = old;
+        let d = rng.v3(0.4);
+        w.transform[3] += d.x;
+        w.transform[7] += d.y;
+        w.transform[11] += d.z;
+        for k in 0..3 {
+            w.explicit_aabb[k] += d[k];
+            w.explicit_aabb[k + 3] += d[k];
+        }
+        model.slots[i as usize] = Some(w);
+        writes.push(w);
+    }
+    if reshape {
+        let i = rng.next_u32() % n;
+        if touched.insert(i) {
+            let w = random_write(rng, i, partitions);
+            model.slots[i as usize] = Some(w);
+            writes.push(w);
+        }
+    }
+    (writes, updates)
+}
+
+/// Initial state for the refit tests: every slot written, most in partitions.
+fn refit_start(rng: &mut Rng, n: u32, partitions: u32) -> (Model, Vec<WriteInstance>) {
+    let mut model = Model { slots: vec![None; n as usize], ..Model::default() };
+    let writes: Vec<WriteInstance> = (0..n).map(|i| random_write(rng, i, partitions)).collect();
+    for w in &writes {
+        model.slots[w.instance_index as usize] = Some(*w);
+    }
+    (model, writes)
+}
+
+/// Runs the refit sequence of `seed` in place and ping-ponged (flags 0: refits allowed) and
+/// returns both final blobs, the model, the view and the refit and rebuild counts.
+fn refit_sequence(seed: u64, rounds: u32) -> (Vec<u8>, Vec<u8>, Model, MapView, u32, u32) {
+    let mut rng = Rng::new(seed);
+    let view = blases(&mut rng);
+    let (n, partitions) = (200u32, 6u32);
+    let inp = Input { flags: 0, ..input(n, n, partitions, n) };
+    let size = build_sizes(&inp).acceleration_structure_size as usize;
+    let (mut model, first) = refit_start(&mut rng, n, partitions);
+    let (mut in_place, mut ping, mut pong) = (vec![0u8; size], vec![0u8; size], vec![0u8; size]);
+    build_from(&inp, &ops(&first, &[], &[]), &view, Source::Empty, &mut in_place);
+    build_from(&inp, &ops(&first, &[], &[]), &view, Source::Empty, &mut ping);
+    let (mut refitted, mut rebuilt) = (0, 0);
+    for round in 0..rounds {
+        let (w, u) = refit_round(&mut rng, &mut model, 30, round % 5 == 4, partitions);
+        let o = ops(&w, &u, &[]);
+        let r = build_from(&inp, &o, &view, Source::InPlace, &mut in_place);
+        refitted += r.refitted_partitions;
+        rebuilt += r.rebuilt_partitions;
+        let r2 = if round.is_multiple_of(2) { build_from(&inp, &o, &view, Source::Other(&ping), &mut pong) } else { build_from(&inp, &o, &view, Source::Other(&pong), &mut ping) };
+        assert_eq!(r, r2);
+    }
+    let last = if rounds % 2 == 1 { pong } else { ping };
+    (in_place, last, model, view, refitted, rebuilt)
+}
+
+#[test]
+fn refit_sequences_trace_like_from_scratch_builds_and_a_khr_tlas() {
+    for seed in 30..33u64 {
+        let (in_place, ping_pong, model, view, refitted, rebuilt) = refit_sequence(seed, 20);
+        assert!(refitted > 20, "the sequence refits partitions ({refitted} refitted, {rebuilt} rebuilt)");
+        // The same algorithm on the same state: in place and ping-pong agree byte for byte.
+        assert!(in_place == ping_pong, "in-place and ping-pong refit sequences differ in bytes");
+        let inp = input(200, 200, 6, 200);
+        let (w, t) = model.final_ops();
+        let mut scratch_built = vec![0u8; in_place.len()];
+        build_from(&Input { flags: 0, ..inp }, &ops(&w, &[], &t), &view, Source::Empty, &mut scratch_built);
+        // Refit trees differ from rebuilt ones byte-wise; traversal is the same.
+        assert!(in_place != scratch_built, "a refit tree is expected to differ from a rebuilt one in bytes");
+        let mut rng = Rng::new(seed + 100);
+        assert_same_traversal(&in_place, &scratch_built, &view, &mut rng, 300);
+        assert_same_traversal(&in_place, &model.khr_tlas(&view), &view, &mut rng, 300);
+    }
+}
+
+#[test]
+fn refit_sequences_are_the_same_bytes_at_every_thread_count() {
+    let run = |threads: usize| {
+        let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
+        pool.install(|| refit_sequence(40, 12).0)
+    };
+    let one = run(1);
+    assert!(run(2) == one, "2 threads differ from 1");
+    assert!(run(4) == one, "4 threads differ from 1");
+}
+
+#[test]
+fn a_partition_whose_box_grows_past_the_bound_is_rebuilt() {
+    let mut rng = Rng::new(50);
+    let view = blases(&mut rng);
+    let inp = Input { flags: 0, ..input(64, 64, 2, 0) };
+    let mut writes: Vec<WriteInstance> = (0..64).map(|i| WriteInstance { partition_index: i % 2, ..random_write(&mut rng, i, 2) }).collect();
+    for w in &mut writes {
+        w.acceleration_structure = BLAS_A;
+    }
+    let mut dst = vec![0u8; build_sizes(&inp).acceleration_structure_size as usize];
+    build_from(&inp, &ops(&writes, &[], &[]), &view, Source::Empty, &mut dst);
+    let mut small = writes[2];
+    small.transform[3] += 0.01;
+    let r = build_from(&inp, &ops(&[small], &[], &[]), &view, Source::InPlace, &mut dst);
+    assert_eq!((r.refitted_partitions, r.rebuilt_partitions), (1, 1), "a small move refits (the global partition is rebuilt)");
+    let mut far = writes[4];
+    far.transform[3] += 100.0;
+    let r = build_from(&inp, &ops(&[far], &[], &[]), &view, Source::InPlace, &mut dst);
+    assert_eq!((r.refitted_partitions, r.rebuilt_partitions), (0, 2), "a move that grows the partition box past the bound rebuilds");
+    let mut model = Model { slots: writes.iter().map(|w| Some(*w)).collect(), ..Model::default() };
+    model.slots[2] = Some(small);
+    model.slots[4] = Some(far);
+    let mut rng = Rng::new(51);
+    assert_same_traversal(&dst, &model.khr_tlas(&view), &view, &mut rng, 300);
+}
+
+/// Every leaf box lies inside the decoded child boxes of all its ancestors (`path`: those above
+/// node k), walked from `base`: what conservative traversal needs.
+fn assert_leaves_contained(nodes: &[crate::accel::layout::WideNode], base: u32, k: usize, path: &mut Vec<[f32; 6]>, boxes: &std::collections::HashMap<u32, crate::accel::geometry::Aabb>) {
+    let n = nodes[k];
+    for c in 0..n.child_count as usize {
+        path.push(n.child_box(c));
+        if n.kind[c] == crate::accel::layout::CHILD_INTERNAL {
+            assert_leaves_contained(nodes, base, (n.child[c] - base) as usize, path, boxes);
+        } else {
+            let l = boxes[&n.child[c]];
+            for b in path.iter() {
+                assert!((0..3).all(|a| b[a] <= l.lo[a] && l.hi[a] <= b[a + 3]), "leaf {} outside an ancestor's box", n.child[c]);
+            }
+        }
+        path.pop();
+    }
+}
+
+#[test]
+fn tree_refit_finds_leaves_by_their_previous_box_or_by_scanning_alike() {
+    use super::tree::{self, Changed, Entry};
+    use crate::accel::geometry::Aabb;
+    let mut rng = Rng::new(60);
+    let base = 7u32;
+    let mut boxes = std::collections::HashMap::new();
+    let mut entries: Vec<Entry> = (0..300u32)
+        .map(|slot| {
+            let c = rng.v3(20.0);
+            let e = rng.range(0.1, 2.0);
+            let (lo, hi) = ((c - e).to_array(), (c + e).to_array());
+            boxes.insert(slot, Aabb { lo, hi });
+            Entry { lo, hi, child: slot, kind: 1 }
+        })
+        .collect();
+    let mut nodes = Vec::new();
+    tree::build(&mut entries, base, &mut nodes);
+    for round in 0..20 {
+        let mut slots: Vec<u32> = (0..12).map(|_| rng.next_u32() % 300).collect();
+        slots.sort_unstable();
+        slots.dedup();
+        let previous: Vec<Changed> = slots.iter().map(|&slot| Changed { slot, previous: Some(boxes[&slot]) }).collect();
+        // A previous box no node contains: the search misses and the refit scans.
+        let wrong: Vec<Changed> = slots.iter().map(|&slot| Changed { slot, previous: Some(Aabb { lo: [1e6; 3], hi: [1e6 + 1.0; 3] }) }).collect();
+        for &slot in &slots {
+            let d = rng.v3(1.5);
+            let b = boxes.get_mut(&slot).unwrap();
+            b.lo = (glam::Vec3::from(b.lo) + d).to_array();
+            b.hi = (glam::Vec3::from(b.hi) + d).to_array();
+        }
+        let mut leaf = |slot: u32| boxes[&slot];
+        let by_search = tree::refit(&nodes, base, &previous, &mut leaf).unwrap();
+        let by_scan = tree::refit(&nodes, base, &wrong, &mut leaf).unwrap();
+        assert_eq!(by_search.nodes, by_scan.nodes, "round {round}");
+        assert_eq!(by_search.bounds, by_scan.bounds);
+        assert!(!by_search.nodes.is_empty() && by_search.nodes[0].0 == base, "the root is on every path");
+        for (k, node) in by_search.nodes {
+            nodes[(k - base) as usize] = node;
+        }
+        let b = by_search.bounds;
+        assert_leaves_contained(&nodes, base, 0, &mut vec![[b.lo[0], b.lo[1], b.lo[2], b.hi[0], b.hi[1], b.hi[2]]], &boxes);
+    }
 }
