@@ -35,10 +35,26 @@ pub fn write_table(desc: &BuildDesc, view: &dyn DeviceView, keys: &mut [u64], ta
 pub fn write_instances(desc: &BuildDesc, view: &dyn DeviceView, refs: &[PrimRef], keys: &mut [u64], instances: &mut [u8], records: &mut [u8], table: &mut [u8]) -> u32 {
     let n = refs.len();
     let read = |r: &PrimRef| desc.geometries.get(r.geom as usize).and_then(|g| read_instance(r.geom, g, r.prim, view).ok().flatten());
-    let keys = &mut keys[..n];
-    keys.par_iter_mut().zip(refs.par_iter()).for_each(|(k, r)| *k = input_order_key(r.geom, r.prim));
-    write_table(desc, view, keys, table);
+    // One geometry with every instance active (the usual TLAS): an instance's place in input
+    // order is its index, so the table and the records' BLAS-table indices need no sort and
+    // no search. The same bytes as the general path, which ranks the stored instances.
+    let all_active = matches!(desc.geometries, [g] if g.primitive_count as usize == n);
+    let keys = &mut keys[..if all_active { 0 } else { n }];
+    if let (true, [g]) = (all_active, desc.geometries) {
+        let n_table = n.min(table.len() / 8);
+        let (used, rest) = table.split_at_mut(n_table * 8);
+        used.par_chunks_mut(8 * INSTANCE_CHUNK).enumerate().for_each(|(c, d)| {
+            for (k, e) in d.chunks_exact_mut(8).enumerate() {
+                e.copy_from_slice(&input::read_instance_reference(g, (c * INSTANCE_CHUNK + k) as u32, view).unwrap_or(0).to_le_bytes());
+            }
+        });
+        rest.fill(0);
+    } else {
+        keys.par_iter_mut().zip(refs.par_iter()).for_each(|(k, r)| *k = input_order_key(r.geom, r.prim));
+        write_table(desc, view, keys, table);
+    }
     let keys = &keys[..];
+    let blas_index = |r: &PrimRef| if all_active { r.prim } else { keys.binary_search(&input_order_key(r.geom, r.prim)).map_or(u32::MAX, |x| x as u32) };
     instances
         .par_chunks_mut(INSTANCE_CHUNK * layout::INSTANCE_RECORD_SIZE)
         .zip(records.par_chunks_mut(INSTANCE_CHUNK * RECORD_SIZE))
@@ -53,7 +69,7 @@ pub fn write_instances(desc: &BuildDesc, view: &dyn DeviceView, refs: &[PrimRef]
                     rec.mask = inst.mask;
                     rec.sbt_offset = inst.sbt_offset;
                     rec.flags = inst.flags;
-                    rec.blas_index = keys.binary_search(&input_order_key(r.geom, r.prim)).map_or(u32::MAX, |x| x as u32);
+                    rec.blas_index = blas_index(r);
                 }
                 rec.instance_index = r.prim;
                 let o = k * layout::INSTANCE_RECORD_SIZE;

@@ -282,3 +282,49 @@ fn serialized_header_lists_one_handle_per_instance() {
         assert_eq!(hit.map(|h| (h.t, h.instance_custom_index)), (k % 2 == 0).then_some((5.0, k)), "instance {k}");
     }
 }
+
+/// The BLAS table and each instance record's table index, written by instance index when every
+/// instance of the one geometry is active, against the ranked path (the same instances and an
+/// inactive one after them) and against the input: the table lists the input's references in
+/// instance order, and every instance reaches its own BLAS (each BLAS's triangle lies at its
+/// own depth, so the hit distance names the BLAS).
+#[test]
+fn all_active_tlas_table_matches_the_ranked_path() {
+    let mut view = MapView::new();
+    for k in 0..3u64 {
+        let z = k as f32;
+        let v = [Vec3::new(0.0, 0.0, z), Vec3::new(0.0, 1.0, z), Vec3::new(1.0, 0.0, z)];
+        let vb = f32_bytes(&v);
+        let g = tri_geom(&vb, 3, &[], 1, GeometryFlags::OPAQUE);
+        view.insert(0x10000 * (k + 1), build_ok(AsType::BottomLevel, 0, &[g], &NoDevice));
+    }
+    let mut rng = Rng::new(31);
+    let n = 3000u32;
+    let (mut inst, mut expect) = (Vec::new(), Vec::new());
+    for i in 0..n {
+        let k = (rng.next_u32() % 3) as u64;
+        let (x, y) = ((i % 60) as f32 * 2.0, (i / 60) as f32 * 2.0);
+        inst.extend(instance_bytes(translate(x, y, 0.0), i, 0xff, 0, 0, 0x10000 * (k + 1)));
+        expect.push(0x10000 * (k + 1));
+    }
+    let mut with_inactive = inst.clone();
+    with_inactive.extend(instance_bytes(translate(0.0, 0.0, 0.0), n, 0xff, 0, 0, 0));
+    let all = Geometry { flags: GeometryFlags(0), primitive_count: n, data: GeometryData::Instances { array_of_pointers: false, data: &inst } };
+    let ranked = Geometry { flags: GeometryFlags(0), primitive_count: n + 1, data: GeometryData::Instances { array_of_pointers: false, data: &with_inactive } };
+    for flags in [BuildFlags::PREFER_FAST_BUILD, BuildFlags::PREFER_FAST_TRACE] {
+        let a = build_ok(AsType::TopLevel, flags, &[all], &view);
+        let b = build_ok(AsType::TopLevel, flags, &[ranked], &view);
+        assert!(validate(&a).is_ok() && validate(&b).is_ok());
+        assert_eq!(blas_references(&a), expect, "the table in instance order (all active)");
+        assert_eq!(blas_references(&b), expect, "the table in instance order (ranked)");
+        for i in (0..n).step_by(7) {
+            let (x, y) = ((i % 60) as f32 * 2.0, (i / 60) as f32 * 2.0);
+            let ray = Ray { origin: Vec3::new(x + 0.2, y + 0.2, -1.0), direction: Vec3::Z, tmin: 0.0, tmax: 100.0 };
+            let want = (expect[i as usize] / 0x10000) as f32;
+            for s in [&a, &b] {
+                let hit = closest_hit(s, &view, ray, RayFlags(0), 0xff).unwrap_or_else(|| panic!("instance {i} not hit"));
+                assert_eq!((hit.instance_index, hit.t), (i, want), "instance {i}");
+            }
+        }
+    }
+}
