@@ -60,6 +60,7 @@
 //!   basic, vote, ballot, arithmetic, shuffle, shuffle-relative (not clustered, not quad).
 pub mod alu;
 mod exec;
+mod exec_float;
 mod exec_image;
 mod exec_mem;
 mod exec_rq;
@@ -75,6 +76,7 @@ mod lower_vars;
 mod memory;
 mod parse;
 mod specialize;
+pub mod vmath;
 #[cfg(test)]
 mod image_tests;
 #[cfg(test)]
