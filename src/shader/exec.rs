@@ -382,7 +382,11 @@ fn exec_block<'a>(ctx: &Ctx<'a>, group: &mut Group<'a>, wg: &mut Wg, block: &Blo
 /// dst[l] = f(l) for the lanes in the mask; the others keep their value.
 #[inline(always)]
 fn lanes(regs: &mut [Regs], dst: u32, mask: u32, f: impl Fn(usize) -> u64) {
-    store_lanes(regs, dst, mask, std::array::from_fn(f));
+    let mut v = [0; LANES];
+    for (l, o) in v.iter_mut().enumerate() {
+        *o = f(l);
+    }
+    store_lanes(regs, dst, mask, v);
 }
 
 /// dst[l] = v[l] for the lanes in the mask: a plain store when every lane is in it (the usual

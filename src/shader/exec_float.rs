@@ -11,17 +11,30 @@ use super::{vmath, LANES};
 
 #[inline(always)]
 fn f32s(r: &Regs) -> [f32; LANES] {
-    std::array::from_fn(|l| f32::from_bits(r[l] as u32))
+    // Loops, not `array::from_fn`, whose closure was not always inlined.
+    let mut v = [0.0; LANES];
+    for (o, &w) in v.iter_mut().zip(r) {
+        *o = f32::from_bits(w as u32);
+    }
+    v
 }
 
 #[inline(always)]
 fn store(regs: &mut [Regs], dst: u32, mask: u32, v: [f32; LANES]) {
-    store_lanes(regs, dst, mask, std::array::from_fn(|l| v[l].to_bits() as u64));
+    let mut w = [0; LANES];
+    for (o, x) in w.iter_mut().zip(v) {
+        *o = x.to_bits() as u64;
+    }
+    store_lanes(regs, dst, mask, w);
 }
 
 #[inline(always)]
 fn each(a: &[f32; LANES], b: &[f32; LANES], f: impl Fn(f32, f32) -> f32) -> [f32; LANES] {
-    std::array::from_fn(|l| f(a[l], b[l]))
+    let mut v = [0.0; LANES];
+    for ((o, &x), &y) in v.iter_mut().zip(a).zip(b) {
+        *o = f(x, y);
+    }
+    v
 }
 
 /// One-operand F32 ops; false when `op` is not one of them.

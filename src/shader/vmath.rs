@@ -39,6 +39,13 @@ fn round_int(t: f32) -> (f32, i32) {
     (s - ROUND, s.to_bits().wrapping_sub(ROUND_BITS) as i32)
 }
 
+/// `a` where `c` holds, else `b`, by bit masks (a compiler may turn an `if` into a branch).
+#[inline(always)]
+fn pick(c: bool, a: f32, b: f32) -> f32 {
+    let m = (c as u32).wrapping_neg();
+    f32::from_bits((a.to_bits() & m) | (b.to_bits() & !m))
+}
+
 /// The polynomial with coefficients `c` (highest degree first) at x, by Horner's rule.
 #[inline(always)]
 fn horner<const K: usize>(x: f32, c: [f32; K]) -> f32 {
@@ -74,8 +81,10 @@ fn sin_cos_poly(r: f32) -> (f32, f32) {
 #[inline(always)]
 fn sin_quadrant(r: f32, q: u32) -> f32 {
     let (s, c) = sin_cos_poly(r);
-    let v = if q & 1 != 0 { c } else { s };
-    f32::from_bits(v.to_bits() ^ ((q & 2) << 30))
+    // Selects by bit masks: a plain `if` here was turned into a branch per lane.
+    let odd = (q & 1).wrapping_neg();
+    let v = (c.to_bits() & odd) | (s.to_bits() & !odd);
+    f32::from_bits(v ^ ((q & 2) << 30))
 }
 
 #[inline(always)]
@@ -213,8 +222,9 @@ pub fn atan1(x: f32) -> f32 {
     let a = x.abs();
     let big = a > 2.414_213_6;
     let mid = a > 0.414_213_57;
-    let t = if big { -1.0 / a } else if mid { (a - 1.0) / (a + 1.0) } else { a };
-    let base = if big { FRAC_PI_2 } else if mid { FRAC_PI_4 } else { 0.0 };
+    // Both quotients for every lane, chosen by masks: `if` chains became branches per lane.
+    let t = pick(big, -1.0 / a, pick(mid, (a - 1.0) / (a + 1.0), a));
+    let base = pick(big, FRAC_PI_2, pick(mid, FRAC_PI_4, 0.0));
     let z = t * t;
     let v = base + (((8.053_744_5e-2 * z - 1.387_768_6e-1) * z + 1.997_771_1e-1) * z - 3.333_295e-1) * z * t + t;
     f32::from_bits(v.to_bits() | (x.to_bits() & 0x8000_0000))
@@ -288,17 +298,42 @@ lane_fns! {
 
 #[inline(never)]
 pub fn pow<const N: usize>(x: &[f32; N], y: &[f32; N]) -> [f32; N] {
-    std::array::from_fn(|l| pow1(x[l], y[l]))
+    let mut out = [0.0; N];
+    for (l, o) in out.iter_mut().enumerate() {
+        *o = pow1(x[l], y[l]);
+    }
+    out
 }
 
 #[inline(never)]
 pub fn atan2<const N: usize>(y: &[f32; N], x: &[f32; N]) -> [f32; N] {
-    std::array::from_fn(|l| atan2_1(y[l], x[l]))
+    let mut out = [0.0; N];
+    for (l, o) in out.iter_mut().enumerate() {
+        *o = atan2_1(y[l], x[l]);
+    }
+    out
 }
 
+/// Fused multiply-add over lanes, the bits of [`fma1`]. Rounding the f64 sum a·b + c to f32
+/// is already correct unless that sum lies on a midpoint between two f32 values (or in the
+/// f32 denormal range), which the sums of nearly all lane groups do not: only those groups
+/// take the round-to-odd path.
 #[inline(never)]
 pub fn fma<const N: usize>(a: &[f32; N], b: &[f32; N], c: &[f32; N]) -> [f32; N] {
-    std::array::from_fn(|l| fma1(a[l], b[l], c[l]))
+    let mut out = [0.0; N];
+    let mut tie = false;
+    for (l, o) in out.iter_mut().enumerate() {
+        let s = a[l] as f64 * b[l] as f64 + c[l] as f64;
+        // The 29 bits f32 drops are exactly one half, or the sum is an f32 denormal.
+        tie |= (s.to_bits() & 0x1FFF_FFFF) == 0x1000_0000 || s.abs() < f32::MIN_POSITIVE as f64;
+        *o = s as f32;
+    }
+    if tie {
+        for (l, o) in out.iter_mut().enumerate() {
+            *o = fma1(a[l], b[l], c[l]);
+        }
+    }
+    out
 }
 
 #[cfg(test)]
