@@ -314,24 +314,12 @@ pub fn atan2<const N: usize>(y: &[f32; N], x: &[f32; N]) -> [f32; N] {
     out
 }
 
-/// Fused multiply-add over lanes, the bits of [`fma1`]. Rounding the f64 sum a·b + c to f32
-/// is already correct unless that sum lies on a midpoint between two f32 values (or in the
-/// f32 denormal range), which the sums of nearly all lane groups do not: only those groups
-/// take the round-to-odd path.
+/// Fused multiply-add over lanes, [`fma1`] in each.
 #[inline(never)]
 pub fn fma<const N: usize>(a: &[f32; N], b: &[f32; N], c: &[f32; N]) -> [f32; N] {
     let mut out = [0.0; N];
-    let mut tie = false;
     for (l, o) in out.iter_mut().enumerate() {
-        let s = a[l] as f64 * b[l] as f64 + c[l] as f64;
-        // The 29 bits f32 drops are exactly one half, or the sum is an f32 denormal.
-        tie |= (s.to_bits() & 0x1FFF_FFFF) == 0x1000_0000 || s.abs() < f32::MIN_POSITIVE as f64;
-        *o = s as f32;
-    }
-    if tie {
-        for (l, o) in out.iter_mut().enumerate() {
-            *o = fma1(a[l], b[l], c[l]);
-        }
+        *o = fma1(a[l], b[l], c[l]);
     }
     out
 }
