@@ -73,6 +73,8 @@ fn reduce_half_pi(x: f32) -> (f32, u32) {
 fn sin_cos_poly(r: f32) -> (f32, f32) {
     let z = r * r;
     let s = ((-1.951_529_6e-4 * z + 8.332_161e-3) * z - 1.666_665_5e-1) * z * r + r;
+    // sin r has the sign of r, also for r = -0 (where the sum above gives +0).
+    let s = f32::from_bits(s.to_bits() | (r.to_bits() & 0x8000_0000));
     let c = ((2.443_315_7e-5 * z - 1.388_731_6e-3) * z + 4.166_664_6e-2) * z * z - 0.5 * z + 1.0;
     (s, c)
 }
