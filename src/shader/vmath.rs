@@ -25,10 +25,10 @@ const ROUND_BITS: u32 = 0x4B40_0000;
 /// π/2 in three parts: the first two have few enough bits that `j · part` is exact for the
 /// quadrant counts j that matter, so `x - j·π/2` loses nothing to cancellation.
 const PIO2_1: f32 = 1.570_312_5;
-const PIO2_2: f32 = 4.837_512_969_970_703_125e-4;
+const PIO2_2: f32 = 4.837_513e-4;
 const PIO2_3: f32 = 7.549_79e-8;
 
-const LN2_HI: f32 = 0.693_359_375;
+const LN2_HI: f32 = 0.693_359_4;
 const LN2_LO: f32 = -2.121_944_4e-4;
 const LOG2E_M1: f32 = 0.442_695_04;
 
@@ -121,7 +121,7 @@ pub fn exp1(x: f32) -> f32 {
     let (n, ni) = round_int(xc * std::f32::consts::LOG2_E);
     let r = (xc - n * LN2_HI) - n * LN2_LO;
     let z = r * r;
-    let p = horner(r, [1.987_569_1e-4, 1.398_2e-3, 8.333_452e-3, 4.166_579_6e-2, 1.666_666_5e-1, 5.000_000_1e-1]);
+    let p = horner(r, [1.987_569_1e-4, 1.398_2e-3, 8.333_452e-3, 4.166_579_6e-2, 1.666_666_5e-1, 0.5]);
     let p = p * z + r + 1.0;
     scale(p, ni)
 }
