@@ -223,7 +223,8 @@ fn lane_arrays_give_the_bits_of_the_one_value_forms() {
     xs.extend((0..4000).map(|_| f32::from_bits(next(&mut s) as u32)));
     xs.extend((0..4000).map(|_| (next(&mut s) % 20_000) as f32 * 0.01 - 100.0));
     type Lanes = fn(&[f32; 8]) -> [f32; 8];
-    let ones: [(Lanes, fn(f32) -> f32); 10] = [
+    type One = fn(f32) -> f32;
+    let ones: [(Lanes, One); 10] = [
         (sin, sin1), (cos, cos1), (tan, tan1), (exp, exp1), (exp2, exp2_1), (log, log1), (log2, log2_1),
         (sqrt, sqrt1), (inverse_sqrt, inverse_sqrt1), (atan, atan1),
     ];
