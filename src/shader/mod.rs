@@ -12,6 +12,8 @@
 //!   cursors, always the lowest block index first (blocks are in structured order, so lanes
 //!   reconverge at merge blocks); `dispatch`: workgroups over rayon, barriers, faults, watchdog;
 //! - `alu`: scalar semantics shared by the executor and the constant folder;
+//! - `vmath`: branch-free f32 GLSL.std.450 functions (one value, and over lane arrays) and the
+//!   exact `fma`; `exec_float`: the executor's F32 float ops over a whole lane group at once;
 //! - `memory`: the [`Memory`] trait, [`Fault`]s, and [`HostMemory`] for tests;
 //! - `lower_image`/`exec_image`: storage images (OpImageRead/Write/QuerySize on 1D/2D/3D,
 //!   arrayed or not) and texel buffers (Dim Buffer, OpImageFetch for uniform ones), texels
