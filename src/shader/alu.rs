@@ -3,8 +3,10 @@
 //!
 //! Integer ops wrap; division by zero gives 0 and shifts by at least the width give 0 (the
 //! results SPIR-V leaves undefined, made deterministic). Float ops follow IEEE-754 through
-//! Rust's `f32`/`f64`; GLSL.std.450's imprecise functions use the host's libm.
+//! Rust's `f32`/`f64`. GLSL.std.450's imprecise functions are `vmath`'s for 32-bit floats (the
+//! executor's lane-array forms give the same bits) and the host's libm for 64-bit ones.
 use super::ir::{AtomicOp, BinOp, Sc, TriOp, UnOp};
+use super::vmath;
 
 /// Keeps only the bits of `ty` (upper bits of 32-bit values are zero by invariant).
 #[inline(always)]
@@ -51,6 +53,24 @@ fn fbin(ty: Sc, a: u64, b: u64, op: impl Fn(f64, f64) -> f64) -> u64 {
 #[inline(always)]
 fn fun(ty: Sc, a: u64, op: impl Fn(f64) -> f64) -> u64 {
     from_f(ty, op(f(ty, a)))
+}
+
+/// A GLSL.std.450 function: `narrow` (vmath) for F32, `wide` (libm) for F64.
+#[inline(always)]
+fn glsl(ty: Sc, a: u64, wide: impl Fn(f64) -> f64, narrow: impl Fn(f32) -> f32) -> u64 {
+    match ty {
+        Sc::F32 => narrow(f32::from_bits(a as u32)).to_bits() as u64,
+        _ => from_f(ty, wide(f(ty, a))),
+    }
+}
+
+/// Two-operand GLSL.std.450 functions, as [`glsl`].
+#[inline(always)]
+fn glsl2(ty: Sc, a: u64, b: u64, wide: impl Fn(f64, f64) -> f64, narrow: impl Fn(f32, f32) -> f32) -> u64 {
+    match ty {
+        Sc::F32 => narrow(f32::from_bits(a as u32), f32::from_bits(b as u32)).to_bits() as u64,
+        _ => fbin(ty, a, b, wide),
+    }
 }
 
 #[inline(always)]
@@ -162,8 +182,8 @@ fn fbin_op(op: BinOp, ty: Sc, a: u64, b: u64) -> u64 {
         FUnordGe => cmp(x >= y, true),
         FMin | NMin => fbin(ty, a, b, |x, y| x.min(y)),
         FMax | NMax => fbin(ty, a, b, |x, y| x.max(y)),
-        Pow => fbin(ty, a, b, |x, y| x.powf(y)),
-        Atan2 => fbin(ty, a, b, |x, y| x.atan2(y)),
+        Pow => glsl2(ty, a, b, f64::powf, vmath::pow1),
+        Atan2 => glsl2(ty, a, b, f64::atan2, vmath::atan2_1),
         Step => fbin(ty, a, b, |edge, x| if x < edge { 0.0 } else { 1.0 }),
         Ldexp => from_f(ty, x * 2f64.powi(sext(Sc::I32, b) as i32)),
         _ => 0,
@@ -198,17 +218,17 @@ pub fn un(op: UnOp, ty: Sc, from: Sc, a: u64) -> u64 {
         RoundEven => fun(ty, a, f64::round_ties_even),
         Fract => fun(ty, a, |x| x - x.floor()),
         Sqrt => fun(ty, a, f64::sqrt),
-        InverseSqrt => fun(ty, a, |x| 1.0 / x.sqrt()),
-        Exp => fun(ty, a, f64::exp),
-        Log => fun(ty, a, f64::ln),
-        Exp2 => fun(ty, a, f64::exp2),
-        Log2 => fun(ty, a, f64::log2),
-        Sin => fun(ty, a, f64::sin),
-        Cos => fun(ty, a, f64::cos),
-        Tan => fun(ty, a, f64::tan),
+        InverseSqrt => glsl(ty, a, |x| 1.0 / x.sqrt(), vmath::inverse_sqrt1),
+        Exp => glsl(ty, a, f64::exp, vmath::exp1),
+        Log => glsl(ty, a, f64::ln, vmath::log1),
+        Exp2 => glsl(ty, a, f64::exp2, vmath::exp2_1),
+        Log2 => glsl(ty, a, f64::log2, vmath::log2_1),
+        Sin => glsl(ty, a, f64::sin, vmath::sin1),
+        Cos => glsl(ty, a, f64::cos, vmath::cos1),
+        Tan => glsl(ty, a, f64::tan, vmath::tan1),
         Asin => fun(ty, a, f64::asin),
         Acos => fun(ty, a, f64::acos),
-        Atan => fun(ty, a, f64::atan),
+        Atan => glsl(ty, a, f64::atan, vmath::atan1),
         Sinh => fun(ty, a, f64::sinh),
         Cosh => fun(ty, a, f64::cosh),
         Tanh => fun(ty, a, f64::tanh),
@@ -298,7 +318,7 @@ pub fn tri(op: TriOp, ty: Sc, a: u64, b: u64, c: u64) -> u64 {
 
 fn fma(ty: Sc, a: f64, b: f64, c: f64) -> f64 {
     match ty {
-        Sc::F32 => (a as f32).mul_add(b as f32, c as f32) as f64,
+        Sc::F32 => vmath::fma1(a as f32, b as f32, c as f32) as f64,
         _ => a.mul_add(b, c),
     }
 }

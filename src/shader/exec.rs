@@ -73,7 +73,7 @@ enum Lane {
     Done,
 }
 
-type Regs = [u64; LANES];
+pub(super) type Regs = [u64; LANES];
 
 /// One lane group: registers, cursors, per-lane memory and ray queries — plain data (the
 /// queries borrow structure bytes from the dispatch's memory, `'a`).
@@ -436,12 +436,27 @@ fn per_lane_term(group: &mut Group, block: &Block, mask: u32) {
 /// dst[l] = f(l) for the lanes in the mask; the others keep their value.
 #[inline(always)]
 fn lanes(regs: &mut [Regs], dst: u32, mask: u32, f: impl Fn(usize) -> u64) {
-    let mut out = regs[dst as usize];
-    for (l, o) in out.iter_mut().enumerate() {
-        let v = f(l);
-        *o = if on(mask, l) { v } else { *o };
+    let mut v = [0; LANES];
+    for (l, o) in v.iter_mut().enumerate() {
+        *o = f(l);
     }
-    regs[dst as usize] = out;
+    store_lanes(regs, dst, mask, v);
+}
+
+/// dst[l] = v[l] for the lanes in the mask: a plain store when every lane is in it (the usual
+/// case), else a branch-free blend.
+#[inline(always)]
+pub(super) fn store_lanes(regs: &mut [Regs], dst: u32, mask: u32, v: Regs) {
+    let d = &mut regs[dst as usize];
+    if mask == (1 << LANES) - 1 {
+        *d = v;
+        return;
+    }
+    for (l, o) in d.iter_mut().enumerate() {
+        let keep = ((mask >> l) & 1) as u64;
+        let m = keep.wrapping_neg();
+        *o = (v[l] & m) | (*o & !m);
+    }
 }
 
 fn exec_op<'a>(ctx: &Ctx<'a>, group: &mut Group<'a>, wg: &mut Wg, op: &Op, mask: u32) {
@@ -531,6 +546,9 @@ macro_rules! specialised {
 
 /// Binary ops: the common (op, type) pairs get their own loops.
 fn exec_bin(regs: &mut [Regs], op: BinOp, ty: Sc, dst: u32, mask: u32, a: &Regs, b: &Regs) {
+    if ty == Sc::F32 && super::exec_float::bin(regs, op, dst, mask, a, b) {
+        return;
+    }
     specialised!((op, ty): BinOp, [
         (IAdd, I32), (ISub, I32), (IMul, I32), (UDiv, I32), (UMod, I32), (Shl, I32), (ShrL, I32),
         (ShrA, I32), (And, I32), (Or, I32), (Xor, I32), (IEq, I32), (INe, I32), (ULt, I32),
@@ -547,13 +565,20 @@ fn exec_bin(regs: &mut [Regs], op: BinOp, ty: Sc, dst: u32, mask: u32, a: &Regs,
 // The op's operands, as exec_bin's; one call site.
 #[allow(clippy::too_many_arguments)]
 fn exec_tri(regs: &mut [Regs], op: TriOp, ty: Sc, dst: u32, mask: u32, a: &Regs, b: &Regs, c: &Regs) {
+    if ty == Sc::F32 && super::exec_float::tri(regs, op, dst, mask, a, b, c) {
+        return;
+    }
     specialised!((op, ty): TriOp, [
         (Fma, F32), (FClamp, F32), (NClamp, F32), (UClamp, I32), (SClamp, I32), (FMix, F32), (Fma, F64),
     ], lanes(regs, dst, mask, |l| alu::tri(op, ty, a[l], b[l], c[l])))
 }
 
-/// Unary ops: conversions and the common float functions get their own loops.
+/// Unary ops: the F32 float functions go to `exec_float`; conversions and other common ops get
+/// their own loops.
 fn exec_un(regs: &mut [Regs], op: UnOp, ty: Sc, from: Sc, dst: u32, mask: u32, a: &Regs) {
+    if ty == Sc::F32 && super::exec_float::un(regs, op, dst, mask, a) {
+        return;
+    }
     specialised!((op, ty): UnOp, [
         (ConvertUToF, F32), (ConvertSToF, F32), (ConvertFToU, I32), (ConvertFToS, I32),
         (Bitcast, I32), (Bitcast, F32), (UConvert, I32), (UConvert, I64), (SConvert, I64),

@@ -12,6 +12,8 @@
 //!   cursors, always the lowest block index first (blocks are in structured order, so lanes
 //!   reconverge at merge blocks); `dispatch`: workgroups over rayon, barriers, faults, watchdog;
 //! - `alu`: scalar semantics shared by the executor and the constant folder;
+//! - `vmath`: branch-free f32 GLSL.std.450 functions (one value, and over lane arrays) and the
+//!   exact `fma`; `exec_float`: the executor's F32 float ops over a whole lane group at once;
 //! - `memory`: the [`Memory`] trait, [`Fault`]s, and [`HostMemory`] for tests;
 //! - `lower_image`/`exec_image`: storage images (OpImageRead/Write/QuerySize on 1D/2D/3D,
 //!   arrayed or not) and texel buffers (Dim Buffer, OpImageFetch for uniform ones), texels
@@ -60,6 +62,7 @@
 //!   basic, vote, ballot, arithmetic, shuffle, shuffle-relative (not clustered, not quad).
 pub mod alu;
 mod exec;
+mod exec_float;
 mod exec_image;
 mod exec_mem;
 mod exec_rq;
@@ -76,6 +79,7 @@ mod lower_vars;
 mod memory;
 mod parse;
 mod specialize;
+pub mod vmath;
 #[cfg(test)]
 mod image_tests;
 #[cfg(test)]
