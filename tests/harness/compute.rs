@@ -28,9 +28,16 @@ fn words(bytes: &[u8]) -> Vec<u32> {
     bytes.chunks(4).map(|c| u32::from_le_bytes(c.try_into().unwrap())).collect()
 }
 
+/// A number no other call in this process gets: test threads that compile the same shader at once
+/// must not write one output file (a reader could see the other's half-written module).
+fn unique() -> u64 {
+    static NEXT: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
+    NEXT.fetch_add(1, std::sync::atomic::Ordering::Relaxed)
+}
+
 /// tests/shaders/`name` compiled by glslangValidator for Vulkan 1.2 (SPIR-V 1.5).
 pub fn glsl(name: &str) -> Vec<u32> {
-    let out = scratch_dir().join(format!("{name}.spv"));
+    let out = scratch_dir().join(format!("{name}.{}.spv", unique()));
     let r = std::process::Command::new("glslangValidator")
         .args(["-V", "--target-env", "vulkan1.2", "-o"])
         .arg(&out)
@@ -45,7 +52,8 @@ pub fn glsl(name: &str) -> Vec<u32> {
 pub fn optimized(spirv: &[u32]) -> Vec<u32> {
     let dir = scratch_dir();
     let n = spirv.iter().fold(0u64, |h, w| h.wrapping_mul(31).wrapping_add(*w as u64));
-    let (src, dst) = (dir.join(format!("{n:x}.in.spv")), dir.join(format!("{n:x}.opt.spv")));
+    let u = unique();
+    let (src, dst) = (dir.join(format!("{n:x}.{u}.in.spv")), dir.join(format!("{n:x}.{u}.opt.spv")));
     std::fs::write(&src, spirv.iter().flat_map(|w| w.to_le_bytes()).collect::<Vec<u8>>()).unwrap();
     let r = std::process::Command::new("spirv-opt")
         .args(["-O", "--target-env=vulkan1.2"])
