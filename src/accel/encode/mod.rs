@@ -2,8 +2,8 @@
 //! data and records (`leaves`), the wide nodes (`nodes`, quantised by `quantize`), the TLAS
 //! instance sections (`instances`), then the gaps zeroed and the header written (`finish`).
 //!
-//! Owns: every byte of dst a build writes after ingest (ingest writes the geometry table and
-//! the staging area). Must not touch: how the tree was built (it reads `BinNode`s only).
+//! Owns: every byte of dst a build writes after ingest (ingest writes the geometry table, and
+//! the staging area in scratch). Must not touch: how the tree was built (it reads `BinNode`s only).
 pub mod instances;
 pub mod leaves;
 pub mod nodes;
