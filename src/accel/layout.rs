@@ -207,45 +207,58 @@ pub fn sections(ty: AsType, nodes: u64, prims: u64, geometries: u64) -> Sections
 /// cut roots below it, which caps the count at (2L - 1 + K) / 3 for L <= n leaves and
 /// K <= 3·floor(n / (EMIT_CUT + 1)) cut roots under such nodes; a root leaf takes one node.
 pub fn max_nodes(n: u64) -> u64 {
+    max_nodes_with_leaves(n, n)
+}
+
+/// `max_nodes` for trees of at most `leaves` leaves over n primitives.
+pub fn max_nodes_with_leaves(n: u64, leaves: u64) -> u64 {
     if n == 0 {
         return 0;
     }
     let cut_children = 3 * (n / (EMIT_CUT as u64 + 1));
     // A size query's n may be near u64::MAX (saturated sums); such sizes saturate anyway.
-    ((2 * n.min(u64::MAX / 4) - 1 + cut_children) / 3).max(1)
+    let leaves = leaves.clamp(1, n).min(u64::MAX / 4);
+    ((2 * leaves - 1 + cut_children) / 3).max(1)
 }
 
-/// Bytes of the node section a build of `n` primitives may need: the worst-case nodes, and for
-/// a BLAS at least the staging area ingest keeps there until the leaf data is written
-/// (STAGE_SIZE per primitive; it decides whether a build stages, so it must fit at the
-/// queried size whatever the tree).
-pub fn node_area_bound(ty: AsType, n: u64) -> u64 {
-    let nodes = max_nodes(n).saturating_mul(NODE_SIZE as u64);
-    if ty == AsType::BottomLevel {
-        nodes.max(n.saturating_mul(STAGE_SIZE as u64))
+/// Whether the builder keeps at least two primitives in every leaf of a tree of two or more
+/// (`subtree::BuildContext::pair_leaves`): BLAS builds of the PREFER_FAST_BUILD tier (the
+/// tier of `BuildParams::from_flags`: PREFER_FAST_TRACE wins). Their trees have at most
+/// floor(n / 2) leaves, which the size query counts on.
+pub fn pairs_leaves(ty: AsType, flags: BuildFlags) -> bool {
+    ty == AsType::BottomLevel && flags.contains(BuildFlags::PREFER_FAST_BUILD) && !flags.contains(BuildFlags::PREFER_FAST_TRACE)
+}
+
+/// Worst-case wide nodes of a build of `n` primitives with these type and flags.
+pub fn max_nodes_for(ty: AsType, flags: BuildFlags, n: u64) -> u64 {
+    if pairs_leaves(ty, flags) {
+        max_nodes_with_leaves(n, n / 2)
     } else {
-        nodes
+        max_nodes(n)
     }
 }
 
-/// The size query's acceleration-structure size: every section at its worst case.
-pub fn structure_size_bound(ty: AsType, n: u64, geometries: u64) -> u64 {
-    let s = sections(ty, 0, n, geometries);
-    s.nodes.saturating_add(node_area_bound(ty, n)).saturating_add(SECTION_ALIGN - 1) / SECTION_ALIGN * SECTION_ALIGN
+/// The size query's acceleration-structure size: every section at its worst case. Nothing
+/// else lives in dst during a build (the staging area is in scratch).
+pub fn structure_size_bound(ty: AsType, flags: BuildFlags, n: u64, geometries: u64) -> u64 {
+    let s = sections(ty, max_nodes_for(ty, flags, n), n, geometries);
+    s.end
 }
 
 pub const SCRATCH_SLACK: u64 = 64;
 pub const PRIMREF_SIZE: u64 = 32;
 pub const BINNODE_SIZE: u64 = 40;
 /// Bytes of a build's staging record: the primitive data the format stores (PRIM_SIZE) and
-/// the primitive's index in its geometry, at the global ID in the unused node area of dst.
+/// the primitive's index in its geometry, at the global ID in scratch (BLAS builds).
 pub const STAGE_SIZE: usize = 40;
 
-pub fn build_scratch_size(n: u64) -> u64 {
+pub fn build_scratch_size(ty: AsType, n: u64) -> u64 {
     // Primitive references, then up to 2n binary nodes (slot scheme: a subtree over k
     // primitives owns 2k-1 consecutive slots), then n + 1 words for the primitives per
     // reference of clustered builds, then the pre-emission area (PRE_BYTES_PER_PRIM per
-    // primitive: cut roots encoded while the tree is built), each region aligned.
+    // primitive: cut roots encoded while the tree is built), then for a BLAS the staging area
+    // (STAGE_SIZE per primitive, read back by the leaf-order pass), each region aligned.
+    let stage = if ty == AsType::BottomLevel { SCRATCH_SLACK.saturating_add(n.saturating_mul(STAGE_SIZE as u64)) } else { 0 };
     SCRATCH_SLACK
         .saturating_add(n.saturating_mul(PRIMREF_SIZE))
         .saturating_add(SCRATCH_SLACK)
@@ -254,6 +267,7 @@ pub fn build_scratch_size(n: u64) -> u64 {
         .saturating_add(n.saturating_add(1).saturating_mul(4))
         .saturating_add(SCRATCH_SLACK)
         .saturating_add(n.saturating_mul(PRE_BYTES_PER_PRIM as u64))
+        .saturating_add(stage)
 }
 
 pub fn update_scratch_size(ty: AsType, n: u64) -> u64 {
@@ -267,18 +281,17 @@ pub fn update_scratch_size(ty: AsType, n: u64) -> u64 {
     }
 }
 
-/// Sizes for the size query. They do not depend on the flags: the bound holds for any tree
-/// (FAST_BUILD's own trees need fewer nodes, but the staging area, which every BLAS tier
-/// keeps in the node section, is larger than that), and none of ALLOW_UPDATE,
-/// ALLOW_COMPACTION or ALLOW_DATA_ACCESS stores anything more.
-pub fn build_sizes(ty: AsType, _flags: BuildFlags, shapes: &[GeometryShape], max_primitive_counts: &[u32]) -> BuildSizes {
+/// Sizes for the size query. Only the node section depends on the flags: PREFER_FAST_BUILD
+/// BLAS trees pair their leaves (`pairs_leaves`); none of ALLOW_UPDATE, ALLOW_COMPACTION or
+/// ALLOW_DATA_ACCESS stores anything more.
+pub fn build_sizes(ty: AsType, flags: BuildFlags, shapes: &[GeometryShape], max_primitive_counts: &[u32]) -> BuildSizes {
     let n: u64 = shapes
         .iter()
         .enumerate()
         .map(|(i, _)| max_primitive_counts.get(i).copied().unwrap_or(0) as u64)
         .fold(0u64, |a, b| a.saturating_add(b));
-    let size = structure_size_bound(ty, n, shapes.len() as u64);
-    BuildSizes { acceleration_structure_size: size, build_scratch_size: build_scratch_size(n), update_scratch_size: update_scratch_size(ty, n) }
+    let size = structure_size_bound(ty, flags, n, shapes.len() as u64);
+    BuildSizes { acceleration_structure_size: size, build_scratch_size: build_scratch_size(ty, n), update_scratch_size: update_scratch_size(ty, n) }
 }
 
 /// A validated header with the section slices it promises.

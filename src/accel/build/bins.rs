@@ -249,11 +249,12 @@ pub fn node_binning(p: &BuildParams, cb: &Aabb, k: usize, n: usize) -> Option<(B
     any.then_some((bn, scale))
 }
 
-/// The best binned split: (axis, last left bin, left box, right box, A_L·N_L + A_R·N_R).
+/// The best binned split: (axis, last left bin, left box, right box, A_L·N_L + A_R·N_R), among
+/// those whose sides hold at least `min_side` references each (1: both sides nonempty).
 #[inline(never)]
 // The axis index reads several per-axis arrays at once.
 #[allow(clippy::needless_range_loop)]
-pub fn sweep_bins(bins: &Bins, k: usize, scale: &[f32; 3]) -> Option<(usize, usize, Aabb, Aabb, f32)> {
+pub fn sweep_bins(bins: &Bins, k: usize, scale: &[f32; 3], min_side: u32) -> Option<(usize, usize, Aabb, Aabb, f32)> {
     let mut split = None;
     // Sweep: prefix areas/counts left to right, then the right side accumulated on the
     // fly; boxes of the winning split are recomputed afterwards (keeps per-node stack
@@ -289,7 +290,7 @@ pub fn sweep_bins(bins: &Bins, k: usize, scale: &[f32; 3]) -> Option<(usize, usi
             rcount += bins.count[a][b + 1];
             let lcount = l_count[b];
             let cost = l_area[b] * lcount as f32 + half_area_vec(lo, hi) * rcount as f32;
-            let cost = if lcount == 0 || rcount == 0 { f32::NAN } else { cost };
+            let cost = if lcount < min_side || rcount < min_side { f32::NAN } else { cost };
             let take = cost <= ab_cost;
             ab_cost = if take { cost } else { ab_cost };
             ab_bin = if take { b } else { ab_bin };

@@ -1,8 +1,8 @@
 //! Ingest: the caller's geometry → primitive references in scratch (slot = global primitive
 //! ID), in parallel chunks. Each chunk keeps its references as a prefix of its slots
 //! (inactive and degenerate primitives squeezed out, or neighbours clustered while the chunk
-//! is in cache); with staging the stored primitive data goes to the staging area at the
-//! global ID; each geometry's record goes to the geometry table. Then, unless the planned top
+//! is in cache); with staging the stored primitive data goes to the staging area (scratch) at
+//! the global ID; each geometry's record goes to the geometry table. Then, unless the planned top
 //! takes the chunks as they are, the prefixes are compacted (`compact_chunks`).
 //!
 //! Owns: references, the staging area, the geometry table. Must not touch: nodes.

@@ -40,7 +40,7 @@ pub fn build(desc: &BuildDesc, view: &dyn DeviceView, dst: &mut [u8], scratch: &
     let clustering = clustering(desc, view, &lowered, &params, firsts.as_slice());
     let (ingested, plan, top_planned) = ingest_and_plan(desc, view, &lowered, &params, clustering, &mut work, dst)?;
     let t_ingest = Instant::now();
-    let ctx = context(&params, clustering, &ingested);
+    let ctx = context(desc, &params, clustering, &ingested);
     let pre_len = pre_len(&lowered, ingested.active);
     let (sah_sum, forked_buckets) = build_subtrees(desc, &ctx, plan, &ingested, &mut work, pre_len);
     let (references, active) = (ingested.references, ingested.active);
@@ -53,7 +53,7 @@ pub fn build(desc: &BuildDesc, view: &dyn DeviceView, dst: &mut [u8], scratch: &
             None if lowered.staged => LeafSource::Staged,
             None => LeafSource::Input,
         };
-        encode::leaf_data(desc, dst, lowered.stage_at, lowered.total, work.refs, (references, active), source);
+        encode::leaf_data(desc, dst, &work.stage[..], lowered.total, work.refs, (references, active), source);
     }
     let t_leaf = Instant::now();
     let nodes_at = layout::sections(desc.ty, 0, active as u64, lowered.ngeo).nodes as usize;
@@ -70,16 +70,15 @@ pub fn build(desc: &BuildDesc, view: &dyn DeviceView, dst: &mut [u8], scratch: &
     Ok((report, phases))
 }
 
-/// A description checked against the sizes it was given, and where dst stages primitive data.
+/// A description checked against the sizes it was given, and whether it stages.
 struct Lowered {
     /// Primitives (slots) of the build, inactive ones included.
     total: usize,
     ngeo: u64,
     need_scratch: u64,
-    /// BLAS primitive data is staged in the (still unused) node area of dst during ingest, so
-    /// the leaf-order pass reads one record per primitive instead of indices and three
-    /// vertices at random. Needs STAGE_SIZE·total <= the worst-case node area (total >= 3).
-    stage_at: usize,
+    /// BLAS primitive data is staged in scratch during ingest (STAGE_SIZE per primitive at
+    /// its global ID), so the leaf-order pass reads one record per primitive instead of
+    /// indices and three vertices at random. Builds of one or two primitives read the input.
     staged: bool,
 }
 
@@ -89,28 +88,29 @@ fn lower(desc: &BuildDesc, dst_len: usize, scratch_len: usize) -> Result<Lowered
     check_types(desc)?;
     let total = total_primitives(desc)?;
     let ngeo = desc.geometries.len() as u64;
-    let need_scratch = layout::build_scratch_size(total);
+    let need_scratch = layout::build_scratch_size(desc.ty, total);
     if (scratch_len as u64) < need_scratch {
         return Err(BuildError::ScratchTooSmall { needed: need_scratch, got: scratch_len as u64 });
     }
-    let worst = layout::structure_size_bound(desc.ty, total, ngeo);
+    let worst = layout::structure_size_bound(desc.ty, desc.flags, total, ngeo);
     if (dst_len as u64) < worst {
         return Err(BuildError::DestinationTooSmall { needed: worst, got: dst_len as u64 });
     }
     let total = total as usize;
-    let stage_at = layout::sections(desc.ty, 0, total as u64, ngeo).nodes as usize;
-    let staged = desc.ty != AsType::TopLevel && total >= 3 && stage_at.checked_add(total * STAGE_SIZE).is_some_and(|e| e <= dst_len);
-    Ok(Lowered { total, ngeo, need_scratch, stage_at, staged })
+    let staged = desc.ty != AsType::TopLevel && total >= 3;
+    Ok(Lowered { total, ngeo, need_scratch, staged })
 }
 
 /// The build's arrays in scratch: a reference per primitive, two node slots per primitive,
 /// a word per primitive (kept counts per ingest chunk, the plan's cells and bucket bytes,
-/// then the prefix of primitives per cluster reference), and the pre-emission area.
+/// then the prefix of primitives per cluster reference), the pre-emission area, and the
+/// staging area of staged builds.
 struct Work<'s> {
     refs: &'s mut [PrimRef],
     nodes: &'s mut [BinNode],
     prefix: &'s mut [u32],
     pre: &'s mut [u8],
+    stage: &'s mut [u8],
 }
 impl<'s> Work<'s> {
     fn carve(scratch: &'s mut [u8], lowered: &Lowered) -> Result<Self, BuildError> {
@@ -118,8 +118,10 @@ impl<'s> Work<'s> {
         let (refs, rest) = layout::carve::<PrimRef>(scratch, lowered.total).ok_or(short.clone())?;
         let (nodes, rest) = layout::carve::<BinNode>(rest, 2 * lowered.total).ok_or(short.clone())?;
         let (prefix, rest) = layout::carve::<u32>(rest, lowered.total + 1).ok_or(short.clone())?;
-        let (pre, _) = layout::carve::<u8>(rest, lowered.total * PRE_BYTES_PER_PRIM).ok_or(short)?;
-        Ok(Work { refs, nodes, prefix, pre })
+        let (pre, rest) = layout::carve::<u8>(rest, lowered.total * PRE_BYTES_PER_PRIM).ok_or(short.clone())?;
+        let stage_len = if lowered.staged { lowered.total * STAGE_SIZE } else { 0 };
+        let (stage, _) = layout::carve::<u8>(rest, stage_len).ok_or(short)?;
+        Ok(Work { refs, nodes, prefix, pre, stage })
     }
 }
 
@@ -174,10 +176,9 @@ fn ingest_and_plan(desc: &BuildDesc, view: &dyn DeviceView, lowered: &Lowered, p
         // planned top's sample.
         let slots = node_refs_mut(work.nodes, total).unwrap_or(&mut []);
         let goff = layout::sections(desc.ty, 0, 0, lowered.ngeo).geometries as usize;
-        let (head, tail) = dst.split_at_mut(lowered.stage_at.min(dst.len()));
-        let geometry_table = head.get_mut(goff..goff + desc.geometries.len() * layout::GEOMETRY_SIZE).unwrap_or(&mut []);
+        let geometry_table = dst.get_mut(goff..goff + desc.geometries.len() * layout::GEOMETRY_SIZE).unwrap_or(&mut []);
         let kept = if want_plan { &mut work.prefix[..chunks] } else { &mut *work.prefix };
-        let stage = lowered.staged.then_some(tail);
+        let stage = lowered.staged.then_some(&mut *work.stage);
         if want_plan {
             let target = IngestTarget { refs: work.refs, stage, geometry_table, kept, compact_into: None };
             rayon::join(|| ingest(desc, view, target, clustering), || plan::plan_from_input(desc, params, total, slots))
@@ -206,14 +207,14 @@ fn ingest_and_plan(desc: &BuildDesc, view: &dyn DeviceView, lowered: &Lowered, p
 
 /// What every node shares. Clustered: leaves of up to `max_cluster_leaf` cluster references,
 /// and C_T scaled by the references per primitive keeps the leaf/split balance of the tier.
-fn context(params: &BuildParams, clustering: Clustering, ingested: &Ingested) -> BuildContext {
+fn context(desc: &BuildDesc, params: &BuildParams, clustering: Clustering, ingested: &Ingested) -> BuildContext {
     let clustered = clustering.tau > 0.0;
     let mut bparams = *params;
     if clustered {
         bparams.max_leaf = params.max_cluster_leaf.max(1);
         bparams.traversal_cost = (params.traversal_cost * ingested.references as f32 / ingested.active.max(1) as f32).max(1.0);
     }
-    BuildContext { params: bparams, total: ingested.references, threads: rayon::current_num_threads().max(1), clustered, prim_traversal_cost: params.traversal_cost }
+    BuildContext { params: bparams, total: ingested.references, threads: rayon::current_num_threads().max(1), clustered, prim_traversal_cost: params.traversal_cost, pair_leaves: layout::pairs_leaves(desc.ty, desc.flags) }
 }
 
 /// Bytes of the pre-emission area (see `subtree::finish_split`) at the start of
@@ -246,6 +247,11 @@ fn build_subtrees(desc: &BuildDesc, ctx: &BuildContext, plan: Option<TopPlan>, i
         let ids = bytemuck::cast_slice_mut::<u32, u8>(rest).get_mut(..work.refs.len())?;
         plan::classify_chunks(pl, desc, work.refs, kept, cells, ids);
         let s = plan::bucket_sums(pl, cells).filter(|s| s.total() == built)?;
+        // A bucket of one reference would be a leaf of one: trees that pair their leaves
+        // build from the root instead.
+        if ctx.pair_leaves && s.smallest_bucket(pl) == 1 {
+            return None;
+        }
         plan::scatter(pl, &s, desc, work.refs, plan::Classified { kept, cells, ids }, &mut work.nodes[..2 * built - 1])?;
         Some(s)
     });

@@ -302,7 +302,7 @@ fn grow_plan(p: &BuildParams, sample: &mut [PrimRef], scratch: &mut [PrimRef], c
         bin_refs(sample, &bn, &mut b);
         b
     };
-    let Some((a, b, lbox, rbox, _)) = sweep_bins(&bins, k, &scale) else { return bucket() };
+    let Some((a, b, lbox, rbox, _)) = sweep_bins(&bins, k, &scale, 1) else { return bucket() };
     let sp = bn.splitter(a, (b + 1) as f32);
     // Large samples partition in parallel into `scratch` (stable, in fixed chunks), which then
     // holds the children's samples and lends them `sample` as their scratch; small ones in
@@ -515,6 +515,10 @@ pub fn bucket_sums(plan: &TopPlan, cells: &[BucketCell]) -> Option<PlanSums> {
 }
 
 impl PlanSums {
+    /// References in the smallest non-empty bucket of `plan` (0 when all are empty).
+    pub fn smallest_bucket(&self, plan: &TopPlan) -> usize {
+        plan.tree.iter().zip(&self.count).filter(|(nd, &c)| nd.split.is_none() && c > 0).map(|(_, &c)| c).min().unwrap_or(0)
+    }
     pub fn total(&self) -> usize {
         self.count.first().copied().unwrap_or(0)
     }

@@ -29,9 +29,10 @@ pub fn sort_network(v: &mut [u64; MAX_SMALL], net: &[(usize, usize)]) {
 
 /// The SAH sweep of `small_split` over one sorted order: the best (left count, cost) among
 /// the n-1 split positions, lowest position on ties. `S` (n - 1 or more, at most 7) fixes the
-/// step count; positions at and past n-1 get a NaN cost, which never wins.
+/// step count; positions at and past n-1, and those leaving a side of fewer than `min_w`
+/// primitives, get a NaN cost, which never wins.
 #[inline(always)]
-fn small_sweep<const S: usize>(order: &[u8; MAX_SMALL], lo: &[Vec3A; MAX_SMALL], hi: &[Vec3A; MAX_SMALL], w: &[f32; MAX_SMALL], n: usize) -> Option<(usize, f32)> {
+fn small_sweep<const S: usize>(order: &[u8; MAX_SMALL], lo: &[Vec3A; MAX_SMALL], hi: &[Vec3A; MAX_SMALL], w: &[f32; MAX_SMALL], n: usize, min_w: f32) -> Option<(usize, f32)> {
     let mut l_area = [0f32; S];
     let mut l_w = [0f32; S];
     let (mut l, mut h) = (Vec3A::INFINITY, Vec3A::NEG_INFINITY);
@@ -53,7 +54,7 @@ fn small_sweep<const S: usize>(order: &[u8; MAX_SMALL], lo: &[Vec3A; MAX_SMALL],
         h = h.max(hi[o]);
         let left = l_w[i];
         let cost = l_area[i] * left + half_area_vec(l, h) * (nf - left);
-        let cost = if i + 1 < n { cost } else { f32::NAN };
+        let cost = if i + 1 < n && left >= min_w && nf - left >= min_w { cost } else { f32::NAN };
         let take = cost <= best_cost;
         best_cost = if take { cost } else { best_cost };
         best_i = if take { i } else { best_i };
@@ -66,10 +67,11 @@ fn small_sweep<const S: usize>(order: &[u8; MAX_SMALL], lo: &[Vec3A; MAX_SMALL],
 /// references (bit mask `m`, `H` = 2^(N-1) masks); the right side is the rest with the last
 /// reference. The boxes of those subsets come from adding one reference to a smaller subset.
 /// Reorders `refs` as (left, right), each side in its input order, and returns (left count,
-/// A_L·N_L + A_R·N_R), N the sum of `w` (primitives per reference). Ties go to the lowest
-/// mask; None only when every cost is NaN.
+/// A_L·N_L + A_R·N_R), N the sum of `w` (primitives per reference). A side of fewer than
+/// `min_w` primitives is no split. Ties go to the lowest mask; None only when every cost is
+/// NaN.
 #[inline(always)]
-fn enum_split<const N: usize, const H: usize>(refs: &mut [PrimRef], w_ref: &[f32; MAX_SMALL]) -> Option<(usize, f32)> {
+fn enum_split<const N: usize, const H: usize>(refs: &mut [PrimRef], w_ref: &[f32; MAX_SMALL], min_w: f32) -> Option<(usize, f32)> {
     if refs.len() != N || H != 1 << (N - 1) {
         return None;
     }
@@ -97,6 +99,7 @@ fn enum_split<const N: usize, const H: usize>(refs: &mut [PrimRef], w_ref: &[f32
     for m in 1..H {
         let r = full ^ m;
         let c = half_area_vec(lo[m], hi[m]) * w[m] + half_area_vec(lo[r].min(last_lo), hi[r].max(last_hi)) * (w[r] + last_w);
+        let c = if w[m] >= min_w && w[r] + last_w >= min_w { c } else { f32::NAN };
         // The first cost that is not NaN is taken even when infinite (huge sanitised boxes), as
         // the sweeps do; after it only a lower one.
         let take = c < best || (mask == 0 && c <= best);
@@ -124,10 +127,17 @@ fn enum_split<const N: usize, const H: usize>(refs: &mut [PrimRef], w_ref: &[f32
 /// (left count, A_L·N_L + A_R·N_R), N counting primitives when `weighted`. Three to five
 /// references (four on one axis) take the best bipartition, more the best sweep over the given
 /// axes, sorted by a network with ties by position; either way the result is deterministic.
+#[cfg(test)]
+pub fn small_split(refs: &mut [PrimRef], axes: (usize, usize), weighted: bool) -> Option<(usize, f32)> {
+    small_split_min(refs, axes, weighted, 0.0)
+}
+
+/// `small_split` among the splits whose sides hold at least `min_w` primitives each (None
+/// when there is none).
 #[inline(never)]
 // The slot index reads several per-slot arrays at once.
 #[allow(clippy::needless_range_loop)]
-pub fn small_split(refs: &mut [PrimRef], axes: (usize, usize), weighted: bool) -> Option<(usize, f32)> {
+pub fn small_split_min(refs: &mut [PrimRef], axes: (usize, usize), weighted: bool, min_w: f32) -> Option<(usize, f32)> {
     let n = refs.len();
     if !(2..=MAX_SMALL).contains(&n) {
         return None;
@@ -138,6 +148,9 @@ pub fn small_split(refs: &mut [PrimRef], axes: (usize, usize), weighted: bool) -
         *x = if weighted { r.cluster_size() as f32 } else { 1.0 };
     }
     if n == 2 {
+        if w[0] < min_w || w[1] < min_w {
+            return None;
+        }
         // Both orders give the same split and cost; keep the input order (what the sweep
         // picks on a tie).
         return Some((1, half_area_vec(ref_lo(&refs[0]), ref_hi(&refs[0])) * w[0] + half_area_vec(ref_lo(&refs[1]), ref_hi(&refs[1])) * w[1]));
@@ -147,9 +160,9 @@ pub fn small_split(refs: &mut [PrimRef], axes: (usize, usize), weighted: bool) -
     // faster from five references on (docs/TUNING.md).
     let enum_max = if axes.1 - axes.0 == 1 { 4 } else { 5 };
     match n {
-        3 => return enum_split::<3, 4>(refs, &w),
-        4 => return enum_split::<4, 8>(refs, &w),
-        5 if n <= enum_max => return enum_split::<5, 16>(refs, &w),
+        3 => return enum_split::<3, 4>(refs, &w, min_w),
+        4 => return enum_split::<4, 8>(refs, &w, min_w),
+        5 if n <= enum_max => return enum_split::<5, 16>(refs, &w, min_w),
         _ => {}
     }
     // Boxes and centroids gathered once (the sweeps read them in sorted order per axis).
@@ -178,10 +191,10 @@ pub fn small_split(refs: &mut [PrimRef], axes: (usize, usize), weighted: bool) -
         // n - 1 steps: the split positions there are (a fixed 7 cost small nodes dearly).
         // Three and four references never get here (`enum_split` above).
         let axis_best = match n {
-            5 => small_sweep::<4>(&order, &lo, &hi, &w, n),
-            6 => small_sweep::<5>(&order, &lo, &hi, &w, n),
-            7 => small_sweep::<6>(&order, &lo, &hi, &w, n),
-            _ => small_sweep::<7>(&order, &lo, &hi, &w, n),
+            5 => small_sweep::<4>(&order, &lo, &hi, &w, n, min_w),
+            6 => small_sweep::<5>(&order, &lo, &hi, &w, n, min_w),
+            7 => small_sweep::<6>(&order, &lo, &hi, &w, n, min_w),
+            _ => small_sweep::<7>(&order, &lo, &hi, &w, n, min_w),
         };
         // Ties across axes keep the earlier axis; within an axis the sweep keeps the lowest
         // position.

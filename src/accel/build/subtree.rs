@@ -7,7 +7,7 @@
 //! scheduling (`schedule`), the stored format beyond pre-emitting cut roots.
 use super::bins::{bin_count, bin_in_chunks, bin_one, bin_refs, node_binning, sweep_bins, Binning, Bins, Splitter};
 use super::partition::{par_partition_from_nodes, par_partition_to_nodes, partition_out, partition_seq, restore, PRIMREF_BYTES};
-use super::small_split::small_split;
+use super::small_split::small_split_min;
 use crate::accel::encode::nodes::{emit_seq, wide_count};
 use crate::accel::geometry::{box_of, centroid, Aabb, PrimRef};
 use crate::accel::params::{BuildParams, BIN_CHUNK, EMIT_CUT, MAX_BINS, MAX_SAH_DEPTH, MAX_SMALL, PAR_PARTITION_FROM, PRE_BYTES_PER_PRIM, SAMPLE_CHUNK, SAMPLE_FROM};
@@ -25,8 +25,22 @@ pub struct BuildContext {
     /// The tier's C_T for costs counted in primitives (`params.traversal_cost` is scaled to
     /// references when clustered).
     pub prim_traversal_cost: f32,
+    /// No split leaves a side of fewer than two primitives (`layout::pairs_leaves`): every
+    /// leaf of a tree over two or more primitives holds two or more, which bounds the leaves,
+    /// and with them the wide nodes, by half the primitives. Binned splits count references
+    /// (each holds at least one primitive), exact splits of small nodes primitives.
+    pub pair_leaves: bool,
 }
 impl BuildContext {
+    /// The fewest references a side of a binned split may hold.
+    #[inline]
+    fn min_side(&self) -> usize {
+        if self.pair_leaves {
+            2
+        } else {
+            1
+        }
+    }
     /// Whether a node of `n` references partitions in one sequential pass rather than in
     /// parallel (statistics pass, then scatter): when there are likely at least as many nodes
     /// of its size as threads to keep them busy. Both ways are stable partitions with the same
@@ -145,7 +159,7 @@ fn decide(ctx: &BuildContext, t: &mut Subtree<'_>, bins: &mut Bins) -> Decision 
         restore(t.refs, t.nodes);
         t.in_nodes = false;
     }
-    if n as u32 <= p.max_leaf {
+    if n as u32 <= p.max_leaf || n < 2 * ctx.min_side() {
         return Decision::Leaf(ctx.prims_of(t.refs));
     }
     // Object median along the widest axis of the bin box; select_nth_unstable is
@@ -169,7 +183,8 @@ fn decide_small(ctx: &BuildContext, t: &mut Subtree<'_>) -> Decision {
     let (n, p, cb) = (t.refs.len(), &ctx.params, t.bin_box);
     let widest = (0..3).fold(0, |w, a| if cb.hi[a] - cb.lo[a] > cb.hi[w] - cb.lo[w] { a } else { w });
     let axes = if n >= p.all_axes_from { (0, 3) } else { (widest, widest + 1) };
-    let Some((mid, cost)) = small_split(t.refs, axes, ctx.clustered) else { return Decision::Leaf(ctx.prims_of(t.refs)) };
+    let min_w = if ctx.pair_leaves { 2.0 } else { 0.0 };
+    let Some((mid, cost)) = small_split_min(t.refs, axes, ctx.clustered, min_w) else { return Decision::Leaf(ctx.prims_of(t.refs)) };
     // Clusters: the sweep's costs count primitives, so the leaf does too, with the tier's C_T.
     let (prims, ct) = (ctx.prims_of(t.refs), if ctx.clustered { ctx.prim_traversal_cost } else { p.traversal_cost });
     let area = t.bounds.half_area();
@@ -187,7 +202,7 @@ fn decide_small(ctx: &BuildContext, t: &mut Subtree<'_>) -> Decision {
 fn decide_binned(ctx: &BuildContext, t: &mut Subtree<'_>, bins: &mut Bins) -> Option<Decision> {
     let (n, p) = (t.refs.len(), &ctx.params);
     let (bn, scale, k) = bin_node(ctx, t, bins)?;
-    let (a, b, lbox, rbox, cost) = sweep_bins(bins, k, &scale)?;
+    let (a, b, lbox, rbox, cost) = sweep_bins(bins, k, &scale, ctx.min_side() as u32)?;
     // SAH termination: a leaf costs A·n, a split A·C_T + children.
     let area = t.bounds.half_area();
     if n as u32 <= p.max_leaf && area * n as f32 <= area * p.traversal_cost + cost {
@@ -247,6 +262,11 @@ fn bin_node(ctx: &BuildContext, t: &Subtree<'_>, bins: &mut Bins) -> Option<(Bin
 fn partition_node(ctx: &BuildContext, t: &mut Subtree<'_>, sp: &Splitter, nl_bins: usize, (lbox, rbox): (Aabb, Aabb)) -> Option<Decision> {
     let n = t.refs.len();
     let split = |mid: usize, left: Aabb, right: Aabb, in_nodes: bool| (mid > 0 && mid < n).then_some(Decision::Split(Split { mid, left, right, in_nodes }));
+    // Where the references end in `refs` a side below the minimum is no split either (the
+    // bins' counts already exclude it: binning and the split test share their arithmetic, and
+    // a sampled side holds at least the sample's count).
+    let min = ctx.min_side();
+    let split = |mid: usize, left: Aabb, right: Aabb, in_nodes: bool| if in_nodes || (mid >= min && n - mid.min(n) >= min) { split(mid, left, right, in_nodes) } else { None };
     if t.in_nodes {
         // Scatter from this node's slots straight into `refs` (no copy back); with everything
         // on one side that is a plain copy, as a restore would be.

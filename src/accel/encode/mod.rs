@@ -2,8 +2,8 @@
 //! data and records (`leaves`), the wide nodes (`nodes`, quantised by `quantize`), the TLAS
 //! instance sections (`instances`), then the gaps zeroed and the header written (`finish`).
 //!
-//! Owns: every byte of dst a build writes after ingest (ingest writes the geometry table and
-//! the staging area). Must not touch: how the tree was built (it reads `BinNode`s only).
+//! Owns: every byte of dst a build writes after ingest (ingest writes the geometry table, and
+//! the staging area in scratch). Must not touch: how the tree was built (it reads `BinNode`s only).
 pub mod instances;
 pub mod leaves;
 pub mod nodes;
@@ -31,18 +31,17 @@ pub enum LeafSource<'a> {
 }
 
 /// Writes the prims and records sections of a BLAS of `active` primitives in leaf order from
-/// the `references` of `refs`. The staging area (`total` records) lies at `stage_at` of dst
-/// (the node section overlaps it, so this runs before the nodes are written); with
-/// `LeafSource::Staged` the references get their in-geometry indices back.
-pub fn leaf_data(desc: &BuildDesc, dst: &mut [u8], stage_at: usize, total: usize, refs: &mut [PrimRef], (references, active): (usize, usize), source: LeafSource) {
+/// the `references` of `refs`. `stage` is the staging area in scratch (`total` records; empty
+/// with `LeafSource::Input`); with `LeafSource::Staged` the references get their in-geometry
+/// indices back.
+pub fn leaf_data(desc: &BuildDesc, dst: &mut [u8], stage: &[u8], total: usize, refs: &mut [PrimRef], (references, active): (usize, usize), source: LeafSource) {
     let at = layout::sections(desc.ty, 0, active as u64, desc.geometries.len() as u64);
-    let (head, tail) = dst.split_at_mut(stage_at.min(dst.len()));
-    let (head, rec_part) = head.split_at_mut(at.records as usize);
+    let (head, rec_part) = dst.split_at_mut(at.records as usize);
     let prims = &mut head[at.prims as usize..at.prims as usize + active * PRIM_SIZE];
     let records = &mut rec_part[..active * RECORD_SIZE];
     match source {
-        LeafSource::Clusters { map, firsts } => gather_clusters(&refs[..references], map, &tail[..total * STAGE_SIZE], prims, records, firsts),
-        LeafSource::Staged => gather_leaf_data(&mut refs[..active], &tail[..total * STAGE_SIZE], prims, records),
+        LeafSource::Clusters { map, firsts } => gather_clusters(&refs[..references], map, &stage[..total * STAGE_SIZE], prims, records, firsts),
+        LeafSource::Staged => gather_leaf_data(&mut refs[..active], &stage[..total * STAGE_SIZE], prims, records),
         LeafSource::Input => write_leaf_data(desc, &refs[..active], prims, records),
     }
 }
@@ -109,7 +108,7 @@ pub fn finish(desc: &BuildDesc, view: &dyn DeviceView, dst: &mut [u8], refs: &[P
         let (inst, table_part) = tail.split_at_mut((s.blas_table - s.instances) as usize);
         let inst = &mut inst[..active * layout::INSTANCE_RECORD_SIZE];
         let table = &mut table_part[..active * 8];
-        let keys: &mut [u64] = bytemuck::try_cast_slice_mut(&mut keys[..active * 8]).map_err(|_| BuildError::ScratchTooSmall { needed: layout::build_scratch_size(sum.total as u64), got: 0 })?;
+        let keys: &mut [u64] = bytemuck::try_cast_slice_mut(&mut keys[..active * 8]).map_err(|_| BuildError::ScratchTooSmall { needed: layout::build_scratch_size(desc.ty, sum.total as u64), got: 0 })?;
         blas_refs = write_instances(desc, view, &refs[..active], keys, inst, records, table);
     }
     let tlas_only = |n: u64| if is_tlas { n } else { 0 };

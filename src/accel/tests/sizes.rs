@@ -3,10 +3,10 @@
 //! trees above and below the emission cut, and real builds of hostile inputs in every tier and
 //! flag combination into exactly the queried destination and scratch.
 use super::*;
-use crate::accel::layout::max_nodes;
+use crate::accel::layout::{max_nodes, max_nodes_for, max_nodes_with_leaves, parse, pairs_leaves, CHILD_INTERNAL};
 use crate::accel::tree::{wide_children, BinNode};
 
-/// A binary tree shape: a leaf of one primitive, or a node over two subtrees.
+/// A binary tree shape: a leaf (of `lay_out`'s primitives per leaf), or a node over two subtrees.
 #[derive(Clone)]
 enum Shape {
     Leaf,
@@ -40,17 +40,19 @@ fn shapes(n: u32) -> Vec<Shape> {
 /// Lays `shape` out in the builder's slot scheme (a subtree over k primitives at slot r owns
 /// r..r+2k-1, left child at r+1, right at r+2·left) with a box of random size per node: the
 /// collapse opens the child of largest area, so random areas reach the opening orders.
-fn lay_out(shape: &Shape, nodes: &mut [BinNode], slot: usize, start: u32, area: &mut impl FnMut() -> f32) {
+/// With `per_leaf` primitives per leaf the counts (which decide the emission cut) are those of
+/// trees whose leaves hold that many.
+fn lay_out(shape: &Shape, nodes: &mut [BinNode], slot: usize, start: u32, area: &mut impl FnMut() -> f32, per_leaf: u32) {
     let s = area();
-    let count = shape.leaves();
+    let count = shape.leaves() * per_leaf;
     let left_count = match shape {
         Shape::Leaf => 0,
-        Shape::Node(l, _) => l.leaves(),
+        Shape::Node(l, _) => l.leaves() * per_leaf,
     };
     nodes[slot] = BinNode { lo: [0.0; 3], start, hi: [s, s, s], count, left_count, wide_nodes: 0 };
     if let Shape::Node(l, r) = shape {
-        lay_out(l, nodes, slot + 1, start, area);
-        lay_out(r, nodes, slot + 2 * left_count as usize, start + left_count, area);
+        lay_out(l, nodes, slot + 1, start, area, per_leaf);
+        lay_out(r, nodes, slot + 2 * left_count as usize, start + left_count, area, per_leaf);
     }
 }
 
@@ -62,10 +64,14 @@ fn wide_count(nodes: &[BinNode], i: usize) -> u64 {
 }
 
 fn tree_of(shape: &Shape, seed: u64) -> Vec<BinNode> {
-    let n = shape.leaves() as usize;
+    tree_with_leaves_of(shape, seed, 1)
+}
+
+fn tree_with_leaves_of(shape: &Shape, seed: u64, per_leaf: u32) -> Vec<BinNode> {
+    let n = (shape.leaves() * per_leaf) as usize;
     let mut nodes = vec![BinNode { lo: [0.0; 3], start: 0, hi: [0.0; 3], count: 0, left_count: 0, wide_nodes: 0 }; 2 * n - 1];
     let mut f = crate::accel::testing::unit_floats(seed);
-    lay_out(shape, &mut nodes, 0, 0, &mut || 0.01 + f());
+    lay_out(shape, &mut nodes, 0, 0, &mut || 0.01 + f(), per_leaf);
     nodes
 }
 
@@ -85,6 +91,10 @@ fn node_bound_holds_for_every_tree_shape_and_is_reached() {
         assert!(worst <= max_nodes(n as u64), "{n} leaves: {worst} wide nodes > bound {}", max_nodes(n as u64));
         if n == 8 || n <= 2 {
             assert_eq!(worst, max_nodes(n as u64), "{n} leaves: the bound is reached");
+        }
+        // Trees that pair their leaves: L leaves hold 2L or 2L + 1 primitives.
+        for p in [2 * n as u64, 2 * n as u64 + 1] {
+            assert!(worst <= max_nodes_with_leaves(p, p / 2), "{n} leaves of pairs: {worst} > {}", max_nodes_with_leaves(p, p / 2));
         }
     }
 }
@@ -119,6 +129,10 @@ fn node_bound_holds_for_adversarial_trees_across_the_emission_cut() {
         for (what, shape) in [("adversarial", adversarial(n)), ("random", random_shape(n, &mut next))] {
             let w = wide_count(&tree_of(&shape, n as u64), 0);
             assert!(w <= max_nodes(n as u64), "{what} tree of {n} leaves: {w} wide nodes > bound {}", max_nodes(n as u64));
+            // The same shapes with two primitives per leaf: the cut falls at half the leaves.
+            let p = 2 * n as u64;
+            let w = wide_count(&tree_with_leaves_of(&shape, n as u64, 2), 0);
+            assert!(w <= max_nodes_with_leaves(p, p / 2), "{what} tree of {n} leaves of two: {w} wide nodes > bound {}", max_nodes_with_leaves(p, p / 2));
         }
     }
 }
@@ -159,9 +173,42 @@ fn fits_in_every_tier(what: &str, ty: AsType, geoms: &[Geometry], view: &dyn Dev
         let (r, dst) = try_build(ty, flags, geoms, view);
         let r = r.unwrap_or_else(|e| panic!("{what}, flags {flags:#x}: {e:?}"));
         assert!(r.used_size <= dst.len() as u64);
-        assert!(r.node_count as u64 <= max_nodes(r.primitive_count as u64), "{what}, flags {flags:#x}: {} nodes for {} primitives", r.node_count, r.primitive_count);
+        assert!(dst[r.used_size as usize..].iter().all(|&b| b == 0xAA), "{what}, flags {flags:#x}: written beyond the used size");
+        let bound = max_nodes_for(ty, BuildFlags(flags), r.primitive_count as u64);
+        assert!(r.node_count as u64 <= bound, "{what}, flags {flags:#x}: {} nodes for {} primitives (bound {bound})", r.node_count, r.primitive_count);
         validate(&dst).unwrap_or_else(|e| panic!("{what}, flags {flags:#x}: {e}"));
+        if pairs_leaves(ty, BuildFlags(flags)) && r.primitive_count >= 2 {
+            assert!(smallest_leaf(&dst) >= 2, "{what}, flags {flags:#x}: a leaf of one primitive");
+            assert!(r.leaf_count as u64 <= r.primitive_count as u64 / 2, "{what}, flags {flags:#x}: {r:?}");
+        }
     }
+}
+
+/// Primitives of the smallest leaf of a structure (read from its wide nodes).
+fn smallest_leaf(bytes: &[u8]) -> u32 {
+    let p = parse(bytes).expect("a structure");
+    let mut least = u32::MAX;
+    for i in 0..p.raw.node_count {
+        let nd = p.node(i).expect("node");
+        for &k in &nd.kind[..nd.child_count as usize] {
+            if k != 0 && k != CHILD_INTERNAL {
+                least = least.min(k as u32);
+            }
+        }
+    }
+    least
+}
+
+/// Groups of three tiny triangles far apart, in each one far from the other two (without
+/// the pairing rule the fast-build tier splits such a group into one and two), in random
+/// group order.
+fn outlier_triples(groups: usize, seed: u64) -> Vec<Vec3> {
+    let base = spread_triangles(groups, seed);
+    base.chunks_exact(3).flat_map(|t| {
+        let far = Vec3::new(0.0, 0.0, 300.0);
+        let near = Vec3::new(0.02, 0.0, 0.0);
+        [t[0], t[1], t[2], t[0] + near, t[1] + near, t[2] + near, t[0] + far, t[1] + far, t[2] + far]
+    }).collect()
 }
 
 #[test]
@@ -181,7 +228,10 @@ fn hostile_triangle_inputs_fit_the_queried_size_in_every_tier() {
     let identical: Vec<Vec3> = (0..20_000).flat_map(|_| tri).collect();
     // Clustered tiers: at least CLUSTER_MIN primitives of neighbours that pair tightly.
     let strip: Vec<Vec3> = spread_triangles(10_000, 3).chunks_exact(3).flat_map(|t| [t[0], t[1], t[2], t[0], t[2], t[1]]).collect();
-    for (what, v) in [("one point", &one_point), ("spread", &spread), ("soup", &soup), ("degenerate", &degenerate), ("identical", &identical), ("strip", &strip)] {
+    let triples = outlier_triples(3000, 8);
+    // Clustered: neighbours that pair tightly, among lone triangles far from them.
+    let mixed: Vec<Vec3> = spread_triangles(12_000, 10).chunks_exact(3).enumerate().flat_map(|(i, t)| if i % 3 == 0 { vec![t[0], t[1], t[2]] } else { vec![t[0], t[1], t[2], t[0], t[2], t[1]] }).collect();
+    for (what, v) in [("one point", &one_point), ("spread", &spread), ("soup", &soup), ("degenerate", &degenerate), ("identical", &identical), ("strip", &strip), ("outlier triples", &triples), ("mixed clusters", &mixed)] {
         let vb = f32_bytes(v);
         let n = (v.len() / 3) as u32;
         fits_in_every_tier(what, AsType::BottomLevel, &[tri_geom(&vb, 3 * n, &[], n, 1)], &NoDevice);
@@ -227,7 +277,8 @@ fn instance_trees_fit_the_queried_size() {
 }
 
 /// Large counts: at most 92 B per triangle for every flag set (NVIDIA's query answers 92 for
-/// PREFER_FAST_TRACE on the dragon), linear in the count, and no wrap for the largest counts.
+/// PREFER_FAST_TRACE on the dragon) and at most 68 B (NVIDIA's PREFER_FAST_BUILD answer) for
+/// the fast-build tier, linear in the count, and no wrap for the largest counts.
 #[test]
 fn the_bound_per_triangle_for_large_counts() {
     let shape = GeometryShape::Triangles { format: VertexFormat::R32G32B32Sfloat, index_type: IndexType::U32, max_vertex: 437_644, has_transform: false };
@@ -236,10 +287,14 @@ fn the_bound_per_triangle_for_large_counts() {
         let s = build_sizes(AsType::BottomLevel, BuildFlags(flags), &[shape], &[dragon as u32]);
         let per = s.acceleration_structure_size as f64 / dragon as f64;
         assert!(per <= 92.0, "flags {flags:#x}: {per:.1} B/tri");
-        // At least what any build stores per triangle: data, record, and the staging area.
-        assert!(per >= 36.0 + 8.0 + 40.0, "flags {flags:#x}: {per:.1} B/tri");
+        if pairs_leaves(AsType::BottomLevel, BuildFlags(flags)) {
+            assert!(per <= 68.0, "flags {flags:#x}: {per:.1} B/tri");
+        }
+        // At least what any build stores per triangle (data and record) and a third of a
+        // node per pair of triangles.
+        assert!(per >= 36.0 + 8.0 + 64.0 / 6.0, "flags {flags:#x}: {per:.1} B/tri");
         let big = build_sizes(AsType::BottomLevel, BuildFlags(flags), &[shape; 4], &[u32::MAX; 4]);
-        assert!(big.acceleration_structure_size > 4 * u32::MAX as u64 * 84 && big.acceleration_structure_size < u64::MAX / 2);
+        assert!(big.acceleration_structure_size > 4 * u32::MAX as u64 * 54 && big.acceleration_structure_size < u64::MAX / 2);
     }
     let t = build_sizes(AsType::TopLevel, BuildFlags(0), &[GeometryShape::Instances], &[10_000]);
     assert!(t.acceleration_structure_size as f64 / 10_000.0 <= 180.0, "{t:?}");
@@ -257,6 +312,11 @@ fn the_bound_is_near_what_the_worst_inputs_use() {
     // A third of a node per primitive or more: leaves of one primitive, as the bound assumes.
     assert!(r.node_count as u64 * 3 >= r.primitive_count as u64, "{r:?}");
     assert!(r.used_size as f64 >= 0.8 * dst.len() as f64, "{} of {}", r.used_size, dst.len());
+    // The fast-build tier pairs the same triangles: about a sixth of a node per primitive.
+    let (r, dst) = try_build(AsType::BottomLevel, BuildFlags::PREFER_FAST_BUILD, &g, &NoDevice);
+    let r = r.expect("build");
+    assert!(r.node_count as u64 * 6 >= r.primitive_count as u64, "{r:?}");
+    assert!(r.used_size as f64 >= 0.85 * dst.len() as f64, "{} of {}", r.used_size, dst.len());
 }
 
 #[test]
