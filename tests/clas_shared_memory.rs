@@ -2,7 +2,8 @@
 //! built (IMPLICIT) into a buffer of their own are written in place; built into a buffer that
 //! also holds their indices and vertices, they are made in host memory and copied (a destination
 //! must not be written while the command reads it). A cluster BLAS likewise, in its own buffer
-//! and in the buffer of its CLASes. Both are compared with the library's builds of the same input.
+//! and in the buffer of its CLASes. Both are compared with the library's builds of the same input;
+//! CLASes moved into a buffer of their own (in place) are byte copies.
 mod harness;
 
 use std::ffi::c_void;
@@ -45,6 +46,14 @@ struct BottomLevelInput {
     p_next: *mut c_void,
     max_total_cluster_count: u32,
     max_cluster_count_per_acceleration_structure: u32,
+}
+#[repr(C)]
+struct MoveInput {
+    s_type: i32,
+    p_next: *mut c_void,
+    ty: i32,
+    no_move_overlap: u32,
+    max_moved_bytes: u64,
 }
 #[repr(C)]
 struct CommandsInfo {
@@ -234,4 +243,15 @@ fn in_place_and_copied_results_agree() {
         assert_eq!(w.addresses[0], at);
         assert_eq!(results(&a, buf, &w)[0], want[..used], "cluster BLAS, in the CLASes' buffer: {}", buf == own.0);
     }
+
+    // The CLASes of placement 0 moved into a buffer of their own (in place): byte copies.
+    let mv_input = MoveInput { s_type: 1_000_569_004, p_next: std::ptr::null_mut(), ty: ObjectType::TriangleCluster as i32, no_move_overlap: 1, max_moved_bytes: total.acceleration_structure_size };
+    let mv = input(OpType::MoveObjects, OpMode::ImplicitDestinations, n, &mv_input as *const MoveInput as *const c_void);
+    let mut ms = vk::AccelerationStructureBuildSizesInfoKHR::default();
+    // SAFETY: valid structs.
+    unsafe { (api.get_sizes)(ctx.device.handle(), &mv, &mut ms) };
+    let packed = a.buffer(ms.acceleration_structure_size);
+    let packed_at = a.buf(packed).address;
+    let w = run(&a, &api, mv, packed_at, (refs_at, 8), n);
+    assert_eq!(results(&a, packed, &w), built[0].2, "moved CLASes");
 }

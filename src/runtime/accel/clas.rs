@@ -3,7 +3,8 @@
 //! rules, reads the element count and the argument records from device memory when the queue
 //! executes it, checks each record, makes every result in host memory (`accel::clas`), then
 //! writes results, addresses and sizes by mode. Making every result before writing any is what
-//! lets a move's destinations overlap other moves' sources.
+//! lets a move's destinations overlap other moves' sources. In IMPLICIT mode results are made
+//! straight in dstImplicitData instead where no input shares its memory (`direct`).
 //!
 //! Owns the execution model of nv-extensions.md B.6 and the valid-usage checks of the command
 //! (docs/CLUSTERS.md lists them); the rules of one record are `accel::clas::check`'s, the blob
@@ -577,7 +578,7 @@ impl ClusterCommand {
         }
         let Some(count) = self.count(&view, a.count_at) else { return };
         // IMPLICIT builds measure first and write in place (direct.rs); the others make bytes.
-        let in_place = self.mode == OpMode::ImplicitDestinations && matches!(self.op, OpType::BuildTriangleCluster | OpType::InstantiateTriangleCluster | OpType::BuildClustersBottomLevel);
+        let in_place = self.mode == OpMode::ImplicitDestinations && self.op != OpType::GetClusterTemplateIndices && self.op != OpType::BuildTriangleClusterTemplate;
         let sizes_only = in_place || self.mode == OpMode::ComputeSizes;
         let produced: Vec<Produced> = (0..count).into_par_iter().map(|i| self.record(&view, a.src, i).and_then(|rec| self.produce(&view, rec, sizes_only))).collect();
         let mut elements: Vec<Option<Element>> = produced

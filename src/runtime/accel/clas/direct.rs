@@ -1,16 +1,17 @@
-//! IMPLICIT-mode results written straight into dstImplicitData: CLAS builds and instantiations
-//! are placed from their exact sizes first (measured by a sizes-only pass), then built in
+//! IMPLICIT-mode results written straight into dstImplicitData: CLAS builds, instantiations and
+//! moves are placed from their exact sizes first (measured by a sizes-only pass), then made in
 //! parallel each into its own slice of one claimed region; a cluster BLAS is built into the
 //! room its size bound needs at its place. This spares a zeroed host allocation and a copy
 //! per result. The placement, the bytes and what is reported are those of the copying path.
 //!
 //! A destination must not be read by the command while it is written: when a buffer the
 //! elements read (records, indices, geometry words, vertices, templates, CLASes) shares
-//! memory with the destination, the copying path runs instead.
+//! memory with the destination, the copying path runs instead (so overlapping moves, whose
+//! sources must all be read before any destination is written, take it).
 use rayon::prelude::*;
 
 use super::{report, write, Addresses, ClusterCommand, DeviceInputs, Element};
-use crate::accel::clas::args::{BuildTriangleClusterInfo, InstantiateClusterInfo, OpType};
+use crate::accel::clas::args::{AddressInfo, BuildTriangleClusterInfo, InstantiateClusterInfo, OpType};
 use crate::accel::clas::check::Violation;
 use crate::accel::clas::{self, ClusterError};
 use crate::memory::region::Region;
@@ -39,7 +40,7 @@ fn no_fit(i: usize, end: u64) {
 }
 
 impl ClusterCommand {
-    /// Writes the results of an IMPLICIT CLAS build, instantiation or cluster BLAS build in
+    /// Writes the results of an IMPLICIT CLAS build, instantiation, move or cluster BLAS build in
     /// place, with their addresses and sizes. False when nothing was written and the copying
     /// path must run (a destination shares memory with an input).
     pub(super) fn write_in_place(&self, space: &AddressSpace, view: &DeviceInputs<'_>, elements: &mut [Option<Element>], a: &Addresses) -> bool {
@@ -81,7 +82,7 @@ impl ClusterCommand {
                 (rest, base) = (tail, p + e.size);
                 jobs.push((i, mine));
             }
-            jobs.into_par_iter().map(|(i, dst)| (i, self.record(view, a.src, i as u64).and_then(|rec| self.make_clas(view, rec, dst)))).collect()
+            jobs.into_par_iter().map(|(i, dst)| (i, self.record(view, a.src, i as u64).and_then(|rec| self.make_one(view, rec, dst)))).collect()
         });
         for (i, result) in results {
             match result {
@@ -104,14 +105,21 @@ impl ClusterCommand {
                 let r: InstantiateClusterInfo = bytemuck::pod_read_unaligned(rec);
                 [r.cluster_template_address, r.vertex_buffer.start_address, 0]
             }
+            OpType::MoveObjects => [bytemuck::pod_read_unaligned::<AddressInfo>(rec).address, 0, 0],
             _ => [0; 3],
         };
         addresses.into_iter().any(|x| shares(space, dst, x))
     }
 
-    /// One CLAS (built or instantiated) into `dst`, which holds exactly its size.
-    fn make_clas(&self, view: &DeviceInputs<'_>, rec: &[u8], dst: &mut [u8]) -> Result<(), Violation> {
+    /// One CLAS (built or instantiated) or moved object into `dst`, which holds exactly its size.
+    fn make_one(&self, view: &DeviceInputs<'_>, rec: &[u8], dst: &mut [u8]) -> Result<(), Violation> {
         match self.op {
+            OpType::MoveObjects => {
+                let r: AddressInfo = bytemuck::pod_read_unaligned(rec);
+                let src = Self::object(view, r.address)?;
+                let n = dst.len();
+                dst.copy_from_slice(src.get(..n).ok_or(ClusterError::Unreadable { what: "srcAccelerationStructure", address: r.address })?);
+            }
             OpType::BuildTriangleCluster => {
                 let r: BuildTriangleClusterInfo = bytemuck::pod_read_unaligned(rec);
                 let format = self.vertex_format.ok_or(ClusterError::NotA("supported vertex format"))?;
