@@ -2,7 +2,7 @@
 //! `DeviceView::bytes` at the addresses the argument records name; every read is checked and a
 //! failure is a typed `ClusterError`, never a panic. The bytes written depend on the input only.
 use super::args::{BuildTriangleClusterInfo, GeometryIndexAndFlags, InstantiateClusterInfo};
-use super::format::{self, clas_nodes_offset, clas_order_offset, clas_size, new_header, open, put_u32, template_size, truncate, ClusterHeader, Kind, HEADER_SIZE, TRIANGLE_SIZE};
+use super::format::{self, clas_nodes_offset, clas_order_offset, clas_size, new_header, open, template_size, truncate, ClusterHeader, Kind, HEADER_SIZE, TRIANGLE_SIZE};
 use super::tree::build_local;
 use super::{ClusterError, MAX_TRIANGLES, MAX_VERTICES};
 use crate::accel::input::decode_vertex;
@@ -35,10 +35,17 @@ fn fetch_triangles(view: &dyn DeviceView, format: VertexFormat, start: u64, stri
     let max = indices.iter().copied().max().unwrap_or(0) as u64;
     let span = (max * stride).checked_add(format.size() as u64);
     if let Some(b) = span.and_then(|len| view.bytes(start, len)) {
-        let fetch = |i: u32| -> Option<[f32; 3]> {
-            let at = (i as u64 * stride) as usize;
+        let one = |i: u64| -> Option<[f32; 3]> {
+            let at = (i * stride) as usize;
             let v = decode_vertex(format, b.get(at..at + format.size() as usize)?)?;
             Some([truncate(v.x, bits), truncate(v.y, bits), truncate(v.z, bits)])
+        };
+        // Local indices (few, each used several times): every vertex decoded once; indices into
+        // a large shared buffer: each corner decoded where it is used.
+        let table: Option<Vec<Option<[f32; 3]>>> = (max < 2 * indices.len() as u64).then(|| (0..=max).map(one).collect());
+        let fetch = |i: u32| match &table {
+            Some(t) => t.get(i as usize).copied().flatten(),
+            None => one(i as u64),
         };
         let tris: Option<Vec<[f32; 9]>> = indices
             .chunks_exact(3)
@@ -121,16 +128,16 @@ fn check_dst(dst: &[u8], needed: u64) -> Result<(), ClusterError> {
 }
 
 fn put_triangles(dst: &mut [u8], at: u64, tris: &[[f32; 9]]) {
-    for (i, t) in tris.iter().enumerate() {
-        for (k, x) in t.iter().enumerate() {
-            put_u32(dst, at + i as u64 * TRIANGLE_SIZE + 4 * k as u64, x.to_bits());
-        }
+    let out = &mut dst[at as usize..][..tris.len() * TRIANGLE_SIZE as usize];
+    for (d, x) in out.chunks_exact_mut(4).zip(tris.iter().flatten()) {
+        d.copy_from_slice(&x.to_le_bytes());
     }
 }
 
 fn put_words(dst: &mut [u8], at: u64, words: &[u32]) {
-    for (i, w) in words.iter().enumerate() {
-        put_u32(dst, at + 4 * i as u64, *w);
+    let out = &mut dst[at as usize..][..4 * words.len()];
+    for (d, w) in out.chunks_exact_mut(4).zip(words) {
+        d.copy_from_slice(&w.to_le_bytes());
     }
 }
 

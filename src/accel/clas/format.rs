@@ -159,11 +159,6 @@ pub fn rd_u32(b: &[u8], off: u64) -> u32 {
 pub fn rd_f32(b: &[u8], off: u64) -> f32 {
     f32::from_bits(rd_u32(b, off))
 }
-pub fn put_u32(b: &mut [u8], off: u64, v: u32) {
-    let o = off as usize;
-    b[o..o + 4].copy_from_slice(&v.to_le_bytes());
-}
-
 impl Blob<'_> {
     /// CLAS (and a template with vertices): triangle `i`'s stored vertices.
     pub fn triangle(&self, i: u32) -> [f32; 9] {

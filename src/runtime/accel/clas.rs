@@ -3,7 +3,8 @@
 //! rules, reads the element count and the argument records from device memory when the queue
 //! executes it, checks each record, makes every result in host memory (`accel::clas`), then
 //! writes results, addresses and sizes by mode. Making every result before writing any is what
-//! lets a move's destinations overlap other moves' sources.
+//! lets a move's destinations overlap other moves' sources. In IMPLICIT mode results are made
+//! straight in dstImplicitData instead where no input shares its memory (`direct`).
 //!
 //! Owns the execution model of nv-extensions.md B.6 and the valid-usage checks of the command
 //! (docs/CLUSTERS.md lists them); the rules of one record are `accel::clas::check`'s, the blob
@@ -23,6 +24,8 @@ use crate::memory::region::Region;
 use crate::memory::AddressSpace;
 use crate::runtime::command::{Exec, ExecContext, ExecError};
 use crate::runtime::in_use::Collector;
+
+mod direct;
 
 const CMD: &str = "vkCmdBuildClusterAccelerationStructureIndirectNV";
 
@@ -276,8 +279,8 @@ impl ClusterCommand {
     }
 
     // One function: one arm per op type, each checking its record, sizing and building.
-    fn produce(&self, view: &DeviceInputs<'_>, rec: &[u8]) -> Produced {
-        let sizes_only = self.mode == OpMode::ComputeSizes;
+    /// Element `rec`'s result: its size and tally only when `sizes_only`, else also its bytes.
+    fn produce(&self, view: &DeviceInputs<'_>, rec: &[u8], sizes_only: bool) -> Produced {
         let format = || self.vertex_format.ok_or(ClusterError::NotA("supported vertex format"));
         let alloc = |n: u64| vec![0u8; n as usize];
         let bounds = self.triangle_bounds();
@@ -335,7 +338,7 @@ impl ClusterCommand {
                 clas::instantiate(tpl, &a, view, &mut dst)?;
                 Ok(Element { bytes: Some(dst), size, tally: [t as u64, v as u64] })
             }
-            OpType::BuildClustersBottomLevel => self.produce_blas(view, rec),
+            OpType::BuildClustersBottomLevel => self.produce_blas(view, rec, sizes_only),
             OpType::MoveObjects => {
                 let a: AddressInfo = bytemuck::pod_read_unaligned(rec);
                 let bytes = Self::object(view, a.address).map_err(|_| ClusterError::Unreadable { what: "srcAccelerationStructure", address: a.address })?;
@@ -364,8 +367,8 @@ impl ClusterCommand {
         }
     }
 
-    fn produce_blas(&self, view: &DeviceInputs<'_>, rec: &[u8]) -> Produced {
-        let a: BuildClustersBottomLevelInfo = bytemuck::pod_read_unaligned(rec);
+    /// A cluster BLAS record's CLASes (address and bytes, in reference order), checked.
+    fn blas_clusters<'v>(&self, view: &'v DeviceInputs<'_>, a: &BuildClustersBottomLevelInfo) -> Result<Vec<(u64, &'v [u8])>, Violation> {
         check::blas_record(a.cluster_references_count, a.cluster_references_stride, self.bounds.max_clusters_per_blas)?;
         let stride = a.cluster_references_stride as u64;
         let mut addresses = Vec::with_capacity(a.cluster_references_count as usize);
@@ -382,10 +385,21 @@ impl ClusterCommand {
         for &address in &addresses {
             clusters.push((address, Self::object(view, address).map_err(|_| ClusterError::NotAClas { address })?));
         }
+        Ok(clusters)
+    }
+
+    /// The size bound of a cluster BLAS over `clusters` (what its build needs to write into).
+    fn blas_bound(clusters: &[(u64, &[u8])]) -> u64 {
         let triangles: u64 = clusters.iter().map(|c| clas::open(c.1).map_or(0, |b| b.header.triangle_count as u64)).sum();
-        let bound = clas::blas_size_for(clusters.len() as u64, triangles);
+        clas::blas_size_for(clusters.len() as u64, triangles)
+    }
+
+    fn produce_blas(&self, view: &DeviceInputs<'_>, rec: &[u8], sizes_only: bool) -> Produced {
+        let a: BuildClustersBottomLevelInfo = bytemuck::pod_read_unaligned(rec);
+        let clusters = self.blas_clusters(view, &a)?;
+        let bound = Self::blas_bound(&clusters);
         let tally = [clusters.len() as u64, 0];
-        if self.mode == OpMode::ComputeSizes {
+        if sizes_only {
             return Ok(Element { bytes: None, size: bound, tally });
         }
         let mut dst = vec![0u8; bound as usize];
@@ -563,7 +577,10 @@ impl ClusterCommand {
             return;
         }
         let Some(count) = self.count(&view, a.count_at) else { return };
-        let produced: Vec<Produced> = (0..count).into_par_iter().map(|i| self.record(&view, a.src, i).and_then(|rec| self.produce(&view, rec))).collect();
+        // IMPLICIT builds measure first and write in place (direct.rs); the others make bytes.
+        let in_place = self.mode == OpMode::ImplicitDestinations && self.op != OpType::GetClusterTemplateIndices && self.op != OpType::BuildTriangleClusterTemplate;
+        let sizes_only = in_place || self.mode == OpMode::ComputeSizes;
+        let produced: Vec<Produced> = (0..count).into_par_iter().map(|i| self.record(&view, a.src, i).and_then(|rec| self.produce(&view, rec, sizes_only))).collect();
         let mut elements: Vec<Option<Element>> = produced
             .into_iter()
             .enumerate()
@@ -578,6 +595,16 @@ impl ClusterCommand {
                 diag::vuid(&info_vuid("opMode-12311"), CMD, &message);
                 return;
             }
+        }
+        if in_place {
+            if self.write_in_place(space, &view, &mut elements, &a) {
+                return;
+            }
+            elements = elements
+                .into_par_iter()
+                .enumerate()
+                .map(|(i, e)| e.and_then(|_| self.record(&view, a.src, i as u64).and_then(|rec| self.produce(&view, rec, false)).map_err(|v| report(Some(i as u64), &v)).ok()))
+                .collect();
         }
         self.write_outputs(space, &view, elements, &a);
     }
