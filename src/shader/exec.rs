@@ -374,7 +374,15 @@ fn exec_block<'a>(ctx: &Ctx<'a>, group: &mut Group<'a>, wg: &mut Wg, next: Next)
         }
     }
     for op in &block.ops {
-        exec_op(ctx, group, wg, op, mask);
+        // The ALU ops, most of what runs, are dispatched here: `exec_op`'s larger frame is
+        // paid only by the others.
+        match *op {
+            Op::Bin { op, ty, dst, a, b } => exec_bin(&mut group.regs, op, ty, dst, mask, a, b),
+            Op::Select { dst, cond, a, b } => map3(&mut group.regs, dst, mask, cond, a, b, |c, x, y| if c != 0 { x } else { y }),
+            Op::Tri { op, ty, dst, a, b, c } => exec_tri(&mut group.regs, op, ty, dst, mask, a, b, c),
+            Op::Un { op, ty, from, dst, a } => exec_un(&mut group.regs, op, ty, from, dst, mask, a),
+            _ => exec_op(ctx, group, wg, op, mask),
+        }
     }
     // Jumps and two-way branches as masks: each edge's lanes move (and fill its phi
     // temporaries) together.
@@ -444,6 +452,22 @@ fn lanes(regs: &mut [Regs], dst: u32, mask: u32, f: impl Fn(usize) -> u64) {
     store_lanes(regs, dst, mask, v);
 }
 
+/// Per execution mask, each lane's word mask (all ones for a lane in the mask): the blend
+/// below is then whole-word and/or over the lane array, with no per-lane bit extraction.
+static LANE_MASKS: [Regs; 1 << LANES] = {
+    let mut t = [[0; LANES]; 1 << LANES];
+    let mut m = 0;
+    while m < 1 << LANES {
+        let mut l = 0;
+        while l < LANES {
+            t[m][l] = if (m >> l) & 1 != 0 { u64::MAX } else { 0 };
+            l += 1;
+        }
+        m += 1;
+    }
+    t
+};
+
 /// dst[l] = v[l] for the lanes in the mask: a plain store when every lane is in it (the usual
 /// case), else a branch-free blend.
 #[inline(always)]
@@ -453,10 +477,9 @@ pub(super) fn store_lanes(regs: &mut [Regs], dst: u32, mask: u32, v: Regs) {
         *d = v;
         return;
     }
-    for (l, o) in d.iter_mut().enumerate() {
-        let keep = ((mask >> l) & 1) as u64;
-        let m = keep.wrapping_neg();
-        *o = (v[l] & m) | (*o & !m);
+    let m = &LANE_MASKS[(mask & ((1 << LANES) - 1)) as usize];
+    for ((o, &v), &m) in d.iter_mut().zip(&v).zip(m) {
+        *o = (v & m) | (*o & !m);
     }
 }
 

@@ -68,10 +68,15 @@ macro_rules! specialised {
 /// pairs with their own loops, the rest through `alu::bin` per lane.
 pub(super) fn exec_bin(regs: &mut [Regs], op: BinOp, ty: Sc, dst: u32, mask: u32, a: u32, b: u32) {
     match ty {
-        Sc::I32 if bin_i32(regs, op, dst, mask, a, b) => return,
-        Sc::F32 if super::exec_float::bin(regs, op, dst, mask, a, b) => return,
-        _ => {}
+        Sc::I32 => bin_i32(regs, op, dst, mask, a, b),
+        Sc::F32 if super::exec_float::bin(regs, op, dst, mask, a, b) => {}
+        _ => bin_other(regs, op, ty, dst, mask, a, b),
     }
+}
+
+/// The binary ops without a written-out loop of their own.
+#[inline(never)]
+fn bin_other(regs: &mut [Regs], op: BinOp, ty: Sc, dst: u32, mask: u32, a: u32, b: u32) {
     specialised!((op, ty): BinOp, [
         (UDiv, I32), (UMod, I32),
         (IAdd, I64), (ISub, I64), (IMul, I64), (Shl, I64), (ShrL, I64), (And, I64), (Or, I64),
@@ -95,8 +100,8 @@ fn s(v: u64) -> i32 {
 }
 
 /// 32-bit integer ops written out: `alu::bin` with the type fixed to `Sc::I32` (values read
-/// through their low 32 bits, results with the upper bits zero). False for the others.
-fn bin_i32(regs: &mut [Regs], op: BinOp, dst: u32, mask: u32, a: u32, b: u32) -> bool {
+/// through their low 32 bits, results with the upper bits zero); the others go to `bin_other`.
+fn bin_i32(regs: &mut [Regs], op: BinOp, dst: u32, mask: u32, a: u32, b: u32) {
     use BinOp::*;
     match op {
         IAdd => map2(regs, dst, mask, a, b, |x, y| x.wrapping_add(y) & LO),
@@ -122,9 +127,8 @@ fn bin_i32(regs: &mut [Regs], op: BinOp, dst: u32, mask: u32, a: u32, b: u32) ->
         UMax => map2(regs, dst, mask, a, b, |x, y| u(x).max(u(y)) as u64),
         SMin => map2(regs, dst, mask, a, b, |x, y| s(x).min(s(y)) as u32 as u64),
         SMax => map2(regs, dst, mask, a, b, |x, y| s(x).max(s(y)) as u32 as u64),
-        _ => return false,
+        _ => bin_other(regs, op, Sc::I32, dst, mask, a, b),
     }
-    true
 }
 
 /// Three-operand ops: fused multiply-add and clamps get their own loops.
