@@ -16,7 +16,8 @@ use std::time::Instant;
 use rayon::prelude::*;
 
 use super::alu;
-use super::ir::{builtin_offset as bo, BallotOp, BinOp, Block, Op, Program, Sc, SgOp, Term, TriOp, UnOp};
+use super::exec_alu::{exec_bin, exec_tri, exec_un, map1, map2, map3};
+use super::ir::{builtin_offset as bo, BallotOp, BinOp, Block, Op, Program, Sc, SgOp, Term};
 use super::memory::{Fault, ImageBinding, Memory, Region};
 use super::{Pipeline, LANES};
 
@@ -373,7 +374,15 @@ fn exec_block<'a>(ctx: &Ctx<'a>, group: &mut Group<'a>, wg: &mut Wg, next: Next)
         }
     }
     for op in &block.ops {
-        exec_op(ctx, group, wg, op, mask);
+        // The ALU ops, most of what runs, are dispatched here: `exec_op`'s larger frame is
+        // paid only by the others.
+        match *op {
+            Op::Bin { op, ty, dst, a, b } => exec_bin(&mut group.regs, op, ty, dst, mask, a, b),
+            Op::Select { dst, cond, a, b } => map3(&mut group.regs, dst, mask, cond, a, b, |c, x, y| if c != 0 { x } else { y }),
+            Op::Tri { op, ty, dst, a, b, c } => exec_tri(&mut group.regs, op, ty, dst, mask, a, b, c),
+            Op::Un { op, ty, from, dst, a } => exec_un(&mut group.regs, op, ty, from, dst, mask, a),
+            _ => exec_op(ctx, group, wg, op, mask),
+        }
     }
     // Jumps and two-way branches as masks: each edge's lanes move (and fill its phi
     // temporaries) together.
@@ -443,6 +452,22 @@ fn lanes(regs: &mut [Regs], dst: u32, mask: u32, f: impl Fn(usize) -> u64) {
     store_lanes(regs, dst, mask, v);
 }
 
+/// Per execution mask, each lane's word mask (all ones for a lane in the mask): the blend
+/// below is then whole-word and/or over the lane array, with no per-lane bit extraction.
+static LANE_MASKS: [Regs; 1 << LANES] = {
+    let mut t = [[0; LANES]; 1 << LANES];
+    let mut m = 0;
+    while m < 1 << LANES {
+        let mut l = 0;
+        while l < LANES {
+            t[m][l] = if (m >> l) & 1 != 0 { u64::MAX } else { 0 };
+            l += 1;
+        }
+        m += 1;
+    }
+    t
+};
+
 /// dst[l] = v[l] for the lanes in the mask: a plain store when every lane is in it (the usual
 /// case), else a branch-free blend.
 #[inline(always)]
@@ -452,10 +477,9 @@ pub(super) fn store_lanes(regs: &mut [Regs], dst: u32, mask: u32, v: Regs) {
         *d = v;
         return;
     }
-    for (l, o) in d.iter_mut().enumerate() {
-        let keep = ((mask >> l) & 1) as u64;
-        let m = keep.wrapping_neg();
-        *o = (v[l] & m) | (*o & !m);
+    let m = &LANE_MASKS[(mask & ((1 << LANES) - 1)) as usize];
+    for ((o, &v), &m) in d.iter_mut().zip(&v).zip(m) {
+        *o = (v & m) | (*o & !m);
     }
 }
 
@@ -464,37 +488,21 @@ fn exec_op<'a>(ctx: &Ctx<'a>, group: &mut Group<'a>, wg: &mut Wg, op: &Op, mask:
     match *op {
         Op::Mov { dst, src } => {
             let s = regs[src as usize];
-            lanes(regs, dst, mask, |l| s[l]);
+            store_lanes(regs, dst, mask, s);
         }
-        Op::Bin { op, ty, dst, a, b } => {
-            let (a, b) = (regs[a as usize], regs[b as usize]);
-            exec_bin(regs, op, ty, dst, mask, &a, &b);
-        }
-        Op::Un { op, ty, from, dst, a } => {
-            let a = regs[a as usize];
-            exec_un(regs, op, ty, from, dst, mask, &a);
-        }
-        Op::Tri { op, ty, dst, a, b, c } => {
-            let (a, b, c) = (regs[a as usize], regs[b as usize], regs[c as usize]);
-            exec_tri(regs, op, ty, dst, mask, &a, &b, &c);
-        }
+        Op::Bin { op, ty, dst, a, b } => exec_bin(regs, op, ty, dst, mask, a, b),
+        Op::Un { op, ty, from, dst, a } => exec_un(regs, op, ty, from, dst, mask, a),
+        Op::Tri { op, ty, dst, a, b, c } => exec_tri(regs, op, ty, dst, mask, a, b, c),
         Op::BitInsert { ty, dst, base, insert, offset, count } => {
             let (a, b, c, d) = (regs[base as usize], regs[insert as usize], regs[offset as usize], regs[count as usize]);
             lanes(regs, dst, mask, |l| alu::bit_insert(ty, a[l], b[l], c[l], d[l]));
         }
-        Op::Select { dst, cond, a, b } => {
-            let (c, a, b) = (regs[cond as usize], regs[a as usize], regs[b as usize]);
-            lanes(regs, dst, mask, |l| if c[l] != 0 { a[l] } else { b[l] });
+        Op::Select { dst, cond, a, b } => map3(regs, dst, mask, cond, a, b, |c, x, y| if c != 0 { x } else { y }),
+        Op::Index { dst, base, index, index_ty: Sc::I32, stride } => {
+            map2(regs, dst, mask, base, index, |b, i| b.wrapping_add((i as u32 as i32 as i64 as u64).wrapping_mul(stride)))
         }
-        Op::Index { dst, base, index, index_ty, stride } => {
-            let (b, i) = (regs[base as usize], regs[index as usize]);
-            let ext = |v: u64| if index_ty == Sc::I32 { v as u32 as i32 as i64 as u64 } else { v };
-            lanes(regs, dst, mask, |l| b[l].wrapping_add(ext(i[l]).wrapping_mul(stride)));
-        }
-        Op::AddImm { dst, a, imm } => {
-            let a = regs[a as usize];
-            lanes(regs, dst, mask, |l| a[l].wrapping_add(imm));
-        }
+        Op::Index { dst, base, index, stride, .. } => map2(regs, dst, mask, base, index, |b, i| b.wrapping_add(i.wrapping_mul(stride))),
+        Op::AddImm { dst, a, imm } => map1(regs, dst, mask, a, |a| a.wrapping_add(imm)),
         Op::Load { .. } | Op::Store { .. } | Op::Atomic { .. } => super::exec_mem::exec_mem(ctx, group, wg, op, mask),
         Op::ImageRead { .. } | Op::ImageWrite { .. } | Op::ImageSize { .. } | Op::ImageTexel { .. } => super::exec_image::exec_image(ctx, group, wg, op, mask),
         Op::RayQuery(ref rq) => super::exec_rq::exec_ray_query(ctx, group, wg, rq, mask),
@@ -528,63 +536,6 @@ fn exec_op<'a>(ctx: &Ctx<'a>, group: &mut Group<'a>, wg: &mut Wg, op: &Op, mask:
             });
         }
     }
-}
-
-/// Expands to a match whose arms call `alu` with constant op and type, so each arm's lane
-/// loop is specialised (and can vectorise) instead of dispatching per lane.
-macro_rules! specialised {
-    (($op:ident, $ty:ident): $Op:ident, [$(($o:ident, $t:ident)),* $(,)?], $body:expr) => {
-        match ($op, $ty) {
-            $( ($Op::$o, Sc::$t) => {
-                let ($op, $ty) = ($Op::$o, Sc::$t);
-                $body
-            } )*
-            _ => $body,
-        }
-    };
-}
-
-/// Binary ops: the common (op, type) pairs get their own loops.
-fn exec_bin(regs: &mut [Regs], op: BinOp, ty: Sc, dst: u32, mask: u32, a: &Regs, b: &Regs) {
-    if ty == Sc::F32 && super::exec_float::bin(regs, op, dst, mask, a, b) {
-        return;
-    }
-    specialised!((op, ty): BinOp, [
-        (IAdd, I32), (ISub, I32), (IMul, I32), (UDiv, I32), (UMod, I32), (Shl, I32), (ShrL, I32),
-        (ShrA, I32), (And, I32), (Or, I32), (Xor, I32), (IEq, I32), (INe, I32), (ULt, I32),
-        (ULe, I32), (UGt, I32), (UGe, I32), (SLt, I32), (SLe, I32), (SGt, I32), (SGe, I32),
-        (IAdd, I64), (ISub, I64), (IMul, I64), (Shl, I64), (ShrL, I64), (And, I64), (Or, I64),
-        (Xor, I64), (FAdd, F32), (FSub, F32), (FMul, F32), (FDiv, F32), (FOrdLt, F32),
-        (FOrdLe, F32), (FOrdGt, F32), (FOrdGe, F32), (FOrdEq, F32), (FMin, F32), (FMax, F32),
-        (FAdd, F64), (FSub, F64), (FMul, F64), (FDiv, F64), (LAnd, Bool), (LOr, Bool),
-        (LEq, Bool), (LNe, Bool),
-    ], lanes(regs, dst, mask, |l| alu::bin(op, ty, a[l], b[l])))
-}
-
-/// Three-operand ops: fused multiply-add and clamps get their own loops.
-// The op's operands, as exec_bin's; one call site.
-#[allow(clippy::too_many_arguments)]
-fn exec_tri(regs: &mut [Regs], op: TriOp, ty: Sc, dst: u32, mask: u32, a: &Regs, b: &Regs, c: &Regs) {
-    if ty == Sc::F32 && super::exec_float::tri(regs, op, dst, mask, a, b, c) {
-        return;
-    }
-    specialised!((op, ty): TriOp, [
-        (Fma, F32), (FClamp, F32), (NClamp, F32), (UClamp, I32), (SClamp, I32), (FMix, F32), (Fma, F64),
-    ], lanes(regs, dst, mask, |l| alu::tri(op, ty, a[l], b[l], c[l])))
-}
-
-/// Unary ops: the F32 float functions go to `exec_float`; conversions and other common ops get
-/// their own loops.
-fn exec_un(regs: &mut [Regs], op: UnOp, ty: Sc, from: Sc, dst: u32, mask: u32, a: &Regs) {
-    if ty == Sc::F32 && super::exec_float::un(regs, op, dst, mask, a) {
-        return;
-    }
-    specialised!((op, ty): UnOp, [
-        (ConvertUToF, F32), (ConvertSToF, F32), (ConvertFToU, I32), (ConvertFToS, I32),
-        (Bitcast, I32), (Bitcast, F32), (UConvert, I32), (UConvert, I64), (SConvert, I64),
-        (FNeg, F32), (SNeg, I32), (Not, I32), (LNot, Bool), (FAbs, F32), (Floor, F32),
-        (Sqrt, F32), (InverseSqrt, F32), (Fract, F32),
-    ], lanes(regs, dst, mask, |l| alu::un(op, ty, from, a[l])))
 }
 
 /// The identity of a scan's operation (the exclusive scan's first value).

@@ -29,44 +29,46 @@ fn store(regs: &mut [Regs], dst: u32, mask: u32, v: [f32; LANES]) {
 }
 
 #[inline(always)]
-fn each(a: &[f32; LANES], b: &[f32; LANES], f: impl Fn(f32, f32) -> f32) -> [f32; LANES] {
+fn each(a: &Regs, b: &Regs, f: impl Fn(f32, f32) -> f32) -> [f32; LANES] {
     let mut v = [0.0; LANES];
     for ((o, &x), &y) in v.iter_mut().zip(a).zip(b) {
-        *o = f(x, y);
+        *o = f(f32::from_bits(x as u32), f32::from_bits(y as u32));
     }
     v
 }
 
-/// One-operand F32 ops; false when `op` is not one of them.
-pub(super) fn un(regs: &mut [Regs], op: UnOp, dst: u32, mask: u32, a: &Regs) -> bool {
-    let x = f32s(a);
-    let v = match op {
-        UnOp::Sin => vmath::sin(&x),
-        UnOp::Cos => vmath::cos(&x),
-        UnOp::Tan => vmath::tan(&x),
-        UnOp::Exp => vmath::exp(&x),
-        UnOp::Exp2 => vmath::exp2(&x),
-        UnOp::Log => vmath::log(&x),
-        UnOp::Log2 => vmath::log2(&x),
-        UnOp::Sqrt => vmath::sqrt(&x),
-        UnOp::InverseSqrt => vmath::inverse_sqrt(&x),
-        UnOp::Atan => vmath::atan(&x),
+/// One-operand F32 ops; false when `op` is not one of them. Operands are read from the
+/// register file in place.
+pub(super) fn un(regs: &mut [Regs], op: UnOp, dst: u32, mask: u32, a: u32) -> bool {
+    let f: fn(&[f32; LANES]) -> [f32; LANES] = match op {
+        UnOp::Sin => vmath::sin,
+        UnOp::Cos => vmath::cos,
+        UnOp::Tan => vmath::tan,
+        UnOp::Exp => vmath::exp,
+        UnOp::Exp2 => vmath::exp2,
+        UnOp::Log => vmath::log,
+        UnOp::Log2 => vmath::log2,
+        UnOp::Sqrt => vmath::sqrt,
+        UnOp::InverseSqrt => vmath::inverse_sqrt,
+        UnOp::Atan => vmath::atan,
         _ => return false,
     };
+    let v = f(&f32s(&regs[a as usize]));
     store(regs, dst, mask, v);
     true
 }
 
-/// Two-operand F32 ops with a float result; false for the others.
-pub(super) fn bin(regs: &mut [Regs], op: BinOp, dst: u32, mask: u32, a: &Regs, b: &Regs) -> bool {
-    let (x, y) = (f32s(a), f32s(b));
+/// Two-operand F32 ops with a float result; false for the others (decided before any lane is
+/// read).
+pub(super) fn bin(regs: &mut [Regs], op: BinOp, dst: u32, mask: u32, a: u32, b: u32) -> bool {
+    let (x, y) = (&regs[a as usize], &regs[b as usize]);
     let v = match op {
-        BinOp::FAdd => each(&x, &y, |x, y| x + y),
-        BinOp::FSub => each(&x, &y, |x, y| x - y),
-        BinOp::FMul => each(&x, &y, |x, y| x * y),
-        BinOp::FDiv => each(&x, &y, |x, y| x / y),
-        BinOp::Pow => vmath::pow(&x, &y),
-        BinOp::Atan2 => vmath::atan2(&x, &y),
+        BinOp::FAdd => each(x, y, |x, y| x + y),
+        BinOp::FSub => each(x, y, |x, y| x - y),
+        BinOp::FMul => each(x, y, |x, y| x * y),
+        BinOp::FDiv => each(x, y, |x, y| x / y),
+        BinOp::Pow => vmath::pow(&f32s(x), &f32s(y)),
+        BinOp::Atan2 => vmath::atan2(&f32s(x), &f32s(y)),
         _ => return false,
     };
     store(regs, dst, mask, v);
@@ -76,10 +78,11 @@ pub(super) fn bin(regs: &mut [Regs], op: BinOp, dst: u32, mask: u32, a: &Regs, b
 /// Three-operand F32 ops: the fused multiply-add.
 // The op's operands, as `bin`'s; one call site.
 #[allow(clippy::too_many_arguments)]
-pub(super) fn tri(regs: &mut [Regs], op: TriOp, dst: u32, mask: u32, a: &Regs, b: &Regs, c: &Regs) -> bool {
+pub(super) fn tri(regs: &mut [Regs], op: TriOp, dst: u32, mask: u32, a: u32, b: u32, c: u32) -> bool {
     if op != TriOp::Fma {
         return false;
     }
-    store(regs, dst, mask, vmath::fma(&f32s(a), &f32s(b), &f32s(c)));
+    let v = vmath::fma(&f32s(&regs[a as usize]), &f32s(&regs[b as usize]), &f32s(&regs[c as usize]));
+    store(regs, dst, mask, v);
     true
 }

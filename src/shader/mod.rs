@@ -62,6 +62,7 @@
 //!   basic, vote, ballot, arithmetic, shuffle, shuffle-relative (not clustered, not quad).
 pub mod alu;
 mod exec;
+mod exec_alu;
 mod exec_float;
 mod exec_image;
 mod exec_mem;
