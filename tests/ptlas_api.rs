@@ -23,45 +23,13 @@ use std::ffi::c_void;
 use arbor::accel::{self, Geometry, GeometryData, GeometryFlags, IndexType, MapView, Ray, RayFlags, VertexFormat};
 use arbor_scene::{InstanceRecord, Rng};
 use ash::vk;
+use harness::ptlas::*;
 use harness::vuid::*;
 use reference::brute_force::{compare_ray, RefScene, Tolerance};
 
-const EXT: &str = "VK_NV_partitioned_acceleration_structure";
-const GLOBAL: u32 = u32::MAX;
 const EXPLICIT_AABB: u32 = 0x10;
 
 // The NV structs, written here from the registry (spec/nv-extensions.md A.4), not taken from Arbor.
-#[repr(C)]
-#[derive(Clone, Copy)]
-struct InstancesInput {
-    s_type: i32,
-    p_next: *const c_void,
-    flags: u32,
-    instance_count: u32,
-    max_instance_per_partition_count: u32,
-    partition_count: u32,
-    max_instance_in_global_partition_count: u32,
-}
-
-#[repr(C)]
-struct TranslationFlags {
-    s_type: i32,
-    p_next: *const c_void,
-    enable_partition_translation: u32,
-}
-
-#[repr(C)]
-struct BuildInfo {
-    s_type: i32,
-    p_next: *const c_void,
-    input: InstancesInput,
-    src: u64,
-    dst: u64,
-    scratch: u64,
-    src_infos: u64,
-    src_infos_count: u64,
-}
-
 #[repr(C)]
 struct FeaturesNV {
     s_type: i32,
@@ -75,9 +43,6 @@ struct PropertiesNV {
     p_next: *mut c_void,
     max_partition_count: u32,
 }
-
-type PfnSizes = unsafe extern "system" fn(vk::Device, *const InstancesInput, *mut vk::AccelerationStructureBuildSizesInfoKHR<'_>);
-type PfnBuild = unsafe extern "system" fn(vk::CommandBuffer, *const BuildInfo);
 
 /// One instance as the test knows it.
 #[derive(Clone, Copy, Debug)]
@@ -103,35 +68,6 @@ fn write_record(i: &Inst) -> Vec<u8> {
     }
     b.extend(i.blas.to_le_bytes());
     b
-}
-
-/// VkBuildPartitionedAccelerationStructureIndirectCommandNV (24 bytes).
-fn op_record(op: u32, count: u32, address: u64, stride: u64) -> Vec<u8> {
-    [op.to_le_bytes().as_slice(), &count.to_le_bytes(), &address.to_le_bytes(), &stride.to_le_bytes()].concat()
-}
-
-struct Nv {
-    sizes: PfnSizes,
-    build: PfnBuild,
-}
-
-fn functions(ctx: &harness::Context) -> Nv {
-    let get = |name: &std::ffi::CStr| {
-        // SAFETY: a live device; the name is a command of an enabled extension.
-        let f = unsafe { ctx.instance.get_device_proc_addr(ctx.device.handle(), name.as_ptr()) };
-        f.unwrap_or_else(|| panic!("{name:?} not found"))
-    };
-    // SAFETY: the pointers are the commands of these names, with these signatures.
-    unsafe {
-        Nv {
-            sizes: std::mem::transmute::<unsafe extern "system" fn(), PfnSizes>(get(c"vkGetPartitionedAccelerationStructuresBuildSizesNV")),
-            build: std::mem::transmute::<unsafe extern "system" fn(), PfnBuild>(get(c"vkCmdBuildPartitionedAccelerationStructuresNV")),
-        }
-    }
-}
-
-fn input(n: u32, per: u32, partitions: u32, global: u32, next: *const c_void) -> InstancesInput {
-    InstancesInput { s_type: 1000570003, p_next: next, flags: 0, instance_count: n, max_instance_per_partition_count: per, partition_count: partitions, max_instance_in_global_partition_count: global }
 }
 
 fn random_instances(rng: &mut Rng, n: u32, partitions: u32, blas: u64) -> Vec<Inst> {
@@ -340,8 +276,8 @@ fn ptlas_builds_through_the_loader_match_brute_force_and_a_khr_tlas() {
     let checker = Checker { view, blas_address, grid: vec![grid_geometry(&mesh)] };
     let mut rng = Rng::new(24);
     let (n, partitions) = (48u32, 5u32);
-    let flags = TranslationFlags { s_type: 1000570005, p_next: std::ptr::null(), enable_partition_translation: 1 };
-    let inp = input(n, n, partitions, n, &flags as *const _ as *const c_void);
+    let flags = translation_enabled();
+    let inp = InstancesInput { p_next: &flags as *const _ as *const c_void, ..input(n, n, partitions, n) };
     let mut sizes = vk::AccelerationStructureBuildSizesInfoKHR::default();
     // SAFETY: valid input and output structs.
     unsafe { (nv.sizes)(ctx.device.handle(), &inp, &mut sizes) };
@@ -360,7 +296,7 @@ fn ptlas_builds_through_the_loader_match_brute_force_and_a_khr_tlas() {
     let (w_reg, t_reg) = (guarded_data(&a, &w_bytes), guarded_data(&a, &t_bytes));
     let ops: Vec<u8> = [op_record(0, written.len() as u32, w_reg.address(&a), 104), op_record(2, 2, t_reg.address(&a), 16)].concat();
     let ops_reg = guarded_data(&a, &ops);
-    let mut info = BuildInfo { s_type: 1000570004, p_next: std::ptr::null(), input: inp, src: 0, dst: dst.address(&a), scratch: scratch.address(&a), src_infos: ops_reg.address(&a), src_infos_count: count_word.address(&a) };
+    let mut info = build_info(inp, 0, dst.address(&a), scratch.address(&a), ops_reg.address(&a), count_word.address(&a));
     build(&a, &nv, &info, &count_word, 2, None);
     let first = dst.read(&a);
     checker.check(&a, &first, &slots, &translations, 1);
@@ -440,14 +376,14 @@ fn ptlas_invalid_builds_are_reported_and_skipped() {
     let ctx = harness::Context::new(harness::Options { validation: false, acceleration_structure: true, device_extensions: exts, ..Default::default() });
     let a = Accel::new(&ctx);
     let nv = functions(&ctx);
-    let inp = input(4, 4, 1, 0, std::ptr::null());
+    let inp = input(4, 4, 1, 0);
     let mut sizes = vk::AccelerationStructureBuildSizesInfoKHR::default();
     // SAFETY: valid input and output structs.
     unsafe { (nv.sizes)(ctx.device.handle(), &inp, &mut sizes) };
     let (dst, scratch, count_word) = (guarded(&a, sizes.acceleration_structure_size + 256), guarded(&a, sizes.build_scratch_size), guarded(&a, 4));
     let ops_reg = guarded_data(&a, &[op_record(0, 0, 0, 104), op_record(0, 0, 0, 104)].concat());
     let snap = snapshot(&a);
-    let mut info = BuildInfo { s_type: 1000570004, p_next: std::ptr::null(), input: inp, src: 0, dst: dst.address(&a) + 64, scratch: scratch.address(&a), src_infos: ops_reg.address(&a), src_infos_count: count_word.address(&a) };
+    let mut info = build_info(inp, 0, dst.address(&a) + 64, scratch.address(&a), ops_reg.address(&a), count_word.address(&a));
     let before = harness::diagnostics().len();
     build(&a, &nv, &info, &count_word, 0, None);
     let said = harness::diagnostics()[before..].to_string();

@@ -21,43 +21,11 @@ use std::ffi::c_void;
 use arbor::accel::Ray;
 use arbor_scene::{InstanceRecord, Rng};
 use ash::vk;
+use harness::ptlas::*;
 use harness::vuid::*;
 
-const EXT: &str = "VK_NV_partitioned_acceleration_structure";
-const GLOBAL: u32 = u32::MAX;
 const PTLAS_DESCRIPTOR: vk::DescriptorType = vk::DescriptorType::from_raw(1000570000);
 const WRITE_PTLAS_STYPE: vk::StructureType = vk::StructureType::from_raw(1000570002);
-
-#[repr(C)]
-#[derive(Clone, Copy)]
-struct InstancesInput {
-    s_type: i32,
-    p_next: *const c_void,
-    flags: u32,
-    instance_count: u32,
-    max_instance_per_partition_count: u32,
-    partition_count: u32,
-    max_instance_in_global_partition_count: u32,
-}
-
-#[repr(C)]
-struct TranslationFlags {
-    s_type: i32,
-    p_next: *const c_void,
-    enable_partition_translation: u32,
-}
-
-#[repr(C)]
-struct BuildInfo {
-    s_type: i32,
-    p_next: *const c_void,
-    input: InstancesInput,
-    src: u64,
-    dst: u64,
-    scratch: u64,
-    src_infos: u64,
-    src_infos_count: u64,
-}
 
 /// VkWriteDescriptorSetPartitionedAccelerationStructureNV.
 #[repr(C)]
@@ -67,9 +35,6 @@ struct WritePtlas {
     acceleration_structure_count: u32,
     p_acceleration_structures: *const u64,
 }
-
-type PfnSizes = unsafe extern "system" fn(vk::Device, *const InstancesInput, *mut vk::AccelerationStructureBuildSizesInfoKHR<'_>);
-type PfnBuild = unsafe extern "system" fn(vk::CommandBuffer, *const BuildInfo);
 
 /// One PTLAS instance as the test knows it.
 #[derive(Clone, Copy)]
@@ -122,32 +87,21 @@ fn equivalent(n: u32, written: &[Inst], translations: &HashMap<u32, [f32; 3]>) -
 /// Builds the PTLAS of `written` and `translations` from scratch; its region.
 fn build_ptlas(a: &Accel, n: u32, partitions: u32, written: &[Inst], translations: &HashMap<u32, [f32; 3]>) -> Region {
     let ctx = a.ctx;
-    let get = |name: &std::ffi::CStr| {
-        // SAFETY: a live device; the name is a command of an enabled extension.
-        unsafe { ctx.instance.get_device_proc_addr(ctx.device.handle(), name.as_ptr()) }.unwrap()
-    };
-    // SAFETY: the pointers are the commands of these names, with these signatures.
-    let (sizes_fn, build_fn) = unsafe {
-        (
-            std::mem::transmute::<unsafe extern "system" fn(), PfnSizes>(get(c"vkGetPartitionedAccelerationStructuresBuildSizesNV")),
-            std::mem::transmute::<unsafe extern "system" fn(), PfnBuild>(get(c"vkCmdBuildPartitionedAccelerationStructuresNV")),
-        )
-    };
-    let flags = TranslationFlags { s_type: 1000570005, p_next: std::ptr::null(), enable_partition_translation: 1 };
-    let input = InstancesInput { s_type: 1000570003, p_next: &flags as *const _ as *const c_void, flags: 0, instance_count: n, max_instance_per_partition_count: n, partition_count: partitions, max_instance_in_global_partition_count: n };
+    let nv = functions(ctx);
+    let flags = translation_enabled();
+    let input = InstancesInput { p_next: &flags as *const _ as *const c_void, ..input(n, n, partitions, n) };
     let mut sizes = vk::AccelerationStructureBuildSizesInfoKHR::default();
     // SAFETY: valid input and output structs.
-    unsafe { sizes_fn(ctx.device.handle(), &input, &mut sizes) };
+    unsafe { (nv.sizes)(ctx.device.handle(), &input, &mut sizes) };
     let (dst, scratch) = (guarded(a, sizes.acceleration_structure_size), guarded(a, sizes.build_scratch_size));
     let writes = guarded_data(a, &written.iter().flat_map(write_record).collect::<Vec<u8>>());
     let t_bytes: Vec<u8> = translations.iter().flat_map(|(p, t)| [p.to_le_bytes(), t[0].to_le_bytes(), t[1].to_le_bytes(), t[2].to_le_bytes()].concat()).collect();
     let t_reg = guarded_data(a, &t_bytes);
-    let op = |op: u32, count: usize, r: &Region, stride: u64| [op.to_le_bytes().as_slice(), &(count as u32).to_le_bytes(), &r.address(a).to_le_bytes(), &stride.to_le_bytes()].concat();
-    let ops = guarded_data(a, &[op(0, written.len(), &writes, 104), op(2, translations.len(), &t_reg, 16)].concat());
+    let ops = guarded_data(a, &[op_record(0, written.len() as u32, writes.address(a), 104), op_record(2, translations.len() as u32, t_reg.address(a), 16)].concat());
     let count = guarded_data(a, &2u32.to_le_bytes());
-    let info = BuildInfo { s_type: 1000570004, p_next: std::ptr::null(), input, src: 0, dst: dst.address(a), scratch: scratch.address(a), src_infos: ops.address(a), src_infos_count: count.address(a) };
+    let info = build_info(input, 0, dst.address(a), scratch.address(a), ops.address(a), count.address(a));
     // SAFETY: a valid command buffer; the info lives through the call.
-    a.submit(|cb| unsafe { build_fn(cb, &info) });
+    a.submit(|cb| unsafe { (nv.build)(cb, &info) });
     dst
 }
 

@@ -12,6 +12,7 @@ pub mod child;
 pub mod clas;
 pub mod compute;
 pub mod compute_run;
+pub mod ptlas;
 pub mod rq;
 pub mod vuid;
 
