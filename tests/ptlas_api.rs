@@ -111,20 +111,6 @@ fn equivalent(slots: &[Option<Inst>], translations: &HashMap<u32, [f32; 3]>) -> 
         .collect()
 }
 
-/// A KHR TLAS of `records` built through the API; its bytes.
-fn khr_tlas(a: &Accel, records: &[InstanceRecord]) -> Vec<u8> {
-    let bytes: Vec<u8> = records.iter().flat_map(|r| r.to_bytes()).collect();
-    let inst = guarded_data(a, &bytes);
-    let geoms = [instances_geom(inst.address(a), false)];
-    let inf = info(TLAS, NO_FLAGS, &geoms);
-    let n = records.len() as u32;
-    let sizes = a.sizes(DEVICE, &inf, &[n]);
-    let tlas = guarded_structure(a, TLAS, sizes.acceleration_structure_size);
-    let scratch = guarded(a, sizes.build_scratch_size);
-    cmd_build(a, &[inf.dst_acceleration_structure(tlas.s).scratch_data(madr(scratch.address(a)))], &[&[range(n)]]);
-    tlas.r.read(a)
-}
-
 /// The test's view of the state and its checks against brute force and the KHR TLAS.
 struct Checker<'m> {
     view: MapView,
@@ -136,7 +122,7 @@ impl Checker<'_> {
     fn check(&self, a: &Accel, ptlas: &[u8], slots: &[Option<Inst>], translations: &HashMap<u32, [f32; 3]>, seed: u64) {
         assert!(accel::header(ptlas).is_some(), "the PTLAS is not valid");
         let records = equivalent(slots, translations);
-        let khr = khr_tlas(a, &records);
+        let khr = khr_tlas(a, &records).r.read(a);
         let blases: HashMap<u64, &[Geometry]> = [(self.blas_address, self.grid.as_slice())].into_iter().collect();
         let scene = RefScene::Tlas { instances: records, blases };
         let rays = reference::random_rays([-4.0, -4.0, -4.0, 5.0, 5.0, 5.0], 300, seed);
@@ -178,48 +164,9 @@ fn build(a: &Accel, nv: &Nv, info: &BuildInfo, count_word: &Region, count: u32, 
 /// tests/shaders/ptlas_rq.comp over `rays` against the structure at `address` (converted in
 /// the shader with OpConvertUToAccelerationStructureKHR); the hits buffer.
 fn trace(a: &Accel, address: u64, rays: &[Ray]) -> Vec<u8> {
-    let d = &a.ctx.device;
-    let ray_bytes: Vec<u8> = rays
-        .iter()
-        .flat_map(|r| [r.origin.x, r.origin.y, r.origin.z, r.tmin, r.direction.x, r.direction.y, r.direction.z, r.tmax])
-        .flat_map(f32::to_le_bytes)
-        .collect();
-    let (rb, hb) = (a.upload(&ray_bytes), a.buffer(16 * rays.len() as u64));
-    let spirv = harness::compute::glsl("ptlas_rq.comp");
-    let stage = vk::ShaderStageFlags::COMPUTE;
-    let bindings = [0, 1].map(|b| vk::DescriptorSetLayoutBinding::default().binding(b).descriptor_type(vk::DescriptorType::STORAGE_BUFFER).descriptor_count(1).stage_flags(stage));
-    // SAFETY: valid create infos; everything is destroyed before returning, after the wait.
-    unsafe {
-        let set_layout = d.create_descriptor_set_layout(&vk::DescriptorSetLayoutCreateInfo::default().bindings(&bindings), None).unwrap();
-        let sizes = [vk::DescriptorPoolSize { ty: vk::DescriptorType::STORAGE_BUFFER, descriptor_count: 2 }];
-        let pool = d.create_descriptor_pool(&vk::DescriptorPoolCreateInfo::default().max_sets(1).pool_sizes(&sizes), None).unwrap();
-        let layouts = [set_layout];
-        let set = d.allocate_descriptor_sets(&vk::DescriptorSetAllocateInfo::default().descriptor_pool(pool).set_layouts(&layouts)).unwrap()[0];
-        let infos = [rb, hb].map(|b| [vk::DescriptorBufferInfo { buffer: a.buf(b).buffer, offset: 0, range: vk::WHOLE_SIZE }]);
-        let writes = [0, 1].map(|k| vk::WriteDescriptorSet::default().dst_set(set).dst_binding(k as u32).descriptor_type(vk::DescriptorType::STORAGE_BUFFER).buffer_info(&infos[k]));
-        d.update_descriptor_sets(&writes, &[]);
-        let ranges = [vk::PushConstantRange { stage_flags: stage, offset: 0, size: 12 }];
-        let layout = d.create_pipeline_layout(&vk::PipelineLayoutCreateInfo::default().set_layouts(&layouts).push_constant_ranges(&ranges), None).unwrap();
-        let module = d.create_shader_module(&vk::ShaderModuleCreateInfo::default().code(&spirv), None).unwrap();
-        let ci = [vk::ComputePipelineCreateInfo::default().stage(vk::PipelineShaderStageCreateInfo::default().stage(stage).module(module).name(c"main")).layout(layout)];
-        let pipeline = d.create_compute_pipelines(vk::PipelineCache::null(), &ci, None).map_err(|(_, e)| e).unwrap()[0];
-        let push: Vec<u8> = [address as u32, (address >> 32) as u32, rays.len() as u32].iter().flat_map(|x| x.to_le_bytes()).collect();
-        a.submit(|cb| {
-            let barrier = [vk::MemoryBarrier::default().src_access_mask(vk::AccessFlags::ACCELERATION_STRUCTURE_WRITE_KHR).dst_access_mask(vk::AccessFlags::ACCELERATION_STRUCTURE_READ_KHR)];
-            d.cmd_pipeline_barrier(cb, vk::PipelineStageFlags::ACCELERATION_STRUCTURE_BUILD_KHR, vk::PipelineStageFlags::COMPUTE_SHADER, vk::DependencyFlags::empty(), &barrier, &[], &[]);
-            d.cmd_bind_pipeline(cb, vk::PipelineBindPoint::COMPUTE, pipeline);
-            d.cmd_bind_descriptor_sets(cb, vk::PipelineBindPoint::COMPUTE, layout, 0, &[set], &[]);
-            d.cmd_push_constants(cb, layout, stage, 0, &push);
-            d.cmd_dispatch(cb, (rays.len() as u32).div_ceil(64), 1, 1);
-            let barrier = [vk::MemoryBarrier::default().src_access_mask(vk::AccessFlags::SHADER_WRITE).dst_access_mask(vk::AccessFlags::HOST_READ)];
-            d.cmd_pipeline_barrier(cb, vk::PipelineStageFlags::COMPUTE_SHADER, vk::PipelineStageFlags::HOST, vk::DependencyFlags::empty(), &barrier, &[], &[]);
-        });
-        d.destroy_pipeline(pipeline, None);
-        d.destroy_shader_module(module, None);
-        d.destroy_pipeline_layout(layout, None);
-        d.destroy_descriptor_pool(pool, None);
-        d.destroy_descriptor_set_layout(set_layout, None);
-    }
+    let (rb, hb) = (a.upload(&harness::trace::ray_bytes(rays)), a.buffer(16 * rays.len() as u64));
+    let push: Vec<u8> = [address as u32, (address >> 32) as u32, rays.len() as u32].iter().flat_map(|x| x.to_le_bytes()).collect();
+    harness::trace::dispatch(a, &harness::compute::glsl("ptlas_rq.comp"), None, &[rb, hb], &push, (rays.len() as u32).div_ceil(64));
     a.buf(hb).read(0, 16 * rays.len())
 }
 

@@ -105,19 +105,6 @@ fn build_ptlas(a: &Accel, n: u32, partitions: u32, written: &[Inst], translation
     dst
 }
 
-/// A KHR TLAS of `records` built through the API.
-fn build_tlas(a: &Accel, records: &[InstanceRecord]) -> Dst {
-    let inst = guarded_data(a, &records.iter().flat_map(|r| r.to_bytes()).collect::<Vec<u8>>());
-    let geoms = [instances_geom(inst.address(a), false)];
-    let inf = info(TLAS, NO_FLAGS, &geoms);
-    let n = records.len() as u32;
-    let sizes = a.sizes(DEVICE, &inf, &[n]);
-    let tlas = guarded_structure(a, TLAS, sizes.acceleration_structure_size);
-    let scratch = guarded(a, sizes.build_scratch_size);
-    cmd_build(a, &[inf.dst_acceleration_structure(tlas.s).scratch_data(madr(scratch.address(a)))], &[&[range(n)]]);
-    tlas
-}
-
 /// How binding 2 of the set the shader traces is filled.
 enum Scene {
     /// A PTLAS descriptor written with this address; `copied`: the set traced is a copy.
@@ -130,8 +117,7 @@ enum Scene {
 // One function: the objects of one dispatch, created and destroyed around it.
 fn trace(a: &Accel, scene: &Scene, by_address: u64, rays: &[Ray]) -> Vec<u8> {
     let d = &a.ctx.device;
-    let ray_bytes: Vec<u8> = rays.iter().flat_map(|r| [r.origin.x, r.origin.y, r.origin.z, r.tmin, r.direction.x, r.direction.y, r.direction.z, r.tmax]).flat_map(f32::to_le_bytes).collect();
-    let (rb, hb) = (a.upload(&ray_bytes), a.buffer(16 * rays.len() as u64));
+    let (rb, hb) = (a.upload(&harness::trace::ray_bytes(rays)), a.buffer(16 * rays.len() as u64));
     let spirv = harness::compute::glsl("ptlas_rq_desc.comp");
     let stage = vk::ShaderStageFlags::COMPUTE;
     let as_type = if matches!(scene, Scene::Khr(_)) { vk::DescriptorType::ACCELERATION_STRUCTURE_KHR } else { PTLAS_DESCRIPTOR };
@@ -171,23 +157,10 @@ fn trace(a: &Accel, scene: &Scene, by_address: u64, rays: &[Ray]) -> Vec<u8> {
             d.update_descriptor_sets(&[], &copies);
         }
         let set = sets[copied as usize];
-        let ranges = [vk::PushConstantRange { stage_flags: stage, offset: 0, size: 16 }];
-        let layout = d.create_pipeline_layout(&vk::PipelineLayoutCreateInfo::default().set_layouts(&layouts[..1]).push_constant_ranges(&ranges), None).unwrap();
-        let module = d.create_shader_module(&vk::ShaderModuleCreateInfo::default().code(&spirv), None).unwrap();
-        let ci = [vk::ComputePipelineCreateInfo::default().stage(vk::PipelineShaderStageCreateInfo::default().stage(stage).module(module).name(c"main")).layout(layout)];
-        let pipeline = d.create_compute_pipelines(vk::PipelineCache::null(), &ci, None).map_err(|(_, e)| e).unwrap()[0];
+        let pipeline = harness::trace::Pipeline::new(d, &spirv, set_layout, 16);
         let push: Vec<u8> = [by_address as u32, (by_address >> 32) as u32, rays.len() as u32, (by_address != 0) as u32].iter().flat_map(|x| x.to_le_bytes()).collect();
-        a.submit(|cb| {
-            d.cmd_bind_pipeline(cb, vk::PipelineBindPoint::COMPUTE, pipeline);
-            d.cmd_bind_descriptor_sets(cb, vk::PipelineBindPoint::COMPUTE, layout, 0, &[set], &[]);
-            d.cmd_push_constants(cb, layout, stage, 0, &push);
-            d.cmd_dispatch(cb, (rays.len() as u32).div_ceil(64), 1, 1);
-            let barrier = [vk::MemoryBarrier::default().src_access_mask(vk::AccessFlags::SHADER_WRITE).dst_access_mask(vk::AccessFlags::HOST_READ)];
-            d.cmd_pipeline_barrier(cb, vk::PipelineStageFlags::COMPUTE_SHADER, vk::PipelineStageFlags::HOST, vk::DependencyFlags::empty(), &barrier, &[], &[]);
-        });
-        d.destroy_pipeline(pipeline, None);
-        d.destroy_shader_module(module, None);
-        d.destroy_pipeline_layout(layout, None);
+        a.submit(|cb| pipeline.record(d, cb, set, &push, (rays.len() as u32).div_ceil(64)));
+        pipeline.destroy(d);
         d.destroy_descriptor_pool(pool, None);
         d.destroy_descriptor_set_layout(set_layout, None);
     }
@@ -209,7 +182,7 @@ fn compare_with_khr(validation: bool, ways: &[&str]) {
     let written = instances(&mut Rng::new(2024), n, partitions, blas_address);
     let translations: HashMap<u32, [f32; 3]> = [(1, [0.75, -0.5, 0.25]), (GLOBAL, [-0.5, 0.25, 1.0])].into_iter().collect();
     let ptlas = build_ptlas(&a, n, partitions, &written, &translations);
-    let tlas = build_tlas(&a, &equivalent(n, &written, &translations));
+    let tlas = khr_tlas(&a, &equivalent(n, &written, &translations));
     let rays = reference::random_rays([-4.0, -4.0, -4.0, 5.0, 5.0, 5.0], 512, 11);
     let address = ptlas.address(&a);
     let khr = trace(&a, &Scene::Khr(tlas.s), 0, &rays);

@@ -14,6 +14,7 @@ pub mod compute;
 pub mod compute_run;
 pub mod ptlas;
 pub mod rq;
+pub mod trace;
 pub mod vuid;
 
 use std::ffi::{c_void, CStr, CString};

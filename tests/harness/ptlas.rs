@@ -1,9 +1,13 @@
 //! VK_NV_partitioned_acceleration_structure as the PTLAS tests (`tests/ptlas_*.rs`) call it:
 //! the NV structs, written here from the registry (spec/nv-extensions.md A.4), not taken from
-//! Arbor; its two commands resolved through the loader; the 24-byte op record.
+//! Arbor; its two commands resolved through the loader; the 24-byte op record; and the KHR TLAS
+//! of an equivalent instance list that the tests compare a PTLAS with.
 use std::ffi::c_void;
 
+use arbor_scene::InstanceRecord;
 use ash::vk;
+
+use super::vuid::{cmd_build, guarded, guarded_data, guarded_structure, info, instances_geom, madr, range, Accel, Dst, DEVICE, NO_FLAGS, TLAS};
 
 pub const EXT: &str = "VK_NV_partitioned_acceleration_structure";
 /// The partition index of the global partition.
@@ -89,4 +93,18 @@ pub fn functions(ctx: &super::Context) -> Nv {
             build: std::mem::transmute::<unsafe extern "system" fn(), PfnBuild>(get(c"vkCmdBuildPartitionedAccelerationStructuresNV")),
         }
     }
+}
+
+/// A KHR TLAS of `records` built through the API (vkCmdBuildAccelerationStructuresKHR) into a
+/// guarded destination.
+pub fn khr_tlas(a: &Accel, records: &[InstanceRecord]) -> Dst {
+    let inst = guarded_data(a, &records.iter().flat_map(|r| r.to_bytes()).collect::<Vec<u8>>());
+    let geoms = [instances_geom(inst.address(a), false)];
+    let inf = info(TLAS, NO_FLAGS, &geoms);
+    let n = records.len() as u32;
+    let sizes = a.sizes(DEVICE, &inf, &[n]);
+    let tlas = guarded_structure(a, TLAS, sizes.acceleration_structure_size);
+    let scratch = guarded(a, sizes.build_scratch_size);
+    cmd_build(a, &[inf.dst_acceleration_structure(tlas.s).scratch_data(madr(scratch.address(a)))], &[&[range(n)]]);
+    tlas
 }
