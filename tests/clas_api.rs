@@ -13,111 +13,14 @@ use arbor::accel::{self, MapView, Ray, RayFlags};
 use ash::vk;
 use glam::Vec3;
 use harness::accel::{instance_record, instances, Accel};
+use harness::clas::{commands, input, nv, region, BottomLevelInput, MoveInput, TriangleInput, EXT};
 
-const EXT: &str = "VK_NV_cluster_acceleration_structure";
-
-// The host structs, written here from the registry (not imported from the driver).
-#[repr(C)]
-#[derive(Clone, Copy)]
-struct InputInfo {
-    s_type: i32,
-    p_next: *mut c_void,
-    max_acceleration_structure_count: u32,
-    flags: u32,
-    op_type: i32,
-    op_mode: i32,
-    op_input: *const c_void,
-}
-#[repr(C)]
-struct TriangleInput {
-    s_type: i32,
-    p_next: *mut c_void,
-    vertex_format: i32,
-    max_geometry_index_value: u32,
-    max_cluster_unique_geometry_count: u32,
-    max_cluster_triangle_count: u32,
-    max_cluster_vertex_count: u32,
-    max_total_triangle_count: u32,
-    max_total_vertex_count: u32,
-    min_position_truncate_bit_count: u32,
-}
-#[repr(C)]
-struct BottomLevelInput {
-    s_type: i32,
-    p_next: *mut c_void,
-    max_total_cluster_count: u32,
-    max_cluster_count_per_acceleration_structure: u32,
-}
-#[repr(C)]
-struct MoveInput {
-    s_type: i32,
-    p_next: *mut c_void,
-    ty: i32,
-    no_move_overlap: u32,
-    max_moved_bytes: u64,
-}
-#[repr(C)]
-struct CommandsInfo {
-    s_type: i32,
-    p_next: *mut c_void,
-    input: InputInfo,
-    dst_implicit_data: u64,
-    scratch_data: u64,
-    dst_addresses_array: vk::StridedDeviceAddressRegionKHR,
-    dst_sizes_array: vk::StridedDeviceAddressRegionKHR,
-    src_infos_array: vk::StridedDeviceAddressRegionKHR,
-    src_infos_count: u64,
-    address_resolution_flags: u32,
-}
+// The host struct the harness lacks, written here from the registry (not imported from the driver).
 #[repr(C)]
 struct Properties {
     s_type: i32,
     p_next: *mut c_void,
     values: [u32; 8],
-}
-type GetSizes = unsafe extern "system" fn(vk::Device, *const InputInfo, *mut vk::AccelerationStructureBuildSizesInfoKHR);
-type CmdBuild = unsafe extern "system" fn(vk::CommandBuffer, *const CommandsInfo);
-
-struct Nv {
-    get_sizes: GetSizes,
-    cmd_build: CmdBuild,
-}
-
-fn nv(ctx: &harness::Context) -> Nv {
-    let f = |name: &std::ffi::CStr| {
-        // SAFETY: a device-level command name.
-        unsafe { ctx.instance.get_device_proc_addr(ctx.device.handle(), name.as_ptr()) }.expect("the command resolves when the extension is enabled")
-    };
-    // SAFETY: the PFN types of these commands (vk.xml).
-    unsafe {
-        Nv {
-            get_sizes: std::mem::transmute::<unsafe extern "system" fn(), GetSizes>(f(c"vkGetClusterAccelerationStructureBuildSizesNV")),
-            cmd_build: std::mem::transmute::<unsafe extern "system" fn(), CmdBuild>(f(c"vkCmdBuildClusterAccelerationStructureIndirectNV")),
-        }
-    }
-}
-
-fn region(address: u64, stride: u64, size: u64) -> vk::StridedDeviceAddressRegionKHR {
-    vk::StridedDeviceAddressRegionKHR { device_address: address, stride, size }
-}
-
-fn input(op: OpType, mode: OpMode, count: u32, op_input: *const c_void) -> InputInfo {
-    InputInfo { s_type: 1_000_569_005, p_next: std::ptr::null_mut(), max_acceleration_structure_count: count, flags: 0, op_type: op as i32, op_mode: mode as i32, op_input }
-}
-
-fn commands(input: InputInfo) -> CommandsInfo {
-    CommandsInfo {
-        s_type: 1_000_569_006,
-        p_next: std::ptr::null_mut(),
-        input,
-        dst_implicit_data: 0,
-        scratch_data: 0,
-        dst_addresses_array: region(0, 0, 0),
-        dst_sizes_array: region(0, 0, 0),
-        src_infos_array: region(0, 0, 0),
-        src_infos_count: 0,
-        address_resolution_flags: 0,
-    }
 }
 
 /// The first `n` clusters of the bunny: consecutive triangles, at most 128 triangles and 128

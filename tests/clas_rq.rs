@@ -137,58 +137,10 @@ fn build_tlas(a: &Accel, insts: &[([f32; 12], u64)]) -> vk::AccelerationStructur
     tlas
 }
 
-// One function: descriptor set, pipeline, dispatch and teardown of one trace.
 /// Runs the patched shader over `rays` ([origin, tmin, direction, tmax]) against `tlas`.
 fn trace(a: &Accel, tlas: vk::AccelerationStructureKHR, rays: &[[f32; 8]]) -> Vec<i32> {
-    let d = &a.ctx.device;
     let ray_bytes: Vec<u8> = rays.iter().flatten().flat_map(|x| x.to_le_bytes()).collect();
-    let (rb, hb) = (a.upload(&ray_bytes), a.buffer(24 * rays.len() as u64));
-    let spirv = cluster_module();
-    let stage = vk::ShaderStageFlags::COMPUTE;
-    let binding = |b: u32, ty| vk::DescriptorSetLayoutBinding::default().binding(b).descriptor_type(ty).descriptor_count(1).stage_flags(stage);
-    let bindings = [binding(0, vk::DescriptorType::ACCELERATION_STRUCTURE_KHR), binding(1, vk::DescriptorType::STORAGE_BUFFER), binding(2, vk::DescriptorType::STORAGE_BUFFER)];
-    // SAFETY: valid create infos; everything is destroyed before returning, after the wait.
-    unsafe {
-        let set_layout = d.create_descriptor_set_layout(&vk::DescriptorSetLayoutCreateInfo::default().bindings(&bindings), None).unwrap();
-        let sizes = [
-            vk::DescriptorPoolSize { ty: vk::DescriptorType::ACCELERATION_STRUCTURE_KHR, descriptor_count: 1 },
-            vk::DescriptorPoolSize { ty: vk::DescriptorType::STORAGE_BUFFER, descriptor_count: 2 },
-        ];
-        let pool = d.create_descriptor_pool(&vk::DescriptorPoolCreateInfo::default().max_sets(1).pool_sizes(&sizes), None).unwrap();
-        let layouts = [set_layout];
-        let set = d.allocate_descriptor_sets(&vk::DescriptorSetAllocateInfo::default().descriptor_pool(pool).set_layouts(&layouts)).unwrap()[0];
-        let structures = [tlas];
-        let mut as_info = vk::WriteDescriptorSetAccelerationStructureKHR::default().acceleration_structures(&structures);
-        let infos = [rb, hb].map(|b| [vk::DescriptorBufferInfo { buffer: a.buf(b).buffer, offset: 0, range: vk::WHOLE_SIZE }]);
-        let writes = [
-            vk::WriteDescriptorSet::default().dst_set(set).dst_binding(0).descriptor_count(1).descriptor_type(vk::DescriptorType::ACCELERATION_STRUCTURE_KHR).push_next(&mut as_info),
-            vk::WriteDescriptorSet::default().dst_set(set).dst_binding(1).descriptor_type(vk::DescriptorType::STORAGE_BUFFER).buffer_info(&infos[0]),
-            vk::WriteDescriptorSet::default().dst_set(set).dst_binding(2).descriptor_type(vk::DescriptorType::STORAGE_BUFFER).buffer_info(&infos[1]),
-        ];
-        d.update_descriptor_sets(&writes, &[]);
-        let ranges = [vk::PushConstantRange { stage_flags: stage, offset: 0, size: 8 }];
-        let layout = d.create_pipeline_layout(&vk::PipelineLayoutCreateInfo::default().set_layouts(&layouts).push_constant_ranges(&ranges), None).unwrap();
-        let module = d.create_shader_module(&vk::ShaderModuleCreateInfo::default().code(&spirv), None).unwrap();
-        let ci = [vk::ComputePipelineCreateInfo::default().stage(vk::PipelineShaderStageCreateInfo::default().stage(stage).module(module).name(c"main")).layout(layout)];
-        let pipeline = d.create_compute_pipelines(vk::PipelineCache::null(), &ci, None).map_err(|(_, e)| e).unwrap()[0];
-        let push: Vec<u8> = [rays.len() as u32, 0].iter().flat_map(|x| x.to_le_bytes()).collect();
-        a.submit(|cb| {
-            let barrier = [vk::MemoryBarrier::default().src_access_mask(vk::AccessFlags::ACCELERATION_STRUCTURE_WRITE_KHR).dst_access_mask(vk::AccessFlags::ACCELERATION_STRUCTURE_READ_KHR)];
-            d.cmd_pipeline_barrier(cb, vk::PipelineStageFlags::ACCELERATION_STRUCTURE_BUILD_KHR, vk::PipelineStageFlags::COMPUTE_SHADER, vk::DependencyFlags::empty(), &barrier, &[], &[]);
-            d.cmd_bind_pipeline(cb, vk::PipelineBindPoint::COMPUTE, pipeline);
-            d.cmd_bind_descriptor_sets(cb, vk::PipelineBindPoint::COMPUTE, layout, 0, &[set], &[]);
-            d.cmd_push_constants(cb, layout, stage, 0, &push);
-            d.cmd_dispatch(cb, (rays.len() as u32).div_ceil(64), 1, 1);
-            let barrier = [vk::MemoryBarrier::default().src_access_mask(vk::AccessFlags::SHADER_WRITE).dst_access_mask(vk::AccessFlags::HOST_READ)];
-            d.cmd_pipeline_barrier(cb, vk::PipelineStageFlags::COMPUTE_SHADER, vk::PipelineStageFlags::HOST, vk::DependencyFlags::empty(), &barrier, &[], &[]);
-        });
-        d.destroy_pipeline(pipeline, None);
-        d.destroy_shader_module(module, None);
-        d.destroy_pipeline_layout(layout, None);
-        d.destroy_descriptor_pool(pool, None);
-        d.destroy_descriptor_set_layout(set_layout, None);
-    }
-    collect(&a.buf(hb).read(0, 24 * rays.len()))
+    collect(&harness::trace::trace_tlas(a, &cluster_module(), tlas, &ray_bytes, rays.len(), 24))
 }
 
 /// The brute force's answer for one ray: (t, cluster ID or -1, primitive, geometry index,

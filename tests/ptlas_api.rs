@@ -23,45 +23,13 @@ use std::ffi::c_void;
 use arbor::accel::{self, Geometry, GeometryData, GeometryFlags, IndexType, MapView, Ray, RayFlags, VertexFormat};
 use arbor_scene::{InstanceRecord, Rng};
 use ash::vk;
+use harness::ptlas::*;
 use harness::vuid::*;
 use reference::brute_force::{compare_ray, RefScene, Tolerance};
 
-const EXT: &str = "VK_NV_partitioned_acceleration_structure";
-const GLOBAL: u32 = u32::MAX;
 const EXPLICIT_AABB: u32 = 0x10;
 
 // The NV structs, written here from the registry (spec/nv-extensions.md A.4), not taken from Arbor.
-#[repr(C)]
-#[derive(Clone, Copy)]
-struct InstancesInput {
-    s_type: i32,
-    p_next: *const c_void,
-    flags: u32,
-    instance_count: u32,
-    max_instance_per_partition_count: u32,
-    partition_count: u32,
-    max_instance_in_global_partition_count: u32,
-}
-
-#[repr(C)]
-struct TranslationFlags {
-    s_type: i32,
-    p_next: *const c_void,
-    enable_partition_translation: u32,
-}
-
-#[repr(C)]
-struct BuildInfo {
-    s_type: i32,
-    p_next: *const c_void,
-    input: InstancesInput,
-    src: u64,
-    dst: u64,
-    scratch: u64,
-    src_infos: u64,
-    src_infos_count: u64,
-}
-
 #[repr(C)]
 struct FeaturesNV {
     s_type: i32,
@@ -75,9 +43,6 @@ struct PropertiesNV {
     p_next: *mut c_void,
     max_partition_count: u32,
 }
-
-type PfnSizes = unsafe extern "system" fn(vk::Device, *const InstancesInput, *mut vk::AccelerationStructureBuildSizesInfoKHR<'_>);
-type PfnBuild = unsafe extern "system" fn(vk::CommandBuffer, *const BuildInfo);
 
 /// One instance as the test knows it.
 #[derive(Clone, Copy, Debug)]
@@ -103,35 +68,6 @@ fn write_record(i: &Inst) -> Vec<u8> {
     }
     b.extend(i.blas.to_le_bytes());
     b
-}
-
-/// VkBuildPartitionedAccelerationStructureIndirectCommandNV (24 bytes).
-fn op_record(op: u32, count: u32, address: u64, stride: u64) -> Vec<u8> {
-    [op.to_le_bytes().as_slice(), &count.to_le_bytes(), &address.to_le_bytes(), &stride.to_le_bytes()].concat()
-}
-
-struct Nv {
-    sizes: PfnSizes,
-    build: PfnBuild,
-}
-
-fn functions(ctx: &harness::Context) -> Nv {
-    let get = |name: &std::ffi::CStr| {
-        // SAFETY: a live device; the name is a command of an enabled extension.
-        let f = unsafe { ctx.instance.get_device_proc_addr(ctx.device.handle(), name.as_ptr()) };
-        f.unwrap_or_else(|| panic!("{name:?} not found"))
-    };
-    // SAFETY: the pointers are the commands of these names, with these signatures.
-    unsafe {
-        Nv {
-            sizes: std::mem::transmute::<unsafe extern "system" fn(), PfnSizes>(get(c"vkGetPartitionedAccelerationStructuresBuildSizesNV")),
-            build: std::mem::transmute::<unsafe extern "system" fn(), PfnBuild>(get(c"vkCmdBuildPartitionedAccelerationStructuresNV")),
-        }
-    }
-}
-
-fn input(n: u32, per: u32, partitions: u32, global: u32, next: *const c_void) -> InstancesInput {
-    InstancesInput { s_type: 1000570003, p_next: next, flags: 0, instance_count: n, max_instance_per_partition_count: per, partition_count: partitions, max_instance_in_global_partition_count: global }
 }
 
 fn random_instances(rng: &mut Rng, n: u32, partitions: u32, blas: u64) -> Vec<Inst> {
@@ -175,20 +111,6 @@ fn equivalent(slots: &[Option<Inst>], translations: &HashMap<u32, [f32; 3]>) -> 
         .collect()
 }
 
-/// A KHR TLAS of `records` built through the API; its bytes.
-fn khr_tlas(a: &Accel, records: &[InstanceRecord]) -> Vec<u8> {
-    let bytes: Vec<u8> = records.iter().flat_map(|r| r.to_bytes()).collect();
-    let inst = guarded_data(a, &bytes);
-    let geoms = [instances_geom(inst.address(a), false)];
-    let inf = info(TLAS, NO_FLAGS, &geoms);
-    let n = records.len() as u32;
-    let sizes = a.sizes(DEVICE, &inf, &[n]);
-    let tlas = guarded_structure(a, TLAS, sizes.acceleration_structure_size);
-    let scratch = guarded(a, sizes.build_scratch_size);
-    cmd_build(a, &[inf.dst_acceleration_structure(tlas.s).scratch_data(madr(scratch.address(a)))], &[&[range(n)]]);
-    tlas.r.read(a)
-}
-
 /// The test's view of the state and its checks against brute force and the KHR TLAS.
 struct Checker<'m> {
     view: MapView,
@@ -200,7 +122,7 @@ impl Checker<'_> {
     fn check(&self, a: &Accel, ptlas: &[u8], slots: &[Option<Inst>], translations: &HashMap<u32, [f32; 3]>, seed: u64) {
         assert!(accel::header(ptlas).is_some(), "the PTLAS is not valid");
         let records = equivalent(slots, translations);
-        let khr = khr_tlas(a, &records);
+        let khr = khr_tlas(a, &records).r.read(a);
         let blases: HashMap<u64, &[Geometry]> = [(self.blas_address, self.grid.as_slice())].into_iter().collect();
         let scene = RefScene::Tlas { instances: records, blases };
         let rays = reference::random_rays([-4.0, -4.0, -4.0, 5.0, 5.0, 5.0], 300, seed);
@@ -242,48 +164,9 @@ fn build(a: &Accel, nv: &Nv, info: &BuildInfo, count_word: &Region, count: u32, 
 /// tests/shaders/ptlas_rq.comp over `rays` against the structure at `address` (converted in
 /// the shader with OpConvertUToAccelerationStructureKHR); the hits buffer.
 fn trace(a: &Accel, address: u64, rays: &[Ray]) -> Vec<u8> {
-    let d = &a.ctx.device;
-    let ray_bytes: Vec<u8> = rays
-        .iter()
-        .flat_map(|r| [r.origin.x, r.origin.y, r.origin.z, r.tmin, r.direction.x, r.direction.y, r.direction.z, r.tmax])
-        .flat_map(f32::to_le_bytes)
-        .collect();
-    let (rb, hb) = (a.upload(&ray_bytes), a.buffer(16 * rays.len() as u64));
-    let spirv = harness::compute::glsl("ptlas_rq.comp");
-    let stage = vk::ShaderStageFlags::COMPUTE;
-    let bindings = [0, 1].map(|b| vk::DescriptorSetLayoutBinding::default().binding(b).descriptor_type(vk::DescriptorType::STORAGE_BUFFER).descriptor_count(1).stage_flags(stage));
-    // SAFETY: valid create infos; everything is destroyed before returning, after the wait.
-    unsafe {
-        let set_layout = d.create_descriptor_set_layout(&vk::DescriptorSetLayoutCreateInfo::default().bindings(&bindings), None).unwrap();
-        let sizes = [vk::DescriptorPoolSize { ty: vk::DescriptorType::STORAGE_BUFFER, descriptor_count: 2 }];
-        let pool = d.create_descriptor_pool(&vk::DescriptorPoolCreateInfo::default().max_sets(1).pool_sizes(&sizes), None).unwrap();
-        let layouts = [set_layout];
-        let set = d.allocate_descriptor_sets(&vk::DescriptorSetAllocateInfo::default().descriptor_pool(pool).set_layouts(&layouts)).unwrap()[0];
-        let infos = [rb, hb].map(|b| [vk::DescriptorBufferInfo { buffer: a.buf(b).buffer, offset: 0, range: vk::WHOLE_SIZE }]);
-        let writes = [0, 1].map(|k| vk::WriteDescriptorSet::default().dst_set(set).dst_binding(k as u32).descriptor_type(vk::DescriptorType::STORAGE_BUFFER).buffer_info(&infos[k]));
-        d.update_descriptor_sets(&writes, &[]);
-        let ranges = [vk::PushConstantRange { stage_flags: stage, offset: 0, size: 12 }];
-        let layout = d.create_pipeline_layout(&vk::PipelineLayoutCreateInfo::default().set_layouts(&layouts).push_constant_ranges(&ranges), None).unwrap();
-        let module = d.create_shader_module(&vk::ShaderModuleCreateInfo::default().code(&spirv), None).unwrap();
-        let ci = [vk::ComputePipelineCreateInfo::default().stage(vk::PipelineShaderStageCreateInfo::default().stage(stage).module(module).name(c"main")).layout(layout)];
-        let pipeline = d.create_compute_pipelines(vk::PipelineCache::null(), &ci, None).map_err(|(_, e)| e).unwrap()[0];
-        let push: Vec<u8> = [address as u32, (address >> 32) as u32, rays.len() as u32].iter().flat_map(|x| x.to_le_bytes()).collect();
-        a.submit(|cb| {
-            let barrier = [vk::MemoryBarrier::default().src_access_mask(vk::AccessFlags::ACCELERATION_STRUCTURE_WRITE_KHR).dst_access_mask(vk::AccessFlags::ACCELERATION_STRUCTURE_READ_KHR)];
-            d.cmd_pipeline_barrier(cb, vk::PipelineStageFlags::ACCELERATION_STRUCTURE_BUILD_KHR, vk::PipelineStageFlags::COMPUTE_SHADER, vk::DependencyFlags::empty(), &barrier, &[], &[]);
-            d.cmd_bind_pipeline(cb, vk::PipelineBindPoint::COMPUTE, pipeline);
-            d.cmd_bind_descriptor_sets(cb, vk::PipelineBindPoint::COMPUTE, layout, 0, &[set], &[]);
-            d.cmd_push_constants(cb, layout, stage, 0, &push);
-            d.cmd_dispatch(cb, (rays.len() as u32).div_ceil(64), 1, 1);
-            let barrier = [vk::MemoryBarrier::default().src_access_mask(vk::AccessFlags::SHADER_WRITE).dst_access_mask(vk::AccessFlags::HOST_READ)];
-            d.cmd_pipeline_barrier(cb, vk::PipelineStageFlags::COMPUTE_SHADER, vk::PipelineStageFlags::HOST, vk::DependencyFlags::empty(), &barrier, &[], &[]);
-        });
-        d.destroy_pipeline(pipeline, None);
-        d.destroy_shader_module(module, None);
-        d.destroy_pipeline_layout(layout, None);
-        d.destroy_descriptor_pool(pool, None);
-        d.destroy_descriptor_set_layout(set_layout, None);
-    }
+    let (rb, hb) = (a.upload(&harness::trace::ray_bytes(rays)), a.buffer(16 * rays.len() as u64));
+    let push: Vec<u8> = [address as u32, (address >> 32) as u32, rays.len() as u32].iter().flat_map(|x| x.to_le_bytes()).collect();
+    harness::trace::dispatch(a, &harness::compute::glsl("ptlas_rq.comp"), None, &[rb, hb], &push, (rays.len() as u32).div_ceil(64));
     a.buf(hb).read(0, 16 * rays.len())
 }
 
@@ -340,8 +223,8 @@ fn ptlas_builds_through_the_loader_match_brute_force_and_a_khr_tlas() {
     let checker = Checker { view, blas_address, grid: vec![grid_geometry(&mesh)] };
     let mut rng = Rng::new(24);
     let (n, partitions) = (48u32, 5u32);
-    let flags = TranslationFlags { s_type: 1000570005, p_next: std::ptr::null(), enable_partition_translation: 1 };
-    let inp = input(n, n, partitions, n, &flags as *const _ as *const c_void);
+    let flags = translation_enabled();
+    let inp = InstancesInput { p_next: &flags as *const _ as *const c_void, ..input(n, n, partitions, n) };
     let mut sizes = vk::AccelerationStructureBuildSizesInfoKHR::default();
     // SAFETY: valid input and output structs.
     unsafe { (nv.sizes)(ctx.device.handle(), &inp, &mut sizes) };
@@ -360,7 +243,7 @@ fn ptlas_builds_through_the_loader_match_brute_force_and_a_khr_tlas() {
     let (w_reg, t_reg) = (guarded_data(&a, &w_bytes), guarded_data(&a, &t_bytes));
     let ops: Vec<u8> = [op_record(0, written.len() as u32, w_reg.address(&a), 104), op_record(2, 2, t_reg.address(&a), 16)].concat();
     let ops_reg = guarded_data(&a, &ops);
-    let mut info = BuildInfo { s_type: 1000570004, p_next: std::ptr::null(), input: inp, src: 0, dst: dst.address(&a), scratch: scratch.address(&a), src_infos: ops_reg.address(&a), src_infos_count: count_word.address(&a) };
+    let mut info = build_info(inp, 0, dst.address(&a), scratch.address(&a), ops_reg.address(&a), count_word.address(&a));
     build(&a, &nv, &info, &count_word, 2, None);
     let first = dst.read(&a);
     checker.check(&a, &first, &slots, &translations, 1);
@@ -440,14 +323,14 @@ fn ptlas_invalid_builds_are_reported_and_skipped() {
     let ctx = harness::Context::new(harness::Options { validation: false, acceleration_structure: true, device_extensions: exts, ..Default::default() });
     let a = Accel::new(&ctx);
     let nv = functions(&ctx);
-    let inp = input(4, 4, 1, 0, std::ptr::null());
+    let inp = input(4, 4, 1, 0);
     let mut sizes = vk::AccelerationStructureBuildSizesInfoKHR::default();
     // SAFETY: valid input and output structs.
     unsafe { (nv.sizes)(ctx.device.handle(), &inp, &mut sizes) };
     let (dst, scratch, count_word) = (guarded(&a, sizes.acceleration_structure_size + 256), guarded(&a, sizes.build_scratch_size), guarded(&a, 4));
     let ops_reg = guarded_data(&a, &[op_record(0, 0, 0, 104), op_record(0, 0, 0, 104)].concat());
     let snap = snapshot(&a);
-    let mut info = BuildInfo { s_type: 1000570004, p_next: std::ptr::null(), input: inp, src: 0, dst: dst.address(&a) + 64, scratch: scratch.address(&a), src_infos: ops_reg.address(&a), src_infos_count: count_word.address(&a) };
+    let mut info = build_info(inp, 0, dst.address(&a) + 64, scratch.address(&a), ops_reg.address(&a), count_word.address(&a));
     let before = harness::diagnostics().len();
     build(&a, &nv, &info, &count_word, 0, None);
     let said = harness::diagnostics()[before..].to_string();

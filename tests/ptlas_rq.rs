@@ -21,43 +21,11 @@ use std::ffi::c_void;
 use arbor::accel::Ray;
 use arbor_scene::{InstanceRecord, Rng};
 use ash::vk;
+use harness::ptlas::*;
 use harness::vuid::*;
 
-const EXT: &str = "VK_NV_partitioned_acceleration_structure";
-const GLOBAL: u32 = u32::MAX;
 const PTLAS_DESCRIPTOR: vk::DescriptorType = vk::DescriptorType::from_raw(1000570000);
 const WRITE_PTLAS_STYPE: vk::StructureType = vk::StructureType::from_raw(1000570002);
-
-#[repr(C)]
-#[derive(Clone, Copy)]
-struct InstancesInput {
-    s_type: i32,
-    p_next: *const c_void,
-    flags: u32,
-    instance_count: u32,
-    max_instance_per_partition_count: u32,
-    partition_count: u32,
-    max_instance_in_global_partition_count: u32,
-}
-
-#[repr(C)]
-struct TranslationFlags {
-    s_type: i32,
-    p_next: *const c_void,
-    enable_partition_translation: u32,
-}
-
-#[repr(C)]
-struct BuildInfo {
-    s_type: i32,
-    p_next: *const c_void,
-    input: InstancesInput,
-    src: u64,
-    dst: u64,
-    scratch: u64,
-    src_infos: u64,
-    src_infos_count: u64,
-}
 
 /// VkWriteDescriptorSetPartitionedAccelerationStructureNV.
 #[repr(C)]
@@ -67,9 +35,6 @@ struct WritePtlas {
     acceleration_structure_count: u32,
     p_acceleration_structures: *const u64,
 }
-
-type PfnSizes = unsafe extern "system" fn(vk::Device, *const InstancesInput, *mut vk::AccelerationStructureBuildSizesInfoKHR<'_>);
-type PfnBuild = unsafe extern "system" fn(vk::CommandBuffer, *const BuildInfo);
 
 /// One PTLAS instance as the test knows it.
 #[derive(Clone, Copy)]
@@ -122,46 +87,22 @@ fn equivalent(n: u32, written: &[Inst], translations: &HashMap<u32, [f32; 3]>) -
 /// Builds the PTLAS of `written` and `translations` from scratch; its region.
 fn build_ptlas(a: &Accel, n: u32, partitions: u32, written: &[Inst], translations: &HashMap<u32, [f32; 3]>) -> Region {
     let ctx = a.ctx;
-    let get = |name: &std::ffi::CStr| {
-        // SAFETY: a live device; the name is a command of an enabled extension.
-        unsafe { ctx.instance.get_device_proc_addr(ctx.device.handle(), name.as_ptr()) }.unwrap()
-    };
-    // SAFETY: the pointers are the commands of these names, with these signatures.
-    let (sizes_fn, build_fn) = unsafe {
-        (
-            std::mem::transmute::<unsafe extern "system" fn(), PfnSizes>(get(c"vkGetPartitionedAccelerationStructuresBuildSizesNV")),
-            std::mem::transmute::<unsafe extern "system" fn(), PfnBuild>(get(c"vkCmdBuildPartitionedAccelerationStructuresNV")),
-        )
-    };
-    let flags = TranslationFlags { s_type: 1000570005, p_next: std::ptr::null(), enable_partition_translation: 1 };
-    let input = InstancesInput { s_type: 1000570003, p_next: &flags as *const _ as *const c_void, flags: 0, instance_count: n, max_instance_per_partition_count: n, partition_count: partitions, max_instance_in_global_partition_count: n };
+    let nv = functions(ctx);
+    let flags = translation_enabled();
+    let input = InstancesInput { p_next: &flags as *const _ as *const c_void, ..input(n, n, partitions, n) };
     let mut sizes = vk::AccelerationStructureBuildSizesInfoKHR::default();
     // SAFETY: valid input and output structs.
-    unsafe { sizes_fn(ctx.device.handle(), &input, &mut sizes) };
+    unsafe { (nv.sizes)(ctx.device.handle(), &input, &mut sizes) };
     let (dst, scratch) = (guarded(a, sizes.acceleration_structure_size), guarded(a, sizes.build_scratch_size));
     let writes = guarded_data(a, &written.iter().flat_map(write_record).collect::<Vec<u8>>());
     let t_bytes: Vec<u8> = translations.iter().flat_map(|(p, t)| [p.to_le_bytes(), t[0].to_le_bytes(), t[1].to_le_bytes(), t[2].to_le_bytes()].concat()).collect();
     let t_reg = guarded_data(a, &t_bytes);
-    let op = |op: u32, count: usize, r: &Region, stride: u64| [op.to_le_bytes().as_slice(), &(count as u32).to_le_bytes(), &r.address(a).to_le_bytes(), &stride.to_le_bytes()].concat();
-    let ops = guarded_data(a, &[op(0, written.len(), &writes, 104), op(2, translations.len(), &t_reg, 16)].concat());
+    let ops = guarded_data(a, &[op_record(0, written.len() as u32, writes.address(a), 104), op_record(2, translations.len() as u32, t_reg.address(a), 16)].concat());
     let count = guarded_data(a, &2u32.to_le_bytes());
-    let info = BuildInfo { s_type: 1000570004, p_next: std::ptr::null(), input, src: 0, dst: dst.address(a), scratch: scratch.address(a), src_infos: ops.address(a), src_infos_count: count.address(a) };
+    let info = build_info(input, 0, dst.address(a), scratch.address(a), ops.address(a), count.address(a));
     // SAFETY: a valid command buffer; the info lives through the call.
-    a.submit(|cb| unsafe { build_fn(cb, &info) });
+    a.submit(|cb| unsafe { (nv.build)(cb, &info) });
     dst
-}
-
-/// A KHR TLAS of `records` built through the API.
-fn build_tlas(a: &Accel, records: &[InstanceRecord]) -> Dst {
-    let inst = guarded_data(a, &records.iter().flat_map(|r| r.to_bytes()).collect::<Vec<u8>>());
-    let geoms = [instances_geom(inst.address(a), false)];
-    let inf = info(TLAS, NO_FLAGS, &geoms);
-    let n = records.len() as u32;
-    let sizes = a.sizes(DEVICE, &inf, &[n]);
-    let tlas = guarded_structure(a, TLAS, sizes.acceleration_structure_size);
-    let scratch = guarded(a, sizes.build_scratch_size);
-    cmd_build(a, &[inf.dst_acceleration_structure(tlas.s).scratch_data(madr(scratch.address(a)))], &[&[range(n)]]);
-    tlas
 }
 
 /// How binding 2 of the set the shader traces is filled.
@@ -176,8 +117,7 @@ enum Scene {
 // One function: the objects of one dispatch, created and destroyed around it.
 fn trace(a: &Accel, scene: &Scene, by_address: u64, rays: &[Ray]) -> Vec<u8> {
     let d = &a.ctx.device;
-    let ray_bytes: Vec<u8> = rays.iter().flat_map(|r| [r.origin.x, r.origin.y, r.origin.z, r.tmin, r.direction.x, r.direction.y, r.direction.z, r.tmax]).flat_map(f32::to_le_bytes).collect();
-    let (rb, hb) = (a.upload(&ray_bytes), a.buffer(16 * rays.len() as u64));
+    let (rb, hb) = (a.upload(&harness::trace::ray_bytes(rays)), a.buffer(16 * rays.len() as u64));
     let spirv = harness::compute::glsl("ptlas_rq_desc.comp");
     let stage = vk::ShaderStageFlags::COMPUTE;
     let as_type = if matches!(scene, Scene::Khr(_)) { vk::DescriptorType::ACCELERATION_STRUCTURE_KHR } else { PTLAS_DESCRIPTOR };
@@ -217,23 +157,10 @@ fn trace(a: &Accel, scene: &Scene, by_address: u64, rays: &[Ray]) -> Vec<u8> {
             d.update_descriptor_sets(&[], &copies);
         }
         let set = sets[copied as usize];
-        let ranges = [vk::PushConstantRange { stage_flags: stage, offset: 0, size: 16 }];
-        let layout = d.create_pipeline_layout(&vk::PipelineLayoutCreateInfo::default().set_layouts(&layouts[..1]).push_constant_ranges(&ranges), None).unwrap();
-        let module = d.create_shader_module(&vk::ShaderModuleCreateInfo::default().code(&spirv), None).unwrap();
-        let ci = [vk::ComputePipelineCreateInfo::default().stage(vk::PipelineShaderStageCreateInfo::default().stage(stage).module(module).name(c"main")).layout(layout)];
-        let pipeline = d.create_compute_pipelines(vk::PipelineCache::null(), &ci, None).map_err(|(_, e)| e).unwrap()[0];
+        let pipeline = harness::trace::Pipeline::new(d, &spirv, set_layout, 16);
         let push: Vec<u8> = [by_address as u32, (by_address >> 32) as u32, rays.len() as u32, (by_address != 0) as u32].iter().flat_map(|x| x.to_le_bytes()).collect();
-        a.submit(|cb| {
-            d.cmd_bind_pipeline(cb, vk::PipelineBindPoint::COMPUTE, pipeline);
-            d.cmd_bind_descriptor_sets(cb, vk::PipelineBindPoint::COMPUTE, layout, 0, &[set], &[]);
-            d.cmd_push_constants(cb, layout, stage, 0, &push);
-            d.cmd_dispatch(cb, (rays.len() as u32).div_ceil(64), 1, 1);
-            let barrier = [vk::MemoryBarrier::default().src_access_mask(vk::AccessFlags::SHADER_WRITE).dst_access_mask(vk::AccessFlags::HOST_READ)];
-            d.cmd_pipeline_barrier(cb, vk::PipelineStageFlags::COMPUTE_SHADER, vk::PipelineStageFlags::HOST, vk::DependencyFlags::empty(), &barrier, &[], &[]);
-        });
-        d.destroy_pipeline(pipeline, None);
-        d.destroy_shader_module(module, None);
-        d.destroy_pipeline_layout(layout, None);
+        a.submit(|cb| pipeline.record(d, cb, set, &push, (rays.len() as u32).div_ceil(64)));
+        pipeline.destroy(d);
         d.destroy_descriptor_pool(pool, None);
         d.destroy_descriptor_set_layout(set_layout, None);
     }
@@ -255,7 +182,7 @@ fn compare_with_khr(validation: bool, ways: &[&str]) {
     let written = instances(&mut Rng::new(2024), n, partitions, blas_address);
     let translations: HashMap<u32, [f32; 3]> = [(1, [0.75, -0.5, 0.25]), (GLOBAL, [-0.5, 0.25, 1.0])].into_iter().collect();
     let ptlas = build_ptlas(&a, n, partitions, &written, &translations);
-    let tlas = build_tlas(&a, &equivalent(n, &written, &translations));
+    let tlas = khr_tlas(&a, &equivalent(n, &written, &translations));
     let rays = reference::random_rays([-4.0, -4.0, -4.0, 5.0, 5.0, 5.0], 512, 11);
     let address = ptlas.address(&a);
     let khr = trace(&a, &Scene::Khr(tlas.s), 0, &rays);

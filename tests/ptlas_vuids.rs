@@ -19,52 +19,11 @@ use std::ffi::c_void;
 
 use arbor::accel::{self, MapView};
 use ash::vk;
+use harness::ptlas::*;
 use harness::vuid::*;
 
-const EXT: &str = "VK_NV_partitioned_acceleration_structure";
 const PTLAS_CMD: &str = "vkCmdBuildPartitionedAccelerationStructuresNV";
-const GLOBAL: u32 = u32::MAX;
 const HEADER: u64 = 128;
-
-// The NV structs, written here from the registry (spec/nv-extensions.md A.4), not taken from Arbor.
-#[repr(C)]
-#[derive(Clone, Copy)]
-struct InstancesInput {
-    s_type: i32,
-    p_next: *const c_void,
-    flags: u32,
-    instance_count: u32,
-    max_instance_per_partition_count: u32,
-    partition_count: u32,
-    max_instance_in_global_partition_count: u32,
-}
-
-#[repr(C)]
-struct TranslationFlags {
-    s_type: i32,
-    p_next: *const c_void,
-    enable_partition_translation: u32,
-}
-
-#[repr(C)]
-#[derive(Clone, Copy)]
-struct BuildInfo {
-    s_type: i32,
-    p_next: *const c_void,
-    input: InstancesInput,
-    src: u64,
-    dst: u64,
-    scratch: u64,
-    src_infos: u64,
-    src_infos_count: u64,
-}
-
-type PfnSizes = unsafe extern "system" fn(vk::Device, *const InstancesInput, *mut vk::AccelerationStructureBuildSizesInfoKHR<'_>);
-type PfnBuild = unsafe extern "system" fn(vk::CommandBuffer, *const BuildInfo);
-
-fn input(n: u32, per: u32, partitions: u32, global: u32) -> InstancesInput {
-    InstancesInput { s_type: 1000570003, p_next: std::ptr::null(), flags: 0, instance_count: n, max_instance_per_partition_count: per, partition_count: partitions, max_instance_in_global_partition_count: global }
-}
 
 /// VkPartitionedAccelerationStructureWriteInstanceDataNV (104 bytes).
 #[derive(Clone, Copy)]
@@ -99,11 +58,6 @@ fn update(index: u32, sbt: u32, blas: u64) -> Vec<u8> {
 /// VkPartitionedAccelerationStructureWritePartitionTranslationDataNV (16 bytes).
 fn translation(partition: u32, t: [f32; 3]) -> Vec<u8> {
     [partition.to_le_bytes(), t[0].to_le_bytes(), t[1].to_le_bytes(), t[2].to_le_bytes()].concat()
-}
-
-/// VkBuildPartitionedAccelerationStructureIndirectCommandNV (24 bytes).
-fn op_record(op: u32, count: u32, address: u64, stride: u64) -> Vec<u8> {
-    [op.to_le_bytes().as_slice(), &count.to_le_bytes(), &address.to_le_bytes(), &stride.to_le_bytes()].concat()
 }
 
 /// The device of every scenario: the grid BLAS, the PTLAS sizes for `input(8, 8, 2, 8)`, a
@@ -144,7 +98,7 @@ impl Fx<'_> {
     }
     fn info(&self, ops: &Region, dst: u64) -> BuildInfo {
         let s = |r: &Region| r.address(&self.a);
-        BuildInfo { s_type: 1000570004, p_next: std::ptr::null(), input: input(8, 8, 2, 8), src: 0, dst, scratch: s(&self.scratch), src_infos: s(ops), src_infos_count: s(&self.count) }
+        build_info(input(8, 8, 2, 8), 0, dst, s(&self.scratch), s(ops), s(&self.count))
     }
     fn record(&self, info: &BuildInfo) {
         // SAFETY: a valid command buffer; the info's pointers live through the call.
@@ -187,28 +141,13 @@ fn context_with_extension() -> harness::Context {
     harness::Context::new(opts)
 }
 
-fn functions(ctx: &harness::Context) -> (PfnSizes, PfnBuild) {
-    let get = |name: &std::ffi::CStr| {
-        // SAFETY: a live device; the name is a command of an enabled extension.
-        let f = unsafe { ctx.instance.get_device_proc_addr(ctx.device.handle(), name.as_ptr()) };
-        f.unwrap_or_else(|| panic!("{name:?} not found"))
-    };
-    // SAFETY: the pointers are the commands of these names, with these signatures.
-    unsafe {
-        (
-            std::mem::transmute::<unsafe extern "system" fn(), PfnSizes>(get(c"vkGetPartitionedAccelerationStructuresBuildSizesNV")),
-            std::mem::transmute::<unsafe extern "system" fn(), PfnBuild>(get(c"vkCmdBuildPartitionedAccelerationStructuresNV")),
-        )
-    }
-}
-
 /// A device with the extension, the fixture with a valid PTLAS in `dst`; after `f`, a valid
 /// build into a fresh destination must traverse and every guard of the fixture hold.
 fn scenario(f: impl FnOnce(&Fx)) {
     let _serial = serial();
     let ctx = context_with_extension();
     let a = Accel::new(&ctx);
-    let (sizes_fn, build_fn) = functions(&ctx);
+    let Nv { sizes: sizes_fn, build: build_fn } = functions(&ctx);
     let m = upload_grid(&a);
     let (blas, _) = valid_blas(&a, &m, NO_FLAGS);
     let blas_address = a.address_of(blas.s);
@@ -356,7 +295,7 @@ fn translation_without_enable_partition_translation_10575() {
 #[test]
 fn translation_partition_index_past_partition_count_10574() {
     scenario(|fx| {
-        let flags = TranslationFlags { s_type: 1000570005, p_next: std::ptr::null(), enable_partition_translation: 1 };
+        let flags = translation_enabled();
         let inp = InstancesInput { p_next: &flags as *const _ as *const c_void, ..input(8, 8, 2, 8) };
         let ops = fx.ops(&[(2, vec![translation(GLOBAL, [0.0; 3]), translation(2, [1.0, 0.0, 0.0])])]);
         let vuid = "VUID-VkPartitionedAccelerationStructureWritePartitionTranslationDataNV-partitionIndex-10574";

@@ -12,7 +12,9 @@ pub mod child;
 pub mod clas;
 pub mod compute;
 pub mod compute_run;
+pub mod ptlas;
 pub mod rq;
+pub mod trace;
 pub mod vuid;
 
 use std::ffi::{c_void, CStr, CString};

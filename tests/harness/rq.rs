@@ -13,6 +13,7 @@ use ash::vk;
 
 use super::accel::ALL_USAGE;
 use super::compute::{use_drivers, validated_instance, Driver};
+use super::trace::{after_builds, Pipeline};
 use super::{lifecycle, Messages};
 
 const LAVAPIPE_MANIFESTS: &[&str] = &["/usr/share/vulkan/icd.d/lvp_icd.x86_64.json", "/usr/share/vulkan/icd.d/lvp_icd.json"];
@@ -638,33 +639,14 @@ impl RqGpu {
             }
             d.update_descriptor_sets(&writes, &[]);
             let push_size = (push.len() as u32).next_multiple_of(4);
-            let ranges = [vk::PushConstantRange { stage_flags: stage, offset: 0, size: push_size }];
-            let mut lci = vk::PipelineLayoutCreateInfo::default().set_layouts(&layouts);
-            if push_size > 0 {
-                lci = lci.push_constant_ranges(&ranges);
-            }
-            let layout = d.create_pipeline_layout(&lci, None).unwrap();
-            let module = d.create_shader_module(&vk::ShaderModuleCreateInfo::default().code(spirv), None).unwrap();
-            let ci = [vk::ComputePipelineCreateInfo::default().stage(vk::PipelineShaderStageCreateInfo::default().stage(stage).module(module).name(c"main")).layout(layout)];
-            let pipeline = d.create_compute_pipelines(vk::PipelineCache::null(), &ci, None).map_err(|(_, e)| e).expect("vkCreateComputePipelines");
-            let pipeline = pipeline[0];
+            let pipeline = Pipeline::new(d, spirv, set_layout, push_size);
             let mut push = push.to_vec();
             push.resize(push_size as usize, 0);
             self.submit(|cb| {
-                let barrier = [vk::MemoryBarrier::default().src_access_mask(vk::AccessFlags::ACCELERATION_STRUCTURE_WRITE_KHR).dst_access_mask(vk::AccessFlags::ACCELERATION_STRUCTURE_READ_KHR)];
-                d.cmd_pipeline_barrier(cb, vk::PipelineStageFlags::ACCELERATION_STRUCTURE_BUILD_KHR, vk::PipelineStageFlags::COMPUTE_SHADER, vk::DependencyFlags::empty(), &barrier, &[], &[]);
-                d.cmd_bind_pipeline(cb, vk::PipelineBindPoint::COMPUTE, pipeline);
-                d.cmd_bind_descriptor_sets(cb, vk::PipelineBindPoint::COMPUTE, layout, 0, &[set], &[]);
-                if !push.is_empty() {
-                    d.cmd_push_constants(cb, layout, stage, 0, &push);
-                }
-                d.cmd_dispatch(cb, groups, 1, 1);
-                let barrier = [vk::MemoryBarrier::default().src_access_mask(vk::AccessFlags::SHADER_WRITE).dst_access_mask(vk::AccessFlags::HOST_READ)];
-                d.cmd_pipeline_barrier(cb, vk::PipelineStageFlags::COMPUTE_SHADER, vk::PipelineStageFlags::HOST, vk::DependencyFlags::empty(), &barrier, &[], &[]);
+                after_builds(d, cb);
+                pipeline.record(d, cb, set, &push, groups);
             });
-            d.destroy_pipeline(pipeline, None);
-            d.destroy_shader_module(module, None);
-            d.destroy_pipeline_layout(layout, None);
+            pipeline.destroy(d);
             d.destroy_descriptor_pool(pool, None);
             d.destroy_descriptor_set_layout(set_layout, None);
         }
