@@ -1,12 +1,17 @@
 //! The Vulkan CTS group `dEQP-VK.ray_tracing_pipeline.acceleration_structures.header_bottom_address`
-//! (VK-GL-CTS, external/vulkancts/modules/vulkan/ray_tracing/vktRayTracingAccelerationStructuresTests.cpp,
-//! `RayTracingHeaderBottomAddressTestInstance`), followed step by step through the loader with
-//! the validation layer on, for each instance layout of the group and each build side:
+//! (VK-GL-CTS, external/vulkancts/modules/vulkan/ray_tracing/vktRayTracingAccelerationStructuresTests.cpp:
+//! `addUpdateHeaderBottomAddressTests`, `RayTracingHeaderBottomAddressTestInstance`; later CTS
+//! versions put the same cases under a `traditional_structures` level), followed step by step
+//! through the loader with the validation layer on. Its six cases are
+//! `{cpu_built,gpu_built}.{the_same_instances,different_instances,mix_same_diff_instances}`, with
+//! width RTAS_DEFAULT_SIZE = 8:
 //!
 //! - `the_same_instances` (IDENTICAL_INSTANCES): 8 instances of one BLAS;
 //! - `different_instances` (DIFFERENT_INSTANCES): 8 instances, each of its own BLAS;
-//! - `mix_same_diff` (MIX_INSTANCES): 16 instances, two fresh BLASes per step, as the CTS builds them;
-//! - `cpu_built` (host commands) and `gpu_built` (device commands) of each.
+//! - `mix_same_diff_instances` (MIX_INSTANCES): 16 instances, two fresh BLASes per step, as the
+//!   CTS builds them (so, despite the name, no BLAS is shared);
+//! - `cpu_built` (every build, query, serialization and deserialization a host command) and
+//!   `gpu_built` (device commands).
 //!
 //! Instance i is translated by (i, i, 0), as in the CTS. The steps: build; read the per-instance
 //! BLAS addresses; "deep" serialization (the TLAS and every BLAS it refers to); deserialize each
@@ -27,6 +32,7 @@ use std::ffi::c_void;
 
 use arbor::accel::{self, MapView, Ray, RayFlags};
 use ash::vk;
+use ash::vk::Handle;
 use glam::Vec3;
 use harness::vuid::*;
 
@@ -84,6 +90,8 @@ fn build_blas(a: &Accel, m: &Mesh, host: bool) -> Dst {
     build(a, BLAS, &[geom], m.count, host)
 }
 
+/// Instance i refers to `refs[i]`: a structure handle for a host build, a device address for a
+/// device build (the spec's two meanings of accelerationStructureReference).
 fn build_tlas(a: &Accel, refs: &[u64], host: bool) -> Dst {
     let records: Vec<u8> = refs.iter().enumerate().flat_map(|(i, &r)| instance_record(translated(i), i as u32, 0xFF, 0, 0, r)).collect();
     let n = refs.len() as u32;
@@ -181,9 +189,9 @@ fn check_header(a: &Accel, blob: &[u8], tlas: &Dst, expect: &[u64], host: bool) 
     let pointers = vk::QueryType::ACCELERATION_STRUCTURE_SERIALIZATION_BOTTOM_LEVEL_POINTERS_KHR;
     assert_eq!(property(a, tlas, pointers, host), expect.len() as u64, "BOTTOM_LEVEL_POINTERS query");
     assert_eq!(u64_at(blob, 48), expect.len() as u64, "header: handle count");
+    assert!(blob.len() >= 56 + 8 * expect.len(), "the handles run past the blob");
     let handles: Vec<u64> = (0..expect.len()).map(|k| u64_at(blob, 56 + 8 * k)).collect();
     assert_eq!(handles, expect, "header: handles in instance order");
-    assert!(blob.len() >= 56 + 8 * expect.len(), "header longer than the blob");
 }
 
 /// Every instance i of `tlas` shows the grid at (i + x, i + y) with custom index i.
@@ -206,7 +214,8 @@ fn header_bottom_address(layout: Layout, host: bool) {
     let blases: Vec<Dst> = (0..distinct).map(|_| build_blas(&a, &m, host)).collect();
     let old: Vec<u64> = blases.iter().map(|b| a.address_of(b.s)).collect();
     let in_addrs: Vec<u64> = refs.iter().map(|&r| old[r]).collect();
-    let src = build_tlas(&a, &in_addrs, host);
+    let references: Vec<u64> = if host { refs.iter().map(|&r| blases[r].s.as_raw()).collect() } else { in_addrs.clone() };
+    let src = build_tlas(&a, &references, host);
     let mut view = MapView::new();
     for (b, &addr) in blases.iter().zip(&old) {
         view.insert(addr, b.r.read(&a));
@@ -256,31 +265,31 @@ fn header_bottom_address(layout: Layout, host: bool) {
 }
 
 #[test]
-fn the_same_instances_gpu_built() {
+fn gpu_built_the_same_instances() {
     header_bottom_address(Layout::Same, false);
 }
 
 #[test]
-fn the_same_instances_cpu_built() {
+fn cpu_built_the_same_instances() {
     header_bottom_address(Layout::Same, true);
 }
 
 #[test]
-fn different_instances_gpu_built() {
+fn gpu_built_different_instances() {
     header_bottom_address(Layout::Different, false);
 }
 
 #[test]
-fn different_instances_cpu_built() {
+fn cpu_built_different_instances() {
     header_bottom_address(Layout::Different, true);
 }
 
 #[test]
-fn mix_same_diff_gpu_built() {
+fn gpu_built_mix_same_diff_instances() {
     header_bottom_address(Layout::Mix, false);
 }
 
 #[test]
-fn mix_same_diff_cpu_built() {
+fn cpu_built_mix_same_diff_instances() {
     header_bottom_address(Layout::Mix, true);
 }
