@@ -8,6 +8,7 @@
 pub mod bins;
 pub mod cluster;
 pub mod ingest;
+pub mod morton;
 pub mod partition;
 pub mod plan;
 pub mod schedule;
@@ -238,7 +239,6 @@ fn build_subtrees(desc: &BuildDesc, ctx: &BuildContext, plan: Option<TopPlan>, i
     if built == 0 {
         return (0.0, 0);
     }
-    let pre_area = &mut work.pre[..pre_len];
     let chunks = plan::chunk_count(desc);
     let planned = plan.as_ref().and_then(|pl| {
         let (kept, rest) = work.prefix.split_at_mut(chunks);
@@ -258,7 +258,7 @@ fn build_subtrees(desc: &BuildDesc, ctx: &BuildContext, plan: Option<TopPlan>, i
     match (plan.as_ref(), planned) {
         (Some(pl), Some(s)) => {
             let mut tasks = Vec::new();
-            let root = Subtree { refs: &mut work.refs[..built], nodes: &mut work.nodes[..2 * built - 1], start: 0, bounds: Aabb::EMPTY, bin_box: Aabb::EMPTY, depth: 0, in_nodes: true, pre_area, parent_count: u32::MAX, slot: 0 };
+            let root = Subtree { refs: &mut work.refs[..built], nodes: &mut work.nodes[..2 * built - 1], start: 0, bounds: Aabb::EMPTY, bin_box: Aabb::EMPTY, depth: 0, in_nodes: true, pre_area: &mut work.pre[..pre_len], parent_count: u32::MAX, slot: 0 };
             plan::tasks(pl, &s, 0, root, &mut tasks);
             let forked = tasks.iter().filter(|t| ctx.threads > 1 && ctx.top(t.refs.len())).count() as u32;
             let done = run_tasks(ctx, tasks);
@@ -269,8 +269,14 @@ fn build_subtrees(desc: &BuildDesc, ctx: &BuildContext, plan: Option<TopPlan>, i
                 // The plan did not apply after all: the compaction ingest skipped, in place.
                 compact_chunks(desc, work.refs, &mut [], &mut work.prefix[..chunks], built);
             }
+            if morton::applies(desc) {
+                // Instance trees pre-emit nothing: the pre-emission area holds the sort keys.
+                if let Some((sah, _)) = morton::build_tree(ctx, &mut work.refs[..built], &mut work.nodes[..2 * built - 1], &mut *work.pre, ingested.centroid_bounds, ingested.in_temp) {
+                    return (sah, 0);
+                }
+            }
             let root = Root { bounds: ingested.bounds, bin_box: ingested.centroid_bounds, in_nodes: ingested.in_temp };
-            (build_tree(ctx, &mut work.refs[..built], &mut work.nodes[..2 * built - 1], pre_area, root).0, 0)
+            (build_tree(ctx, &mut work.refs[..built], &mut work.nodes[..2 * built - 1], &mut work.pre[..pre_len], root).0, 0)
         }
     }
 }
