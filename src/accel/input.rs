@@ -266,20 +266,19 @@ pub struct InstanceDesc {
     pub reference: u64,
 }
 
+/// The record at the start of `b` (None when shorter than one): one length check, then
+/// fixed-offset loads.
 pub fn decode_instance(b: &[u8]) -> Option<InstanceDesc> {
-    let mut transform = [0f32; 12];
-    for (k, t) in transform.iter_mut().enumerate() {
-        *t = rd_f32(b, 4 * k)?;
-    }
-    let w0 = rd_u32(b, 48)?;
-    let w1 = rd_u32(b, 52)?;
+    let b: &[u8; INSTANCE_SIZE] = b.get(..INSTANCE_SIZE)?.try_into().ok()?;
+    let w = |k: usize| u32::from_le_bytes([b[4 * k], b[4 * k + 1], b[4 * k + 2], b[4 * k + 3]]);
+    let (w0, w1) = (w(12), w(13));
     Some(InstanceDesc {
-        transform,
+        transform: std::array::from_fn(|k| f32::from_bits(w(k))),
         custom_index: w0 & 0x00ff_ffff,
         mask: w0 >> 24,
         sbt_offset: w1 & 0x00ff_ffff,
         flags: w1 >> 24,
-        reference: rd_u64(b, 56)?,
+        reference: w(14) as u64 | (w(15) as u64) << 32,
     })
 }
 
