@@ -40,11 +40,14 @@ pub fn build_tree(ctx: &BuildContext, refs: &mut [PrimRef], nodes: &mut [BinNode
     let n = refs.len();
     let keys: &mut [u64] = bytemuck::try_cast_slice_mut(keys.get_mut(..n * 16)?).ok()?;
     let (keys, tmp) = keys.split_at_mut(n);
-    if !in_nodes {
-        node_refs_mut(nodes, n)?.copy_from_slice(refs);
+    let slots = node_refs_mut(nodes, n)?;
+    // The keys, and the references to the node slots on the way (the gather's source).
+    if in_nodes {
+        encode_keys(slots, None, centroids, keys);
+    } else {
+        encode_keys(refs, Some(slots), centroids, keys);
     }
     let src = node_refs_mut(nodes, n)?;
-    encode_keys(src, centroids, keys);
     let sorted = radix_sort(keys, tmp);
     // The references in code order (ties in input order): a gather from the node slots.
     refs.par_chunks_mut(CHUNK).zip(sorted.par_chunks(CHUNK)).for_each(|(d, k)| {
@@ -58,14 +61,14 @@ pub fn build_tree(ctx: &BuildContext, refs: &mut [PrimRef], nodes: &mut [BinNode
 }
 
 /// Key of each reference: its centroid's Morton code (the centroid box cut into 2^BITS cells
-/// per axis along its longest side) above its index.
-fn encode_keys(src: &[PrimRef], cb: Aabb, keys: &mut [u64]) {
+/// per axis along its longest side) above its index; `copy` receives the references.
+fn encode_keys(src: &[PrimRef], copy: Option<&mut [PrimRef]>, cb: Aabb, keys: &mut [u64]) {
     let lo = Vec3A::from(cb.lo);
     let ext = (Vec3A::from(cb.hi) - lo).max_element();
     let cells = (1u32 << BITS) as f32;
     let scale = if ext > 0.0 && ext.is_finite() { cells / ext } else { 0.0 };
     let top = Vec3A::splat(cells - 1.0);
-    keys.par_chunks_mut(CHUNK).enumerate().for_each(|(c, ks)| {
+    let code_of = |c: usize, ks: &mut [u64]| {
         for (k, (key, r)) in ks.iter_mut().zip(&src[c * CHUNK..]).enumerate() {
             // The centroid as ingest computes it; NaN and out-of-box values clamp to a cell.
             let centroid = ref_lo(r) * 0.5 + ref_hi(r) * 0.5;
@@ -73,7 +76,14 @@ fn encode_keys(src: &[PrimRef], cb: Aabb, keys: &mut [u64]) {
             let code = spread(q.x as u32) | spread(q.y as u32) << 1 | spread(q.z as u32) << 2;
             *key = (code as u64) << 32 | (c * CHUNK + k) as u64;
         }
-    });
+    };
+    match copy {
+        Some(copy) => keys.par_chunks_mut(CHUNK).zip(copy.par_chunks_mut(CHUNK)).enumerate().for_each(|(c, (ks, cp))| {
+            code_of(c, ks);
+            cp.copy_from_slice(&src[c * CHUNK..c * CHUNK + cp.len()]);
+        }),
+        None => keys.par_chunks_mut(CHUNK).enumerate().for_each(|(c, ks)| code_of(c, ks)),
+    }
 }
 
 /// The low BITS bits of `v` spread to every third bit.

@@ -6,7 +6,7 @@ use crate::accel::geometry::PrimRef;
 use crate::accel::input::{self, read_instance};
 use crate::accel::layout::{self, InstanceRecord, PrimRecord, RECORD_SIZE};
 use crate::accel::params::INSTANCE_CHUNK;
-use crate::accel::{BuildDesc, DeviceView};
+use crate::accel::{BuildDesc, DeviceView, GeometryData};
 use bytemuck::Zeroable;
 use rayon::prelude::*;
 
@@ -34,7 +34,15 @@ pub fn write_table(desc: &BuildDesc, view: &dyn DeviceView, keys: &mut [u64], ta
 /// Returns the number of table entries (= stored instances).
 pub fn write_instances(desc: &BuildDesc, view: &dyn DeviceView, refs: &[PrimRef], keys: &mut [u64], instances: &mut [u8], records: &mut [u8], table: &mut [u8]) -> u32 {
     let n = refs.len();
-    let read = |r: &PrimRef| desc.geometries.get(r.geom as usize).and_then(|g| read_instance(r.geom, g, r.prim, view).ok().flatten());
+    let read = |r: &PrimRef| {
+        let g = desc.geometries.get(r.geom as usize)?;
+        match g.data {
+            // Packed records are decoded in place: the records need no translated reference
+            // (the table has it), only whether there is one.
+            GeometryData::Instances { array_of_pointers: false, data } => input::decode_instance(data.get(r.prim as usize * input::INSTANCE_SIZE..)?).filter(|i| i.reference != 0),
+            _ => read_instance(r.geom, g, r.prim, view).ok().flatten(),
+        }
+    };
     // One geometry with every instance active (the usual TLAS): an instance's place in input
     // order is its index, so the table and the records' BLAS-table indices need no sort and
     // no search. The same bytes as the general path, which ranks the stored instances.
