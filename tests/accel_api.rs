@@ -325,14 +325,15 @@ fn compaction_clone_serialization_round_trip_and_queries() {
     ctx.finish();
 }
 
-/// Builds a TLAS over `n` instances twice: on the device from `dev_records` (BLAS device
-/// addresses) and with vkBuildAccelerationStructuresKHR from `host_records` (BLAS handles).
-/// Returns the device-built structure and both serializations.
-fn tlas_device_and_host(a: &Accel, dev_records: &[u8], host_records: &[u8], n: u32) -> (vk::AccelerationStructureKHR, Vec<u8>, Vec<u8>) {
+/// Builds a TLAS over `n` instances with `flags` twice: on the device from `dev_records` (BLAS
+/// device addresses) and with vkBuildAccelerationStructuresKHR from `host_records` (BLAS
+/// handles). Returns the device-built structure and both serializations.
+fn tlas_device_and_host(a: &Accel, dev_records: &[u8], host_records: &[u8], n: u32, flags: vk::BuildAccelerationStructureFlagsKHR) -> (vk::AccelerationStructureKHR, Vec<u8>, Vec<u8>) {
     let inst = a.upload(dev_records);
     let geoms = [instances(a.buf(inst).address)];
     let info = vk::AccelerationStructureBuildGeometryInfoKHR::default()
         .ty(vk::AccelerationStructureTypeKHR::TOP_LEVEL)
+        .flags(flags)
         .mode(vk::BuildAccelerationStructureModeKHR::BUILD)
         .geometries(&geoms);
     let sizes = a.sizes(vk::AccelerationStructureBuildTypeKHR::DEVICE, &info, &[n]);
@@ -355,6 +356,7 @@ fn tlas_device_and_host(a: &Accel, dev_records: &[u8], host_records: &[u8], n: u
     let mut hscratch = vec![0u8; sizes.build_scratch_size as usize];
     let hinfo = vk::AccelerationStructureBuildGeometryInfoKHR::default()
         .ty(vk::AccelerationStructureTypeKHR::TOP_LEVEL)
+        .flags(flags)
         .mode(vk::BuildAccelerationStructureModeKHR::BUILD)
         .geometries(&hgeoms)
         .dst_acceleration_structure(th)
@@ -367,7 +369,7 @@ fn tlas_device_and_host(a: &Accel, dev_records: &[u8], host_records: &[u8], n: u
 /// Host builds name BLASes by handle and remember a few handle lookups per thread: a TLAS over
 /// more BLASes than that memo holds, named in an order that keeps evicting it, builds to the
 /// same bytes on the host as on the device (where instances hold addresses), twice with
-/// different assignments.
+/// different assignments, in the default tier and at PREFER_FAST_BUILD (its own tree builder).
 #[test]
 fn host_tlas_over_many_blases_matches_the_device_build() {
     let ctx = as_context();
@@ -377,15 +379,16 @@ fn host_tlas_over_many_blases_matches_the_device_build() {
     let blases: Vec<_> = (0..7).map(|_| device_blas(&a, &m, vk::BuildAccelerationStructureFlagsKHR::PREFER_FAST_BUILD)).collect();
     let n = 300u32;
     let transform = |i: u32| [1.0, 0.0, 0.0, (i % 20) as f32 * 0.3, 0.0, 1.0, 0.0, (i / 20) as f32 * 0.3, 0.0, 0.0, 1.0, 0.0];
-    for pattern in [(3u32, 1u32), (5, 4)] {
+    let fast_build = vk::BuildAccelerationStructureFlagsKHR::PREFER_FAST_BUILD;
+    for (pattern, flags) in [((3u32, 1u32), vk::BuildAccelerationStructureFlagsKHR::empty()), ((5, 4), vk::BuildAccelerationStructureFlagsKHR::empty()), ((3, 1), fast_build)] {
         let pick = |i: u32| ((i * pattern.0 + pattern.1) % 7) as usize;
         let records = |reference: &dyn Fn(usize) -> u64| -> Vec<u8> { (0..n).flat_map(|i| instance_record(transform(i), i, 0xFF, 0, 0, reference(pick(i)))).collect() };
         let dev_records = records(&|k| a.address_of(blases[k]));
         let host_records = records(&|k| vk::Handle::as_raw(blases[k]));
-        let (t, device, host) = tlas_device_and_host(&a, &dev_records, &host_records, n);
+        let (t, device, host) = tlas_device_and_host(&a, &dev_records, &host_records, n, flags);
         // One handle per instance (all 300 active), not per distinct BLAS.
         assert_eq!(a.query(t, vk::QueryType::ACCELERATION_STRUCTURE_SERIALIZATION_BOTTOM_LEVEL_POINTERS_KHR), n as u64);
-        assert_eq!(host, device, "host TLAS build over 7 BLASes differs from the device build (pattern {pattern:?})");
+        assert_eq!(host, device, "host TLAS build over 7 BLASes differs from the device build (pattern {pattern:?}, flags {flags:?})");
     }
     a.destroy();
     ctx.finish();
@@ -414,7 +417,7 @@ fn tlas_over_blases_device_and_host_builds_match_brute_force() {
     };
     let n = transforms.len() as u32;
     // Host build: references are handles.
-    let (t, device, host) = tlas_device_and_host(&a, &records([a0, a1]), &records([vk::Handle::as_raw(b0), vk::Handle::as_raw(b1)]), n);
+    let (t, device, host) = tlas_device_and_host(&a, &records([a0, a1]), &records([vk::Handle::as_raw(b0), vk::Handle::as_raw(b1)]), n, vk::BuildAccelerationStructureFlagsKHR::empty());
     assert_eq!(a.query(t, vk::QueryType::ACCELERATION_STRUCTURE_SERIALIZATION_BOTTOM_LEVEL_POINTERS_KHR), n as u64);
     assert_eq!(host, device, "host TLAS build differs from the device build");
 
