@@ -208,7 +208,7 @@ mod tests {
     #[test]
     fn radix_sort_matches_a_comparison_sort() {
         let mut next = crate::accel::testing::xorshift(5);
-        let mut keys: Vec<u64> = (0..5000u64).map(|i| (next() % 700 * 0x0013_5791 & 0x3FFF_FFFF) << 32 | i).collect();
+        let mut keys: Vec<u64> = (0..5000u64).map(|i| ((next() % 700 * 0x0013_5791) & 0x3FFF_FFFF) << 32 | i).collect();
         let mut want = keys.clone();
         want.sort_unstable();
         let mut tmp = vec![0u64; keys.len()];
