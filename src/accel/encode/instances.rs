@@ -5,7 +5,7 @@
 use crate::accel::geometry::PrimRef;
 use crate::accel::input::{self, read_instance};
 use crate::accel::layout::{self, InstanceRecord, PrimRecord, RECORD_SIZE};
-use crate::accel::params::INSTANCE_CHUNK;
+use crate::accel::params::{INSTANCE_CHUNK, PREFETCH_AHEAD};
 use crate::accel::{BuildDesc, DeviceView, GeometryData};
 use bytemuck::Zeroable;
 use rayon::prelude::*;
@@ -62,6 +62,13 @@ pub fn write_instances(desc: &BuildDesc, view: &dyn DeviceView, refs: &[PrimRef]
         write_table(desc, view, keys, table);
     }
     let keys = &keys[..];
+    let packed = match desc.geometries {
+        [g] => match g.data {
+            GeometryData::Instances { array_of_pointers: false, data } => Some(data),
+            _ => None,
+        },
+        _ => None,
+    };
     let blas_index = |r: &PrimRef| if all_active { r.prim } else { keys.binary_search(&input_order_key(r.geom, r.prim)).map_or(u32::MAX, |x| x as u32) };
     instances
         .par_chunks_mut(INSTANCE_CHUNK * layout::INSTANCE_RECORD_SIZE)
@@ -69,6 +76,13 @@ pub fn write_instances(desc: &BuildDesc, view: &dyn DeviceView, refs: &[PrimRef]
         .zip(refs.par_chunks(INSTANCE_CHUNK))
         .for_each(|((id, rd), rs)| {
             for (k, r) in rs.iter().enumerate() {
+                // Leaf order visits the input's records at random: a large TLAS waits on
+                // memory here unless the record a few instances ahead is on its way.
+                if let (Some(data), Some(a)) = (packed, rs.get(k + PREFETCH_AHEAD)) {
+                    let o = a.prim as usize * input::INSTANCE_SIZE;
+                    arbor_prefetch::read(data, o);
+                    arbor_prefetch::read(data, o + input::INSTANCE_SIZE - 1);
+                }
                 let mut rec = InstanceRecord::zeroed();
                 if let Some(inst) = read(r) {
                     rec.object_to_world = inst.transform;
