@@ -1,7 +1,8 @@
 //! The build pipeline, one stage per module: lower (types, counts, sizes) → ingest (geometry →
 //! primitive references in scratch, `ingest`; neighbours clustered, `cluster`) → plan the top
 //! of large BLAS trees from one sample (`plan`) → build the subtrees (binned SAH, `subtree`,
-//! on the pool, `schedule`) → encode into dst (`crate::accel::encode`).
+//! on the pool, `schedule`; fast-build instance trees: a linear BVH, `morton`) → encode into
+//! dst (`crate::accel::encode`).
 //!
 //! Owns: the order of the stages and the split of dst and scratch between them. Host heap use
 //! is O(threads): every array proportional to the input lives in scratch or dst.
