@@ -81,6 +81,15 @@ fn fetch_triangles(view: &dyn DeviceView, format: VertexFormat, start: u64, stri
     let max = indices.iter().copied().max().unwrap_or(0) as u64;
     let span = (max * stride).checked_add(format.size() as u64);
     if let Some(b) = span.and_then(|len| view.bytes(start, len)) {
+        // The common case, fp32 positions kept whole: every corner lies inside the span read.
+        if format == VertexFormat::R32G32B32Sfloat && bits == 0 && cfg!(target_endian = "little") {
+            let at = |i: u32| -> [f32; 3] { bytemuck::pod_read_unaligned(&b[i as usize * stride as usize..][..12]) };
+            for (o, t) in out.iter_mut().zip(indices.chunks_exact(3)) {
+                let (p, q, r) = (at(t[0]), at(t[1]), at(t[2]));
+                *o = [p[0], p[1], p[2], q[0], q[1], q[2], r[0], r[1], r[2]];
+            }
+            return Ok(());
+        }
         let mut ok = true;
         for (o, t) in out.iter_mut().zip(indices.chunks_exact(3)) {
             let (Some(p), Some(q), Some(r)) = (decode_at(b, format, stride as usize, t[0], bits), decode_at(b, format, stride as usize, t[1], bits), decode_at(b, format, stride as usize, t[2], bits)) else {

@@ -187,8 +187,9 @@ struct Scratch {
     boxes: Vec<Bx>,
     slot_boxes: Vec<Bx>,
     centroids: Vec<Vec3A>,
-    keys: Vec<u64>,
+    keys: Vec<u32>,
 }
+
 
 thread_local! {
     static SCRATCH: std::cell::RefCell<Scratch> = std::cell::RefCell::new(Scratch::default());
@@ -255,11 +256,11 @@ const fn spread_bits(x: u32) -> u32 {
     (v | v << 2) & 0x0924_9249
 }
 
-/// `spread_bits` of every 10-bit value: three lookups per Morton key.
-const SPREAD: [u32; 1024] = {
-    let mut t = [0u32; 1024];
+/// `spread_bits` of every 8-bit value: three lookups per Morton key.
+const SPREAD: [u32; 256] = {
+    let mut t = [0u32; 256];
     let mut i = 0;
-    while i < 1024 {
+    while i < 256 {
         t[i] = spread_bits(i as u32);
         i += 1;
     }
@@ -267,7 +268,7 @@ const SPREAD: [u32; 1024] = {
 };
 
 fn spread(x: u32) -> u32 {
-    SPREAD[(x & 0x3ff) as usize]
+    SPREAD[(x & 0xff) as usize]
 }
 
 /// The tree of a CLAS over `tris` (at most 256: slots are bytes), as `write_local` makes it.
@@ -300,12 +301,13 @@ fn write_local_with(tris: &[[f32; 9]], order: &mut [u8], nodes: &mut [u8], s: &m
         s.boxes.push(b);
         s.centroids.push(c);
     }
+    // 8 bits an axis: 256 cells a side for at most 256 triangles.
     let ext = hi - lo;
-    let scale = Vec3A::select(hi.cmpgt(lo), Vec3A::splat(1023.0) / ext, Vec3A::ZERO);
+    let scale = Vec3A::select(hi.cmpgt(lo), Vec3A::splat(255.0) / ext, Vec3A::ZERO);
     s.keys.clear();
     s.keys.extend(s.centroids.iter().enumerate().map(|(i, &c)| {
-        let q = ((c - lo) * scale).max(Vec3A::ZERO).min(Vec3A::splat(1023.0));
-        ((spread(q.x as u32) | spread(q.y as u32) << 1 | spread(q.z as u32) << 2) as u64) << 8 | i as u64
+        let q = ((c - lo) * scale).max(Vec3A::ZERO).min(Vec3A::splat(255.0));
+        (spread(q.x as u32) | spread(q.y as u32) << 1 | spread(q.z as u32) << 2) << 8 | i as u32
     }));
     // Keys are distinct (the index is in the low byte), so any sort gives the same order.
     s.keys.sort_unstable();
