@@ -293,7 +293,8 @@ fn write_local_with(tris: &[[f32; 9]], order: &mut [u8], nodes: &mut [u8], s: &m
     if tris.is_empty() {
         return [0.0; 6];
     }
-    (s.boxes.clear(), s.centroids.clear());
+    s.boxes.clear();
+    s.centroids.clear();
     let (mut lo, mut hi) = (Vec3A::INFINITY, Vec3A::NEG_INFINITY);
     for t in tris {
         let (b, c) = tri_bx(t);
