@@ -301,6 +301,41 @@ fn cluster_blas_of_random_clusters_and_every_flag_traverses_like_brute_force() {
     assert_eq!(accel::header(&empty).map(|h| h.primitive_count), Some(0));
 }
 
+/// CLAS builds, template instantiations and the cluster BLAS over them give the same bytes in
+/// a pool of one thread and of several (clusters of every size share each thread's working
+/// arrays in turn), and the same as built one by one on this thread.
+#[test]
+fn cluster_builds_do_not_depend_on_the_thread_count() {
+    use rayon::prelude::*;
+    let c = random_cut(5, 60);
+    let (old, new) = (inputs(&c, 3, 1.0), inputs(&c, 3, 1.25));
+    let f = accel::VertexFormat::R32G32B32Sfloat;
+    let run = || -> (Vec<Vec<u8>>, Vec<Vec<u8>>, Vec<u8>) {
+        let clases: Vec<Vec<u8>> = old.records.par_iter().map(|r| {
+            let mut dst = vec![0u8; clas::clas_size(r.triangle_count() as u64) as usize];
+            clas::build_clas(r, f, &old.view, &mut dst).unwrap();
+            dst
+        }).collect();
+        let inst: Vec<Vec<u8>> = old.records.par_iter().zip(&new.records).map(|(r, n)| {
+            let mut tpl = vec![0u8; clas::template_size(r.triangle_count() as u64, true) as usize];
+            clas::build_template(r, f, None, &old.view, &mut tpl).unwrap();
+            let a = InstantiateClusterInfo { vertex_buffer: StridedDeviceAddress { start_address: n.vertex_buffer, stride_in_bytes: 0 }, ..Default::default() };
+            let mut dst = vec![0u8; clas::clas_size(r.triangle_count() as u64) as usize];
+            clas::instantiate(&tpl, &a, &new.view, &mut dst).unwrap();
+            dst
+        }).collect();
+        let addrs: Vec<(u64, &[u8])> = inst.iter().enumerate().map(|(k, b)| (0x10_0000 * (k as u64 + 1), b.as_slice())).collect();
+        let blas = cluster_blas(&addrs);
+        (clases, inst, blas)
+    };
+    let pool = |n: usize| rayon::ThreadPoolBuilder::new().num_threads(n).build().unwrap();
+    let one = pool(1).install(run);
+    assert_eq!(one, pool(4).install(run), "1 thread against 4");
+    assert_eq!(one.0, build_clases(&old), "the pool's CLASes against one-by-one builds");
+    // Instantiation with new vertices is the direct build of the new vertices.
+    assert_eq!(one.1, build_clases(&new));
+}
+
 // One function: each case builds on the template of the case before.
 #[test]
 fn templates_instantiated_with_new_vertices_equal_direct_builds() {

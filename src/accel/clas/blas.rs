@@ -56,14 +56,20 @@ type Regions<'d> = (&'d mut [u8], &'d mut [u8], &'d mut [u8], &'d mut [u8]);
 fn copy_cluster(p: &Part<'_>, node_shift: u32, (side, prims, recs, nodes): Regions<'_>) {
     let b = &p.blob;
     let t = b.header.triangle_count as usize;
-    let words_at = HEADER_SIZE as usize + t * TRIANGLE_SIZE as usize;
-    for (s, &i) in b.order().iter().enumerate() {
+    let tris = &b.bytes[HEADER_SIZE as usize..][..t * TRIANGLE_SIZE as usize];
+    let words = &b.bytes[HEADER_SIZE as usize + t * TRIANGLE_SIZE as usize..][..4 * t];
+    let id = b.header.cluster_id.to_le_bytes();
+    let ordinal = p.ordinal.to_le_bytes();
+    let out = side.chunks_exact_mut(SIDE_SIZE as usize).zip(prims.chunks_exact_mut(PRIM_SIZE)).zip(recs.chunks_exact_mut(RECORD_SIZE));
+    for (s, (((sd, pr), rc), &i)) in out.zip(b.order()).enumerate() {
         let i = i as usize;
-        let src = HEADER_SIZE as usize + i * TRIANGLE_SIZE as usize;
-        prims[s * PRIM_SIZE..][..PRIM_SIZE].copy_from_slice(&b.bytes[src..src + TRIANGLE_SIZE as usize]);
-        recs[s * RECORD_SIZE..][..RECORD_SIZE].copy_from_slice(bytemuck::bytes_of(&[0u32, p.slot_base + s as u32]));
-        let word = rd_u32(b.bytes, (words_at + 4 * i) as u64);
-        side[s * SIDE_SIZE as usize..][..SIDE_SIZE as usize].copy_from_slice(bytemuck::bytes_of(&[b.header.cluster_id, word, i as u32, p.ordinal]));
+        pr.copy_from_slice(&tris[i * TRIANGLE_SIZE as usize..][..PRIM_SIZE]);
+        rc[..4].fill(0);
+        rc[4..].copy_from_slice(&(p.slot_base + s as u32).to_le_bytes());
+        sd[..4].copy_from_slice(&id);
+        sd[4..8].copy_from_slice(&words[4 * i..4 * i + 4]);
+        sd[8..12].copy_from_slice(&(i as u32).to_le_bytes());
+        sd[12..].copy_from_slice(&ordinal);
     }
     for (k, out) in nodes.chunks_exact_mut(NODE_SIZE as usize).enumerate() {
         let mut n: WideNode = b.node(k as u32);

@@ -69,6 +69,13 @@ fn clas_trees_cover_every_triangle_once_inside_their_boxes() {
         let tris: Vec<[f32; 9]> = (0..t).map(|_| std::array::from_fn(|_| next())).collect();
         let tree = super::tree::build_local(&tris);
         assert_eq!(tree.nodes.len() as u64, super::tree::local_node_count(t as u64));
+        // The bounds are the exact box of every vertex (brute force).
+        let flat: Vec<f32> = tris.iter().flatten().copied().collect();
+        let want: [f32; 6] = std::array::from_fn(|k| {
+            let axis = flat.iter().skip(k % 3).step_by(3);
+            if k < 3 { axis.fold(f32::INFINITY, |a, &x| a.min(x)) } else { axis.fold(f32::NEG_INFINITY, |a, &x| a.max(x)) }
+        });
+        assert_eq!(tree.bounds, want, "{t} triangles");
         let mut order: Vec<u32> = tree.order.iter().map(|&i| i as u32).collect();
         order.sort_unstable();
         assert_eq!(order, (0..t as u32).collect::<Vec<_>>());

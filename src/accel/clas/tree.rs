@@ -18,7 +18,7 @@ pub const LEAF: u32 = 4;
 
 /// Leaves per child of a node over `leaves` leaves: the largest power of four below it, so the
 /// first children are full subtrees.
-fn child_capacity(leaves: u32) -> u32 {
+const fn child_capacity(leaves: u32) -> u32 {
     let mut cap = 1;
     while cap * 4 < leaves {
         cap *= 4;
@@ -32,9 +32,31 @@ fn children_of(leaves: u32) -> impl Iterator<Item = u32> {
     (0..leaves.div_ceil(cap)).map(move |k| cap.min(leaves - k * cap))
 }
 
-fn nodes_over(leaves: u32) -> u32 {
-    1 + children_of(leaves).filter(|&m| m > 1).map(nodes_over).sum::<u32>()
+const fn nodes_over(leaves: u32) -> u32 {
+    let cap = child_capacity(leaves);
+    let (mut n, mut k) = (1, 0);
+    while k * cap < leaves {
+        let m = if cap < leaves - k * cap { cap } else { leaves - k * cap };
+        if m > 1 {
+            n += nodes_over(m);
+        }
+        k += 1;
+    }
+    n
 }
+
+/// Leaves of the largest tree `NODES` covers (4096 triangles).
+const TABLE_LEAVES: usize = 1024;
+/// `nodes_over` of every leaf count up to TABLE_LEAVES: sizes are asked for per element.
+const NODES: [u16; TABLE_LEAVES + 1] = {
+    let mut t = [0u16; TABLE_LEAVES + 1];
+    let mut l = 1;
+    while l <= TABLE_LEAVES {
+        t[l] = nodes_over(l as u32) as u16;
+        l += 1;
+    }
+    t
+};
 
 /// Nodes of the tree of a CLAS with `triangles` triangles (0 for an empty CLAS).
 pub fn local_node_count(triangles: u64) -> u64 {
@@ -45,7 +67,7 @@ pub fn local_node_count(triangles: u64) -> u64 {
     if triangles > 4096 {
         return triangles.div_ceil(12) + 1;
     }
-    nodes_over((triangles as u32).div_ceil(LEAF)) as u64
+    NODES[triangles.div_ceil(LEAF as u64) as usize] as u64
 }
 
 /// A bound on the nodes of CLAS trees over `triangles` triangles in `clusters` CLASes, linear
@@ -69,15 +91,6 @@ fn tri_box(t: &[f32; 9]) -> Option<Aabb> {
     let v = [Vec3::new(t[0], t[1], t[2]), Vec3::new(t[3], t[4], t[5]), Vec3::new(t[6], t[7], t[8])];
     let (lo, hi) = triangle_bounds(&v);
     Some(Aabb { lo, hi })
-}
-
-/// A box that traversal can quantise: an empty one (only NaN triangles) becomes the origin.
-fn finite_box(b: Aabb) -> Aabb {
-    if b.lo[0] > b.hi[0] {
-        Aabb { lo: [0.0; 3], hi: [0.0; 3] }
-    } else {
-        b
-    }
 }
 
 fn centroid_of(b: &Option<Aabb>) -> [f32; 3] {
@@ -117,6 +130,7 @@ fn partition(items: &mut [u32], centroids: &[[f32; 3]], sizes: &[usize]) {
 }
 
 /// A CLAS's tree: `order[slot]` is the triangle in that slot, leaves are runs of slots.
+#[cfg(test)]
 pub struct LocalTree {
     pub order: Vec<u8>,
     pub nodes: Vec<WideNode>,
@@ -124,26 +138,79 @@ pub struct LocalTree {
     pub bounds: [f32; 6],
 }
 
-struct Local {
-    order: Vec<u8>,
-    /// Boxes in slot order.
-    boxes: Vec<Option<Aabb>>,
-    nodes: Vec<WideNode>,
+/// A box as two SIMD corners; the empty box (+inf, -inf) is what a NaN triangle adds.
+#[derive(Clone, Copy)]
+struct Bx {
+    lo: Vec3A,
+    hi: Vec3A,
+}
+const EMPTY: Bx = Bx { lo: Vec3A::INFINITY, hi: Vec3A::NEG_INFINITY };
+
+impl Bx {
+    fn union(self, o: Bx) -> Bx {
+        Bx { lo: self.lo.min(o.lo), hi: self.hi.max(o.hi) }
+    }
+    fn aabb(self) -> Aabb {
+        Aabb { lo: self.lo.to_array(), hi: self.hi.to_array() }
+    }
 }
 
-impl Local {
-    fn slots(&self, first_leaf: u32, leaves: u32) -> std::ops::Range<usize> {
-        let n = self.order.len();
-        (first_leaf * LEAF) as usize..(((first_leaf + leaves) * LEAF) as usize).min(n)
+/// A triangle's box and centroid (`tri_box`; the centroid of a NaN triangle is the origin).
+#[inline(always)]
+fn tri_bx(t: &[f32; 9]) -> (Bx, Vec3A) {
+    let (a, b, c) = (Vec3A::new(t[0], t[1], t[2]), Vec3A::new(t[3], t[4], t[5]), Vec3A::new(t[6], t[7], t[8]));
+    // Every coordinate finite (the common case): the SIMD min and max are exact.
+    if (a + b + c).is_finite() {
+        let (lo, hi) = (a.min(b).min(c), a.max(b).max(c));
+        return (Bx { lo, hi }, lo * 0.5 + hi * 0.5);
     }
+    match tri_box(t) {
+        Some(x) => {
+            let bx = Bx { lo: Vec3A::from_array(x.lo), hi: Vec3A::from_array(x.hi) };
+            (bx, bx.lo * 0.5 + bx.hi * 0.5)
+        }
+        None => (EMPTY, Vec3A::ZERO),
+    }
+}
 
+/// Where a CLAS tree is built: the triangle boxes in slot order and the node bytes it writes
+/// in pre-order.
+struct Local<'a> {
+    boxes: &'a [Bx],
+    nodes: &'a mut [u8],
+    emitted: usize,
+}
+
+/// A thread's working arrays for CLAS trees, reused: a command builds thousands of trees.
+#[derive(Default)]
+struct Scratch {
+    boxes: Vec<Bx>,
+    slot_boxes: Vec<Bx>,
+    centroids: Vec<Vec3A>,
+    keys: Vec<u32>,
+}
+
+
+thread_local! {
+    static SCRATCH: std::cell::RefCell<Scratch> = std::cell::RefCell::new(Scratch::default());
+}
+
+/// Runs `f` with this thread's `T` (a fresh one if it is in use).
+pub(super) fn with_scratch<T: Default, R>(key: &'static std::thread::LocalKey<std::cell::RefCell<T>>, f: impl FnOnce(&mut T) -> R) -> R {
+    key.with(|c| match c.try_borrow_mut() {
+        Ok(mut s) => f(&mut s),
+        Err(_) => f(&mut T::default()),
+    })
+}
+
+impl Local<'_> {
     /// Emits the node over `leaves` leaves from `first_leaf`; returns its index and box.
-    fn node(&mut self, first_leaf: u32, leaves: u32) -> (u32, Aabb) {
-        let me = self.nodes.len() as u32;
-        self.nodes.push(bytemuck::Zeroable::zeroed());
+    fn node(&mut self, first_leaf: u32, leaves: u32) -> (u32, Bx) {
+        let me = self.emitted as u32;
+        self.emitted += 1;
         let (mut clo, mut chi) = ([Vec3A::ZERO; 4], [Vec3A::ZERO; 4]);
         let (mut child, mut kind) = ([0u32; 4], [0u8; 4]);
-        let mut whole = Aabb::EMPTY;
+        let mut whole = EMPTY;
         let (mut f, mut count) = (first_leaf, 0);
         for (c, m) in children_of(leaves).enumerate() {
             let b = if m > 1 {
@@ -151,25 +218,37 @@ impl Local {
                 (child[c], kind[c]) = (i, CHILD_INTERNAL);
                 b
             } else {
-                let r = self.slots(f, 1);
-                (child[c], kind[c]) = (r.start as u32, r.len() as u8);
-                finite_box(self.boxes[r].iter().flatten().fold(Aabb::EMPTY, |a, b| a.union(b)))
+                let start = (f * LEAF) as usize;
+                let r = &self.boxes[start..(start + LEAF as usize).min(self.boxes.len())];
+                (child[c], kind[c]) = (start as u32, r.len() as u8);
+                let b = r.iter().fold(EMPTY, |a, b| a.union(*b));
+                // An empty leaf (only NaN triangles) gets the origin: traversal quantises it.
+                if b.lo.x > b.hi.x {
+                    Bx { lo: Vec3A::ZERO, hi: Vec3A::ZERO }
+                } else {
+                    b
+                }
             };
-            (clo[c], chi[c]) = (Vec3A::from_array(b.lo), Vec3A::from_array(b.hi));
-            whole = whole.union(&b);
+            (clo[c], chi[c]) = (b.lo, b.hi);
+            whole = whole.union(b);
             f += m;
             count = c + 1;
         }
         for c in count..4 {
-            (clo[c], chi[c]) = (Vec3A::from_array(whole.lo), Vec3A::from_array(whole.lo));
+            (clo[c], chi[c]) = (whole.lo, whole.lo);
         }
-        self.nodes[me as usize] = quantize_node(&whole, &clo, &chi, count, &child, &kind);
+        let w = quantize_node(&whole.aabb(), &clo, &chi, count, &child, &kind);
+        self.nodes[me as usize * NODE_BYTES..][..NODE_BYTES].copy_from_slice(bytemuck::bytes_of(&w));
         (me, whole)
     }
 }
 
+const NODE_BYTES: usize = std::mem::size_of::<WideNode>();
+/// Slots a CLAS tree has room for (slots are bytes).
+const MAX_SLOTS: usize = 256;
+
 /// Spreads the low 10 bits of `x` to every third bit.
-fn spread(x: u32) -> u32 {
+const fn spread_bits(x: u32) -> u32 {
     let mut v = x & 0x3ff;
     v = (v | v << 16) & 0x0300_00ff;
     v = (v | v << 8) & 0x0300_f00f;
@@ -177,30 +256,70 @@ fn spread(x: u32) -> u32 {
     (v | v << 2) & 0x0924_9249
 }
 
-/// The tree of a CLAS over `tris` (at most 256: slots are bytes). Slots follow the Morton order
-/// of the centroids in the cluster's centroid box (ties by triangle index), cut into the fixed
-/// shape: one sort per cluster, the cost instantiation pays for a BLAS that need not sort.
+/// `spread_bits` of every 8-bit value: three lookups per Morton key.
+const SPREAD: [u32; 256] = {
+    let mut t = [0u32; 256];
+    let mut i = 0;
+    while i < 256 {
+        t[i] = spread_bits(i as u32);
+        i += 1;
+    }
+    t
+};
+
+fn spread(x: u32) -> u32 {
+    SPREAD[(x & 0xff) as usize]
+}
+
+/// The tree of a CLAS over `tris` (at most 256: slots are bytes), as `write_local` makes it.
+#[cfg(test)]
 pub fn build_local(tris: &[[f32; 9]]) -> LocalTree {
-    let boxes: Vec<Option<Aabb>> = tris.iter().map(tri_box).collect();
-    let centroids: Vec<[f32; 3]> = boxes.iter().map(centroid_of).collect();
-    let (mut lo, mut hi) = ([f32::INFINITY; 3], [f32::NEG_INFINITY; 3]);
-    for c in &centroids {
-        for a in 0..3 {
-            (lo[a], hi[a]) = (lo[a].min(c[a]), hi[a].max(c[a]));
-        }
+    let mut order = vec![0u8; tris.len()];
+    let mut bytes = vec![0u8; local_node_count(tris.len() as u64) as usize * NODE_BYTES];
+    let bounds = write_local(tris, &mut order, &mut bytes);
+    LocalTree { order, nodes: bytes.chunks_exact(NODE_BYTES).map(bytemuck::pod_read_unaligned).collect(), bounds }
+}
+
+/// Writes the tree of a CLAS over `tris` (at most 256) into `order` (one byte per triangle)
+/// and `nodes` (`local_node_count` nodes); returns its bounds. Slots follow the Morton order of
+/// the centroids in the cluster's centroid box (ties by triangle index), cut into the fixed
+/// shape: one sort per cluster, the cost instantiation pays for a BLAS that need not sort.
+pub fn write_local(tris: &[[f32; 9]], order: &mut [u8], nodes: &mut [u8]) -> [f32; 6] {
+    with_scratch(&SCRATCH, |s| write_local_with(tris, order, nodes, s))
+}
+
+fn write_local_with(tris: &[[f32; 9]], order: &mut [u8], nodes: &mut [u8], s: &mut Scratch) -> [f32; 6] {
+    let tris = &tris[..tris.len().min(MAX_SLOTS)];
+    if tris.is_empty() {
+        return [0.0; 6];
     }
-    let scale: [f32; 3] = std::array::from_fn(|a| if hi[a] > lo[a] { 1023.0 / (hi[a] - lo[a]) } else { 0.0 });
-    let cell = |c: &[f32; 3], a: usize| (((c[a] - lo[a]) * scale[a]).clamp(0.0, 1023.0)) as u32;
-    let mut keys: Vec<u64> = centroids.iter().enumerate().map(|(i, c)| ((spread(cell(c, 0)) | spread(cell(c, 1)) << 1 | spread(cell(c, 2)) << 2) as u64) << 8 | i as u64).collect();
-    keys.sort_unstable();
-    let order: Vec<u8> = keys.iter().map(|&k| k as u8).collect();
-    let mut l = Local { boxes: order.iter().map(|&i| boxes[i as usize]).collect(), order, nodes: Vec::with_capacity(local_node_count(tris.len() as u64) as usize) };
-    let mut bounds = [0.0; 6];
-    if !tris.is_empty() {
-        let (_, b) = l.node(0, (tris.len() as u32).div_ceil(LEAF));
-        bounds = [b.lo[0], b.lo[1], b.lo[2], b.hi[0], b.hi[1], b.hi[2]];
+    s.boxes.clear();
+    s.centroids.clear();
+    let (mut lo, mut hi) = (Vec3A::INFINITY, Vec3A::NEG_INFINITY);
+    for t in tris {
+        let (b, c) = tri_bx(t);
+        (lo, hi) = (lo.min(c), hi.max(c));
+        s.boxes.push(b);
+        s.centroids.push(c);
     }
-    LocalTree { order: l.order, nodes: l.nodes, bounds }
+    // 8 bits an axis: 256 cells a side for at most 256 triangles.
+    let ext = hi - lo;
+    let scale = Vec3A::select(hi.cmpgt(lo), Vec3A::splat(255.0) / ext, Vec3A::ZERO);
+    s.keys.clear();
+    s.keys.extend(s.centroids.iter().enumerate().map(|(i, &c)| {
+        let q = ((c - lo) * scale).max(Vec3A::ZERO).min(Vec3A::splat(255.0));
+        (spread(q.x as u32) | spread(q.y as u32) << 1 | spread(q.z as u32) << 2) << 8 | i as u32
+    }));
+    // Keys are distinct (the index is in the low byte), so any sort gives the same order.
+    s.keys.sort_unstable();
+    s.slot_boxes.clear();
+    for (o, &k) in order.iter_mut().zip(&s.keys) {
+        *o = k as u8;
+        s.slot_boxes.push(s.boxes[k as u8 as usize]);
+    }
+    let mut l = Local { boxes: &s.slot_boxes, nodes, emitted: 0 };
+    let (_, b) = l.node(0, (tris.len() as u32).div_ceil(LEAF));
+    [b.lo.x, b.lo.y, b.lo.z, b.hi.x, b.hi.y, b.hi.z]
 }
 
 /// A child of a top-tree node: another top node, or CLAS `k` of the input.
