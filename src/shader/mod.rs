@@ -68,6 +68,7 @@ mod exec_image;
 mod exec_mem;
 mod exec_rq;
 pub mod ir;
+mod jit;
 mod layout;
 mod lower;
 mod lower_array;
@@ -149,6 +150,8 @@ pub struct Pipeline {
     pub local_size: [u32; 3],
     /// Bytes of push constants the entry point reads (highest member end).
     pub push_constant_size: u32,
+    /// The program as native code, when it compiled (`jit`); None runs the interpreter.
+    pub(crate) jit: Option<Arc<jit::Jit>>,
 }
 
 impl Pipeline {
@@ -167,7 +170,25 @@ impl Pipeline {
         // as an error, rather than take the caller down.
         let lowered = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| lower::lower(module, &consts, entry)))
             .map_err(|_| ShaderError::Malformed { offset: 0, reason: "invalid module (lowering failed)".into() })??;
-        Ok(Pipeline { program: Arc::new(lowered.program), local_size, push_constant_size: lowered.push_size })
+        let jit = if jit::enabled() { jit::compile(&lowered.program).map(Arc::new) } else { None };
+        Ok(Pipeline { program: Arc::new(lowered.program), local_size, push_constant_size: lowered.push_size, jit })
+    }
+
+    /// Whether dispatches run native code (else the interpreter).
+    pub fn is_compiled(&self) -> bool {
+        self.jit.is_some()
+    }
+
+    /// This pipeline on the interpreter (the reference backend).
+    pub fn interpreted(&self) -> Pipeline {
+        Pipeline { jit: None, ..self.clone() }
+    }
+
+    /// This pipeline compiled to native code whatever `ARBOR_SHADER_JIT` says; None when the
+    /// program uses something the JIT does not compile.
+    pub fn compiled(&self) -> Option<Pipeline> {
+        let jit = jit::compile(&self.program)?;
+        Some(Pipeline { jit: Some(Arc::new(jit)), ..self.clone() })
     }
 
     /// Descriptor bindings the entry point uses: buffers and acceleration structures in
