@@ -299,11 +299,15 @@ impl<'p, 'b, 'f> Gen<'p, 'b, 'f> {
             }
             Op::Tri { op, ty, dst, a, b, c } => {
                 let (x, y, z) = (self.get(a), self.get(b), self.get(c));
+                let code = helpers::tri_code(op, ty)? as i64;
                 let v = if (op, ty) == (TriOp::Fma, Sc::F32) {
-                    self.call_f32(helpers::fma32 as *const () as usize, &[x, y, z])
+                    // Hardware and `vmath::fma1` both round the exact a·b + c once; only a NaN's
+                    // bits can differ, and a NaN takes the interpreter's path.
+                    let (a, b, c) = (self.f32_of(x), self.f32_of(y), self.f32_of(z));
+                    let r = self.b.ins().fma(a, b, c);
+                    self.nan_guard(r, |g| g.helper_tri(code, x, y, z))
                 } else {
-                    let code = self.b.ins().iconst(I64, helpers::tri_code(op, ty)? as i64);
-                    self.call_int(helpers::tri as *const () as usize, &[code, x, y, z])
+                    self.helper_tri(code, x, y, z)
                 };
                 self.set(dst, v);
             }
@@ -330,6 +334,19 @@ impl<'p, 'b, 'f> Gen<'p, 'b, 'f> {
             _ => return None,
         }
         Some(())
+    }
+
+    fn helper_tri(&mut self, code: i64, x: Value, y: Value, z: Value) -> Value {
+        let code = self.b.ins().iconst(I64, code);
+        self.call_int(helpers::tri as *const () as usize, &[code, x, y, z])
+    }
+
+    /// The word of float result `r` (F32 or F64), or `slow`'s word when `r` is a NaN: the bits
+    /// of a NaN are the interpreter's to choose.
+    fn nan_guard(&mut self, r: Value, slow: impl FnOnce(&mut Self) -> Value) -> Value {
+        let ok = self.b.ins().fcmp(cranelift_codegen::ir::condcodes::FloatCC::Ordered, r, r);
+        let f32 = self.b.func.dfg.value_type(r) == F32;
+        self.guarded(ok, slow, |g| if f32 { g.word_f32(r) } else { g.word_f64(r) })
     }
 
     /// The memory helper for one site.

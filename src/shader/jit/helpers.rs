@@ -4,6 +4,7 @@
 //! is not an in-bounds lane-frame or push-constant access; `poll` is the watchdog.
 use super::super::alu;
 use super::super::exec::{check_watchdog, Ctx, Wg, CHECK_EVERY};
+use super::super::exec_alu::{exec_bin, exec_tri, exec_un};
 use super::super::exec_mem::{access_one, Access};
 use super::super::ir::{AtomicOp, BinOp, Sc, Space, TriOp, UnOp, ELEMENT_SHIFT};
 use super::super::memory::{Fault, FaultSpace};
@@ -139,54 +140,71 @@ fn ty_of(code: u64, shift: u32) -> Sc {
     TYS[((code >> shift) & 0xFF) as usize % TYS.len()]
 }
 
+// The generic helpers run the interpreter's own lane arms (on a group whose lanes all hold the
+// operands) rather than `alu`'s scalar functions: where IEEE-754 leaves a choice (the payload
+// and sign of a NaN from two NaN operands, the zero `min` returns for ±0), the JIT then makes
+// the interpreter's choice.
 pub(super) extern "C" fn bin(code: u64, a: u64, b: u64) -> u64 {
-    alu::bin(BINS[(code & 0xFF) as usize % BINS.len()], ty_of(code, 8), a, b)
+    let mut regs = [[a; LANES], [b; LANES], [0; LANES]];
+    exec_bin(&mut regs, BINS[(code & 0xFF) as usize % BINS.len()], ty_of(code, 8), 2, FULL, 0, 1);
+    regs[2][0]
 }
 pub(super) extern "C" fn un(code: u64, a: u64) -> u64 {
-    alu::un(UNS[(code & 0xFF) as usize % UNS.len()], ty_of(code, 8), ty_of(code, 16), a)
+    let mut regs = [[a; LANES], [0; LANES]];
+    exec_un(&mut regs, UNS[(code & 0xFF) as usize % UNS.len()], ty_of(code, 8), ty_of(code, 16), 1, FULL, 0);
+    regs[1][0]
 }
 pub(super) extern "C" fn tri(code: u64, a: u64, b: u64, c: u64) -> u64 {
-    alu::tri(TRIS[(code & 0xFF) as usize % TRIS.len()], ty_of(code, 8), a, b, c)
+    let mut regs = [[a; LANES], [b; LANES], [c; LANES], [0; LANES]];
+    exec_tri(&mut regs, TRIS[(code & 0xFF) as usize % TRIS.len()], ty_of(code, 8), 3, FULL, 0, 1, 2);
+    regs[3][0]
 }
 pub(super) extern "C" fn bit_insert(ty: u64, base: u64, insert: u64, offset: u64, count: u64) -> u64 {
     alu::bit_insert(ty_of(ty, 0), base, insert, offset, count)
 }
 
-/// The F32 functions the interpreter takes from `vmath`, called with floats in registers.
+/// Every lane of a group.
+const FULL: u32 = (1 << LANES) - 1;
+
+/// The F32 functions the interpreter takes from `vmath`, called with floats in registers:
+/// `vmath`'s one-value form, and the interpreter's lane form for a NaN result (whose bits the
+/// two forms may choose differently).
 pub(super) fn f32_unary(op: UnOp) -> Option<extern "C" fn(f32) -> f32> {
-    extern "C" fn sin(x: f32) -> f32 { vmath::sin1(x) }
-    extern "C" fn cos(x: f32) -> f32 { vmath::cos1(x) }
-    extern "C" fn tan(x: f32) -> f32 { vmath::tan1(x) }
-    extern "C" fn exp(x: f32) -> f32 { vmath::exp1(x) }
-    extern "C" fn exp2(x: f32) -> f32 { vmath::exp2_1(x) }
-    extern "C" fn log(x: f32) -> f32 { vmath::log1(x) }
-    extern "C" fn log2(x: f32) -> f32 { vmath::log2_1(x) }
-    extern "C" fn inverse_sqrt(x: f32) -> f32 { vmath::inverse_sqrt1(x) }
-    extern "C" fn atan(x: f32) -> f32 { vmath::atan1(x) }
+    macro_rules! one {
+        ($one:path, $lanes:path) => {{
+            extern "C" fn f(x: f32) -> f32 {
+                let r = $one(x);
+                if r.is_nan() { $lanes(&[x; LANES])[0] } else { r }
+            }
+            f
+        }};
+    }
     Some(match op {
-        UnOp::Sin => sin,
-        UnOp::Cos => cos,
-        UnOp::Tan => tan,
-        UnOp::Exp => exp,
-        UnOp::Exp2 => exp2,
-        UnOp::Log => log,
-        UnOp::Log2 => log2,
-        UnOp::InverseSqrt => inverse_sqrt,
-        UnOp::Atan => atan,
+        UnOp::Sin => one!(vmath::sin1, vmath::sin),
+        UnOp::Cos => one!(vmath::cos1, vmath::cos),
+        UnOp::Tan => one!(vmath::tan1, vmath::tan),
+        UnOp::Exp => one!(vmath::exp1, vmath::exp),
+        UnOp::Exp2 => one!(vmath::exp2_1, vmath::exp2),
+        UnOp::Log => one!(vmath::log1, vmath::log),
+        UnOp::Log2 => one!(vmath::log2_1, vmath::log2),
+        UnOp::InverseSqrt => one!(vmath::inverse_sqrt1, vmath::inverse_sqrt),
+        UnOp::Atan => one!(vmath::atan1, vmath::atan),
         _ => return None,
     })
 }
 
 pub(super) fn f32_binary(op: BinOp) -> Option<extern "C" fn(f32, f32) -> f32> {
-    extern "C" fn pow(x: f32, y: f32) -> f32 { vmath::pow1(x, y) }
-    extern "C" fn atan2(y: f32, x: f32) -> f32 { vmath::atan2_1(y, x) }
+    extern "C" fn pow(x: f32, y: f32) -> f32 {
+        let r = vmath::pow1(x, y);
+        if r.is_nan() { vmath::pow(&[x; LANES], &[y; LANES])[0] } else { r }
+    }
+    extern "C" fn atan2(y: f32, x: f32) -> f32 {
+        let r = vmath::atan2_1(y, x);
+        if r.is_nan() { vmath::atan2(&[y; LANES], &[x; LANES])[0] } else { r }
+    }
     match op {
         BinOp::Pow => Some(pow),
         BinOp::Atan2 => Some(atan2),
         _ => None,
     }
-}
-
-pub(super) extern "C" fn fma32(a: f32, b: f32, c: f32) -> f32 {
-    vmath::fma1(a, b, c)
 }

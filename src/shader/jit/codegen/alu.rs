@@ -150,7 +150,11 @@ impl Gen<'_, '_, '_> {
                     FDiv => self.b.ins().fdiv(a, b),
                     _ => return None,
                 };
-                Some(if ty == Sc::F32 { self.word_f32(r) } else { self.word_f64(r) })
+                let code = helpers::bin_code(op, ty)? as i64;
+                Some(self.nan_guard(r, |g| {
+                    let code = g.b.ins().iconst(I64, code);
+                    g.call_int(helpers::bin as *const () as usize, &[code, x, y])
+                }))
             }
         }
     }
@@ -209,10 +213,14 @@ impl Gen<'_, '_, '_> {
                 let i = if op == ConvertFToS { self.b.ins().fcvt_to_sint_sat(I32, f) } else { self.b.ins().fcvt_to_uint_sat(I32, f) };
                 self.zx(i)
             }
-            (Sqrt, Sc::F32, _) => {
+            (Sqrt, Sc::F32, Sc::F32) => {
                 let f = self.f32_of(x);
                 let r = self.b.ins().sqrt(f);
-                self.word_f32(r)
+                let code = helpers::un_code(op, ty, from)? as i64;
+                self.nan_guard(r, |g| {
+                    let code = g.b.ins().iconst(I64, code);
+                    g.call_int(helpers::un as *const () as usize, &[code, x])
+                })
             }
             (_, Sc::F32, _) if helpers::f32_unary(op).is_some() => {
                 let f = helpers::f32_unary(op)?;
