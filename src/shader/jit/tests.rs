@@ -301,3 +301,40 @@ fn native_results_do_not_depend_on_thread_count() {
         assert_eq!(run_on(2), one, "{what}");
     }
 }
+
+#[test]
+fn inline_float_functions_match_vmath_over_many_values() {
+    use UnOp::*;
+    const N: usize = 1 << 14;
+    let rnd = words(0x9E37_79B9_7F4A_7C15, N);
+    // Random bits (NaNs, infinities, denormals, huge values) and values in the usual ranges.
+    let vals: Vec<u64> = rnd
+        .iter()
+        .enumerate()
+        .map(|(i, &w)| if i % 2 == 0 { w & 0xFFFF_FFFF } else { ((w % 200_001) as f32 / 1000.0 - 100.0).to_bits() as u64 })
+        .collect();
+    for op in [Sin, Cos, Exp, Sqrt, FNeg, FAbs] {
+        let prog = op_program(Op::Un { op, ty: Sc::F32, from: Sc::F32, dst: 20, a: 10 }, Sc::F32, 1);
+        let jit = super::compile(&prog).expect("compiles");
+        let p = Pipeline { program: std::sync::Arc::new(prog), local_size: [64, 1, 1], push_constant_size: 0, jit: Some(std::sync::Arc::new(jit)) };
+        let input: Vec<u8> = vals.iter().flat_map(|v| v.to_le_bytes()).collect();
+        let run = |p: &Pipeline| {
+            let mut mem = HostMemory::new();
+            let (a, o) = (mem.add_buffer(&input), mem.add_buffer(&vec![0; N * 8]));
+            mem.bind(0, 0, a);
+            mem.bind(0, 1, o);
+            assert!(dispatch(p, &mem, &[], [(N / 64) as u32, 1, 1], [0; 3], &Watchdog::default()).is_clean());
+            mem.bytes(o)
+        };
+        let (out, want) = (run(&p), run(&p.interpreted()));
+        for (i, &v) in vals.iter().enumerate() {
+            let got = u64::from_le_bytes(out[i * 8..][..8].try_into().unwrap());
+            let interp = u64::from_le_bytes(want[i * 8..][..8].try_into().unwrap());
+            assert_eq!(got, interp, "{op:?}({:e} = {v:#x}) against the interpreter", f32::from_bits(v as u32));
+            let reference = alu::un(op, Sc::F32, Sc::F32, v);
+            if !f32::from_bits(reference as u32).is_nan() {
+                assert_eq!(got, reference, "{op:?}({:e} = {v:#x}) against alu", f32::from_bits(v as u32));
+            }
+        }
+    }
+}

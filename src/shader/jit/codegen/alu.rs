@@ -5,6 +5,7 @@ use cranelift_codegen::ir::condcodes::{FloatCC, IntCC};
 use cranelift_codegen::ir::{InstBuilder, Value};
 
 use super::super::helpers;
+use super::vmath::Fn1;
 use super::{Gen, F32, I32, I64};
 use crate::shader::ir::{BinOp, Sc, UnOp};
 
@@ -213,9 +214,16 @@ impl Gen<'_, '_, '_> {
                 let i = if op == ConvertFToS { self.b.ins().fcvt_to_sint_sat(I32, f) } else { self.b.ins().fcvt_to_uint_sat(I32, f) };
                 self.zx(i)
             }
-            (Sqrt, Sc::F32, Sc::F32) => {
+            (Sqrt | FNeg | FAbs | Sin | Cos | Exp, Sc::F32, Sc::F32) => {
                 let f = self.f32_of(x);
-                let r = self.b.ins().sqrt(f);
+                let r = match op {
+                    Sqrt => self.b.ins().sqrt(f),
+                    FNeg => self.b.ins().fneg(f),
+                    FAbs => self.b.ins().fabs(f),
+                    Sin => self.vmath1(Fn1::Sin, f),
+                    Cos => self.vmath1(Fn1::Cos, f),
+                    _ => self.vmath1(Fn1::Exp, f),
+                };
                 let code = helpers::un_code(op, ty, from)? as i64;
                 self.nan_guard(r, |g| {
                     let code = g.b.ins().iconst(I64, code);
