@@ -27,7 +27,9 @@
 //!
 //! Backends. [`Pipeline::compute`] compiles the program with Cranelift (`jit`) unless
 //! `ARBOR_SHADER_JIT=0` (read once) or the host is neither x86-64 nor aarch64; the choice is
-//! made there, never at dispatch. Native code runs one invocation at a time (scalar code, the
+//! made there, never at dispatch. Loops heavy in `vmath` functions (sin, exp, …: at least 1/16
+//! of their ops) stay on the interpreter, whose lane arms compute them eight lanes at a time
+//! (`ARBOR_SHADER_JIT=all` compiles them too). Native code runs one invocation at a time (scalar code, the
 //! IR's blocks as native blocks, registers as SSA variables), so divergent branches and loops
 //! cost nothing extra; a workgroup is a loop over its invocations. It covers ALU ops of every
 //! type (the common integer, Bool and float ops inline; sin, cos, exp written out as `vmath`
@@ -192,7 +194,7 @@ impl Pipeline {
         // as an error, rather than take the caller down.
         let lowered = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| lower::lower(module, &consts, entry)))
             .map_err(|_| ShaderError::Malformed { offset: 0, reason: "invalid module (lowering failed)".into() })??;
-        let jit = if jit::enabled() { jit::compile(&lowered.program).map(Arc::new) } else { None };
+        let jit = jit::for_pipeline(&lowered.program).map(Arc::new);
         Ok(Pipeline { program: Arc::new(lowered.program), local_size, push_constant_size: lowered.push_size, jit })
     }
 
@@ -206,8 +208,8 @@ impl Pipeline {
         Pipeline { jit: None, ..self.clone() }
     }
 
-    /// This pipeline compiled to native code whatever `ARBOR_SHADER_JIT` says; None when the
-    /// program uses something the JIT does not compile.
+    /// This pipeline compiled to native code whatever `ARBOR_SHADER_JIT` and the cost rule
+    /// say; None when the program uses something the JIT does not compile.
     pub fn compiled(&self) -> Option<Pipeline> {
         let jit = jit::compile(&self.program)?;
         Some(Pipeline { jit: Some(Arc::new(jit)), ..self.clone() })

@@ -12,7 +12,7 @@ use cranelift_codegen::ir::condcodes::IntCC;
 use cranelift_codegen::ir::{types, AbiParam, Block, InstBuilder, MemFlagsData, SigRef, Signature, Value};
 use cranelift_frontend::{FunctionBuilder, Variable};
 
-use super::super::ir::{self, Op, Program, Sc, Space, Term, TriOp};
+use super::super::ir::{self, Op, Program, Sc, Space, Term, TriOp, UnOp};
 use super::helpers::{self, MemDesc, MemKind, STOPPED};
 
 mod alu;
@@ -68,6 +68,39 @@ pub(super) fn supported(prog: &Program) -> bool {
                 _ => false,
             })
     })
+}
+
+/// Whether the interpreter runs `prog` faster: its lane arms compute `vmath`'s functions for
+/// eight lanes in one vectorised call, where native code computes them once per invocation.
+/// Loops whose ops are at least 1/16 such functions (compute-alu's are 3 in 40: sin, cos, exp)
+/// ran at about half the interpreter's rate (docs/BENCHMARKS.md), so they stay there.
+pub(super) fn prefers_interpreter(prog: &Program) -> bool {
+    let mut in_loop = vec![false; prog.blocks.len()];
+    for (i, blk) in prog.blocks.iter().enumerate() {
+        let targets: Vec<u32> = match &blk.term {
+            Term::Jump(t) => vec![*t],
+            Term::Cond { t, f, .. } => vec![*t, *f],
+            Term::Switch { default, cases, .. } => cases.iter().map(|c| c.1).chain([*default]).collect(),
+            _ => vec![],
+        };
+        for t in targets.into_iter().filter(|&t| t as usize <= i) {
+            in_loop[t as usize..=i].iter_mut().for_each(|b| *b = true);
+        }
+    }
+    let (mut ops, mut math) = (0usize, 0usize);
+    for blk in prog.blocks.iter().zip(&in_loop).filter(|b| *b.1).map(|b| b.0) {
+        ops += blk.ops.len();
+        math += blk
+            .ops
+            .iter()
+            .filter(|op| match op {
+                Op::Un { op, ty: Sc::F32, .. } => helpers::f32_unary(*op).is_some() || matches!(op, UnOp::Sin | UnOp::Cos | UnOp::Exp),
+                Op::Bin { op, ty: Sc::F32, .. } => helpers::f32_binary(*op).is_some(),
+                _ => false,
+            })
+            .count();
+    }
+    math > 0 && math * 16 >= ops
 }
 
 impl<'p, 'b, 'f> Gen<'p, 'b, 'f> {

@@ -46,14 +46,33 @@ impl std::fmt::Debug for Jit {
     }
 }
 
-/// Whether pipelines are compiled: on where Cranelift supports the host, unless
-/// `ARBOR_SHADER_JIT=0` (read once).
-pub(crate) fn enabled() -> bool {
-    static ON: OnceLock<bool> = OnceLock::new();
-    *ON.get_or_init(|| {
-        let host = cfg!(any(target_arch = "x86_64", target_arch = "aarch64"));
-        host && std::env::var("ARBOR_SHADER_JIT").map_or(true, |v| v != "0")
+/// Which pipelines are compiled, from `ARBOR_SHADER_JIT` (read once): `0` none, `all` every
+/// program the JIT can compile, anything else (or unset) those `codegen::prefers_interpreter`
+/// does not keep on the interpreter. Never on a host Cranelift does not support.
+#[derive(Clone, Copy, PartialEq, Eq)]
+enum Mode {
+    Off,
+    Auto,
+    All,
+}
+
+fn mode() -> Mode {
+    static MODE: OnceLock<Mode> = OnceLock::new();
+    *MODE.get_or_init(|| match std::env::var("ARBOR_SHADER_JIT").as_deref() {
+        _ if !cfg!(any(target_arch = "x86_64", target_arch = "aarch64")) => Mode::Off,
+        Ok("0") => Mode::Off,
+        Ok("all") => Mode::All,
+        _ => Mode::Auto,
     })
+}
+
+/// The pipeline-creation choice: `prog` compiled, or None for the interpreter.
+pub(crate) fn for_pipeline(prog: &Program) -> Option<Jit> {
+    match mode() {
+        Mode::Off => None,
+        Mode::Auto if codegen::prefers_interpreter(prog) => None,
+        _ => compile(prog),
+    }
 }
 
 /// Compiles `prog`, or None when it uses something the JIT does not compile (it then runs on

@@ -338,3 +338,19 @@ fn inline_float_functions_match_vmath_over_many_values() {
         }
     }
 }
+
+#[test]
+fn loops_heavy_in_float_functions_stay_on_the_interpreter() {
+    let load = |name: &str| -> Pipeline {
+        let path = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("bench/shaders").join(name);
+        let words: Vec<u32> = std::fs::read(path).unwrap().chunks(4).map(|c| u32::from_le_bytes(c.try_into().unwrap())).collect();
+        Pipeline::compute(&Module::parse(&words).unwrap(), "main", &[]).unwrap()
+    };
+    // sin, cos and exp among about forty ops a round; the Collatz and copy loops have none.
+    assert!(super::codegen::prefers_interpreter(&load("compute_alu.spv").program));
+    for name in ["compute_divergent.spv", "compute_memory.spv"] {
+        let p = load(name);
+        assert!(!super::codegen::prefers_interpreter(&p.program), "{name}");
+        assert!(p.compiled().is_some(), "{name}");
+    }
+}
