@@ -8,7 +8,7 @@
 //! (safe Rust, reached with the context reference it was given) or is an inline access to the
 //! lane frame or push constants guarded by a bounds check against the lengths passed here.
 use cranelift_jit::JITModule;
-use cranelift_module::{FuncId, ModuleResult};
+use cranelift_module::{FuncId, ModuleError};
 
 /// `extern "C" fn(context, frame, frame_len, push, push_len) -> u64`, the signature every
 /// generated entry point has.
@@ -32,8 +32,8 @@ impl Code {
     /// Finalizes `module` and takes `func`, which must have been declared with the signature
     /// (i64 context, i64 frame, i64 frame length, i64 push, i64 push length) -> i64 in the host's
     /// default calling convention.
-    pub fn new(mut module: JITModule, func: FuncId) -> ModuleResult<Code> {
-        module.finalize_definitions()?;
+    pub fn new(mut module: JITModule, func: FuncId) -> Result<Code, Box<ModuleError>> {
+        module.finalize_definitions().map_err(Box::new)?;
         let ptr = module.get_finalized_function(func);
         // SAFETY: `ptr` is the finalized, executable code of `func`, generated with the
         // signature `Entry` spells (the documented precondition); it stays mapped while
