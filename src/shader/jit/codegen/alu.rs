@@ -60,6 +60,7 @@ impl Gen<'_, '_, '_> {
         Some(self.call_int(helpers::bin as *const () as usize, &[code, x, y]))
     }
 
+    // One function: one match over the type, then the op, each arm a few builder calls.
     fn bin_inline(&mut self, op: BinOp, ty: Sc, x: Value, y: Value) -> Option<Value> {
         use BinOp::*;
         match ty {
