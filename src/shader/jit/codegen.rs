@@ -39,6 +39,7 @@ pub(super) struct Gen<'p, 'b, 'f> {
     next_poll: Variable,
     run: Value,
     frame: Value,
+    frame_len: Value,
     push: Value,
     push_len: Value,
     blocks: Vec<Block>,
@@ -128,7 +129,7 @@ impl<'p, 'b, 'f> Gen<'p, 'b, 'f> {
         let floats = (1..=3).map(|n| b.import_signature(sig(call_conv, F32, n))).collect();
         let blocks: Vec<Block> = prog.blocks.iter().map(|_| b.create_block()).collect();
         b.ins().jump(blocks[0], &[]);
-        Gen { b, prog, regs, steps, next_poll, run: p[0], frame: p[1], push: p[3], push_len: p[4], blocks, sigs: Sigs { ints, floats }, descs: Vec::new() }
+        Gen { b, prog, regs, steps, next_poll, run: p[0], frame: p[1], frame_len: p[2], push: p[3], push_len: p[4], blocks, sigs: Sigs { ints, floats }, descs: Vec::new() }
     }
 
     /// Emits every block; None when an op or terminator is not compiled.
@@ -421,10 +422,7 @@ impl<'p, 'b, 'f> Gen<'p, 'b, 'f> {
         let at = self.get(addr);
         let desc = MemDesc { ty, space, kind: MemKind::Load };
         let (base, len) = match space {
-            Space::Lane => {
-                let fs = self.prog.lane_frame.len() as i64;
-                (self.frame, self.b.ins().iconst(I64, fs))
-            }
+            Space::Lane => (self.frame, self.frame_len),
             Space::Push => (self.push, self.push_len),
             Space::Workgroup => return None,
             _ => {
@@ -463,8 +461,7 @@ impl<'p, 'b, 'f> Gen<'p, 'b, 'f> {
                 return Some(());
             }
         }
-        let fs = self.prog.lane_frame.len() as i64;
-        let len = self.b.ins().iconst(I64, fs);
+        let len = self.frame_len;
         let ok = self.in_bounds(at, len, ty.size());
         let frame = self.frame;
         self.guarded(
