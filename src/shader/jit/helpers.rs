@@ -51,10 +51,27 @@ pub(super) struct Run<'r, 'a> {
     pub kept: usize,
     /// Steps of the running invocation already added to the workgroup's count.
     pub accounted: u64,
+    /// A panic caught in a helper (a `Memory` implementation's): unwinding cannot cross the
+    /// generated code, so the helper keeps it, later helpers do nothing, the next poll stops
+    /// the invocation, and the caller resumes the unwind once the code has returned.
+    pub panic: Option<Box<dyn std::any::Any + Send>>,
 }
 
 /// Memory access `desc` at `at` (value `a`, comparator `b`), as the interpreter does it.
 pub(super) extern "C" fn mem(run: &mut Run, desc: u64, at: u64, a: u64, b: u64, steps: u64) -> u64 {
+    if run.panic.is_some() {
+        return 0;
+    }
+    match std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| access(run, desc, at, a, b, steps))) {
+        Ok(v) => v,
+        Err(p) => {
+            run.panic = Some(p);
+            0
+        }
+    }
+}
+
+fn access(run: &mut Run, desc: u64, at: u64, a: u64, b: u64, steps: u64) -> u64 {
     let d = run.descs[desc as usize];
     let acc = match d.kind {
         MemKind::Load => Access::Read,
@@ -82,6 +99,9 @@ pub(super) extern "C" fn mem(run: &mut Run, desc: u64, at: u64, a: u64, b: u64, 
 /// Adds the invocation's steps to the workgroup's count and asks the watchdog: the step count
 /// at which to poll again, or 0 to stop.
 pub(super) extern "C" fn poll(run: &mut Run, steps: u64) -> u64 {
+    if run.panic.is_some() {
+        return 0;
+    }
     run.wg.steps += steps - run.accounted;
     run.accounted = steps;
     match check_watchdog(run.ctx.watchdog, run.wg.steps) {

@@ -116,7 +116,7 @@ fn build(prog: &Program) -> Option<Jit> {
 pub(super) fn run_workgroup(ctx: &Ctx, jit: &Jit, wg: &mut Wg, frame: &mut [u8]) {
     let n = ctx.local.iter().product::<u32>();
     let id = wg.id;
-    let mut run = Run { ctx, wg, descs: &jit.descs, invocation: 0, pending: Vec::new(), kept: 0, accounted: 0 };
+    let mut run = Run { ctx, wg, descs: &jit.descs, invocation: 0, pending: Vec::new(), kept: 0, accounted: 0, panic: None };
     let mut next_check = run.wg.steps + CHECK_EVERY;
     for index in 0..n {
         init_frame(ctx, frame, id, index, n);
@@ -124,6 +124,9 @@ pub(super) fn run_workgroup(ctx: &Ctx, jit: &Jit, wg: &mut Wg, frame: &mut [u8])
         run.kept = 0;
         run.accounted = 0;
         let steps = jit.code.call(&mut run, frame, ctx.push);
+        if let Some(p) = run.panic.take() {
+            std::panic::resume_unwind(p);
+        }
         if steps == STOPPED {
             flush(&mut run);
             return;

@@ -354,3 +354,39 @@ fn loops_heavy_in_float_functions_stay_on_the_interpreter() {
         assert!(p.compiled().is_some(), "{name}");
     }
 }
+
+/// Memory whose reads panic, as a broken `Memory` implementation would.
+struct PanickingReads(HostMemory);
+
+impl crate::shader::Memory for PanickingReads {
+    fn binding(&self, set: u32, binding: u32) -> Option<crate::shader::Region> {
+        self.0.binding(set, binding)
+    }
+    fn address(&self, address: u64, len: u64) -> Option<crate::shader::Region> {
+        self.0.address(address, len)
+    }
+    fn read(&self, _: u64, _: u64, _: &mut [u8]) -> bool {
+        panic!("read refused")
+    }
+    fn write(&self, buffer: u64, offset: u64, data: &[u8]) -> bool {
+        self.0.write(buffer, offset, data)
+    }
+    fn atomic(&self, buffer: u64, offset: u64, size: usize, update: &dyn Fn(u64) -> u64) -> Option<u64> {
+        self.0.atomic(buffer, offset, size, update)
+    }
+}
+
+#[test]
+fn a_panic_in_memory_unwinds_out_of_native_code() {
+    let prog = op_program(Op::Mov { dst: 20, src: 10 }, Sc::I32, 1);
+    let jit = super::compile(&prog).expect("compiles");
+    let p = Pipeline { program: std::sync::Arc::new(prog), local_size: [64, 1, 1], push_constant_size: 0, jit: Some(std::sync::Arc::new(jit)) };
+    let mut host = HostMemory::new();
+    let (a, o) = (host.add_buffer(&[0; 512]), host.add_buffer(&[0; 512]));
+    host.bind(0, 0, a);
+    host.bind(0, 1, o);
+    let mem = PanickingReads(host);
+    let r = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| dispatch(&p, &mem, &[], [1, 1, 1], [0; 3], &Watchdog::default())));
+    let msg = r.expect_err("the panic reaches the caller");
+    assert_eq!(msg.downcast_ref::<&str>(), Some(&"read refused"));
+}
