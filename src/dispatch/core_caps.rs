@@ -143,7 +143,7 @@ fn driver_name() -> [std::ffi::c_char; vk::MAX_DRIVER_NAME_SIZE] {
 
 fn driver_info() -> [std::ffi::c_char; vk::MAX_DRIVER_INFO_SIZE] {
     let mut n = [0; vk::MAX_DRIVER_INFO_SIZE];
-    util::write_name(&mut n, "CPU driver; compute shaders through a SIMD-lane interpreter");
+    util::write_name(&mut n, "CPU driver; compute shaders as native code (Cranelift) or through a SIMD-lane interpreter");
     n
 }
 

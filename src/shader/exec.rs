@@ -24,7 +24,7 @@ use super::{Pipeline, LANES};
 /// Faults kept in a report; later ones are only counted.
 const MAX_FAULTS: usize = 16;
 /// How many blocks a lane group runs between watchdog checks.
-const CHECK_EVERY: u64 = 1024;
+pub(super) const CHECK_EVERY: u64 = 1024;
 
 /// Stops a dispatch that runs too long. All fields optional; `Default` never stops.
 #[derive(Clone, Debug, Default)]
@@ -102,9 +102,9 @@ pub(super) struct Ctx<'a> {
     accel: Vec<u64>,
     /// Per `Program::accel_arrays` slot, each element's structure address (0 when unbound).
     pub accel_arrays: Vec<Vec<u64>>,
-    local: [u32; 3],
+    pub local: [u32; 3],
     num_groups: [u32; 3],
-    watchdog: &'a Watchdog<'a>,
+    pub watchdog: &'a Watchdog<'a>,
     stop: AtomicBool,
 }
 
@@ -116,8 +116,8 @@ pub(super) struct Wg {
     pub fault_count: u64,
     /// The first unresolved instance reference a ray query of this workgroup met.
     pub unresolved: Option<Fault>,
-    steps: u64,
-    stopped: Option<Stop>,
+    pub steps: u64,
+    pub stopped: Option<Stop>,
 }
 
 /// What one workgroup leaves for the report: its first faults, their count, a watchdog stop,
@@ -160,21 +160,23 @@ pub fn dispatch(
     };
     let total = group_count.iter().map(|&c| c as u64).product::<u64>();
     let per_row = group_count[0] as u64 * group_count[1] as u64;
-    let results: Vec<WorkgroupResult> = (0..total)
-        .into_par_iter()
-        .map_init(
-            || new_groups(&ctx),
-            |groups, i| {
-                let id = [
-                    base_group[0].wrapping_add((i % group_count[0] as u64) as u32),
-                    base_group[1].wrapping_add(((i / group_count[0] as u64) % group_count[1] as u64) as u32),
-                    base_group[2].wrapping_add((i / per_row) as u32),
-                ];
-                run_workgroup(&ctx, groups, id)
-            },
-        )
-        .filter(|r| r.1 > 0 || r.2.is_some() || r.3.is_some())
-        .collect();
+    let id_of = |i: u64| {
+        [
+            base_group[0].wrapping_add((i % group_count[0] as u64) as u32),
+            base_group[1].wrapping_add(((i / group_count[0] as u64) % group_count[1] as u64) as u32),
+            base_group[2].wrapping_add((i / per_row) as u32),
+        ]
+    };
+    let keep = |r: &WorkgroupResult| r.1 > 0 || r.2.is_some() || r.3.is_some();
+    // The backend was chosen at pipeline creation: native code when the program compiled.
+    let results: Vec<WorkgroupResult> = match &pipeline.jit {
+        Some(jit) => (0..total)
+            .into_par_iter()
+            .map_init(|| vec![0u8; prog.lane_frame.len()], |frame, i| run_workgroup_jit(&ctx, jit, frame, id_of(i)))
+            .filter(keep)
+            .collect(),
+        None => (0..total).into_par_iter().map_init(|| new_groups(&ctx), |groups, i| run_workgroup(&ctx, groups, id_of(i))).filter(keep).collect(),
+    };
     let mut report = DispatchReport::default();
     for (faults, count, stop, unresolved) in results {
         report.unresolved_instance = report.unresolved_instance.or(unresolved);
@@ -201,19 +203,29 @@ fn new_groups<'a>(ctx: &Ctx<'a>) -> Vec<Group<'a>> {
         .collect()
 }
 
+impl Wg {
+    fn new(ctx: &Ctx, id: [u32; 3]) -> Wg {
+        Wg { id, shared: vec![0; ctx.prog.workgroup_bytes as usize], faults: Vec::new(), fault_count: 0, unresolved: None, steps: 0, stopped: None }
+    }
+}
+
+fn run_workgroup_jit(ctx: &Ctx, jit: &super::jit::Jit, frame: &mut [u8], id: [u32; 3]) -> WorkgroupResult {
+    if ctx.stop.load(Ordering::Relaxed) {
+        return (Vec::new(), 0, None, None);
+    }
+    let mut wg = Wg::new(ctx, id);
+    super::jit::run_workgroup(ctx, jit, &mut wg, frame);
+    if wg.stopped.is_some() {
+        ctx.stop.store(true, Ordering::Relaxed);
+    }
+    (wg.faults, wg.fault_count, wg.stopped, wg.unresolved)
+}
+
 fn run_workgroup<'a>(ctx: &Ctx<'a>, groups: &mut [Group<'a>], id: [u32; 3]) -> WorkgroupResult {
     if ctx.stop.load(Ordering::Relaxed) {
         return (Vec::new(), 0, None, None);
     }
-    let mut wg = Wg {
-        id,
-        shared: vec![0; ctx.prog.workgroup_bytes as usize],
-        faults: Vec::new(),
-        fault_count: 0,
-        unresolved: None,
-        steps: 0,
-        stopped: None,
-    };
+    let mut wg = Wg::new(ctx, id);
     let n = ctx.local.iter().product::<u32>();
     for (g, group) in groups.iter_mut().enumerate() {
         init_group(ctx, group, &wg, g as u32, n);
@@ -250,39 +262,45 @@ fn init_group(ctx: &Ctx, group: &mut Group, wg: &Wg, g: u32, n: u32) {
     }
     group.queries.clear();
     let fs = prog.lane_frame.len();
-    let [lx, ly, lz] = ctx.local;
-    let groups = n.div_ceil(LANES as u32);
     for l in 0..LANES {
         let index = g * LANES as u32 + l as u32;
         group.cursor[l] = 0;
         group.lane[l] = if index < n { Lane::Running } else { Lane::Done };
-        let frame = &mut group.frame[l * fs..(l + 1) * fs];
-        frame.copy_from_slice(&prog.lane_frame);
-        let local = [index % lx, (index / lx) % ly, index / (lx * ly)];
-        let global = [0, 1, 2].map(|i| wg.id[i].wrapping_mul(ctx.local[i]).wrapping_add(local[i]));
-        let all = (1u32 << LANES) - 1;
-        let words: [(u32, &[u32]); 15] = [
-            (bo::GLOBAL_INVOCATION_ID, &global),
-            (bo::LOCAL_INVOCATION_ID, &local),
-            (bo::WORKGROUP_ID, &wg.id),
-            (bo::NUM_WORKGROUPS, &ctx.num_groups),
-            (bo::LOCAL_INVOCATION_INDEX, &[index]),
-            (bo::WORKGROUP_SIZE, &[lx, ly, lz]),
-            (bo::SUBGROUP_SIZE, &[LANES as u32]),
-            (bo::SUBGROUP_LOCAL_INVOCATION_ID, &[l as u32]),
-            (bo::SUBGROUP_ID, &[g]),
-            (bo::NUM_SUBGROUPS, &[groups]),
-            (bo::SUBGROUP_EQ_MASK, &[1 << l, 0, 0, 0]),
-            (bo::SUBGROUP_GE_MASK, &[all & !((1 << l) - 1), 0, 0, 0]),
-            (bo::SUBGROUP_GT_MASK, &[all & !((2 << l) - 1), 0, 0, 0]),
-            (bo::SUBGROUP_LE_MASK, &[(2 << l) - 1, 0, 0, 0]),
-            (bo::SUBGROUP_LT_MASK, &[(1 << l) - 1, 0, 0, 0]),
-        ];
-        for (at, vals) in words {
-            for (k, v) in vals.iter().enumerate() {
-                let o = at as usize + 4 * k;
-                frame[o..o + 4].copy_from_slice(&v.to_le_bytes());
-            }
+        init_frame(ctx, &mut group.frame[l * fs..(l + 1) * fs], wg.id, index, n);
+    }
+}
+
+/// Fills invocation `index`'s lane frame (of `n` in workgroup `id`): the program's initial
+/// contents, then the built-in inputs.
+pub(super) fn init_frame(ctx: &Ctx, frame: &mut [u8], id: [u32; 3], index: u32, n: u32) {
+    let [lx, ly, lz] = ctx.local;
+    let groups = n.div_ceil(LANES as u32);
+    let (g, l) = (index / LANES as u32, index as usize % LANES);
+    frame.copy_from_slice(&ctx.prog.lane_frame);
+    let local = [index % lx, (index / lx) % ly, index / (lx * ly)];
+    let global = [0, 1, 2].map(|i| id[i].wrapping_mul(ctx.local[i]).wrapping_add(local[i]));
+    let all = (1u32 << LANES) - 1;
+    let words: [(u32, &[u32]); 15] = [
+        (bo::GLOBAL_INVOCATION_ID, &global),
+        (bo::LOCAL_INVOCATION_ID, &local),
+        (bo::WORKGROUP_ID, &id),
+        (bo::NUM_WORKGROUPS, &ctx.num_groups),
+        (bo::LOCAL_INVOCATION_INDEX, &[index]),
+        (bo::WORKGROUP_SIZE, &[lx, ly, lz]),
+        (bo::SUBGROUP_SIZE, &[LANES as u32]),
+        (bo::SUBGROUP_LOCAL_INVOCATION_ID, &[l as u32]),
+        (bo::SUBGROUP_ID, &[g]),
+        (bo::NUM_SUBGROUPS, &[groups]),
+        (bo::SUBGROUP_EQ_MASK, &[1 << l, 0, 0, 0]),
+        (bo::SUBGROUP_GE_MASK, &[all & !((1 << l) - 1), 0, 0, 0]),
+        (bo::SUBGROUP_GT_MASK, &[all & !((2 << l) - 1), 0, 0, 0]),
+        (bo::SUBGROUP_LE_MASK, &[(2 << l) - 1, 0, 0, 0]),
+        (bo::SUBGROUP_LT_MASK, &[(1 << l) - 1, 0, 0, 0]),
+    ];
+    for (at, vals) in words {
+        for (k, v) in vals.iter().enumerate() {
+            let o = at as usize + 4 * k;
+            frame[o..o + 4].copy_from_slice(&v.to_le_bytes());
         }
     }
 }
@@ -342,7 +360,7 @@ impl Next {
     }
 }
 
-fn check_watchdog(w: &Watchdog, steps: u64) -> Option<Stop> {
+pub(super) fn check_watchdog(w: &Watchdog, steps: u64) -> Option<Stop> {
     if w.step_budget.is_some_and(|b| steps >= b) {
         return Some(Stop::StepBudget);
     }

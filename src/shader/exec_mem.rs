@@ -9,7 +9,7 @@ use super::LANES;
 
 /// What one lane does at an address.
 #[derive(Clone, Copy)]
-enum Access {
+pub(super) enum Access {
     Read,
     Write(u64),
     Rmw(AtomicOp, u64, u64),
@@ -66,7 +66,7 @@ pub(super) fn exec_mem(ctx: &Ctx, group: &mut Group, wg: &mut Wg, op: &Op, mask:
 
 type AccessResult = Result<u64, (FaultKind, FaultSpace)>;
 
-fn access_one(ctx: &Ctx, frame: &mut [u8], wg: &mut Wg, space: Space, at: u64, ty: Sc, acc: Access) -> AccessResult {
+pub(super) fn access_one(ctx: &Ctx, frame: &mut [u8], wg: &mut Wg, space: Space, at: u64, ty: Sc, acc: Access) -> AccessResult {
     let size = ty.size() as usize;
     match space {
         Space::Lane => local(frame, at, size, ty, acc).ok_or((FaultKind::OutOfBounds, FaultSpace::Invocation)),

@@ -1,4 +1,5 @@
-//! Compute shaders: SPIR-V → Arbor's IR → a SIMD-lane interpreter. Pure library: no Vulkan
+//! Compute shaders: SPIR-V → Arbor's IR → native code (Cranelift) or a SIMD-lane interpreter.
+//! Pure library: no Vulkan
 //! handles, no `unsafe`, no access to the rest of the driver; device memory is reached only
 //! through the [`Memory`] trait the caller implements.
 //!
@@ -12,6 +13,7 @@
 //!   cursors, always the lowest block index first (blocks are in structured order, so lanes
 //!   reconverge at merge blocks); `dispatch`: workgroups over rayon, barriers, faults, watchdog;
 //! - `alu`: scalar semantics shared by the executor and the constant folder;
+//! - `jit`: the native-code backend (below);
 //! - `vmath`: branch-free f32 GLSL.std.450 functions (one value, and over lane arrays) and the
 //!   exact `fma`; `exec_float`: the executor's F32 float ops over a whole lane group at once;
 //! - `memory`: the [`Memory`] trait, [`Fault`]s, and [`HostMemory`] for tests;
@@ -22,6 +24,28 @@
 //! - `lower_array`: arrays of buffer descriptors (and, in `lower_image`, of images): the
 //!   element rides in the address (buffers, texel pointers) or in a register of the image op,
 //!   and the executor resolves every element once per dispatch.
+//!
+//! Backends. [`Pipeline::compute`] compiles the program with Cranelift (`jit`) unless
+//! `ARBOR_SHADER_JIT=0` (read once) or the host is neither x86-64 nor aarch64; the choice is
+//! made there, never at dispatch. Loops heavy in `vmath` functions (sin, exp, …: at least 1/16
+//! of their ops) stay on the interpreter, whose lane arms compute them eight lanes at a time
+//! (`ARBOR_SHADER_JIT=all` compiles them too). Native code runs one invocation at a time (scalar code, the
+//! IR's blocks as native blocks, registers as SSA variables), so divergent branches and loops
+//! cost nothing extra; a workgroup is a loop over its invocations. It covers ALU ops of every
+//! type (the common integer, Bool and float ops inline; sin, cos, exp written out as `vmath`
+//! computes them; the rest through helpers that run the interpreter's own lane arms), control
+//! flow, phis, selects, push constants and lane memory inline behind bounds checks, and every
+//! other buffer access (descriptors, arrays, device addresses, atomics) through the
+//! interpreter's access function, so faults are the same records. Programs that need the
+//! invocations of a lane group or workgroup together stay on the interpreter: workgroup
+//! barriers and shared memory (whose unsynchronised order the lane schedule defines), subgroup
+//! and ballot ops, images and ray queries, atomics on lane memory. The interpreter is the
+//! reference: same register words, same memory, same faults (ordered by the key `jit`
+//! describes), NaN bits included (a NaN result is recomputed by the interpreter's arm). Two
+//! things differ by design: the watchdog's step count (the JIT counts blocks per invocation)
+//! and, in a shader whose invocations race on device memory without synchronisation, which
+//! write another invocation of the same workgroup sees (Vulkan leaves that undefined; each
+//! backend is deterministic).
 //!
 //! Ray queries (SPV_KHR_ray_query, and position fetch): `lower_rq` turns each `OpRayQuery*`
 //! into an IR op naming the query by its variable's lane-frame address; `exec_rq` keeps a
@@ -68,6 +92,7 @@ mod exec_image;
 mod exec_mem;
 mod exec_rq;
 pub mod ir;
+mod jit;
 mod layout;
 mod lower;
 mod lower_array;
@@ -149,6 +174,8 @@ pub struct Pipeline {
     pub local_size: [u32; 3],
     /// Bytes of push constants the entry point reads (highest member end).
     pub push_constant_size: u32,
+    /// The program as native code, when it compiled (`jit`); None runs the interpreter.
+    pub(crate) jit: Option<Arc<jit::Jit>>,
 }
 
 impl Pipeline {
@@ -167,7 +194,25 @@ impl Pipeline {
         // as an error, rather than take the caller down.
         let lowered = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| lower::lower(module, &consts, entry)))
             .map_err(|_| ShaderError::Malformed { offset: 0, reason: "invalid module (lowering failed)".into() })??;
-        Ok(Pipeline { program: Arc::new(lowered.program), local_size, push_constant_size: lowered.push_size })
+        let jit = jit::for_pipeline(&lowered.program).map(Arc::new);
+        Ok(Pipeline { program: Arc::new(lowered.program), local_size, push_constant_size: lowered.push_size, jit })
+    }
+
+    /// Whether dispatches run native code (else the interpreter).
+    pub fn is_compiled(&self) -> bool {
+        self.jit.is_some()
+    }
+
+    /// This pipeline on the interpreter (the reference backend).
+    pub fn interpreted(&self) -> Pipeline {
+        Pipeline { jit: None, ..self.clone() }
+    }
+
+    /// This pipeline compiled to native code whatever `ARBOR_SHADER_JIT` and the cost rule
+    /// say; None when the program uses something the JIT does not compile.
+    pub fn compiled(&self) -> Option<Pipeline> {
+        let jit = jit::compile(&self.program)?;
+        Some(Pipeline { jit: Some(Arc::new(jit)), ..self.clone() })
     }
 
     /// Descriptor bindings the entry point uses: buffers and acceleration structures in

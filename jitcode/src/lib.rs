@@ -1,0 +1,61 @@
+//! The one unsafe step of Arbor's shader JIT (src/shader/jit): turning the code pointer of a
+//! finalized Cranelift module into a function and calling it. src/shader is safe Rust with no
+//! access to the rest of the driver, so, as with `arbor-prefetch`, the step lives in a crate of
+//! its own behind an interface that only accepts what the generated code expects.
+//!
+//! Soundness rests on the code generator (src/shader/jit/codegen.rs): the code is generated
+//! from a checked `ir::Program`; every memory access it makes either goes through a helper
+//! (safe Rust, reached with the context reference it was given) or is an inline access to the
+//! lane frame or push constants guarded by a bounds check against the lengths passed here.
+use cranelift_jit::JITModule;
+use cranelift_module::{FuncId, ModuleError};
+
+/// `extern "C" fn(context, frame, frame_len, push, push_len) -> u64`, the signature every
+/// generated entry point has.
+type Entry = extern "C" fn(*mut u8, *mut u8, u64, *const u8, u64) -> u64;
+
+/// A finalized module and its entry point. The code is freed when this is dropped.
+pub struct Code {
+    module: Option<JITModule>,
+    entry: Entry,
+}
+
+// SAFETY: after finalization the module's code and data are immutable; shared use only reads
+// the entry pointer and calls it (the generated code keeps no state of its own), and the
+// module itself is touched again only by `drop`, which has exclusive access.
+unsafe impl Sync for Code {}
+// SAFETY: as above; the module holds no thread-bound resources (memory mappings and a symbol
+// table), so it may be freed from any thread.
+unsafe impl Send for Code {}
+
+impl Code {
+    /// Finalizes `module` and takes `func`, which must have been declared with the signature
+    /// (i64 context, i64 frame, i64 frame length, i64 push, i64 push length) -> i64 in the host's
+    /// default calling convention.
+    pub fn new(mut module: JITModule, func: FuncId) -> Result<Code, Box<ModuleError>> {
+        module.finalize_definitions().map_err(Box::new)?;
+        let ptr = module.get_finalized_function(func);
+        // SAFETY: `ptr` is the finalized, executable code of `func`, generated with the
+        // signature `Entry` spells (the documented precondition); it stays mapped while
+        // `module` lives, which is as long as `self`.
+        let entry = unsafe { std::mem::transmute::<*const u8, Entry>(ptr) };
+        Ok(Code { module: Some(module), entry })
+    }
+
+    /// Runs the entry point with `context` (which the code passes on, unread, to the helpers it
+    /// calls) over one invocation's `frame` and the push constants.
+    #[inline]
+    pub fn call<T>(&self, context: &mut T, frame: &mut [u8], push: &[u8]) -> u64 {
+        (self.entry)(context as *mut T as *mut u8, frame.as_mut_ptr(), frame.len() as u64, push.as_ptr(), push.len() as u64)
+    }
+}
+
+impl Drop for Code {
+    fn drop(&mut self) {
+        if let Some(module) = self.module.take() {
+            // SAFETY: `self` is being dropped, so no call through `entry` is running or can
+            // start: every call borrows `self`.
+            unsafe { module.free_memory() };
+        }
+    }
+}
