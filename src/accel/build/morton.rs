@@ -97,7 +97,8 @@ fn spread(v: u32) -> u32 {
     (x | x << 2) & 0x0924_9249
 }
 
-/// Keys from which the sort's last two digits go bucket by bucket on the pool.
+/// Keys from which the sort's last two digits go bucket by bucket on the pool (with one
+/// thread the three plain passes are quicker: no small-bucket comparison sorts).
 const PAR_SORT_FROM: usize = 4096;
 /// Keys per parallel task of the bucket sorts.
 const BUCKET_TASK: usize = 2048;
@@ -109,7 +110,7 @@ const BUCKET_RADIX_FROM: usize = 64;
 /// are scattered by the top digit first, then the buckets (disjoint ranges) are sorted in
 /// parallel, `keys` serving as their scratch: the same order, whatever the thread count.
 fn radix_sort<'k>(keys: &'k mut [u64], tmp: &'k mut [u64]) -> &'k [u64] {
-    if keys.len() < PAR_SORT_FROM {
+    if keys.len() < PAR_SORT_FROM || rayon::current_num_threads() == 1 {
         radix_pass(keys, tmp, 0);
         radix_pass(tmp, keys, 1);
         radix_pass(keys, tmp, 2);
@@ -258,11 +259,14 @@ mod tests {
         let mut next = crate::accel::testing::xorshift(5);
         // Below and above the bucketed sort's cutoff; few codes (large buckets) and many.
         for (n, codes) in [(3000u64, 700u64), (5000, 700), (20_000, 50), (20_000, 1 << 20)] {
-            let mut keys: Vec<u64> = (0..n).map(|i| ((next() % codes * 0x0013_5791) & 0x3FFF_FFFF) << 32 | i).collect();
+            let keys: Vec<u64> = (0..n).map(|i| ((next() % codes * 0x0013_5791) & 0x3FFF_FFFF) << 32 | i).collect();
             let mut want = keys.clone();
             want.sort_unstable();
-            let mut tmp = vec![0u64; keys.len()];
-            assert_eq!(radix_sort(&mut keys, &mut tmp), &want[..], "{n} keys, {codes} codes");
+            for threads in [1, 3] {
+                let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
+                let (mut keys, mut tmp) = (keys.clone(), vec![0u64; keys.len()]);
+                assert_eq!(pool.install(|| radix_sort(&mut keys, &mut tmp).to_vec()), want, "{n} keys, {codes} codes, {threads} threads");
+            }
         }
     }
 
