@@ -97,9 +97,11 @@ fn spread(v: u32) -> u32 {
     (x | x << 2) & 0x0924_9249
 }
 
-/// Keys from which the sort's last two digits go bucket by bucket on the pool (with one
-/// thread the three plain passes are quicker: no small-bucket comparison sorts).
+/// Keys from which the sort's last two digits go bucket by bucket on the pool.
 const PAR_SORT_FROM: usize = 4096;
+/// Threads from which the bucketed sort runs: on one or two the three plain passes were as
+/// fast or faster (docs/BENCHMARKS.md); the split is for many-core pools.
+const PAR_SORT_THREADS: usize = 4;
 /// Keys per parallel task of the bucket sorts.
 const BUCKET_TASK: usize = 2048;
 /// Buckets of this many keys or more sort by radix passes (smaller: a comparison sort).
@@ -110,7 +112,7 @@ const BUCKET_RADIX_FROM: usize = 64;
 /// are scattered by the top digit first, then the buckets (disjoint ranges) are sorted in
 /// parallel, `keys` serving as their scratch: the same order, whatever the thread count.
 fn radix_sort<'k>(keys: &'k mut [u64], tmp: &'k mut [u64]) -> &'k [u64] {
-    if keys.len() < PAR_SORT_FROM || rayon::current_num_threads() == 1 {
+    if keys.len() < PAR_SORT_FROM || rayon::current_num_threads() < PAR_SORT_THREADS {
         radix_pass(keys, tmp, 0);
         radix_pass(tmp, keys, 1);
         radix_pass(keys, tmp, 2);
@@ -262,7 +264,7 @@ mod tests {
             let keys: Vec<u64> = (0..n).map(|i| ((next() % codes * 0x0013_5791) & 0x3FFF_FFFF) << 32 | i).collect();
             let mut want = keys.clone();
             want.sort_unstable();
-            for threads in [1, 3] {
+            for threads in [1, PAR_SORT_THREADS + 1] {
                 let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
                 let (mut keys, mut tmp) = (keys.clone(), vec![0u64; keys.len()]);
                 assert_eq!(pool.install(|| radix_sort(&mut keys, &mut tmp).to_vec()), want, "{n} keys, {codes} codes, {threads} threads");
