@@ -23,8 +23,10 @@ use rayon::prelude::*;
 const BITS: u32 = 10;
 /// Bits per radix pass (three passes sort the 30-bit codes).
 const RADIX: u32 = 10;
-/// References per parallel task of the code and gather passes.
-const CHUNK: usize = 4096;
+/// References per parallel task of the code and gather passes: small enough that a
+/// 10,000-instance TLAS spreads evenly over a few threads (the keys hold global indices, so
+/// the chunking never shows in the bytes).
+const CHUNK: usize = 1024;
 
 /// Whether `desc` builds its tree here: instance trees of the fast-build tier.
 pub fn applies(desc: &BuildDesc) -> bool {
@@ -95,29 +97,77 @@ fn spread(v: u32) -> u32 {
     (x | x << 2) & 0x0924_9249
 }
 
+/// Keys from which the sort's last two digits go bucket by bucket on the pool.
+const PAR_SORT_FROM: usize = 4096;
+/// Threads from which the bucketed sort runs: on one or two the three plain passes were as
+/// fast or faster (docs/BENCHMARKS.md); the split is for many-core pools.
+const PAR_SORT_THREADS: usize = 4;
+/// Keys per parallel task of the bucket sorts.
+const BUCKET_TASK: usize = 2048;
+/// Buckets of this many keys or more sort by radix passes (smaller: a comparison sort).
+const BUCKET_RADIX_FROM: usize = 64;
+
 /// Sorts `keys` by their codes, stably (the indices below them make every key distinct, so
-/// the order is the one any sort would give); returns the sorted keys, in `tmp`.
+/// the order is the one any sort would give); returns the sorted keys, in `tmp`. Large inputs
+/// are scattered by the top digit first, then the buckets (disjoint ranges) are sorted in
+/// parallel, `keys` serving as their scratch: the same order, whatever the thread count.
 fn radix_sort<'k>(keys: &'k mut [u64], tmp: &'k mut [u64]) -> &'k [u64] {
-    let (mut from, mut to) = (keys, tmp);
-    for pass in 0..3 {
-        let shift = 32 + pass * RADIX;
-        let digit = |k: u64| (k >> shift) as usize & ((1 << RADIX) - 1);
-        let mut offs = [0u32; 1 << RADIX];
-        for &k in from.iter() {
-            offs[digit(k)] += 1;
-        }
-        let mut acc = 0u32;
-        for o in offs.iter_mut() {
-            (*o, acc) = (acc, acc + *o);
-        }
-        for &k in from.iter() {
-            let d = digit(k);
-            to[offs[d] as usize] = k;
-            offs[d] += 1;
-        }
-        (from, to) = (to, from);
+    if keys.len() < PAR_SORT_FROM || rayon::current_num_threads() < PAR_SORT_THREADS {
+        radix_pass(keys, tmp, 0);
+        radix_pass(tmp, keys, 1);
+        radix_pass(keys, tmp, 2);
+        return tmp;
     }
-    from
+    let starts = radix_pass(keys, tmp, 2);
+    sort_buckets(tmp, keys, &starts, 0);
+    tmp
+}
+
+/// One stable counting pass of `from` into `to` on digit `pass`; returns where each digit's
+/// keys start in `to`, and their end.
+fn radix_pass(from: &[u64], to: &mut [u64], pass: u32) -> [u32; (1 << RADIX) + 1] {
+    let shift = 32 + pass * RADIX;
+    let digit = |k: u64| (k >> shift) as usize & ((1 << RADIX) - 1);
+    let mut starts = [0u32; (1 << RADIX) + 1];
+    for &k in from {
+        starts[digit(k) + 1] += 1;
+    }
+    for d in 1..starts.len() {
+        starts[d] += starts[d - 1];
+    }
+    let mut next = starts;
+    for &k in from {
+        let d = digit(k);
+        if let Some(slot) = to.get_mut(next[d] as usize) {
+            *slot = k;
+        }
+        next[d] += 1;
+    }
+    starts
+}
+
+/// Sorts each bucket of `s` (bucket b at `bounds[b]..bounds[b + 1]`, less `base`) on the two
+/// lower digits, `scratch` (as long as `s`) beside it: halves of the buckets in parallel.
+fn sort_buckets(s: &mut [u64], scratch: &mut [u64], bounds: &[u32], base: usize) {
+    if s.len() > BUCKET_TASK && bounds.len() > 2 {
+        let mid = bounds.len() / 2;
+        let cut = (bounds[mid] as usize).saturating_sub(base).min(s.len());
+        let (sa, sb) = s.split_at_mut(cut);
+        let (ka, kb) = scratch.split_at_mut(cut.min(scratch.len()));
+        rayon::join(|| sort_buckets(sa, ka, &bounds[..=mid], base), || sort_buckets(sb, kb, &bounds[mid..], base + cut));
+        return;
+    }
+    for w in bounds.windows(2) {
+        let (lo, hi) = ((w[0] as usize).saturating_sub(base), (w[1] as usize).saturating_sub(base));
+        let (Some(b), Some(k)) = (s.get_mut(lo..hi), scratch.get_mut(lo..hi)) else { continue };
+        if b.len() >= BUCKET_RADIX_FROM {
+            // Two passes: the keys come back to `b`.
+            radix_pass(b, k, 0);
+            radix_pass(k, b, 1);
+        } else {
+            b.sort_unstable();
+        }
+    }
 }
 
 /// Where a node sits: its first reference in the build and its parent's reference count
@@ -204,15 +254,22 @@ fn split(keys: &[u64]) -> usize {
 mod tests {
     use super::*;
 
-    /// The radix passes against the standard library's sort, on codes with many repeats.
+    /// The radix passes (and the bucketed sort) against the standard library's sort, on codes
+    /// with many repeats.
     #[test]
     fn radix_sort_matches_a_comparison_sort() {
         let mut next = crate::accel::testing::xorshift(5);
-        let mut keys: Vec<u64> = (0..5000u64).map(|i| ((next() % 700 * 0x0013_5791) & 0x3FFF_FFFF) << 32 | i).collect();
-        let mut want = keys.clone();
-        want.sort_unstable();
-        let mut tmp = vec![0u64; keys.len()];
-        assert_eq!(radix_sort(&mut keys, &mut tmp), &want[..]);
+        // Below and above the bucketed sort's cutoff; few codes (large buckets) and many.
+        for (n, codes) in [(3000u64, 700u64), (5000, 700), (20_000, 50), (20_000, 1 << 20)] {
+            let keys: Vec<u64> = (0..n).map(|i| ((next() % codes * 0x0013_5791) & 0x3FFF_FFFF) << 32 | i).collect();
+            let mut want = keys.clone();
+            want.sort_unstable();
+            for threads in [1, PAR_SORT_THREADS + 1] {
+                let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
+                let (mut keys, mut tmp) = (keys.clone(), vec![0u64; keys.len()]);
+                assert_eq!(pool.install(|| radix_sort(&mut keys, &mut tmp).to_vec()), want, "{n} keys, {codes} codes, {threads} threads");
+            }
+        }
     }
 
     /// The split point against a scan for the first code whose highest differing bit is set,
