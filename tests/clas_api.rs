@@ -197,13 +197,17 @@ fn cluster_commands_through_the_loader() {
     let tlas_bytes = a.buf(tlas_buf).read(0, s.acceleration_structure_size as usize);
     let mut tview = MapView::new();
     tview.insert(blas_at, blas_bytes.clone());
+    // The cluster BLAS names its CLASes by address: the view holds them where they were built.
+    for (&at, c) in got_addrs.iter().zip(&lib_clases) {
+        tview.insert(at, c.clone());
+    }
     let b = accel::header(&blas_bytes).unwrap().bounds;
     let mut hits = 0;
     for k in 0..64 {
         let x = b[0] + (b[3] - b[0]) * (k % 8) as f32 / 8.0;
         let y = b[1] + (b[4] - b[1]) * (k / 8) as f32 / 8.0;
         let ray = Ray { origin: Vec3::new(x, y, b[5] + 1.0), direction: Vec3::new(0.0, 0.0, -1.0), tmin: 0.0, tmax: 100.0 };
-        let direct = accel::closest_hit(&blas_bytes, &accel::NoDevice, ray, RayFlags(0), 0xff);
+        let direct = accel::closest_hit(&blas_bytes, &tview, ray, RayFlags(0), 0xff);
         let through = accel::closest_hit(&tlas_bytes, &tview, ray, RayFlags(0), 0xff);
         assert_eq!(direct.map(|h| (h.t, h.cluster_id, h.primitive_index, h.geometry_index)), through.map(|h| (h.t, h.cluster_id, h.primitive_index, h.geometry_index)));
         if let Some(h) = through {

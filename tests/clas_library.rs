@@ -175,7 +175,16 @@ const RAY_FLAGS: [u32; 8] = [
 /// to global triangles, against brute force over the expected triangles with the cluster rules
 /// applied by hand; and with ray flags 0 the closest hit against a KHR BLAS over the same
 /// triangles (t and vertices bit for bit). Returns the closest hits found.
-fn check_blas(blas: &[u8], e: &Expected, rays: &[Ray], what: &str) -> usize {
+/// A view holding each CLAS at its address (what a cluster BLAS resolves while traced).
+fn view_of(clases: &[(u64, &[u8])]) -> MapView {
+    let mut v = MapView::new();
+    for &(a, b) in clases {
+        v.insert(a, b.to_vec());
+    }
+    v
+}
+
+fn check_blas(blas: &[u8], view: &MapView, e: &Expected, rays: &[Ray], what: &str) -> usize {
     let khr_data = khr_of(e);
     let khr = reference::build_blas(0, &[khr_data.geometry()]);
     let geoms = [khr_data.geometry()];
@@ -183,7 +192,7 @@ fn check_blas(blas: &[u8], e: &Expected, rays: &[Ray], what: &str) -> usize {
     let mut hits = 0;
     for (n, &ray) in rays.iter().enumerate() {
         let flags = RAY_FLAGS[n % RAY_FLAGS.len()];
-        let mut got: Vec<(usize, u32, bool)> = accel::all_hits(blas, &accel::NoDevice, ray, RayFlags(flags), 0xff)
+        let mut got: Vec<(usize, u32, bool)> = accel::all_hits(blas, view as &dyn DeviceView, ray, RayFlags(flags), 0xff)
             .iter()
             .map(|h| {
                 let g = global(e, h);
@@ -206,7 +215,7 @@ fn check_blas(blas: &[u8], e: &Expected, rays: &[Ray], what: &str) -> usize {
         assert_eq!(got, want, "{what} ray {n} flags {flags:#x}");
         if flags == 0 {
             // The KHR BLAS holds the same triangles, all non-opaque: compare t and the triangle.
-            let a = accel::closest_hit(blas, &accel::NoDevice, ray, RayFlags(0), 0xff);
+            let a = accel::closest_hit(blas, view as &dyn DeviceView, ray, RayFlags(0), 0xff);
             let b = accel::closest_hit(&khr.bytes, &accel::NoDevice, ray, RayFlags(0), 0xff);
             assert_eq!(a.map(|h| h.t.to_bits()), b.map(|h| h.t.to_bits()), "{what} ray {n}");
             if let (Some(a), Some(b)) = (a, b) {
@@ -230,7 +239,7 @@ fn check_mesh(mesh: &arbor_scene::Mesh, rays_per_side: usize, what: &str) {
         let e = expected(&c, bits, 1.0);
         let mut rays = rays(mesh.bounds(), rays_per_side);
         rays.extend(reference::random_rays(mesh.bounds(), rays.len() / 4, 7 + bits as u64));
-        let hits = check_blas(&blas, &e, &rays, &format!("{what} bits {bits}"));
+        let hits = check_blas(&blas, &view_of(&addrs), &e, &rays, &format!("{what} bits {bits}"));
         assert!(hits > rays.len() / 40, "the rays must hit the {what} ({hits})");
     }
 }
@@ -285,14 +294,14 @@ fn cluster_blas_of_random_clusters_and_every_flag_traverses_like_brute_force() {
         assert_eq!(blas, cluster_blas(&addrs));
         let e = expected(&c, bits, 1.0);
         let rays = reference::random_rays([-2.0, -2.0, -2.0, 2.0, 2.0, 2.0], 600, seed);
-        let hits = check_blas(&blas, &e, &rays, &format!("random seed {seed}"));
+        let hits = check_blas(&blas, &view_of(&addrs), &e, &rays, &format!("random seed {seed}"));
         assert!(hits > 20, "{hits}");
     }
     // One cluster alone, and a BLAS of empty clusters only.
     let c = random_cut(4, 1);
     let clases = build_clases(&inputs(&c, 0, 1.0));
     let one = cluster_blas(&[(0x1000, clases[0].as_slice())]);
-    check_blas(&one, &expected(&c, 0, 1.0), &reference::random_rays([-2.0, -2.0, -2.0, 2.0, 2.0, 2.0], 200, 4), "one cluster");
+    check_blas(&one, &view_of(&[(0x1000, clases[0].as_slice())]), &expected(&c, 0, 1.0), &reference::random_rays([-2.0, -2.0, -2.0, 2.0, 2.0, 2.0], 200, 4), "one cluster");
     let c = Cut { clusters: vec![(Vec::new(), Vec::new()); 3] };
     let clases = build_clases(&inputs(&c, 0, 1.0));
     let empty = cluster_blas(&clases.iter().map(|b| (0x1000, b.as_slice())).collect::<Vec<_>>());
@@ -461,7 +470,7 @@ fn moves_are_byte_copies_and_a_tlas_instances_a_cluster_blas() {
     let mut shifted = vec![0xAAu8; blas.len() + 3];
     shifted[3..].copy_from_slice(&blas);
     let e = expected(&c, 3, 1.0);
-    let mut view = MapView::new();
+    let mut view = view_of(&at(0x10_0000));
     view.insert(0x4000_0000, blas.clone());
     let instance = arbor_scene::InstanceRecord {
         transform: [1.0, 0.0, 0.0, 5.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0],
@@ -476,8 +485,8 @@ fn moves_are_byte_copies_and_a_tlas_instances_a_cluster_blas() {
     let tlas = reference::build(AsType::TopLevel, 0, &[tlas_geom], &view);
     let mut n_hits = 0;
     for ray in rays(mesh.bounds(), 24) {
-        let a = accel::closest_hit(&blas, &accel::NoDevice, ray, RayFlags(0), 0xff);
-        let b = accel::closest_hit(&shifted[3..], &accel::NoDevice, ray, RayFlags(0), 0xff);
+        let a = accel::closest_hit(&blas, &view as &dyn DeviceView, ray, RayFlags(0), 0xff);
+        let b = accel::closest_hit(&shifted[3..], &view as &dyn DeviceView, ray, RayFlags(0), 0xff);
         assert_eq!(a, b);
         let shifted_ray = Ray { origin: ray.origin + Vec3::new(5.0, 0.0, 0.0), ..ray };
         let t = accel::closest_hit(&tlas.bytes, &view as &dyn DeviceView, shifted_ray, RayFlags(0), 0xff);
@@ -490,6 +499,50 @@ fn moves_are_byte_copies_and_a_tlas_instances_a_cluster_blas() {
     }
     assert!(n_hits > 50);
     assert_eq!(accel::header(&blas).map(|h| (h.ty, h.used_size)), Some((AsType::BottomLevel, blas.len() as u64)));
+}
+
+/// A cluster BLAS names its CLASes by address: with one freed and one overwritten after the
+/// build, tracing skips those two clusters (hits elsewhere as with all CLASes alive), a ray
+/// query that reaches one reports its address, and nothing panics.
+#[test]
+fn a_freed_or_overwritten_clas_is_a_contained_fault() {
+    let c = random_cut(6, 12);
+    let clases = build_clases(&inputs(&c, 0, 1.0));
+    let addrs: Vec<(u64, &[u8])> = clases.iter().enumerate().map(|(k, b)| (0x10_0000 * (k as u64 + 1), b.as_slice())).collect();
+    let blas = cluster_blas(&addrs);
+    let (freed, garbage) = (2usize, 5usize);
+    let mut view = MapView::new();
+    for (k, &(a, b)) in addrs.iter().enumerate() {
+        match k {
+            _ if k == freed => {}
+            _ if k == garbage => view.insert(a, vec![0xA5; b.len()]),
+            _ => view.insert(a, b.to_vec()),
+        }
+    }
+    let full = view_of(&addrs);
+    let gone = [freed, garbage].map(|k| clas::open(&clases[k]).unwrap().header.cluster_id as i32);
+    let keys = |v: &MapView, ray: Ray, keep: &dyn Fn(i32) -> bool| -> Vec<(i32, u32, u32)> {
+        let mut k: Vec<_> = accel::all_hits(&blas, v as &dyn DeviceView, ray, RayFlags(0), 0xff).iter().filter(|h| keep(h.cluster_id)).map(|h| (h.cluster_id, h.primitive_index, h.t.to_bits())).collect();
+        k.sort();
+        k
+    };
+    let mut faults = 0;
+    for (n, ray) in reference::random_rays([-2.0, -2.0, -2.0, 2.0, 2.0, 2.0], 400, 6).into_iter().enumerate() {
+        let alive = |id: i32| !gone.contains(&id);
+        assert_eq!(keys(&view, ray, &|_| true), keys(&full, ray, &alive), "ray {n}");
+        let mut q = accel::RayQuery::new(&blas, &view, ray, RayFlags(0), 0xff);
+        while q.proceed().is_some() {
+            q.confirm();
+        }
+        // The closest hit of the intact BLAS in a lost cluster: its CLAS's root lies nearer than
+        // every other hit, so the query reaches it.
+        if accel::closest_hit(&blas, &full as &dyn DeviceView, ray, RayFlags(0), 0xff).is_some_and(|h| !alive(h.cluster_id)) {
+            let lost = [addrs[freed].0, addrs[garbage].0];
+            assert!(q.unresolved_reference().is_some_and(|a| lost.contains(&a)), "ray {n}: {:?}", q.unresolved_reference());
+            faults += 1;
+        }
+    }
+    assert!(faults > 5, "{faults}");
 }
 
 /// Instances of two cluster BLASes as (transform, custom index, BLAS address).
@@ -553,17 +606,17 @@ fn a_khr_tlas_and_a_ptlas_over_cluster_blases_trace_alike_before_and_after_moves
     let inp = inputs(&c, 2, 1.0);
     let clases = build_clases(&inp);
     let half = clases.len() / 2;
-    let at = |r: std::ops::Range<usize>| -> Vec<(u64, &[u8])> { clases[r].iter().enumerate().map(|(k, b)| (0x10_0000 + 0x1000 * k as u64, b.as_slice())).collect() };
+    let at = |r: std::ops::Range<usize>| -> Vec<(u64, &[u8])> { clases[r.clone()].iter().enumerate().map(|(k, b)| (0x10_0000 + 0x1000 * (r.start + k) as u64, b.as_slice())).collect() };
     let (blas_a, blas_b) = (cluster_blas(&at(0..half)), cluster_blas(&at(half..clases.len())));
     let (addr_a, addr_b) = (0x4000_0000u64, 0x5000_0000u64);
-    let mut view = MapView::new();
+    let mut view = view_of(&at(0..clases.len()));
     view.insert(addr_a, blas_a.clone());
     view.insert(addr_b, blas_b.clone());
     let p = placements(addr_a, addr_b);
     let (tlas, pt) = (khr_tlas(&p, &view), ptlas_of(&p, &view));
     // MOVE_OBJECTS is a byte copy: the BLASes at new addresses, the tops rebuilt over them.
     let (moved_a, moved_b) = (0x6000_0040u64, 0x6100_0000u64);
-    let mut moved = MapView::new();
+    let mut moved = view_of(&at(0..clases.len()));
     moved.insert(moved_a, blas_a.clone());
     moved.insert(moved_b, blas_b.clone());
     let q = placements(moved_a, moved_b);
@@ -579,7 +632,7 @@ fn a_khr_tlas_and_a_ptlas_over_cluster_blases_trace_alike_before_and_after_moves
         assert_eq!(hit_keys(&tlas2, &moved, ray, flags), want, "moved, KHR TLAS ray {n}");
         assert_eq!(hit_keys(&pt2, &moved, ray, flags), want, "moved, PTLAS ray {n}");
         // The first instance is the identity: its hits are the BLAS's own.
-        let own: Vec<HitKey> = hit_keys(&blas_a, &MapView::new(), ray, flags).into_iter().map(|k| (0, 1, k.2, k.3, k.4, k.5, k.6)).collect();
+        let own: Vec<HitKey> = hit_keys(&blas_a, &view_of(&at(0..half)), ray, flags).into_iter().map(|k| (0, 1, k.2, k.3, k.4, k.5, k.6)).collect();
         let first: Vec<HitKey> = want.iter().filter(|k| k.0 == 0).copied().collect();
         assert_eq!(first, own, "instance 0 ray {n}");
         for k in &want {

@@ -252,7 +252,7 @@ struct Child {
 /// last slot) is processed first.
 #[inline(always)]
 fn enter_children(l: &Level<'_>, node: u32, tmin: f32, tmax: f32, out: &mut [Child; 4]) -> usize {
-    let Some(n) = l.s.node(node) else { return 0 };
+    let Some(n) = l.node(node) else { return 0 };
     let (tn, hit) = match l.finite.then(|| ray_box4_finite(&n, &l.org4, &l.inv4, tmin, tmax)).flatten() {
         Some((tn, m)) => (tn.to_array(), m),
         None => ray_box4(&n, l.org.to_array(), l.inv.to_array(), tmin, tmax),
@@ -303,6 +303,17 @@ struct Level<'a> {
     org4: [Vec4; 3],
     inv4: [Vec4; 3],
     finite: bool,
+}
+
+impl Level<'_> {
+    /// Node `i` of this level's tree (a cluster BLAS's reach into its CLASes' trees).
+    #[inline(always)]
+    fn node(&self, i: u32) -> Option<layout::WideNode> {
+        match &self.cluster {
+            Some(c) => c.node(&self.s, i),
+            None => self.s.node(i),
+        }
+    }
 }
 
 #[derive(Clone, Copy)]
@@ -366,8 +377,8 @@ fn uniform_triangles(s: &Parsed<'_>) -> Option<u32> {
 }
 
 #[inline(always)]
-fn make_level<'a>(s: (Parsed<'a>, Option<Side<'a>>), org: Vec3, dir: Vec3) -> Level<'a> {
-    level_of(&opened(s), org, dir)
+fn make_level<'a>(s: (Parsed<'a>, Option<Side<'a>>), view: &'a dyn DeviceView, org: Vec3, dir: Vec3) -> Level<'a> {
+    level_of(&opened(s, view), org, dir)
 }
 
 impl<'a> RayQuery<'a> {
@@ -389,7 +400,7 @@ impl<'a> RayQuery<'a> {
             budget_inner: 0,
             unresolved: None,
             source: structure,
-            top_opened: open_top(structure),
+            top_opened: open_top(structure, view),
             blas: None,
         };
         q.start();
@@ -438,6 +449,12 @@ impl<'a> RayQuery<'a> {
                     let Some(l) = self.level_ref(inner) else { continue };
                     let mut hits = [Child { tnear: 0.0, index: 0, kind: 0 }; 4];
                     let nh = enter_children(l, node, tmin, tmax, &mut hits);
+                    // A cluster BLAS node whose CLAS is gone: skipped, and reported once.
+                    if nh == 0 {
+                        if let Some(addr) = l.cluster.and_then(|c| c.fault(node)) {
+                            self.unresolved.get_or_insert(addr);
+                        }
+                    }
                     // A valid tree never holds more than three pending siblings per level; a
                     // stack this deep means a corrupt blob, whose rest is dropped.
                     if self.stack.len() + nh > MAX_STACK {
@@ -598,20 +615,19 @@ fn opacity(f: u32, geom_flags: u32, inst_flags: u32) -> Option<bool> {
 /// Geometric test + flag rules for stored primitive `slot` of a BLAS level.
 #[inline(always)]
 fn test_prim(cx: &PrimCtx<'_>, l: &Level<'_>, slot: u32) -> Option<Hit> {
+    if let Some(c) = &l.cluster {
+        return test_cluster_triangle(cx, l, c, slot);
+    }
     let inst_flags = cx.inst.map_or(0, |i| i.flags);
     let f = cx.flags;
     // Every condition below is a pure conjunct, so with uniform triangle geometries the
     // record/geometry lookups (another cache line per primitive) move after the hit test.
-    let (rec, gkind, opaque, gflags) = match l.uni_tri {
-        Some(gflags) => (None, layout::KIND_TRIANGLES, opacity(f, gflags, inst_flags)?, gflags),
+    let (rec, gkind, opaque) = match l.uni_tri {
+        Some(gflags) => (None, layout::KIND_TRIANGLES, opacity(f, gflags, inst_flags)?),
         None => {
             let rec = l.s.record(slot)?;
             let geom = l.s.geometry(rec.geometry)?;
-            let gflags = match l.cluster {
-                Some(c) => c.get(rec.primitive)?.flags,
-                None => geom.flags,
-            };
-            (Some(rec), geom.kind, opacity(f, gflags, inst_flags)?, gflags)
+            (Some(rec), geom.kind, opacity(f, geom.flags, inst_flags)?)
         }
     };
     let data = l.s.prim(slot)?;
@@ -626,7 +642,7 @@ fn test_prim(cx: &PrimCtx<'_>, l: &Level<'_>, slot: u32) -> Option<Hit> {
             let (t, u, v, front_raw) = intersect_sheared(&l.sh, l.org.to_array(), cx.tmin, cx.tmax, v0, v1, v2)?;
             let front = front_raw ^ (inst_flags & INSTANCE_FLIP_FACING != 0);
             let culled = (f & RayFlags::CULL_BACK_FACING_TRIANGLES != 0 && !front) || (f & RayFlags::CULL_FRONT_FACING_TRIANGLES != 0 && front);
-            if inst_flags & INSTANCE_FACING_CULL_DISABLE == 0 && gflags & clas::FLAG_CULL_DISABLE == 0 && culled {
+            if inst_flags & INSTANCE_FACING_CULL_DISABLE == 0 && culled {
                 return None;
             }
             (t, HitKind::Triangle, [u, v], front, [v0, v1, v2].map(Vec3::from_array))
@@ -649,15 +665,18 @@ fn test_prim(cx: &PrimCtx<'_>, l: &Level<'_>, slot: u32) -> Option<Hit> {
             r
         }
     };
-    let (geometry_index, primitive_index, cluster_id) = match l.cluster.and_then(|c| c.get(rec.primitive)) {
-        Some(e) => (e.geometry_index, e.primitive_index, e.cluster_id as i32),
-        None => (rec.geometry, rec.primitive, -1),
-    };
+    Some(hit_of(cx, l, (t, kind, bary, front, opaque), (rec.geometry, rec.primitive, -1), vertices))
+}
+
+/// The hit record of a primitive test that passed: (t, kind, barycentrics, front, opaque) and
+/// (geometry index, primitive index, cluster ID).
+#[inline(always)]
+fn hit_of(cx: &PrimCtx<'_>, l: &Level<'_>, (t, kind, bary, front, opaque): (f32, HitKind, [f32; 2], bool, bool), (geometry_index, primitive_index, cluster_id): (u32, u32, i32), vertices: [Vec3; 3]) -> Hit {
     let (ii, ci, sbt, o2w, w2o) = match cx.inst {
         Some(i) => (i.instance_index, i.custom_index, i.sbt_offset, i.object_to_world, i.world_to_object),
         None => (0, 0, 0, IDENTITY, IDENTITY),
     };
-    Some(Hit {
+    Hit {
         t,
         kind,
         barycentrics: bary,
@@ -674,7 +693,31 @@ fn test_prim(cx: &PrimCtx<'_>, l: &Level<'_>, slot: u32) -> Option<Hit> {
         world_to_object: w2o,
         vertices,
         cluster_id,
-    })
+    }
+}
+
+/// `test_prim` for a cluster BLAS: the triangle is read from its CLAS (resolved through the
+/// view; a CLAS that is gone yields nothing), its flags and facts from the CLAS's words.
+#[inline(always)]
+fn test_cluster_triangle(cx: &PrimCtx<'_>, l: &Level<'_>, c: &Side<'_>, slot: u32) -> Option<Hit> {
+    let inst_flags = cx.inst.map_or(0, |i| i.flags);
+    let f = cx.flags;
+    let (data, e) = c.triangle(slot)?;
+    let opaque = opacity(f, e.flags, inst_flags)?;
+    if f & RayFlags::SKIP_TRIANGLES != 0 {
+        return None;
+    }
+    let v0 = [data[0], data[1], data[2]];
+    let v1 = [data[3], data[4], data[5]];
+    let v2 = [data[6], data[7], data[8]];
+    let (t, u, v, front_raw) = intersect_sheared(&l.sh, l.org.to_array(), cx.tmin, cx.tmax, v0, v1, v2)?;
+    let front = front_raw ^ (inst_flags & INSTANCE_FLIP_FACING != 0);
+    let culled = (f & RayFlags::CULL_BACK_FACING_TRIANGLES != 0 && !front) || (f & RayFlags::CULL_FRONT_FACING_TRIANGLES != 0 && front);
+    if inst_flags & INSTANCE_FACING_CULL_DISABLE == 0 && e.flags & clas::FLAG_CULL_DISABLE == 0 && culled {
+        return None;
+    }
+    let vertices = [v0, v1, v2].map(Vec3::from_array);
+    Some(hit_of(cx, l, (t, HitKind::Triangle, [u, v], front, opaque), (e.geometry_index, e.primitive_index, e.cluster_id as i32), vertices))
 }
 
 /// Exact (unwidened) entry distance of a ray into an AABB primitive within [tmin, tmax].

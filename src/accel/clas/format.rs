@@ -9,7 +9,7 @@ use crate::accel::layout::WideNode;
 use bytemuck::{Pod, Zeroable};
 
 /// Bump whenever a cluster layout or its meaning changes.
-pub const CLUSTER_FORMAT_VERSION: u32 = 2;
+pub const CLUSTER_FORMAT_VERSION: u32 = 3;
 const VALID: u32 = 0x434c_5553;
 
 #[repr(C)]
@@ -35,7 +35,8 @@ pub struct ClusterHeader {
     pub has_vertices: u32,
     /// Cluster BLAS: the CLAS references it was built over.
     pub cluster_count: u32,
-    pub reserved: u32,
+    /// Cluster BLAS: how many of them hold triangles (the top tree's leaves).
+    pub live_count: u32,
     /// Cluster BLAS: offset of the embedded bottom-level BVH; others 0.
     pub bvh_offset: u64,
     pub bvh_size: u64,
@@ -51,9 +52,6 @@ const _: () = assert!(std::mem::size_of::<ClusterHeader>() == HEADER_SIZE as usi
 pub const TRIANGLE_SIZE: u64 = 36;
 /// Per-triangle geometry word: geometry index (bits 0-23) | geometry flags << 29.
 pub const WORD_SIZE: u64 = 4;
-/// Cluster BLAS: one entry per stored triangle (cluster ID, geometry word, index in cluster,
-/// cluster ordinal).
-pub const SIDE_SIZE: u64 = 16;
 /// A CLAS tree node (`layout::WideNode`).
 pub const NODE_SIZE: u64 = 64;
 
@@ -62,8 +60,9 @@ pub const NODE_SIZE: u64 = 64;
 /// byte per triangle, padded to 4) and the tree's nodes (`tree::local_node_count`).
 /// Template: raw indices as u32 (12 B per triangle), geometry words, then (with vertices) the
 /// truncated triangles as a CLAS stores them.
-/// Cluster BLAS: CLAS address table (8 B per reference), side table (16 B per triangle, in the
-/// embedded BVH's slot order), then the embedded BVH at a 64-byte boundary.
+/// Cluster BLAS: CLAS address table (8 B per reference), the table of non-empty CLASes (8 B
+/// each: reference ordinal, triangle count), then at a 64-byte boundary an embedded BVH that
+/// holds the top tree over them. The CLASes are referenced, not copied.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Kind {
     Clas,
@@ -129,8 +128,8 @@ pub fn open(bytes: &[u8]) -> Option<Blob<'_>> {
         Kind::Clas => clas_size(t),
         Kind::Template => template_size(t, h.has_vertices != 0),
         Kind::ClusterBlas => {
-            let tables = HEADER_SIZE + 8 * h.cluster_count as u64 + SIDE_SIZE * t;
-            if h.bvh_offset < tables {
+            let tables = HEADER_SIZE + 16 * h.cluster_count as u64;
+            if h.bvh_offset < tables || h.live_count > h.cluster_count {
                 return None;
             }
             h.bvh_offset.checked_add(h.bvh_size)?

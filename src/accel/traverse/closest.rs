@@ -59,6 +59,9 @@ impl Stack {
 /// Starts loading a pending child's node or primitives, which random rays mostly miss in cache.
 #[inline(always)]
 fn prefetch(l: &Level<'_>, c: Child) {
+    if l.cluster.is_some() {
+        return;
+    }
     let r = &l.s.raw;
     let at = match c.kind {
         CHILD_INTERNAL => r.nodes_offset.wrapping_add(c.index as u64 * layout::NODE_SIZE as u64),
@@ -79,14 +82,14 @@ struct Tracer<'a> {
 }
 
 /// Closest hit (any hit with TERMINATE_ON_FIRST_HIT in `flags`), every candidate confirmed.
-pub(super) fn trace(structure: &[u8], view: &dyn DeviceView, ray: Ray, flags: u32, cull_mask: u8) -> Option<Hit> {
+pub(super) fn trace<'a>(structure: &'a [u8], view: &'a dyn DeviceView, ray: Ray, flags: u32, cull_mask: u8) -> Option<Hit> {
     // A PTLAS is walked through the top-level structure it embeds.
     let structure = super::super::ptlas::traversable(structure).unwrap_or(structure);
     let s = super::super::clas::open_walkable(structure)?;
     if !ray_ok(&ray) || s.0.raw.node_count == 0 {
         return None;
     }
-    let top = make_level(s, ray.origin, ray.direction);
+    let top = make_level(s, view, ray.origin, ray.direction);
     let mut t = Tracer { view, ray, flags, cull_mask, tmax: ray.tmax, best: None, done: false, stack: Stack { len: 0, inline: [EXIT; INLINE], spill: Vec::new() } };
     t.stack.push(Child { tnear: ray.tmin, index: 0, kind: CHILD_INTERNAL });
     t.level(&top, None, 0);

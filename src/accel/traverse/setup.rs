@@ -23,7 +23,9 @@ pub(super) struct Opened<'a> {
     pub uni_tri: Option<u32>,
 }
 
-pub(super) fn opened<'a>((s, cluster): (Parsed<'a>, Option<Side<'a>>)) -> Opened<'a> {
+/// A cluster BLAS resolves its CLASes through `view`.
+pub(super) fn opened<'a>((s, cluster): (Parsed<'a>, Option<Side<'a>>), view: &'a dyn DeviceView) -> Opened<'a> {
+    let cluster = cluster.map(|c| c.with_view(view));
     let uni_tri = if cluster.is_some() { None } else { uniform_triangles(&s) };
     Opened { s, cluster, uni_tri }
 }
@@ -43,9 +45,9 @@ pub(super) fn level_of<'a>(o: &Opened<'a>, org: Vec3, dir: Vec3) -> Level<'a> {
 
 /// The walkable top level of a query's structure (a PTLAS is walked through the top-level
 /// structure it embeds).
-pub(super) fn open_top(structure: &[u8]) -> Option<Opened<'_>> {
+pub(super) fn open_top<'a>(structure: &'a [u8], view: &'a dyn DeviceView) -> Option<Opened<'a>> {
     let structure = super::super::ptlas::traversable(structure).unwrap_or(structure);
-    clas::open_walkable(structure).map(opened)
+    clas::open_walkable(structure).map(|w| opened(w, view))
 }
 
 /// `resolve_instance`, looking the BLAS up in `memo` (the last one resolved through the same
@@ -59,7 +61,7 @@ pub(super) fn resolve_instance_in<'a>(l: &Level<'a>, slot: u32, view: &'a dyn De
     let found = match *memo {
         Some((a, o)) if a == addr => o,
         _ => {
-            let o = view.acceleration_structure(addr).and_then(clas::open_walkable).filter(|b| !b.0.is_tlas()).map(opened);
+            let o = view.acceleration_structure(addr).and_then(clas::open_walkable).filter(|b| !b.0.is_tlas()).map(|w| opened(w, view));
             *memo = Some((addr, o));
             o
         }
@@ -85,11 +87,13 @@ impl<'a> RayQuery<'a> {
     /// the opened top level and the last BLAS entered. Field by field, in place: the query is
     /// a few kilobytes, which a move per ray would copy.
     pub fn restart(&mut self, structure: &'a [u8], view: &'a dyn DeviceView, ray: Ray, flags: RayFlags, cull_mask: u8) {
-        if !std::ptr::addr_eq(view, self.view) {
+        let same_view = std::ptr::addr_eq(view, self.view);
+        if !same_view {
             self.blas = None;
         }
-        if !std::ptr::eq(structure, self.source) {
-            self.top_opened = open_top(structure);
+        // A cluster BLAS at the top resolves its CLASes through the view it was opened with.
+        if !std::ptr::eq(structure, self.source) || !same_view {
+            self.top_opened = open_top(structure, view);
         }
         self.source = structure;
         self.view = view;
