@@ -137,8 +137,9 @@ impl Exec for Dispatch {
                 self.name,
                 &format!(
                     "[an instance's accelerationStructureReference must name a built bottom-level structure while the top-level one is traced \
-                     (VUID-vkCmdBuildAccelerationStructuresKHR-pInfos-12281)] a ray query met an instance referencing {:#x}, which is no built \
-                     bottom-level structure (destroyed or rebuilt since the top-level build?); the instance was treated as absent \
+                     (VUID-vkCmdBuildAccelerationStructuresKHR-pInfos-12281); the CLASes a cluster BLAS was built from must stay live and unmoved] a ray query \
+                     met a reference to {:#x}, which is no built bottom-level structure or CLAS (destroyed, moved or rebuilt since the \
+                     build that referenced it?); that instance or cluster was treated as absent \
                      (first met by workgroup {:?}, invocation {}; reported once per dispatch)",
                     f.at, f.workgroup, f.invocation
                 ),
