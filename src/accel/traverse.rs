@@ -636,16 +636,8 @@ fn test_prim(cx: &PrimCtx<'_>, l: &Level<'_>, slot: u32) -> Option<Hit> {
             if f & RayFlags::SKIP_TRIANGLES != 0 {
                 return None;
             }
-            let v0 = [data[0], data[1], data[2]];
-            let v1 = [data[3], data[4], data[5]];
-            let v2 = [data[6], data[7], data[8]];
-            let (t, u, v, front_raw) = intersect_sheared(&l.sh, l.org.to_array(), cx.tmin, cx.tmax, v0, v1, v2)?;
-            let front = front_raw ^ (inst_flags & INSTANCE_FLIP_FACING != 0);
-            let culled = (f & RayFlags::CULL_BACK_FACING_TRIANGLES != 0 && !front) || (f & RayFlags::CULL_FRONT_FACING_TRIANGLES != 0 && front);
-            if inst_flags & INSTANCE_FACING_CULL_DISABLE == 0 && culled {
-                return None;
-            }
-            (t, HitKind::Triangle, [u, v], front, [v0, v1, v2].map(Vec3::from_array))
+            let (t, uv, front, vertices) = triangle_test(cx, l, &data, inst_flags, false)?;
+            (t, HitKind::Triangle, uv, front, vertices)
         }
         layout::KIND_AABBS => {
             if f & RayFlags::SKIP_AABBS != 0 {
@@ -707,17 +699,25 @@ fn test_cluster_triangle(cx: &PrimCtx<'_>, l: &Level<'_>, c: &Side<'_>, slot: u3
     if f & RayFlags::SKIP_TRIANGLES != 0 {
         return None;
     }
+    let (t, uv, front, vertices) = triangle_test(cx, l, &data, inst_flags, e.flags & clas::FLAG_CULL_DISABLE != 0)?;
+    Some(hit_of(cx, l, (t, HitKind::Triangle, uv, front, opaque), (e.geometry_index, e.primitive_index, e.cluster_id as i32), vertices))
+}
+
+/// The sheared ray/triangle test and the facing cull, shared by ordinary and cluster triangles:
+/// (t, barycentrics, front facing, vertices), or None for a miss or a culled face.
+#[inline(always)]
+fn triangle_test(cx: &PrimCtx<'_>, l: &Level<'_>, data: &[f32], inst_flags: u32, cull_disable: bool) -> Option<(f32, [f32; 2], bool, [Vec3; 3])> {
+    let f = cx.flags;
     let v0 = [data[0], data[1], data[2]];
     let v1 = [data[3], data[4], data[5]];
     let v2 = [data[6], data[7], data[8]];
     let (t, u, v, front_raw) = intersect_sheared(&l.sh, l.org.to_array(), cx.tmin, cx.tmax, v0, v1, v2)?;
     let front = front_raw ^ (inst_flags & INSTANCE_FLIP_FACING != 0);
     let culled = (f & RayFlags::CULL_BACK_FACING_TRIANGLES != 0 && !front) || (f & RayFlags::CULL_FRONT_FACING_TRIANGLES != 0 && front);
-    if inst_flags & INSTANCE_FACING_CULL_DISABLE == 0 && e.flags & clas::FLAG_CULL_DISABLE == 0 && culled {
+    if !cull_disable && inst_flags & INSTANCE_FACING_CULL_DISABLE == 0 && culled {
         return None;
     }
-    let vertices = [v0, v1, v2].map(Vec3::from_array);
-    Some(hit_of(cx, l, (t, HitKind::Triangle, [u, v], front, opaque), (e.geometry_index, e.primitive_index, e.cluster_id as i32), vertices))
+    Some((t, [u, v], front, [v0, v1, v2].map(Vec3::from_array)))
 }
 
 /// Exact (unwidened) entry distance of a ray into an AABB primitive within [tmin, tmax].
