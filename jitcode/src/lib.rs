@@ -7,8 +7,9 @@
 //! from a checked `ir::Program`; every memory access it makes either goes through a helper
 //! (safe Rust, reached with the context reference it was given) or is an inline access to the
 //! lane frame or push constants guarded by a bounds check against the lengths passed here.
+use cranelift_codegen::ir::{types, AbiParam, Signature};
 use cranelift_jit::JITModule;
-use cranelift_module::{FuncId, ModuleError};
+use cranelift_module::{FuncId, Module, ModuleError};
 
 /// `extern "C" fn(context, frame, frame_len, push, push_len) -> u64`, the signature every
 /// generated entry point has.
@@ -29,15 +30,23 @@ unsafe impl Sync for Code {}
 unsafe impl Send for Code {}
 
 impl Code {
-    /// Finalizes `module` and takes `func`, which must have been declared with the signature
-    /// (i64 context, i64 frame, i64 frame length, i64 push, i64 push length) -> i64 in the host's
-    /// default calling convention.
+    /// Finalizes `module` and takes `func`, a function defined in it. Its declared signature
+    /// must be (i64 context, i64 frame, i64 frame length, i64 push, i64 push length) -> i64 in
+    /// the host's default calling convention, what `Entry` spells; any other is refused.
     pub fn new(mut module: JITModule, func: FuncId) -> Result<Code, Box<ModuleError>> {
+        let mut expected = Signature::new(module.isa().default_call_conv());
+        expected.params = vec![AbiParam::new(types::I64); 5];
+        expected.returns = vec![AbiParam::new(types::I64)];
+        let decl = module.declarations().get_function_decl(func);
+        if decl.signature != expected {
+            let name = decl.linkage_name(func).into_owned();
+            return Err(Box::new(ModuleError::IncompatibleSignature(name, expected, decl.signature.clone())));
+        }
         module.finalize_definitions().map_err(Box::new)?;
         let ptr = module.get_finalized_function(func);
-        // SAFETY: `ptr` is the finalized, executable code of `func`, generated with the
-        // signature `Entry` spells (the documented precondition); it stays mapped while
-        // `module` lives, which is as long as `self`.
+        // SAFETY: `ptr` is the finalized, executable code of `func`, whose declared signature
+        // was checked above to be the one `Entry` spells (Cranelift compiles a definition only
+        // against its declaration); it stays mapped while `module` lives, as long as `self`.
         let entry = unsafe { std::mem::transmute::<*const u8, Entry>(ptr) };
         Ok(Code { module: Some(module), entry })
     }
