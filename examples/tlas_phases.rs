@@ -75,8 +75,10 @@ fn main() {
             runs.sort_by(|a, b| a.total_ms.total_cmp(&b.total_ms));
             let (best, median) = (&runs[0], runs[reps / 2].total_ms);
             let sah = accel::header(&dst).map_or(0.0, |h| h.sah_cost);
+            // FNV-1a of the used bytes: equal across commits when a change keeps the bytes.
+            let digest = dst[..used].iter().fold(0xcbf2_9ce4_8422_2325u64, |h, &b| (h ^ b as u64).wrapping_mul(0x100_0000_01b3));
             println!(
-                "{name:10} T={t}: min {:.3} ms, median {median:.3} ms | fastest: ingest {:.3}, tree {:.3}, leaf data {:.3}, nodes {:.3}, sections+checksum {:.3} | SAH {sah:.2}, {used} B",
+                "{name:10} T={t}: min {:.3} ms, median {median:.3} ms | fastest: ingest {:.3}, tree {:.3}, leaf data {:.3}, nodes (TLAS: and sections, checksum parts) {:.3}, header {:.3} | SAH {sah:.2}, {used} B, bytes {digest:016x}",
                 best.total_ms,
                 best.ingest_ms,
                 best.sah_ms,

@@ -72,9 +72,6 @@ fn hash_long(bytes: &[u8], seed: u64) -> u64 {
 /// The checksum of a structure whose header is `raw` and whose used bytes are `bytes`:
 /// the header with its checksum field zeroed, then every section except the BLAS table.
 pub fn structure_checksum(raw: &RawHeader, bytes: &[u8]) -> u64 {
-    let mut head = *raw;
-    head.checksum = 0;
-    let mut h = hash(bytemuck::bytes_of(&head), 0);
     let used = (raw.used_size as usize).min(bytes.len());
     let table = if raw.ty == super::AsType::TopLevel as u32 {
         let start = (raw.blas_table_offset as usize).clamp(HEADER_SIZE, used);
@@ -83,8 +80,24 @@ pub fn structure_checksum(raw: &RawHeader, bytes: &[u8]) -> u64 {
     } else {
         used..used
     };
-    for (i, part) in [HEADER_SIZE.min(used)..table.start, table.end..used].into_iter().enumerate() {
-        h = hash(&[h.to_le_bytes(), hash_long(&bytes[part], i as u64 + 1).to_le_bytes()].concat(), 0);
+    let parts = [HEADER_SIZE.min(used)..table.start, table.end..used].map(|r| &bytes[r]);
+    combine(raw, [part_hash(parts[0], 0), part_hash(parts[1], 1)])
+}
+
+/// The hash of part `i` of a structure's checksummed bytes: part 0 runs from the header's end
+/// to the BLAS table, part 1 from the table's end to the used size (BLAS: the table is empty
+/// and sits at the used size). A TLAS build hashes each part as soon as it is written.
+pub fn part_hash(bytes: &[u8], i: usize) -> u64 {
+    hash_long(bytes, i as u64 + 1)
+}
+
+/// The checksum of the structure whose header is `raw` and whose parts hash to `parts`.
+pub fn combine(raw: &RawHeader, parts: [u64; 2]) -> u64 {
+    let mut head = *raw;
+    head.checksum = 0;
+    let mut h = hash(bytemuck::bytes_of(&head), 0);
+    for p in parts {
+        h = hash(&[h.to_le_bytes(), p.to_le_bytes()].concat(), 0);
     }
     h
 }
@@ -94,6 +107,15 @@ pub fn seal(dst: &mut [u8]) {
     let Some(p) = layout::parse(dst) else { return };
     let mut raw = p.raw;
     raw.checksum = structure_checksum(&raw, p.bytes);
+    layout::write_header(dst, &raw);
+}
+
+/// Writes the checksum of the structure in `dst` (a valid header) from its parts' hashes
+/// (`part_hash`, computed where the parts were written).
+pub fn seal_parts(dst: &mut [u8], parts: [u64; 2]) {
+    let Some(p) = layout::parse(dst) else { return };
+    let mut raw = p.raw;
+    raw.checksum = combine(&raw, parts);
     layout::write_header(dst, &raw);
 }
 

@@ -59,12 +59,22 @@ pub fn build(desc: &BuildDesc, view: &dyn DeviceView, dst: &mut [u8], scratch: &
     }
     let t_leaf = Instant::now();
     let nodes_at = layout::sections(desc.ty, 0, active as u64, lowered.ngeo).nodes as usize;
-    let (node_count, leaf_count) = if active > 0 { encode::wide_nodes(tree, dst, nodes_at, &work.pre[..pre_len], map)? } else { (0, 0) };
+    // A TLAS writes its instance sections beside its nodes (`encode::tlas`), the sort keys'
+    // area of scratch ordering its BLAS addresses.
+    let tlas = if desc.ty == AsType::TopLevel && active > 0 { Some(encode::tlas::write(desc, view, dst, tree, &work.refs[..active], work.pre)?) } else { None };
+    let (node_count, leaf_count) = match &tlas {
+        Some(w) => (w.node_count, w.leaf_count),
+        None if active > 0 => encode::wide_nodes(tree, dst, nodes_at, &work.pre[..pre_len], map)?,
+        None => (0, 0),
+    };
     let t_nodes = Instant::now();
     let max_leaf_size = if ctx.clustered { ctx.params.max_leaf * params.max_cluster.clamp(1, MAX_CLUSTER) } else { params.max_leaf };
     let summary = Summary { active, total: lowered.total, node_count, leaf_count, bounds: ingested.bounds, sah_sum, max_leaf_size, nodes_at };
-    // The binary nodes are no longer needed: their bytes sort the TLAS's BLAS addresses.
-    let used = encode::finish(desc, view, dst, work.refs, bytemuck::cast_slice_mut(work.nodes), &summary)?;
+    let used = match &tlas {
+        Some(w) => encode::finish_tlas(desc, dst, &summary, w)?,
+        // The binary nodes are no longer needed: their bytes sort the TLAS's BLAS addresses.
+        None => encode::finish(desc, view, dst, work.refs, bytemuck::cast_slice_mut(work.nodes), &summary)?,
+    };
     let ms = |a: Instant, b: Instant| (b - a).as_secs_f64() * 1e3;
     let phases = BuildPhases { ingest_ms: ms(t_start, t_ingest), sah_ms: ms(t_ingest, t_sah), leaf_data_ms: ms(t_sah, t_leaf), nodes_ms: ms(t_leaf, t_nodes), total_ms: ms(t_start, Instant::now()) };
     let clusters = ctx.clustered.then_some(references as u32);

@@ -8,6 +8,7 @@ pub mod instances;
 pub mod leaves;
 pub mod nodes;
 pub mod quantize;
+pub mod tlas;
 
 use super::checksum;
 use super::geometry::{Aabb, PrimRef};
@@ -121,10 +122,34 @@ pub fn finish(desc: &BuildDesc, view: &dyn DeviceView, dst: &mut [u8], refs: &[P
         (s.blas_table, s.blas_table + tlas_only(active as u64 * 8)),
     ];
     zero_gaps(dst, &filled, used);
+    let raw = header(desc, sum, &s, blas_refs);
+    layout::write_header(dst, &raw);
+    checksum::seal(dst);
+    Ok(used)
+}
+
+/// Writes the header of a TLAS whose sections `tlas::write` wrote (`sum.node_count` its
+/// node count) and its checksum from the parts' hashes. Returns the bytes of dst in use.
+pub fn finish_tlas(desc: &BuildDesc, dst: &mut [u8], sum: &Summary, written: &tlas::Written) -> Result<u64, BuildError> {
+    let s = layout::sections(desc.ty, sum.node_count as u64, sum.active as u64, desc.geometries.len() as u64);
+    if s.end > dst.len() as u64 || s.nodes as usize != sum.nodes_at {
+        return Err(BuildError::DestinationTooSmall { needed: s.end, got: dst.len() as u64 });
+    }
+    let raw = header(desc, sum, &s, written.blas_refs);
+    layout::write_header(dst, &raw);
+    checksum::seal_parts(dst, written.parts);
+    Ok(s.end)
+}
+
+/// The header of a finished build laid out as `s`.
+fn header(desc: &BuildDesc, sum: &Summary, s: &layout::Sections, blas_refs: u32) -> RawHeader {
+    let (active, ngeo, is_tlas) = (sum.active, desc.geometries.len() as u64, desc.ty == super::AsType::TopLevel);
+    let tlas_only = |n: u64| if is_tlas { n } else { 0 };
+    let used = s.end;
     let root_area = sum.bounds.half_area() as f64;
     let sah = if active > 0 && root_area > 0.0 && root_area.is_finite() { (sum.sah_sum / root_area) as f32 } else { 0.0 };
     let b = sum.bounds;
-    let raw = RawHeader {
+    RawHeader {
         magic: layout::MAGIC,
         version: layout::FORMAT_VERSION,
         ty: desc.ty as u32,
@@ -151,10 +176,7 @@ pub fn finish(desc: &BuildDesc, view: &dyn DeviceView, dst: &mut [u8], refs: &[P
         reserved: 0,
         checksum: 0,
         spare: 0,
-    };
-    layout::write_header(dst, &raw);
-    checksum::seal(dst);
-    Ok(used)
+    }
 }
 
 /// Zero the padding between sections so dst[..used] is a function of the input only.
