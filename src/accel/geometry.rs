@@ -147,6 +147,13 @@ pub fn instance_bounds_of(transform: &[f32; 12], blas: Option<&[f32; 6]>) -> ([f
                 let lo = ((x[0].min(x[1]) + y[0].min(y[1])) + z[0].min(z[1])) + t;
                 let hi = ((x[0].max(x[1]) + y[0].max(y[1])) + z[0].max(z[1])) + t;
                 if !(lo.is_nan() || hi.is_nan()) {
+                    // lo <= hi lane by lane (monotonic rounding again), so `sanitize` only
+                    // clamps the infinities: lane-wise here, where no lane is a zero (its
+                    // scalar min/max may pick either sign of a zero; `sanitize` decides those).
+                    if (lo.cmpne(Vec3A::ZERO) & hi.cmpne(Vec3A::ZERO)).all() {
+                        let (least, most) = (Vec3A::splat(-f32::MAX), Vec3A::splat(f32::MAX));
+                        return (lo.max(least).min(most).to_array(), hi.max(least).min(most).to_array());
+                    }
                     let b = to_aabb(lo, hi);
                     return sanitize(b.lo, b.hi);
                 }
