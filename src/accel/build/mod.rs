@@ -194,6 +194,14 @@ fn ingest_and_plan(desc: &BuildDesc, view: &dyn DeviceView, lowered: &Lowered, p
         if want_plan {
             let target = IngestTarget { refs: work.refs, stage, geometry_table, kept, compact_into: None };
             rayon::join(|| ingest(desc, view, target, clustering), || plan::plan_from_input(desc, params, total, slots))
+        } else if morton::applies(desc) && slots.len() == total {
+            // The linear BVH sorts from the node slots: ingest writes there (compacted
+            // references land in `refs`), so the references need no copy before the sort.
+            let mut out = ingest(desc, view, IngestTarget { refs: slots, stage, geometry_table, kept, compact_into: Some(&mut *work.refs) }, clustering);
+            if let Ok(i) = &mut out {
+                i.in_temp = !i.in_temp;
+            }
+            (out, None)
         } else {
             (ingest(desc, view, IngestTarget { refs: work.refs, stage, geometry_table, kept, compact_into: Some(slots) }, clustering), None)
         }
