@@ -380,8 +380,9 @@ pub enum TopPlanned {
 
 /// Where a build's time went (wall clock of the calling thread, milliseconds): reading the
 /// geometry into primitive references, the binned-SAH tree with the wide nodes of its cut
-/// subtrees, the primitive data in leaf order, the final node pass; `total_ms` includes the
-/// rest (geometry table, header). For people measuring; not part of the structure.
+/// subtrees, the primitive data in leaf order, the final node pass (a TLAS: beside its instance
+/// sections, each followed by the hash of its checksum part); `total_ms` includes the rest
+/// (geometry table, header). For people measuring; not part of the structure.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct BuildPhases {
     pub ingest_ms: f64,
