@@ -1,8 +1,8 @@
 //! Where a TLAS build's time goes: the `instances` scene of arbor-bench (10,000 instances over
 //! three BLASes: the bunny, a 64² terrain, 4,096 random triangles) built through the library
 //! ARBOR_REPS times per tier and thread count; prints the fastest and median total and the
-//! phases of the fastest build (`build_timed`), and checks that every thread count gives the
-//! same bytes.
+//! phases of the fastest build (`build_timed`) and a digest of the bytes (to compare commits
+//! that should keep them), and checks that every thread count gives the same bytes.
 //!
 //!   cargo run --release --example tlas_phases
 //!   ARBOR_THREADS=1,2      thread counts (default 1,2)
