@@ -26,6 +26,8 @@ use crate::runtime::command::{Exec, ExecContext, ExecError};
 use crate::runtime::in_use::Collector;
 
 mod direct;
+#[cfg(test)]
+mod tests;
 
 const CMD: &str = "vkCmdBuildClusterAccelerationStructureIndirectNV";
 

@@ -20,18 +20,11 @@ use crate::memory::AddressSpace;
 /// Backing memory of a region: (allocation identity, start, end).
 type Span = (usize, u64, u64);
 
-/// The memory of the whole buffer holding `address` (None for 0 or an unresolvable address,
-/// which no read can reach either).
-fn buffer_span(space: &AddressSpace, address: u64) -> Option<Span> {
-    if address == 0 {
-        return None;
-    }
-    let r = space.resolve(address, 1).ok()?;
-    r.buffer.memory_range(0, r.buffer.size)
-}
-
-fn shares(space: &AddressSpace, dst: Span, address: u64) -> bool {
-    buffer_span(space, address).is_some_and(|m| m.0 == dst.0 && m.1 < dst.2 && dst.1 < m.2)
+/// Whether the whole buffer holding `address` shares memory with `dst` (never for 0 or an
+/// unresolvable address, which no read can reach either). Asked per element on every worker:
+/// the view answers from buffers this thread already resolved, taking no lock.
+fn shares(view: &DeviceInputs<'_>, dst: Span, address: u64) -> bool {
+    address != 0 && view.view.buffer_memory(address).is_some_and(|m| m.0 == dst.0 && m.1 < dst.2 && dst.1 < m.2)
 }
 
 fn no_fit(i: usize, end: u64) {
@@ -68,7 +61,7 @@ impl ClusterCommand {
         }
         let Ok(r) = space.resolve(a.implicit, span) else { return false };
         let Some(dst) = r.buffer.memory_range(r.offset, span) else { return false };
-        if shares(space, dst, a.src) || (0..elements.len()).into_par_iter().any(|i| at[i].is_some() && self.element_shares(space, view, a, i, dst)) {
+        if shares(view, dst, a.src) || (0..elements.len()).into_par_iter().any(|i| at[i].is_some() && self.element_shares(view, a, i, dst)) {
             return false;
         }
         let Ok(region) = Region::of_device(space, a.implicit, span) else { return false };
@@ -84,17 +77,59 @@ impl ClusterCommand {
             }
             jobs.into_par_iter().map(|(i, dst)| (i, self.record(view, a.src, i as u64).and_then(|rec| self.make_one(view, rec, dst)))).collect()
         });
+        let mut made = Vec::with_capacity(results.len());
         for (i, result) in results {
             match result {
-                Ok(()) => self.write_address_and_size(space, a, i, at[i].unwrap_or(0), elements[i].as_ref().map_or(0, |e| e.size)),
+                Ok(()) => made.push((i, at[i].unwrap_or(0), elements[i].as_ref().map_or(0, |e| e.size))),
                 Err(v) => report(Some(i as u64), &v),
             }
         }
+        self.write_addresses_and_sizes(space, a, &made);
         true
     }
 
+    /// The addresses and sizes of the elements `made` (index, address, size), each array
+    /// written through one region where it is addressable as a whole and the two do not
+    /// overlap (then the order of the writes cannot matter), else element by element as
+    /// `write_address_and_size` does, which reports what it cannot write.
+    fn write_addresses_and_sizes(&self, space: &AddressSpace, a: &Addresses, made: &[(usize, u64, u64)]) {
+        let (Some(&(first, ..)), Some(&(last, ..))) = (made.first(), made.last()) else { return };
+        let extent = |base: u64, stride: u64, n: u64| -> Option<(u64, u64)> {
+            let start = base.checked_add((first as u64).checked_mul(stride)?)?;
+            Some((start, ((last - first) as u64).checked_mul(stride)?.checked_add(n)?))
+        };
+        let arrays = [(a.dst_addresses, self.dst_addresses.stride, 8u64), (a.dst_sizes, self.dst_sizes.stride, 4)];
+        let spans: Vec<Option<(u64, u64)>> = arrays.iter().map(|&(base, stride, n)| if base == 0 { Some((0, 0)) } else { extent(base, stride, n) }).collect();
+        let disjoint = match (spans[0], spans[1]) {
+            (Some(x), Some(y)) => !super::overlaps(x.0, x.1, y.0, y.1),
+            _ => false,
+        };
+        let regions: Vec<Option<Region<'_>>> = spans.iter().map(|s| s.filter(|s| s.1 > 0).and_then(|(at, n)| Region::of_device(space, at, n).ok())).collect();
+        let whole = |k: usize| spans[k].is_some_and(|s| s.1 == 0) || regions[k].is_some();
+        if !disjoint || !whole(0) || !whole(1) {
+            for &(i, at, size) in made {
+                self.write_address_and_size(space, a, i, at, size);
+            }
+            return;
+        }
+        for (k, region) in regions.into_iter().enumerate() {
+            let Some(region) = region else { continue };
+            let stride = arrays[k].1 as usize;
+            region.write_with(|bytes| {
+                for &(i, at, size) in made {
+                    let o = (i - first) * stride;
+                    if k == 0 {
+                        bytes[o..o + 8].copy_from_slice(&at.to_le_bytes());
+                    } else {
+                        bytes[o..o + 4].copy_from_slice(&(size.min(u32::MAX as u64) as u32).to_le_bytes());
+                    }
+                }
+            });
+        }
+    }
+
     /// Whether a buffer element `i` reads shares memory with the destination `dst`.
-    fn element_shares(&self, space: &AddressSpace, view: &DeviceInputs<'_>, a: &Addresses, i: usize, dst: Span) -> bool {
+    fn element_shares(&self, view: &DeviceInputs<'_>, a: &Addresses, i: usize, dst: Span) -> bool {
         let Ok(rec) = self.record(view, a.src, i as u64) else { return false };
         let addresses: [u64; 3] = match self.op {
             OpType::BuildTriangleCluster => {
@@ -108,7 +143,7 @@ impl ClusterCommand {
             OpType::MoveObjects => [bytemuck::pod_read_unaligned::<AddressInfo>(rec).address, 0, 0],
             _ => [0; 3],
         };
-        addresses.into_iter().any(|x| shares(space, dst, x))
+        addresses.into_iter().any(|x| shares(view, dst, x))
     }
 
     /// One CLAS (built or instantiated) or moved object into `dst`, which holds exactly its size.
@@ -187,7 +222,7 @@ impl ClusterCommand {
             Ok(c) => c,
             Err(v) => return Some(Err(v)),
         };
-        if shares(space, dst, src) || shares(space, dst, info.cluster_references) || clusters.par_iter().any(|c| shares(space, dst, c.0)) {
+        if shares(view, dst, src) || shares(view, dst, info.cluster_references) || clusters.par_iter().any(|c| shares(view, dst, c.0)) {
             return None;
         }
         let region = Region::of_device(space, p, bound).ok()?;
