@@ -18,6 +18,10 @@ use super::parse::{id_op, EntryPoint, Module, Type};
 use super::specialize::Constants;
 use super::ShaderError;
 
+#[cfg(test)]
+#[path = "ifconv_tests.rs"]
+mod ifconv_tests;
+
 /// Marks a branch target that means "return to the caller's continuation".
 const RET: u32 = u32::MAX;
 /// Calls nested deeper than this are rejected (SPIR-V forbids recursion; this bounds a
@@ -100,6 +104,12 @@ pub struct Lowerer<'a> {
 }
 
 pub fn lower(m: &Module, consts: &Constants, e: &EntryPoint) -> Result<Lowered, ShaderError> {
+    lower_with(m, consts, e, true)
+}
+
+/// `lower`, with `lower_select`'s if-conversion, merging and rotation only when `simplify`: the
+/// tests compare the programs with and without it on the interpreter.
+pub(super) fn lower_with(m: &Module, consts: &Constants, e: &EntryPoint, simplify: bool) -> Result<Lowered, ShaderError> {
     let mut lw = Lowerer {
         m,
         l: Layout { m, consts },
@@ -141,7 +151,9 @@ pub fn lower(m: &Module, consts: &Constants, e: &EntryPoint) -> Result<Lowered, 
         }
     }
     let bounds = super::lower_select::Bounds { push: lw.push_size, frame: lw.lane_frame.len() as u32 };
-    super::lower_select::simplify(&mut lw.blocks, &mut lw.regs, &mut lw.const_regs, &bounds);
+    if simplify {
+        super::lower_select::simplify(&mut lw.blocks, &mut lw.regs, &mut lw.const_regs, &bounds);
+    }
     super::lower_copies::forward(&mut lw.blocks, lw.regs, &lw.const_regs);
     super::lower_copies::thread_jumps(&mut lw.blocks);
     let program = Program {

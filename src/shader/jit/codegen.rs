@@ -12,10 +12,13 @@ use cranelift_codegen::ir::condcodes::IntCC;
 use cranelift_codegen::ir::{types, AbiParam, Block, InstBuilder, MemFlagsData, SigRef, Signature, Value};
 use cranelift_frontend::{FunctionBuilder, Variable};
 
-use super::super::ir::{self, Op, Program, Sc, Space, Term, TriOp, UnOp};
+use super::super::ir::{self, BinOp, Op, Program, Sc, Space, Term, TriOp, UnOp};
+use super::super::lower_copies::writes;
 use super::helpers::{self, MemDesc, MemKind, STOPPED};
 
 mod alu;
+#[cfg(test)]
+mod const_tests;
 mod vmath;
 
 pub(super) const I64: types::Type = types::I64;
@@ -43,6 +46,8 @@ pub(super) struct Gen<'p, 'b, 'f> {
     push: Value,
     push_len: Value,
     blocks: Vec<Block>,
+    /// The value of each register that holds a program constant and is never written.
+    known: Vec<Option<u64>>,
     sigs: Sigs,
     pub descs: Vec<MemDesc>,
 }
@@ -104,6 +109,20 @@ pub(super) fn prefers_interpreter(prog: &Program) -> bool {
     math > 0 && math * 16 >= ops
 }
 
+/// Constant registers no op, phi or edge move writes: their value is the same everywhere.
+fn known_constants(prog: &Program) -> Vec<Option<u64>> {
+    let mut known = vec![None; prog.reg_count as usize];
+    for &(r, v) in &prog.consts {
+        known[r as usize] = Some(v);
+    }
+    for blk in &prog.blocks {
+        blk.ops.iter().for_each(|op| writes(op, &mut |r| known[r as usize] = None));
+        blk.phi_in.iter().for_each(|&(d, _)| known[d as usize] = None);
+        blk.edge_moves.iter().for_each(|m| known[m.dst as usize] = None);
+    }
+    known
+}
+
 impl<'p, 'b, 'f> Gen<'p, 'b, 'f> {
     /// Sets up the entry block: parameters, constants, the step counter.
     pub(super) fn new(b: &'b mut FunctionBuilder<'f>, prog: &'p Program, call_conv: cranelift_codegen::isa::CallConv) -> Self {
@@ -129,7 +148,8 @@ impl<'p, 'b, 'f> Gen<'p, 'b, 'f> {
         let floats = (1..=3).map(|n| b.import_signature(sig(call_conv, F32, n))).collect();
         let blocks: Vec<Block> = prog.blocks.iter().map(|_| b.create_block()).collect();
         b.ins().jump(blocks[0], &[]);
-        Gen { b, prog, regs, steps, next_poll, run: p[0], frame: p[1], frame_len: p[2], push: p[3], push_len: p[4], blocks, sigs: Sigs { ints, floats }, descs: Vec::new() }
+        let known = known_constants(prog);
+        Gen { b, prog, regs, steps, next_poll, run: p[0], frame: p[1], frame_len: p[2], push: p[3], push_len: p[4], blocks, known, sigs: Sigs { ints, floats }, descs: Vec::new() }
     }
 
     /// Emits every block; None when an op or terminator is not compiled.
@@ -301,7 +321,16 @@ impl<'p, 'b, 'f> Gen<'p, 'b, 'f> {
             }
             Op::Select { dst, cond, a, b } => {
                 let (c, x, y) = (self.get(cond), self.get(a), self.get(b));
-                let v = self.b.ins().select(c, x, y);
+                // `c && a` and `c || b` as if-conversion leaves them: a select whose other
+                // operand is the Bool condition itself has Bool operands, words 0 or 1, so it
+                // is their and / or (no compare and conditional move).
+                let v = if b == cond {
+                    self.b.ins().band(c, x)
+                } else if a == cond {
+                    self.b.ins().bor(c, y)
+                } else {
+                    self.b.ins().select(c, x, y)
+                };
                 self.set(dst, v);
             }
             Op::Index { dst, base, index, index_ty, stride } => {
@@ -324,7 +353,16 @@ impl<'p, 'b, 'f> Gen<'p, 'b, 'f> {
             }
             Op::Bin { op, ty, dst, a, b } => {
                 let (x, y) = (self.get(a), self.get(b));
-                let v = self.bin(op, ty, x, y)?;
+                let by = |r: ir::Reg| self.known[r as usize];
+                let v = match (op, by(a), by(b)) {
+                    (BinOp::IMul, _, Some(k)) => self.mul_const(ty, x, k),
+                    (BinOp::IMul, Some(k), _) => self.mul_const(ty, y, k),
+                    _ => None,
+                };
+                let v = match v {
+                    Some(v) => v,
+                    None => self.bin(op, ty, x, y)?,
+                };
                 self.set(dst, v);
             }
             Op::Un { op, ty, from, dst, a } => {
