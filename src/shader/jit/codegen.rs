@@ -16,7 +16,7 @@ use super::super::ir::{self, Op, Program, Sc, Space, Term, TriOp, UnOp};
 use super::helpers::{self, MemDesc, MemKind, STOPPED};
 
 mod alu;
-mod vmath;
+pub(super) mod vmath;
 
 pub(super) const I64: types::Type = types::I64;
 pub(super) const I32: types::Type = types::I32;
