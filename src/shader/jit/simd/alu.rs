@@ -64,6 +64,20 @@ impl Gen<'_, '_, '_> {
         })
     }
 
+    /// Helper `f` of W32 operands for the four lanes, through a trampoline that clobbers no
+    /// register (`tramp`).
+    fn per_lane_w32(&mut self, f: usize, code: i64, args: &[Reg]) -> Value {
+        for (k, &r) in args.iter().enumerate() {
+            let v = self.vget(r, Cls::W32);
+            self.b.ins().stack_store(I64, v, self.buf, k as i32 * 16);
+        }
+        let fv = self.b.ins().iconst(I64, f as i64);
+        let c = self.b.ins().iconst(I64, code);
+        let p = self.b.ins().stack_addr(I64, self.buf, 0);
+        self.b.ins().call(self.tramps[args.len() - 1], &[fv, c, p]);
+        self.b.ins().stack_load(I64, I32X4, self.buf, super::tramp::OUT)
+    }
+
     /// The W32 bits of F32 result `r` (f32x4), or the helper's words for every lane when a
     /// running lane's result is a NaN.
     fn nan_guard(&mut self, r: Value, f: usize, code: i64, args: &[Reg]) -> Value {
@@ -72,13 +86,13 @@ impl Gen<'_, '_, '_> {
         let any = self.b.ins().vany_true(nan);
         let (fast, slow, join) = (self.b.create_block(), self.b.create_block(), self.b.create_block());
         let out = self.b.append_block_param(join, I32X4);
+        self.b.set_cold_block(slow);
         self.b.ins().brif(any, slow, &[], fast, &[]);
         self.b.switch_to_block(fast);
         let v = self.iv(r);
         self.b.ins().jump(join, &[v.into()]);
         self.b.switch_to_block(slow);
-        let w = self.per_lane(f, code, args);
-        let v = self.vec_of_words(w, false);
+        let v = self.per_lane_w32(f, code, args);
         self.b.ins().jump(join, &[v.into()]);
         self.b.switch_to_block(join);
         out

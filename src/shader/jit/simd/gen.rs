@@ -6,7 +6,7 @@
 //! terminator moves its lanes' cursors; execution falls to the next guard, except that a taken
 //! back edge jumps to its header's guard (every running cursor is then at or past it).
 use cranelift_codegen::ir::condcodes::IntCC;
-use cranelift_codegen::ir::{types, AbiParam, Block, InstBuilder, MemFlagsData, SigRef, Signature, Value};
+use cranelift_codegen::ir::{types, AbiParam, Block, FuncRef, InstBuilder, MemFlagsData, SigRef, Signature, StackSlot, StackSlotData, StackSlotKind, Value};
 use cranelift_frontend::{FunctionBuilder, Variable};
 
 use super::super::super::exec::CHECK_EVERY;
@@ -56,7 +56,12 @@ pub(super) struct Gen<'p, 'b, 'f> {
     /// The running block's lanes: a mask, and per lane an i8 truth value.
     pub mask: Value,
     pub on: [Value; W],
+    /// The block being emitted.
+    block: usize,
     sigs: Vec<SigRef>,
+    /// `tramp`'s lane helpers (1 to 3 operands) and their buffer.
+    pub tramps: [FuncRef; 3],
+    pub buf: StackSlot,
     pub descs: Vec<MemDesc>,
     /// Bytes of one lane's frame; lane `l`'s frame starts at `l * fs`.
     fs: u32,
@@ -70,7 +75,7 @@ fn sig(call_conv: cranelift_codegen::isa::CallConv, n: usize) -> Signature {
 }
 
 impl<'p, 'b, 'f> Gen<'p, 'b, 'f> {
-    pub(super) fn new(b: &'b mut FunctionBuilder<'f>, prog: &'p Program, types: Types, call_conv: cranelift_codegen::isa::CallConv) -> Self {
+    pub(super) fn new(b: &'b mut FunctionBuilder<'f>, prog: &'p Program, types: Types, call_conv: cranelift_codegen::isa::CallConv, tramps: [FuncRef; 3]) -> Self {
         let entry = b.create_block();
         b.append_block_params_for_function_params(entry);
         b.switch_to_block(entry);
@@ -121,6 +126,7 @@ impl<'p, 'b, 'f> Gen<'p, 'b, 'f> {
         let first = b.ins().iconst(I64, CHECK_EVERY as i64);
         b.def_var(next_poll, first);
         let guards: Vec<Block> = (0..=prog.blocks.len()).map(|_| b.create_block()).collect();
+        let buf = b.create_sized_stack_slot(StackSlotData::new(StackSlotKind::ExplicitSlot, super::tramp::BUF, 4));
         // Refuse a frame too small for four lanes (the inline accesses rely on it).
         let (frame_len, ok_b, bad_b) = (p[2], b.create_block(), b.create_block());
         let small = b.ins().icmp_imm_s(IntCC::UnsignedLessThan, frame_len, (fs as usize * W) as i64);
@@ -144,7 +150,10 @@ impl<'p, 'b, 'f> Gen<'p, 'b, 'f> {
             guards,
             mask: zv,
             on: [zero32; W],
+            block: 0,
             sigs,
+            tramps,
+            buf,
             descs: Vec::new(),
             fs,
         };
@@ -193,6 +202,7 @@ impl<'p, 'b, 'f> Gen<'p, 'b, 'f> {
             self.b.ins().brif(any, body, &[], self.guards[i + 1], &[]);
             self.b.switch_to_block(body);
             self.mask = m;
+            self.block = i;
             for l in 0..W {
                 let x = self.b.ins().extractlane(m, l as u8);
                 self.on[l] = self.b.ins().icmp_imm_s(IntCC::NotEqual, x, 0);
@@ -269,7 +279,7 @@ impl<'p, 'b, 'f> Gen<'p, 'b, 'f> {
     /// Writes vector `v` to `r` for the running lanes.
     pub(super) fn vset(&mut self, r: ir::Reg, v: Value) {
         let Var::Vec(var) = self.vars[r as usize] else { unreachable!("a vector written to a wide register") };
-        let v = if self.types.local[r as usize] {
+        let v = if !self.types.blends(self.block, r) {
             v
         } else {
             let old = self.b.use_var(var);
@@ -283,7 +293,7 @@ impl<'p, 'b, 'f> Gen<'p, 'b, 'f> {
         match self.vars[r as usize] {
             Var::Wide(vs) => {
                 for l in 0..W {
-                    let v = if self.types.local[r as usize] {
+                    let v = if !self.types.blends(self.block, r) {
                         w[l]
                     } else {
                         let old = self.b.use_var(vs[l]);

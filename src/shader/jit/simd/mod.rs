@@ -24,6 +24,7 @@ mod alu;
 mod gen;
 #[cfg(test)]
 mod tests;
+mod tramp;
 mod types;
 
 pub(in crate::shader) use gen::W;
@@ -49,11 +50,13 @@ fn build(prog: &Program, types: types::Types) -> Option<Jit> {
     sig.params.extend((0..5).map(|_| AbiParam::new(cl::I64)));
     sig.returns.push(AbiParam::new(cl::I64));
     let id = module.declare_function("invocations4", Linkage::Export, &sig).ok()?;
+    let tramps = tramp::define(&mut module, call_conv)?;
     let mut ctx = module.make_context();
     ctx.func = Function::with_name_signature(UserFuncName::user(0, id.as_u32()), sig);
+    let tramps = tramps.map(|t| module.declare_func_in_func(t, &mut ctx.func));
     let mut fctx = FunctionBuilderContext::new();
     let mut b = FunctionBuilder::new(&mut ctx.func, &mut fctx);
-    let mut gen = gen::Gen::new(&mut b, prog, types, call_conv);
+    let mut gen = gen::Gen::new(&mut b, prog, types, call_conv, tramps);
     gen.translate()?;
     let descs = std::mem::take(&mut gen.descs);
     b.finalize(module.isa().frontend_config());

@@ -37,9 +37,8 @@ pub(super) fn bool_result(op: BinOp) -> bool {
 pub(super) struct Types {
     cls: Vec<Cls>,
     konst: Vec<Option<u64>>,
-    /// Registers whose every def and use is in one block, defined before any use there: the
-    /// lanes outside the mask never read them again, so a write needs no blend.
-    pub local: Vec<bool>,
+    /// Per block, the registers whose writes there blend (`blend_sets`).
+    blend: Vec<Vec<u64>>,
 }
 
 impl Types {
@@ -48,6 +47,10 @@ impl Types {
     }
     pub(super) fn konst(&self, r: Reg) -> Option<u64> {
         self.konst[r as usize]
+    }
+    /// Whether a write of `r` in block `b` must keep the other lanes' values.
+    pub(super) fn blends(&self, b: usize, r: Reg) -> bool {
+        self.blend[b][r as usize / 64] >> (r % 64) & 1 != 0
     }
 }
 
@@ -158,8 +161,8 @@ pub(super) fn analyse(prog: &Program) -> Option<Types> {
         uf.cls[root].unwrap_or(Cls::W32)
     });
     let cls: Vec<Cls> = cls.collect();
-    let local = local_regs(prog, n, &konst);
-    Some(Types { cls, konst, local })
+    let blend = blend_sets(prog, n);
+    Some(Types { cls, konst, blend })
 }
 
 fn constrain(uf: &mut Uf, op: &Op) -> Option<()> {
@@ -232,49 +235,69 @@ fn constrain(uf: &mut Uf, op: &Op) -> Option<()> {
     Some(())
 }
 
-/// Registers defined and used in one block only, defined there before any use.
-fn local_regs(prog: &Program, n: usize, konst: &[Option<u64>]) -> Vec<bool> {
-    const NONE: usize = usize::MAX;
-    const MANY: usize = usize::MAX - 1;
-    let mut home = vec![NONE; n];
-    let mut ok = vec![true; n];
-    let seen = |r: Reg, b: usize, home: &mut Vec<usize>| {
-        let h = &mut home[r as usize];
-        *h = if *h == NONE || *h == b { b } else { MANY };
-    };
-    // The block (plus one) that last defined each register, so far in the walk.
-    let mut def_in = vec![0usize; n];
+/// Per block, the registers that a write there must blend: those live into some later block
+/// (where the lanes outside the mask wait: every running lane's cursor is at or past the
+/// running block). A register no later block reads keeps nothing worth keeping.
+fn blend_sets(prog: &Program, n: usize) -> Vec<Vec<u64>> {
+    let words = n.div_ceil(64);
+    let nb = prog.blocks.len();
+    let set = |v: &mut Vec<u64>, r: Reg| v[r as usize / 64] |= 1 << (r % 64);
+    let has = |v: &Vec<u64>, r: Reg| v[r as usize / 64] >> (r % 64) & 1 != 0;
+    // Uses before any def in the block (gen), and defs (kill).
+    let mut gen = vec![vec![0u64; words]; nb];
+    let mut kill = vec![vec![0u64; words]; nb];
+    let mut succ = vec![Vec::new(); nb];
     for (b, blk) in prog.blocks.iter().enumerate() {
-        let defined = |def_in: &Vec<usize>, r: Reg| def_in[r as usize] == b + 1;
+        let (g, k) = (&mut gen[b], &mut kill[b]);
+        let use_ = |g: &mut Vec<u64>, k: &Vec<u64>, r: Reg| {
+            if !has(k, r) {
+                set(g, r);
+            }
+        };
+        for &(d, t) in &blk.phi_in {
+            use_(g, k, t);
+            set(k, d);
+        }
         for op in &blk.ops {
             let (d, u) = defs_uses(op).unwrap_or_default();
-            for r in u {
-                seen(r, b, &mut home);
-                if !defined(&def_in, r) {
-                    ok[r as usize] = false;
-                }
-            }
-            for r in d {
-                seen(r, b, &mut home);
-                def_in[r as usize] = b + 1;
-            }
+            u.into_iter().for_each(|r| use_(g, k, r));
+            d.into_iter().for_each(|r| set(k, r));
         }
         let term_uses: Vec<Reg> = match &blk.term {
             Term::Cond { cond, .. } => vec![*cond],
             Term::Switch { sel, .. } => vec![*sel],
             _ => vec![],
         };
-        for r in term_uses.into_iter().chain(blk.edge_moves.iter().map(|m| m.src)) {
-            seen(r, b, &mut home);
-            if !defined(&def_in, r) {
-                ok[r as usize] = false;
+        // Edge moves write on one edge only: uses, not kills.
+        term_uses.into_iter().chain(blk.edge_moves.iter().map(|m| m.src)).for_each(|r| use_(g, k, r));
+        succ[b] = match &blk.term {
+            Term::Jump(t) | Term::Barrier(t) => vec![*t as usize],
+            Term::Cond { t, f, .. } => vec![*t as usize, *f as usize],
+            Term::Switch { default, cases, .. } => cases.iter().map(|c| c.1 as usize).chain([*default as usize]).collect(),
+            Term::Exit => vec![],
+        };
+    }
+    let mut live_in = gen.clone();
+    loop {
+        let mut changed = false;
+        for b in (0..nb).rev() {
+            for w in 0..words {
+                let out = succ[b].iter().filter(|&&s| s < nb).fold(0u64, |acc, &s| acc | live_in[s][w]);
+                let v = gen[b][w] | (out & !kill[b][w]);
+                if v != live_in[b][w] {
+                    live_in[b][w] = v;
+                    changed = true;
+                }
             }
         }
-        for &(d, t) in &blk.phi_in {
-            ok[d as usize] = false;
-            ok[t as usize] = false;
+        if !changed {
+            break;
         }
-        blk.edge_moves.iter().for_each(|m| ok[m.dst as usize] = false);
     }
-    (0..n).map(|r| ok[r] && home[r] < MANY && konst[r].is_none()).collect()
+    let mut after = vec![vec![0u64; words]; nb];
+    for b in (0..nb.saturating_sub(1)).rev() {
+        let next: Vec<u64> = (0..words).map(|w| after[b + 1][w] | live_in[b + 1][w]).collect();
+        after[b] = next;
+    }
+    after
 }
