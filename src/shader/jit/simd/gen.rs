@@ -74,6 +74,49 @@ fn sig(call_conv: cranelift_codegen::isa::CallConv, n: usize) -> Signature {
     s
 }
 
+/// Every register's variables, zero in every lane (constants some op also writes: their value).
+fn declare_regs(b: &mut FunctionBuilder, prog: &Program, types: &Types) -> Vec<Var> {
+    let zero64 = b.ins().iconst(I64, 0);
+    let zero32 = b.ins().iconst(I32, 0);
+    let zv = b.ins().splat(I32X4, zero32);
+    let vars: Vec<Var> = (0..prog.reg_count)
+        .map(|r| {
+            if let Some(k) = types.konst(r) {
+                return Var::Const(k);
+            }
+            match types.cls(r) {
+                Cls::W64 => Var::Wide(std::array::from_fn(|_| {
+                    let v = b.declare_var(I64);
+                    b.def_var(v, zero64);
+                    v
+                })),
+                _ => {
+                    let v = b.declare_var(I32X4);
+                    b.def_var(v, zv);
+                    Var::Vec(v)
+                }
+            }
+        })
+        .collect();
+    // Constants some op also writes start as their value in every lane.
+    for &(r, k) in &prog.consts {
+        match vars[r as usize] {
+            Var::Wide(vs) => {
+                let c = b.ins().iconst(I64, k as i64);
+                vs.iter().for_each(|&v| b.def_var(v, c));
+            }
+            Var::Vec(v) => {
+                let w = if types.cls(r) == Cls::B { -((k != 0) as i64) } else { k as u32 as i64 };
+                let c = b.ins().iconst(I32, w as i32 as u32 as i64);
+                let c = b.ins().splat(I32X4, c);
+                b.def_var(v, c);
+            }
+            Var::Const(_) => {}
+        }
+    }
+    vars
+}
+
 impl<'p, 'b, 'f> Gen<'p, 'b, 'f> {
     pub(super) fn new(b: &'b mut FunctionBuilder<'f>, prog: &'p Program, types: Types, call_conv: cranelift_codegen::isa::CallConv, tramps: [FuncRef; 3]) -> Self {
         let entry = b.create_block();
@@ -85,41 +128,7 @@ impl<'p, 'b, 'f> Gen<'p, 'b, 'f> {
         let zero64 = b.ins().iconst(I64, 0);
         let zero32 = b.ins().iconst(I32, 0);
         let zv = b.ins().splat(I32X4, zero32);
-        let vars: Vec<Var> = (0..prog.reg_count)
-            .map(|r| {
-                if let Some(k) = types.konst(r) {
-                    return Var::Const(k);
-                }
-                match types.cls(r) {
-                    Cls::W64 => Var::Wide(std::array::from_fn(|_| {
-                        let v = b.declare_var(I64);
-                        b.def_var(v, zero64);
-                        v
-                    })),
-                    _ => {
-                        let v = b.declare_var(I32X4);
-                        b.def_var(v, zv);
-                        Var::Vec(v)
-                    }
-                }
-            })
-            .collect();
-        // Constants some op also writes start as their value in every lane.
-        for &(r, k) in &prog.consts {
-            match vars[r as usize] {
-                Var::Wide(vs) => {
-                    let c = b.ins().iconst(I64, k as i64);
-                    vs.iter().for_each(|&v| b.def_var(v, c));
-                }
-                Var::Vec(v) => {
-                    let w = if types.cls(r) == Cls::B { -((k != 0) as i64) } else { k as u32 as i64 };
-                    let c = b.ins().iconst(I32, w as i32 as u32 as i64);
-                    let c = b.ins().splat(I32X4, c);
-                    b.def_var(v, c);
-                }
-                Var::Const(_) => {}
-            }
-        }
+        let vars = declare_regs(b, prog, &types);
         let (cursor, lane_steps, steps, next_poll) = (b.declare_var(I32X4), b.declare_var(I32X4), b.declare_var(I64), b.declare_var(I64));
         b.def_var(lane_steps, zv);
         b.def_var(steps, zero64);
