@@ -78,24 +78,19 @@ impl Gen<'_, '_, '_> {
         self.b.ins().stack_load(I64, I32X4, self.buf, super::tramp::OUT)
     }
 
-    /// The W32 bits of F32 result `r` (f32x4), or the helper's words for every lane when a
-    /// running lane's result is a NaN.
+    /// The W32 bits of F32 result `r` (f32x4). A NaN in a running lane is noted, and the run of
+    /// pure ops it is in is then redone through the helpers (`Gen::flush`); while redoing,
+    /// the helpers' words for every lane.
     fn nan_guard(&mut self, r: Value, f: usize, code: i64, args: &[Reg]) -> Value {
+        if self.redo {
+            return self.per_lane_w32(f, code, args);
+        }
         let nan = self.b.ins().fcmp(FloatCC::Unordered, r, r);
-        let nan = self.b.ins().band(nan, self.mask);
-        let any = self.b.ins().vany_true(nan);
-        let (fast, slow, join) = (self.b.create_block(), self.b.create_block(), self.b.create_block());
-        let out = self.b.append_block_param(join, I32X4);
-        self.b.set_cold_block(slow);
-        self.b.ins().brif(any, slow, &[], fast, &[]);
-        self.b.switch_to_block(fast);
-        let v = self.iv(r);
-        self.b.ins().jump(join, &[v.into()]);
-        self.b.switch_to_block(slow);
-        let v = self.per_lane_w32(f, code, args);
-        self.b.ins().jump(join, &[v.into()]);
-        self.b.switch_to_block(join);
-        out
+        self.nan_acc = Some(match self.nan_acc {
+            Some(acc) => self.b.ins().bor(acc, nan),
+            None => nan,
+        });
+        self.iv(r)
     }
 
     pub(super) fn bin(&mut self, op: BinOp, ty: Sc, dst: Reg, a: Reg, b: Reg) -> Option<()> {

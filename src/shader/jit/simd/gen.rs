@@ -29,6 +29,13 @@ pub(super) fn space_ok(space: Space) -> Option<()> {
     (!matches!(space, Space::Workgroup | Space::Image(_) | Space::Accel(_))).then_some(())
 }
 
+/// A register's value before a run of pure ops.
+#[derive(Clone, Copy)]
+enum Saved {
+    Vec(Value),
+    Wide([Value; W]),
+}
+
 /// A register's variables.
 #[derive(Clone, Copy)]
 enum Var {
@@ -58,6 +65,15 @@ pub(super) struct Gen<'p, 'b, 'f> {
     pub on: [Value; W],
     /// The block being emitted.
     block: usize,
+    /// The run of pure ops since the last memory op or block start: the ops, the values the
+    /// registers they read had before it, the registers it wrote, and whether a float result
+    /// in it was a NaN in some lane (`redo`: the run is being emitted again through the
+    /// helpers).
+    pending: Vec<Op>,
+    saved: Vec<(ir::Reg, Saved)>,
+    written: Vec<bool>,
+    pub nan_acc: Option<Value>,
+    pub redo: bool,
     sigs: Vec<SigRef>,
     /// `tramp`'s lane helpers (1 to 3 operands) and their buffer.
     pub tramps: [FuncRef; 3],
@@ -160,6 +176,11 @@ impl<'p, 'b, 'f> Gen<'p, 'b, 'f> {
             mask: zv,
             on: [zero32; W],
             block: 0,
+            pending: Vec::new(),
+            saved: Vec::new(),
+            written: vec![false; prog.reg_count as usize],
+            nan_acc: None,
+            redo: false,
             sigs,
             tramps,
             buf,
@@ -226,8 +247,16 @@ impl<'p, 'b, 'f> Gen<'p, 'b, 'f> {
                 self.mov(dst, tmp);
             }
             for op in &blk.ops {
-                self.op(op)?;
+                if super::types::pure(op) {
+                    self.save_inputs(op);
+                    self.op(op)?;
+                    self.pending.push(op.clone());
+                } else {
+                    self.flush()?;
+                    self.op(op)?;
+                }
             }
+            self.flush()?;
             self.term(i as u32, blk)?;
         }
         // Past the last block every lane is done.
@@ -235,6 +264,55 @@ impl<'p, 'b, 'f> Gen<'p, 'b, 'f> {
         let s = self.b.use_var(self.steps);
         self.b.ins().return_(&[s]);
         self.b.seal_all_blocks();
+        Some(())
+    }
+
+    // ---- runs of pure ops ----
+
+    /// Notes the pre-run values of the registers `op` reads that the run has not written.
+    fn save_inputs(&mut self, op: &Op) {
+        let (defs, uses) = super::types::defs_uses(op).unwrap_or_default();
+        for r in uses {
+            if self.written[r as usize] || self.saved.iter().any(|s| s.0 == r) {
+                continue;
+            }
+            let v = match self.vars[r as usize] {
+                Var::Vec(v) => Saved::Vec(self.b.use_var(v)),
+                Var::Wide(vs) => Saved::Wide(vs.map(|v| self.b.use_var(v))),
+                Var::Const(_) => continue,
+            };
+            self.saved.push((r, v));
+        }
+        defs.into_iter().for_each(|d| self.written[d as usize] = true);
+    }
+
+    /// Ends the run: when a float result in it was a NaN in a running lane, the run again
+    /// from its inputs with every float op through the helpers (the interpreter's NaN bits).
+    fn flush(&mut self) -> Option<()> {
+        let ops = std::mem::take(&mut self.pending);
+        let saved = std::mem::take(&mut self.saved);
+        ops.iter().filter_map(super::types::defs_uses).flat_map(|d| d.0).for_each(|d| self.written[d as usize] = false);
+        let Some(acc) = self.nan_acc.take() else { return Some(()) };
+        let nan = self.b.ins().band(acc, self.mask);
+        let any = self.b.ins().vany_true(nan);
+        let (slow, join) = (self.b.create_block(), self.b.create_block());
+        self.b.set_cold_block(slow);
+        self.b.ins().brif(any, slow, &[], join, &[]);
+        self.b.switch_to_block(slow);
+        for (r, v) in saved {
+            match (self.vars[r as usize], v) {
+                (Var::Vec(var), Saved::Vec(x)) => self.b.def_var(var, x),
+                (Var::Wide(vs), Saved::Wide(xs)) => (0..W).for_each(|l| self.b.def_var(vs[l], xs[l])),
+                _ => {}
+            }
+        }
+        self.redo = true;
+        for op in &ops {
+            self.op(op)?;
+        }
+        self.redo = false;
+        self.b.ins().jump(join, &[]);
+        self.b.switch_to_block(join);
         Some(())
     }
 

@@ -96,6 +96,11 @@ impl Uf {
     }
 }
 
+/// Whether `op` only computes (no memory): a run of such ops can be emitted again.
+pub(super) fn pure(op: &Op) -> bool {
+    matches!(op, Op::Mov { .. } | Op::Un { .. } | Op::Bin { .. } | Op::Tri { .. } | Op::BitInsert { .. } | Op::Select { .. } | Op::Index { .. } | Op::AddImm { .. })
+}
+
 /// Registers an op writes and reads (None: an op the SIMD backend does not compile).
 pub(super) fn defs_uses(op: &Op) -> Option<(Vec<Reg>, Vec<Reg>)> {
     Some(match *op {
