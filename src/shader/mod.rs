@@ -27,7 +27,8 @@
 //!
 //! Backends. [`Pipeline::compute`] compiles the program with Cranelift (`jit`) unless
 //! `ARBOR_SHADER_JIT=0` (read once) or the host is neither x86-64 nor aarch64; the choice is
-//! made there, never at dispatch. First choice on x86-64 is the SIMD backend (`jit::simd`):
+//! made there, never at dispatch. For loops of float math on x86-64 the SIMD backend
+//! (`jit::simd`) comes first, for other programs second (`jit::simd::pays`):
 //! four invocations per call in 128-bit vectors (I32/F32 as i32x4, Bool as a lane mask, 64-bit
 //! values as four scalars), blocks run under an execution mask in the interpreter's
 //! lowest-cursor-first schedule, sin/cos/exp vectorised with `vmath`'s operations; a workgroup is

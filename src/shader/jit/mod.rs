@@ -52,9 +52,10 @@ impl std::fmt::Debug for Jit {
 
 /// Which pipelines are compiled, from `ARBOR_SHADER_JIT` (read once): `0` none, `scalar` every
 /// program the scalar JIT can compile on the scalar JIT, `all` every program either backend
-/// can compile, anything else (or unset) the SIMD backend's programs and those of the scalar
-/// JIT that `codegen::prefers_interpreter` does not keep on the interpreter. Never on a host
-/// Cranelift does not support.
+/// can compile (the SIMD one first), anything else (or unset) on the SIMD backend when
+/// `simd::pays`, else on the scalar JIT (the SIMD one when the scalar one declines), and
+/// programs neither takes, or that `codegen::prefers_interpreter` keeps there, on the
+/// interpreter. Never on a host Cranelift does not support.
 #[derive(Clone, Copy, PartialEq, Eq)]
 enum Mode {
     Off,
@@ -79,6 +80,7 @@ pub(crate) fn for_pipeline(prog: &Program) -> Option<Jit> {
     match mode() {
         Mode::Off => None,
         Mode::Scalar => compile(prog),
+        Mode::Auto if !simd::pays(prog) => compile(prog).or_else(|| compile_simd(prog)),
         m => compile_simd(prog).or_else(|| if m == Mode::Auto && codegen::prefers_interpreter(prog) { None } else { compile(prog) }),
     }
 }

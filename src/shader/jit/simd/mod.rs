@@ -15,7 +15,7 @@ use cranelift_jit::{JITBuilder, JITModule};
 use cranelift_module::{Linkage, Module};
 
 use super::super::exec::{check_watchdog, init_frame, Ctx, Wg, CHECK_EVERY};
-use super::super::ir::Program;
+use super::super::ir::{Op, Program, Sc, Term};
 use super::super::LANES;
 use super::helpers::{Run, STOPPED};
 use super::{flush, Jit};
@@ -28,6 +28,33 @@ mod tramp;
 mod types;
 
 pub(in crate::shader) use gen::W;
+
+/// Whether the SIMD backend is the faster choice for `prog`: loops in which F32 arithmetic is
+/// at least an eighth of the ops. Four lanes of float math per instruction (sin/cos/exp
+/// vectorised) beat the scalar JIT there (compute-alu); loops of integer ops and branches
+/// (compute-divergent), whose lanes idle while others finish their loop, and lone buffer
+/// accesses (compute-memory, a helper call per lane either way) measured slower than on the
+/// scalar JIT (docs/BENCHMARKS.md).
+pub(super) fn pays(prog: &Program) -> bool {
+    let mut in_loop = vec![false; prog.blocks.len()];
+    for (i, blk) in prog.blocks.iter().enumerate() {
+        let targets: Vec<u32> = match &blk.term {
+            Term::Jump(t) => vec![*t],
+            Term::Cond { t, f, .. } => vec![*t, *f],
+            Term::Switch { default, cases, .. } => cases.iter().map(|c| c.1).chain([*default]).collect(),
+            _ => vec![],
+        };
+        for t in targets.into_iter().filter(|&t| t as usize <= i) {
+            in_loop[t as usize..=i].iter_mut().for_each(|b| *b = true);
+        }
+    }
+    let (mut ops, mut float) = (0usize, 0usize);
+    for blk in prog.blocks.iter().zip(&in_loop).filter(|b| *b.1).map(|b| b.0) {
+        ops += blk.ops.len();
+        float += blk.ops.iter().filter(|op| matches!(op, Op::Un { ty: Sc::F32, .. } | Op::Bin { ty: Sc::F32, .. } | Op::Tri { ty: Sc::F32, .. })).count();
+    }
+    float > 0 && float * 8 >= ops
+}
 
 /// Compiles `prog` for four invocations per call, or None when it uses something this backend
 /// does not compile or code generation fails.

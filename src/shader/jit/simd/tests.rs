@@ -30,6 +30,14 @@ fn the_bench_kernels_compile_for_four_lanes() {
 }
 
 #[test]
+fn float_loops_choose_the_simd_backend_and_integer_loops_the_scalar_one() {
+    assert!(super::pays(&bench("compute_alu.spv").program));
+    for name in ["compute_divergent.spv", "compute_memory.spv"] {
+        assert!(!super::pays(&bench(name).program), "{name}");
+    }
+}
+
+#[test]
 fn every_test_shader_it_accepts_gives_the_interpreters_memory_and_faults() {
     let mut compiled = Vec::new();
     for name in shader_files() {
