@@ -34,8 +34,8 @@
 //! lowest-cursor-first schedule, sin/cos/exp vectorised with `vmath`'s operations; a workgroup is
 //! ceil(size/4) calls, the last one's missing lanes masked off. It declines programs with
 //! anything it does not cover (a register used as two types, images, subgroup ops, barriers,
-//! workgroup memory, ...). Next is the scalar JIT (`ARBOR_SHADER_JIT=scalar` forces it): one
-//! invocation at a time (the IR's blocks as native blocks, registers as SSA variables), so
+//! workgroup memory, ...). The other native backend is the scalar JIT (`ARBOR_SHADER_JIT=scalar`
+//! forces it): one invocation at a time (the IR's blocks as native blocks, registers as SSA variables), so
 //! divergent branches and loops cost nothing extra; a workgroup is a loop over its invocations.
 //! Loops heavy in `vmath` functions (sin, exp, …: at least 1/16 of their ops) that the SIMD
 //! backend declines stay on the interpreter, whose lane arms compute them eight lanes at a time
