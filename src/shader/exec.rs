@@ -172,7 +172,7 @@ pub fn dispatch(
     let results: Vec<WorkgroupResult> = match &pipeline.jit {
         Some(jit) => (0..total)
             .into_par_iter()
-            .map_init(|| vec![0u8; prog.lane_frame.len()], |frame, i| run_workgroup_jit(&ctx, jit, frame, id_of(i)))
+            .map_init(|| vec![0u8; prog.lane_frame.len() * jit.lanes], |frame, i| run_workgroup_jit(&ctx, jit, frame, id_of(i)))
             .filter(keep)
             .collect(),
         None => (0..total).into_par_iter().map_init(|| new_groups(&ctx), |groups, i| run_workgroup(&ctx, groups, id_of(i))).filter(keep).collect(),

@@ -27,25 +27,33 @@
 //!
 //! Backends. [`Pipeline::compute`] compiles the program with Cranelift (`jit`) unless
 //! `ARBOR_SHADER_JIT=0` (read once) or the host is neither x86-64 nor aarch64; the choice is
-//! made there, never at dispatch. Loops heavy in `vmath` functions (sin, exp, …: at least 1/16
-//! of their ops) stay on the interpreter, whose lane arms compute them eight lanes at a time
-//! (`ARBOR_SHADER_JIT=all` compiles them too). Native code runs one invocation at a time (scalar code, the
-//! IR's blocks as native blocks, registers as SSA variables), so divergent branches and loops
-//! cost nothing extra; a workgroup is a loop over its invocations. It covers ALU ops of every
-//! type (the common integer, Bool and float ops inline; sin, cos, exp written out as `vmath`
-//! computes them; the rest through helpers that run the interpreter's own lane arms), control
-//! flow, phis, selects, push constants and lane memory inline behind bounds checks, and every
-//! other buffer access (descriptors, arrays, device addresses, atomics) through the
-//! interpreter's access function, so faults are the same records. Programs that need the
-//! invocations of a lane group or workgroup together stay on the interpreter: workgroup
-//! barriers and shared memory (whose unsynchronised order the lane schedule defines), subgroup
-//! and ballot ops, images and ray queries, atomics on lane memory. The interpreter is the
-//! reference: same register words, same memory, same faults (ordered by the key `jit`
-//! describes), NaN bits included (a NaN result is recomputed by the interpreter's arm). Two
-//! things differ by design: the watchdog's step count (the JIT counts blocks per invocation)
-//! and, in a shader whose invocations race on device memory without synchronisation, which
-//! write another invocation of the same workgroup sees (Vulkan leaves that undefined; each
-//! backend is deterministic).
+//! made there, never at dispatch. For loops of float math on x86-64 the SIMD backend
+//! (`jit::simd`) comes first, for other programs second (`jit::simd::pays`):
+//! four invocations per call in 128-bit vectors (I32/F32 as i32x4, Bool as a lane mask, 64-bit
+//! values as four scalars), blocks run under an execution mask in the interpreter's
+//! lowest-cursor-first schedule, sin/cos/exp vectorised with `vmath`'s operations; a workgroup is
+//! ceil(size/4) calls, the last one's missing lanes masked off. It declines programs with
+//! anything it does not cover (a register used as two types, images, subgroup ops, barriers,
+//! workgroup memory, ...). The other native backend is the scalar JIT (`ARBOR_SHADER_JIT=scalar`
+//! forces it): one invocation at a time (the IR's blocks as native blocks, registers as SSA variables), so
+//! divergent branches and loops cost nothing extra; a workgroup is a loop over its invocations.
+//! Loops heavy in `vmath` functions (sin, exp, …: at least 1/16 of their ops) that the SIMD
+//! backend declines stay on the interpreter, whose lane arms compute them eight lanes at a time
+//! (`ARBOR_SHADER_JIT=all` compiles them too). The scalar JIT covers ALU ops of every type (the
+//! common integer, Bool and float ops inline; sin, cos, exp written out as `vmath` computes
+//! them; the rest through helpers that run the interpreter's own lane arms), control flow,
+//! phis, selects, push constants and lane memory inline behind bounds checks, and every other
+//! buffer access (descriptors, arrays, device addresses, atomics) through the interpreter's
+//! access function, so faults are the same records; the SIMD backend reaches memory and the
+//! uncommon ops through the same helpers, lane by lane. Programs that need the invocations of a
+//! lane group or workgroup together stay on the interpreter: workgroup barriers and shared
+//! memory (whose unsynchronised order the lane schedule defines), subgroup and ballot ops,
+//! images and ray queries, atomics on lane memory. The interpreter is the reference: same
+//! register words, same memory, same faults (ordered by the key `jit` describes), NaN bits
+//! included (a NaN result is recomputed by the interpreter's arm). Two things differ by design:
+//! the watchdog's step count (the JITs count blocks per call) and, in a shader whose
+//! invocations race on device memory without synchronisation, which write another invocation
+//! of the same workgroup sees (Vulkan leaves that undefined; each backend is deterministic).
 //!
 //! Ray queries (SPV_KHR_ray_query, and position fetch): `lower_rq` turns each `OpRayQuery*`
 //! into an IR op naming the query by its variable's lane-frame address; `exec_rq` keeps a

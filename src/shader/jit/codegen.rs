@@ -19,7 +19,7 @@ use super::helpers::{self, MemDesc, MemKind, STOPPED};
 mod alu;
 #[cfg(test)]
 mod const_tests;
-mod vmath;
+pub(super) mod vmath;
 
 pub(super) const I64: types::Type = types::I64;
 pub(super) const I32: types::Type = types::I32;

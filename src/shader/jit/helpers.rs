@@ -55,6 +55,27 @@ pub(super) struct Run<'r, 'a> {
     /// generated code, so the helper keeps it, later helpers do nothing, the next poll stops
     /// the invocation, and the caller resumes the unwind once the code has returned.
     pub panic: Option<Box<dyn std::any::Any + Send>>,
+    /// SIMD calls: how many of the call's lanes hold an invocation (`invocation` is the first
+    /// one's index), and each lane's `kept`.
+    pub lanes: u32,
+    pub lane_kept: [usize; 4],
+}
+
+/// SIMD calls: how many lanes of this call run an invocation (the others start done).
+pub(super) extern "C" fn lanes(run: &mut Run) -> u64 {
+    run.lanes as u64
+}
+
+/// SIMD calls: `mem` for lane `lane` of the call (invocation `invocation + lane`).
+pub(super) extern "C" fn mem_lane(run: &mut Run, desc: u64, at: u64, a: u64, b: u64, steps: u64, lane: u64) -> u64 {
+    let lane = lane as usize % 4;
+    let first = run.invocation;
+    run.invocation = first + lane as u32;
+    run.kept = run.lane_kept[lane];
+    let v = mem(run, desc, at, a, b, steps);
+    run.lane_kept[lane] = run.kept;
+    run.invocation = first;
+    v
 }
 
 /// Memory access `desc` at `at` (value `a`, comparator `b`), as the interpreter does it.

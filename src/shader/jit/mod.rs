@@ -29,6 +29,7 @@ use super::LANES;
 
 mod codegen;
 mod helpers;
+mod simd;
 #[cfg(test)]
 mod tests;
 
@@ -38,21 +39,28 @@ use helpers::{MemDesc, Run, MAX_FAULTS, STOPPED};
 pub(crate) struct Jit {
     code: arbor_jitcode::Code,
     descs: Vec<MemDesc>,
+    /// Invocations per call: 1 (`codegen`) or 4 (`simd`); a call's frame holds that many lane
+    /// frames.
+    pub(super) lanes: usize,
 }
 
 impl std::fmt::Debug for Jit {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        write!(f, "Jit {{ {} memory sites }}", self.descs.len())
+        write!(f, "Jit {{ {} lanes, {} memory sites }}", self.lanes, self.descs.len())
     }
 }
 
-/// Which pipelines are compiled, from `ARBOR_SHADER_JIT` (read once): `0` none, `all` every
-/// program the JIT can compile, anything else (or unset) those `codegen::prefers_interpreter`
-/// does not keep on the interpreter. Never on a host Cranelift does not support.
+/// Which pipelines are compiled, from `ARBOR_SHADER_JIT` (read once): `0` none, `scalar` every
+/// program the scalar JIT can compile on the scalar JIT, `all` every program either backend
+/// can compile (the SIMD one first), anything else (or unset) on the SIMD backend when
+/// `simd::pays`, else on the scalar JIT (the SIMD one when the scalar one declines), and
+/// programs neither takes, or that `codegen::prefers_interpreter` keeps there, on the
+/// interpreter. Never on a host Cranelift does not support.
 #[derive(Clone, Copy, PartialEq, Eq)]
 enum Mode {
     Off,
     Auto,
+    Scalar,
     All,
 }
 
@@ -62,6 +70,7 @@ fn mode() -> Mode {
         _ if !cfg!(any(target_arch = "x86_64", target_arch = "aarch64")) => Mode::Off,
         Ok("0") => Mode::Off,
         Ok("all") => Mode::All,
+        Ok("scalar") => Mode::Scalar,
         _ => Mode::Auto,
     })
 }
@@ -70,9 +79,18 @@ fn mode() -> Mode {
 pub(crate) fn for_pipeline(prog: &Program) -> Option<Jit> {
     match mode() {
         Mode::Off => None,
-        Mode::Auto if codegen::prefers_interpreter(prog) => None,
-        _ => compile(prog),
+        Mode::Scalar => compile(prog),
+        Mode::Auto if !simd::pays(prog) => compile(prog).or_else(|| compile_simd(prog)),
+        m => compile_simd(prog).or_else(|| if m == Mode::Auto && codegen::prefers_interpreter(prog) { None } else { compile(prog) }),
     }
+}
+
+/// Compiles `prog` for the SIMD backend (four invocations per call), or None.
+pub(crate) fn compile_simd(prog: &Program) -> Option<Jit> {
+    if !cfg!(target_arch = "x86_64") {
+        return None;
+    }
+    simd::compile(prog)
 }
 
 /// Compiles `prog`, or None when it uses something the JIT does not compile (it then runs on
@@ -109,14 +127,18 @@ fn build(prog: &Program) -> Option<Jit> {
     module.define_function(id, &mut ctx).ok()?;
     module.clear_context(&mut ctx);
     let code = arbor_jitcode::Code::new(module, id).ok()?;
-    Some(Jit { code, descs })
+    Some(Jit { code, descs, lanes: 1 })
 }
 
-/// Runs workgroup `wg` invocation by invocation; `frame` is this thread's lane-frame buffer.
+/// Runs workgroup `wg` invocation by invocation (or four at a time on the SIMD backend);
+/// `frame` is this thread's buffer of `jit.lanes` lane frames.
 pub(super) fn run_workgroup(ctx: &Ctx, jit: &Jit, wg: &mut Wg, frame: &mut [u8]) {
+    if jit.lanes == simd::W {
+        return simd::run_workgroup(ctx, jit, wg, frame);
+    }
     let n = ctx.local.iter().product::<u32>();
     let id = wg.id;
-    let mut run = Run { ctx, wg, descs: &jit.descs, invocation: 0, pending: Vec::new(), kept: 0, accounted: 0, panic: None };
+    let mut run = Run { ctx, wg, descs: &jit.descs, invocation: 0, pending: Vec::new(), kept: 0, accounted: 0, panic: None, lanes: 1, lane_kept: [0; 4] };
     let mut next_check = run.wg.steps + CHECK_EVERY;
     for index in 0..n {
         init_frame(ctx, frame, id, index, n);

@@ -8,7 +8,7 @@ use crate::shader::tests::compile_with;
 use crate::shader::{alu, dispatch, DispatchReport, HostMemory, Module, Pipeline, Stop, Watchdog};
 
 /// A small deterministic generator (xorshift), so failures reproduce.
-fn words(seed: u64, n: usize) -> Vec<u64> {
+pub(super) fn words(seed: u64, n: usize) -> Vec<u64> {
     let mut x = seed | 1;
     (0..n)
         .map(|_| {
@@ -37,7 +37,7 @@ fn fill(style: usize, seed: u64, bytes: usize) -> Vec<u8> {
 
 /// Runs `p` over fresh memory of fill `style`: every binding bound (four elements for an
 /// array), push constants filled the same way (device addresses of the buffers for style 1).
-fn run_filled(p: &Pipeline, style: usize, groups: [u32; 3]) -> (DispatchReport, Vec<Vec<u8>>) {
+pub(super) fn run_filled(p: &Pipeline, style: usize, groups: [u32; 3]) -> (DispatchReport, Vec<Vec<u8>>) {
     let mut mem = HostMemory::new();
     let mut ids = Vec::new();
     for (k, b) in p.bindings().iter().enumerate() {
@@ -67,7 +67,7 @@ fn run_filled(p: &Pipeline, style: usize, groups: [u32; 3]) -> (DispatchReport, 
     (report, ids.iter().map(|&i| mem.bytes(i)).collect())
 }
 
-fn shader_files() -> Vec<String> {
+pub(super) fn shader_files() -> Vec<String> {
     let dir = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("tests/shaders");
     let mut names: Vec<String> = std::fs::read_dir(dir)
         .unwrap()
@@ -149,7 +149,7 @@ const EDGES: [u64; 24] = [
 
 /// 64 invocations: every pair of the first 8 edges (and then more) for two operands; random
 /// words fill the rest.
-fn operands(arity: usize) -> Vec<[u64; 3]> {
+pub(super) fn operands(arity: usize) -> Vec<[u64; 3]> {
     let rnd = words(0x2545_F491_4F6C_DD1D, 3 * 64);
     (0..64)
         .map(|i| {

@@ -1,11 +1,13 @@
 //! `vmath`'s sin, cos and exp written out in Cranelift IR: the same f32 operations in the same
 //! order (Rust neither contracts nor reassociates float arithmetic), so every non-NaN result
 //! has `vmath`'s bits; a NaN result takes the helper (the interpreter's bits for NaNs). Inline,
-//! they cost no call, which would spill every live float register.
+//! they cost no call, which would spill every live float register. Written once over the value's
+//! type: `f32` for the scalar JIT, `f32x4` (four invocations) for the SIMD one.
 use cranelift_codegen::ir::condcodes::FloatCC;
-use cranelift_codegen::ir::{InstBuilder, MemFlagsData, Value};
+use cranelift_codegen::ir::{types, InstBuilder, MemFlagsData, Type, Value};
+use cranelift_frontend::FunctionBuilder;
 
-use super::{Gen, F32, I32};
+use super::Gen;
 
 const ROUND: f32 = 12_582_912.0;
 const ROUND_BITS: i64 = 0x4B40_0000;
@@ -17,15 +19,44 @@ const LN2_LO: f32 = -2.121_944_4e-4;
 
 /// Which function.
 #[derive(Clone, Copy, PartialEq, Eq)]
-pub(super) enum Fn1 {
+pub(in crate::shader::jit) enum Fn1 {
     Sin,
     Cos,
     Exp,
 }
 
 impl Gen<'_, '_, '_> {
+    /// The f32 function `f` of `x` (an F32 value), as an F32 value.
+    pub(super) fn vmath1(&mut self, f: Fn1, x: Value) -> Value {
+        vmath(self.b, f, x)
+    }
+}
+
+/// The function `f` of `x`, an `f32` or `f32x4` value, as a value of the same type.
+pub(in crate::shader::jit) fn vmath(b: &mut FunctionBuilder, f: Fn1, x: Value) -> Value {
+    let ty = b.func.dfg.value_type(x);
+    let mut e = Emit { b, ty, ity: if ty.is_vector() { types::I32X4 } else { types::I32 } };
+    match f {
+        Fn1::Sin | Fn1::Cos => e.sin_cos(f == Fn1::Cos, x),
+        Fn1::Exp => e.exp(x),
+    }
+}
+
+struct Emit<'e, 'f> {
+    b: &'e mut FunctionBuilder<'f>,
+    /// The float type and the integer type of the same shape.
+    ty: Type,
+    ity: Type,
+}
+
+impl Emit<'_, '_> {
     fn k(&mut self, v: f32) -> Value {
-        self.b.ins().f32const(v)
+        let s = self.b.ins().f32const(v);
+        if self.ty.is_vector() { self.b.ins().splat(self.ty, s) } else { s }
+    }
+    fn ik(&mut self, v: i64) -> Value {
+        let s = self.b.ins().iconst(types::I32, v as i32 as u32 as i64);
+        if self.ty.is_vector() { self.b.ins().splat(self.ity, s) } else { s }
     }
     fn mul(&mut self, a: Value, b: Value) -> Value {
         self.b.ins().fmul(a, b)
@@ -39,18 +70,38 @@ impl Gen<'_, '_, '_> {
         self.b.ins().fadd(a, k)
     }
     fn bits(&mut self, x: Value) -> Value {
-        self.b.ins().bitcast(I32, MemFlagsData::new(), x)
+        self.b.ins().bitcast(self.ity, MemFlagsData::new(), x)
     }
     fn float(&mut self, x: Value) -> Value {
-        self.b.ins().bitcast(F32, MemFlagsData::new(), x)
+        self.b.ins().bitcast(self.ty, MemFlagsData::new(), x)
     }
-
+    fn iaddk(&mut self, x: Value, k: i64) -> Value {
+        let k = self.ik(k);
+        self.b.ins().iadd(x, k)
+    }
+    fn bandk(&mut self, x: Value, k: i64) -> Value {
+        let k = self.ik(k);
+        self.b.ins().band(x, k)
+    }
+    fn shl(&mut self, x: Value, s: i64) -> Value {
+        let s = self.b.ins().iconst(types::I32, s);
+        self.b.ins().ishl(x, s)
+    }
+    /// `c ? x : y` for a comparison result `c` of this shape (a lane mask for vectors).
+    fn select(&mut self, c: Value, x: Value, y: Value) -> Value {
+        if self.ty.is_vector() {
+            let c = self.b.ins().bitcast(self.ty, MemFlagsData::new(), c);
+            self.b.ins().bitselect(c, x, y)
+        } else {
+            self.b.ins().select(c, x, y)
+        }
+    }
     /// `vmath::round_int`: (t rounded to an integer, that integer as i32).
     fn round_int(&mut self, t: Value) -> (Value, Value) {
         let s = self.addk(t, ROUND);
         let n = self.addk(s, -ROUND);
         let sb = self.bits(s);
-        let ni = self.b.ins().iadd_imm_s(sb, -ROUND_BITS);
+        let ni = self.iaddk(sb, -ROUND_BITS);
         (n, ni)
     }
 
@@ -62,14 +113,6 @@ impl Gen<'_, '_, '_> {
             acc = self.addk(m, k);
         }
         acc
-    }
-
-    /// The f32 function `f` of `x` (an F32 value), as an F32 value.
-    pub(super) fn vmath1(&mut self, f: Fn1, x: Value) -> Value {
-        match f {
-            Fn1::Sin | Fn1::Cos => self.sin_cos(f == Fn1::Cos, x),
-            Fn1::Exp => self.exp(x),
-        }
     }
 
     fn sin_cos(&mut self, cos: bool, x: Value) -> Value {
@@ -86,9 +129,9 @@ impl Gen<'_, '_, '_> {
         let one = self.k(1.0);
         let big = self.b.ins().fcmp(FloatCC::GreaterThan, abs, one);
         let zero = self.k(0.0);
-        let r = self.b.ins().select(big, zero, r);
-        let q = self.b.ins().band_imm_u(ji, 3);
-        let q = if cos { self.b.ins().iadd_imm_s(q, 1) } else { q };
+        let r = self.select(big, zero, r);
+        let q = self.bandk(ji, 3);
+        let q = if cos { self.iaddk(q, 1) } else { q };
         // sin_cos_poly
         let z = self.mul(r, r);
         let p = self.mulk(z, -1.951_529_6e-4);
@@ -99,7 +142,7 @@ impl Gen<'_, '_, '_> {
         let p = self.mul(p, r);
         let s = self.b.ins().fadd(p, r);
         let (sb, rb) = (self.bits(s), self.bits(r));
-        let sign = self.b.ins().band_imm_u(rb, 0x8000_0000u32 as i64);
+        let sign = self.bandk(rb, 0x8000_0000u32 as i64);
         let s = self.b.ins().bor(sb, sign);
         let p = self.mulk(z, 2.443_315_7e-5);
         let p = self.addk(p, -1.388_731_6e-3);
@@ -112,14 +155,14 @@ impl Gen<'_, '_, '_> {
         let c = self.addk(c, 1.0);
         let c = self.bits(c);
         // sin_quadrant
-        let odd = self.b.ins().band_imm_u(q, 1);
+        let odd = self.bandk(q, 1);
         let odd = self.b.ins().ineg(odd);
         let from_c = self.b.ins().band(c, odd);
         let not_odd = self.b.ins().bnot(odd);
         let from_s = self.b.ins().band(s, not_odd);
         let v = self.b.ins().bor(from_c, from_s);
-        let flip = self.b.ins().band_imm_u(q, 2);
-        let flip = self.b.ins().ishl_imm_u(flip, 30);
+        let flip = self.bandk(q, 2);
+        let flip = self.shl(flip, 30);
         let v = self.b.ins().bxor(v, flip);
         self.float(v)
     }
@@ -128,10 +171,10 @@ impl Gen<'_, '_, '_> {
         // f32::clamp(-104, 89): NaN passes.
         let lo = self.k(-104.0);
         let below = self.b.ins().fcmp(FloatCC::LessThan, x, lo);
-        let x = self.b.ins().select(below, lo, x);
+        let x = self.select(below, lo, x);
         let hi = self.k(89.0);
         let above = self.b.ins().fcmp(FloatCC::GreaterThan, x, hi);
-        let xc = self.b.ins().select(above, hi, x);
+        let xc = self.select(above, hi, x);
         let t = self.mulk(xc, std::f32::consts::LOG2_E);
         let (n, ni) = self.round_int(t);
         let a = self.mulk(n, LN2_HI);
@@ -144,7 +187,8 @@ impl Gen<'_, '_, '_> {
         let p = self.b.ins().fadd(p, r);
         let p = self.addk(p, 1.0);
         // scale(p, ni): p · 2^(n>>1) · 2^(n - (n>>1)).
-        let a = self.b.ins().sshr_imm_u(ni, 1);
+        let one = self.b.ins().iconst(types::I32, 1);
+        let a = self.b.ins().sshr(ni, one);
         let b = self.b.ins().isub(ni, a);
         let pa = self.pow2i(a);
         let pb = self.pow2i(b);
@@ -154,8 +198,8 @@ impl Gen<'_, '_, '_> {
 
     /// `vmath::pow2i`.
     fn pow2i(&mut self, n: Value) -> Value {
-        let e = self.b.ins().iadd_imm_s(n, 127);
-        let e = self.b.ins().ishl_imm_u(e, 23);
+        let e = self.iaddk(n, 127);
+        let e = self.shl(e, 23);
         self.float(e)
     }
 }

@@ -1,0 +1,756 @@
+//! Registers, control flow and memory of the SIMD code.
+//!
+//! Control flow is the interpreter's schedule made static: IR block `i` is emitted behind a
+//! guard ("does any lane have its cursor at `i`?"), blocks in index order, so the lanes a block
+//! runs for are exactly those the interpreter's lowest-cursor-first rule would run. A block's
+//! terminator moves its lanes' cursors; execution falls to the next guard, except that a taken
+//! back edge jumps to its header's guard (every running cursor is then at or past it).
+use cranelift_codegen::ir::condcodes::IntCC;
+use cranelift_codegen::ir::{types, AbiParam, Block, FuncRef, InstBuilder, MemFlagsData, SigRef, Signature, StackSlot, StackSlotData, StackSlotKind, Value};
+use cranelift_frontend::{FunctionBuilder, Variable};
+
+use super::super::super::exec::CHECK_EVERY;
+use super::super::super::ir::{self, Op, Program, Sc, Space, Term};
+use super::super::helpers::{self, MemDesc, MemKind, STOPPED};
+use super::types::{Cls, Types};
+
+pub(super) const I64: types::Type = types::I64;
+pub(super) const I32: types::Type = types::I32;
+pub(super) const I32X4: types::Type = types::I32X4;
+pub(super) const F32X4: types::Type = types::F32X4;
+/// Invocations per call.
+pub(in crate::shader) const W: usize = 4;
+/// The cursor of a lane that is done (above every block index).
+const DONE: i64 = i32::MAX as i64;
+
+/// The spaces the SIMD backend reaches (workgroup memory needs the lane schedule of a whole
+/// workgroup, images and the rest are left to the other backends).
+pub(super) fn space_ok(space: Space) -> Option<()> {
+    (!matches!(space, Space::Workgroup | Space::Image(_) | Space::Accel(_))).then_some(())
+}
+
+/// A register's value before a run of pure ops.
+#[derive(Clone, Copy)]
+enum Saved {
+    Vec(Value),
+    Wide([Value; W]),
+}
+
+/// A register's variables.
+#[derive(Clone, Copy)]
+enum Var {
+    Vec(Variable),
+    Wide([Variable; W]),
+    Const(u64),
+}
+
+pub(super) struct Gen<'p, 'b, 'f> {
+    pub b: &'b mut FunctionBuilder<'f>,
+    pub prog: &'p Program,
+    pub types: Types,
+    vars: Vec<Var>,
+    cursor: Variable,
+    /// Blocks each lane has run (the fault-order key), and blocks the call has run (the
+    /// watchdog's steps).
+    lane_steps: Variable,
+    steps: Variable,
+    next_poll: Variable,
+    run: Value,
+    frame: Value,
+    push: Value,
+    push_len: Value,
+    guards: Vec<Block>,
+    /// The running block's lanes: a mask, and per lane an i8 truth value.
+    pub mask: Value,
+    pub on: [Value; W],
+    /// The block being emitted.
+    block: usize,
+    /// The run of pure ops since the last memory op or block start: the ops, the values the
+    /// registers they read had before it, the registers it wrote, and whether a float result
+    /// in it was a NaN in some lane (`redo`: the run is being emitted again through the
+    /// helpers).
+    pending: Vec<Op>,
+    saved: Vec<(ir::Reg, Saved)>,
+    written: Vec<bool>,
+    pub nan_acc: Option<Value>,
+    pub redo: bool,
+    sigs: Vec<SigRef>,
+    /// `tramp`'s lane helpers (1 to 3 operands) and their buffer.
+    pub tramps: [FuncRef; 3],
+    pub buf: StackSlot,
+    pub descs: Vec<MemDesc>,
+    /// Bytes of one lane's frame; lane `l`'s frame starts at `l * fs`.
+    fs: u32,
+}
+
+fn sig(call_conv: cranelift_codegen::isa::CallConv, n: usize) -> Signature {
+    let mut s = Signature::new(call_conv);
+    s.params.extend((0..n).map(|_| AbiParam::new(I64)));
+    s.returns.push(AbiParam::new(I64));
+    s
+}
+
+/// Every register's variables, zero in every lane (constants some op also writes: their value).
+fn declare_regs(b: &mut FunctionBuilder, prog: &Program, types: &Types) -> Vec<Var> {
+    let zero64 = b.ins().iconst(I64, 0);
+    let zero32 = b.ins().iconst(I32, 0);
+    let zv = b.ins().splat(I32X4, zero32);
+    let vars: Vec<Var> = (0..prog.reg_count)
+        .map(|r| {
+            if let Some(k) = types.konst(r) {
+                return Var::Const(k);
+            }
+            match types.cls(r) {
+                Cls::W64 => Var::Wide(std::array::from_fn(|_| {
+                    let v = b.declare_var(I64);
+                    b.def_var(v, zero64);
+                    v
+                })),
+                _ => {
+                    let v = b.declare_var(I32X4);
+                    b.def_var(v, zv);
+                    Var::Vec(v)
+                }
+            }
+        })
+        .collect();
+    // Constants some op also writes start as their value in every lane.
+    for &(r, k) in &prog.consts {
+        match vars[r as usize] {
+            Var::Wide(vs) => {
+                let c = b.ins().iconst(I64, k as i64);
+                vs.iter().for_each(|&v| b.def_var(v, c));
+            }
+            Var::Vec(v) => {
+                let w = if types.cls(r) == Cls::B { -((k != 0) as i64) } else { k as u32 as i64 };
+                let c = b.ins().iconst(I32, w as i32 as u32 as i64);
+                let c = b.ins().splat(I32X4, c);
+                b.def_var(v, c);
+            }
+            Var::Const(_) => {}
+        }
+    }
+    vars
+}
+
+impl<'p, 'b, 'f> Gen<'p, 'b, 'f> {
+    pub(super) fn new(b: &'b mut FunctionBuilder<'f>, prog: &'p Program, types: Types, call_conv: cranelift_codegen::isa::CallConv, tramps: [FuncRef; 3]) -> Self {
+        let entry = b.create_block();
+        b.append_block_params_for_function_params(entry);
+        b.switch_to_block(entry);
+        let p = b.block_params(entry).to_vec();
+        let sigs: Vec<SigRef> = (1..=7).map(|n| b.import_signature(sig(call_conv, n))).collect();
+        let fs = prog.lane_frame.len() as u32;
+        let zero64 = b.ins().iconst(I64, 0);
+        let zero32 = b.ins().iconst(I32, 0);
+        let zv = b.ins().splat(I32X4, zero32);
+        let vars = declare_regs(b, prog, &types);
+        let (cursor, lane_steps, steps, next_poll) = (b.declare_var(I32X4), b.declare_var(I32X4), b.declare_var(I64), b.declare_var(I64));
+        b.def_var(lane_steps, zv);
+        b.def_var(steps, zero64);
+        let first = b.ins().iconst(I64, CHECK_EVERY as i64);
+        b.def_var(next_poll, first);
+        let guards: Vec<Block> = (0..=prog.blocks.len()).map(|_| b.create_block()).collect();
+        let buf = b.create_sized_stack_slot(StackSlotData::new(StackSlotKind::ExplicitSlot, super::tramp::BUF, 4));
+        // Refuse a frame too small for four lanes (the inline accesses rely on it).
+        let (frame_len, ok_b, bad_b) = (p[2], b.create_block(), b.create_block());
+        let small = b.ins().icmp_imm_s(IntCC::UnsignedLessThan, frame_len, (fs as usize * W) as i64);
+        b.ins().brif(small, bad_b, &[], ok_b, &[]);
+        b.switch_to_block(bad_b);
+        b.ins().return_(&[zero64]);
+        b.switch_to_block(ok_b);
+        let mut g = Gen {
+            b,
+            prog,
+            types,
+            vars,
+            cursor,
+            lane_steps,
+            steps,
+            next_poll,
+            run: p[0],
+            frame: p[1],
+            push: p[3],
+            push_len: p[4],
+            guards,
+            mask: zv,
+            on: [zero32; W],
+            block: 0,
+            pending: Vec::new(),
+            saved: Vec::new(),
+            written: vec![false; prog.reg_count as usize],
+            nan_acc: None,
+            redo: false,
+            sigs,
+            tramps,
+            buf,
+            descs: Vec::new(),
+            fs,
+        };
+        // Lanes past the call's invocation count start done.
+        let run = g.run;
+        let count = g.call_int(helpers::lanes as *const () as usize, &[run]);
+        let count = g.b.ins().ireduce(I32, count);
+        let count = g.b.ins().splat(I32X4, count);
+        let idx = g.lane_index();
+        let live = g.b.ins().icmp(IntCC::UnsignedLessThan, idx, count);
+        let z = g.splat32(0);
+        let done = g.splat32(DONE);
+        let c = g.b.ins().bitselect(live, z, done);
+        g.b.def_var(g.cursor, c);
+        let g0 = g.guards[0];
+        g.b.ins().jump(g0, &[]);
+        g
+    }
+
+    /// [0, 1, 2, 3].
+    fn lane_index(&mut self) -> Value {
+        let mut v = self.splat32(0);
+        for l in 1..W {
+            let k = self.b.ins().iconst(I32, l as i64);
+            v = self.b.ins().insertlane(v, k, l as u8);
+        }
+        v
+    }
+
+    pub(super) fn splat32(&mut self, k: i64) -> Value {
+        let c = self.b.ins().iconst(I32, k as i32 as u32 as i64);
+        self.b.ins().splat(I32X4, c)
+    }
+
+    /// Emits every block; None when something is not compiled.
+    pub(super) fn translate(&mut self) -> Option<()> {
+        let prog = self.prog;
+        let n = prog.blocks.len();
+        for (i, blk) in prog.blocks.iter().enumerate() {
+            self.b.switch_to_block(self.guards[i]);
+            let c = self.b.use_var(self.cursor);
+            let here = self.splat32(i as i64);
+            let m = self.b.ins().icmp(IntCC::Equal, c, here);
+            let any = self.b.ins().vany_true(m);
+            let body = self.b.create_block();
+            self.b.ins().brif(any, body, &[], self.guards[i + 1], &[]);
+            self.b.switch_to_block(body);
+            self.mask = m;
+            self.block = i;
+            for l in 0..W {
+                let x = self.b.ins().extractlane(m, l as u8);
+                self.on[l] = self.b.ins().icmp_imm_s(IntCC::NotEqual, x, 0);
+            }
+            let s = self.b.use_var(self.steps);
+            let s = self.b.ins().iadd_imm_s(s, 1);
+            self.b.def_var(self.steps, s);
+            let ls = self.b.use_var(self.lane_steps);
+            let ls = self.b.ins().isub(ls, m);
+            self.b.def_var(self.lane_steps, ls);
+            for &(dst, tmp) in &blk.phi_in {
+                self.mov(dst, tmp);
+            }
+            for op in &blk.ops {
+                if super::types::pure(op) {
+                    self.save_inputs(op);
+                    self.op(op)?;
+                    self.pending.push(op.clone());
+                } else {
+                    self.flush()?;
+                    self.op(op)?;
+                }
+            }
+            self.flush()?;
+            self.term(i as u32, blk)?;
+        }
+        // Past the last block every lane is done.
+        self.b.switch_to_block(self.guards[n]);
+        let s = self.b.use_var(self.steps);
+        self.b.ins().return_(&[s]);
+        self.b.seal_all_blocks();
+        Some(())
+    }
+
+    // ---- runs of pure ops ----
+
+    /// Notes the pre-run values of the registers `op` reads that the run has not written.
+    fn save_inputs(&mut self, op: &Op) {
+        let (defs, uses) = super::types::defs_uses(op).unwrap_or_default();
+        for r in uses {
+            if self.written[r as usize] || self.saved.iter().any(|s| s.0 == r) {
+                continue;
+            }
+            let v = match self.vars[r as usize] {
+                Var::Vec(v) => Saved::Vec(self.b.use_var(v)),
+                Var::Wide(vs) => Saved::Wide(vs.map(|v| self.b.use_var(v))),
+                Var::Const(_) => continue,
+            };
+            self.saved.push((r, v));
+        }
+        defs.into_iter().for_each(|d| self.written[d as usize] = true);
+    }
+
+    /// Ends the run: when a float result in it was a NaN in a running lane, the run again
+    /// from its inputs with every float op through the helpers (the interpreter's NaN bits).
+    fn flush(&mut self) -> Option<()> {
+        let ops = std::mem::take(&mut self.pending);
+        let saved = std::mem::take(&mut self.saved);
+        ops.iter().filter_map(super::types::defs_uses).flat_map(|d| d.0).for_each(|d| self.written[d as usize] = false);
+        let Some(acc) = self.nan_acc.take() else { return Some(()) };
+        let nan = self.b.ins().band(acc, self.mask);
+        let any = self.b.ins().vany_true(nan);
+        let (slow, join) = (self.b.create_block(), self.b.create_block());
+        self.b.set_cold_block(slow);
+        self.b.ins().brif(any, slow, &[], join, &[]);
+        self.b.switch_to_block(slow);
+        for (r, v) in saved {
+            match (self.vars[r as usize], v) {
+                (Var::Vec(var), Saved::Vec(x)) => self.b.def_var(var, x),
+                (Var::Wide(vs), Saved::Wide(xs)) => (0..W).for_each(|l| self.b.def_var(vs[l], xs[l])),
+                _ => {}
+            }
+        }
+        self.redo = true;
+        for op in &ops {
+            self.op(op)?;
+        }
+        self.redo = false;
+        self.b.ins().jump(join, &[]);
+        self.b.switch_to_block(join);
+        Some(())
+    }
+
+    // ---- registers ----
+
+    /// Register `r` as a vector in class `c` (W32 or B).
+    /// (A register of another class is converted as the interpreter would read its word.)
+    pub(super) fn vget(&mut self, r: ir::Reg, c: Cls) -> Value {
+        match self.vars[r as usize] {
+            Var::Vec(v) => {
+                let x = self.b.use_var(v);
+                match (self.types.cls(r), c) {
+                    (Cls::B, Cls::W32) => {
+                        let one = self.splat32(1);
+                        self.b.ins().band(x, one)
+                    }
+                    (Cls::W32, Cls::B) => {
+                        let z = self.splat32(0);
+                        self.b.ins().icmp(IntCC::NotEqual, x, z)
+                    }
+                    _ => x,
+                }
+            }
+            Var::Const(k) => self.splat32(if c == Cls::B { -((k != 0) as i64) } else { k as u32 as i64 }),
+            Var::Wide(_) => {
+                let w = self.words(r);
+                let w = if c == Cls::B { w.map(|x| self.b.ins().icmp_imm_s(IntCC::NotEqual, x, 0)).map(|x| self.b.ins().uextend(I64, x)) } else { w };
+                self.vec_of_words(w, c == Cls::B)
+            }
+        }
+    }
+
+    /// Register `r`'s word in lane `l`, as the interpreter holds it.
+    pub(super) fn word(&mut self, r: ir::Reg, l: usize) -> Value {
+        match self.vars[r as usize] {
+            Var::Wide(vs) => self.b.use_var(vs[l]),
+            Var::Const(k) => self.b.ins().iconst(I64, k as i64),
+            Var::Vec(v) => {
+                let v = self.b.use_var(v);
+                let x = self.b.ins().extractlane(v, l as u8);
+                let x = if self.types.cls(r) == Cls::B { self.b.ins().band_imm_u(x, 1) } else { x };
+                self.b.ins().uextend(I64, x)
+            }
+        }
+    }
+
+    pub(super) fn words(&mut self, r: ir::Reg) -> [Value; W] {
+        std::array::from_fn(|l| self.word(r, l))
+    }
+
+    /// Writes vector `v` to `r` for the running lanes.
+    pub(super) fn vset(&mut self, r: ir::Reg, v: Value) {
+        let Var::Vec(var) = self.vars[r as usize] else { unreachable!("a vector written to a wide register") };
+        let v = if !self.types.blends(self.block, r) {
+            v
+        } else {
+            let old = self.b.use_var(var);
+            self.b.ins().bitselect(self.mask, v, old)
+        };
+        self.b.def_var(var, v);
+    }
+
+    /// Writes interpreter words (one per lane) to `r` in its class.
+    pub(super) fn set_words(&mut self, r: ir::Reg, w: [Value; W]) {
+        match self.vars[r as usize] {
+            Var::Wide(vs) => {
+                for l in 0..W {
+                    let v = if !self.types.blends(self.block, r) {
+                        w[l]
+                    } else {
+                        let old = self.b.use_var(vs[l]);
+                        self.b.ins().select(self.on[l], w[l], old)
+                    };
+                    self.b.def_var(vs[l], v);
+                }
+            }
+            Var::Vec(_) => {
+                let bool_ = self.types.cls(r) == Cls::B;
+                let v = self.vec_of_words(w, bool_);
+                self.vset(r, v);
+            }
+            Var::Const(_) => unreachable!("a constant written"),
+        }
+    }
+
+    /// Four words as a W32 vector (low halves) or a B mask (word != 0).
+    pub(super) fn vec_of_words(&mut self, w: [Value; W], bool_: bool) -> Value {
+        let lanes: Vec<Value> = w.iter().map(|&x| if bool_ { self.b.ins().bmask(I32, x) } else { self.b.ins().ireduce(I32, x) }).collect();
+        let mut v = self.b.ins().splat(I32X4, lanes[0]);
+        for (l, &x) in lanes.iter().enumerate().skip(1) {
+            v = self.b.ins().insertlane(v, x, l as u8);
+        }
+        v
+    }
+
+    fn mov(&mut self, dst: ir::Reg, src: ir::Reg) {
+        match self.types.cls(dst) {
+            Cls::W64 => {
+                let w = self.words(src);
+                self.set_words(dst, w);
+            }
+            c => {
+                let v = self.vget(src, c);
+                self.vset(dst, v);
+            }
+        }
+    }
+
+    // ---- calls ----
+
+    fn call(&mut self, f: usize, sig: SigRef, args: &[Value]) -> Value {
+        let callee = self.b.ins().iconst(I64, f as i64);
+        let inst = self.b.ins().call_indirect(sig, callee, args);
+        self.b.inst_results(inst)[0]
+    }
+
+    pub(super) fn call_int(&mut self, f: usize, args: &[Value]) -> Value {
+        let sig = self.sigs[args.len() - 1];
+        self.call(f, sig, args)
+    }
+
+    // ---- control flow ----
+
+    fn term(&mut self, i: u32, blk: &ir::Block) -> Option<()> {
+        let m = self.mask;
+        let cur = self.b.use_var(self.cursor);
+        // Each lane's next cursor (lanes outside the mask keep theirs).
+        let next = match &blk.term {
+            Term::Jump(t) => self.splat32(*t as i64),
+            Term::Cond { cond, t, f } => {
+                let c = self.vget(*cond, Cls::B);
+                let (t, f) = (self.splat32(*t as i64), self.splat32(*f as i64));
+                self.b.ins().bitselect(c, t, f)
+            }
+            Term::Switch { sel, default, cases } => {
+                let s = self.vget(*sel, Cls::W32);
+                let mut v = self.splat32(*default as i64);
+                // The first matching case wins: apply them last to first.
+                for &(k, target) in cases.iter().rev() {
+                    let k = self.splat32(k as u32 as i64);
+                    let hit = self.b.ins().icmp(IntCC::Equal, s, k);
+                    let t = self.splat32(target as i64);
+                    v = self.b.ins().bitselect(hit, t, v);
+                }
+                if cases.iter().any(|c| c.0 > u32::MAX as u64) {
+                    return None;
+                }
+                v
+            }
+            Term::Exit => self.splat32(DONE),
+            Term::Barrier(_) => return None,
+        };
+        let moved = self.b.ins().bitselect(m, next, cur);
+        self.b.def_var(self.cursor, moved);
+        let mut targets: Vec<u32> = blk.edge_moves.iter().map(|e| e.target).collect();
+        targets.sort_unstable();
+        targets.dedup();
+        for t in targets {
+            let tv = self.splat32(t as i64);
+            let to = self.b.ins().icmp(IntCC::Equal, next, tv);
+            let lanes = self.b.ins().band(to, m);
+            for e in blk.edge_moves.iter().filter(|e| e.target == t) {
+                self.edge_move(lanes, e.dst, e.src);
+            }
+        }
+        let back: Vec<u32> = match &blk.term {
+            Term::Jump(t) => vec![*t],
+            Term::Cond { t, f, .. } => vec![*t, *f],
+            Term::Switch { default, cases, .. } => cases.iter().map(|c| c.1).chain([*default]).collect(),
+            _ => vec![],
+        };
+        let header = back.into_iter().filter(|&t| t <= i).min();
+        let fall = self.guards[i as usize + 1];
+        if let Some(h) = header {
+            let iv = self.splat32(i as i64);
+            let took = self.b.ins().icmp(IntCC::UnsignedLessThanOrEqual, next, iv);
+            let took = self.b.ins().band(took, m);
+            let any = self.b.ins().vany_true(took);
+            let back_b = self.b.create_block();
+            self.b.ins().brif(any, back_b, &[], fall, &[]);
+            self.b.switch_to_block(back_b);
+            self.poll();
+            self.b.ins().jump(self.guards[h as usize], &[]);
+        } else {
+            self.b.ins().jump(fall, &[]);
+        }
+        Some(())
+    }
+
+    /// A phi temporary filled for the lanes in `lanes` (a mask).
+    fn edge_move(&mut self, lanes: Value, dst: ir::Reg, src: ir::Reg) {
+        match self.vars[dst as usize] {
+            Var::Vec(var) => {
+                let v = self.vget(src, self.types.cls(dst));
+                let old = self.b.use_var(var);
+                let v = self.b.ins().bitselect(lanes, v, old);
+                self.b.def_var(var, v);
+            }
+            Var::Wide(vs) => {
+                let w = self.words(src);
+                for l in 0..W {
+                    let x = self.b.ins().extractlane(lanes, l as u8);
+                    let on = self.b.ins().icmp_imm_s(IntCC::NotEqual, x, 0);
+                    let old = self.b.use_var(vs[l]);
+                    let v = self.b.ins().select(on, w[l], old);
+                    self.b.def_var(vs[l], v);
+                }
+            }
+            Var::Const(_) => unreachable!("a constant written"),
+        }
+    }
+
+    /// At a taken back edge: once the step count reaches the next poll, ask the watchdog.
+    fn poll(&mut self) {
+        let s = self.b.use_var(self.steps);
+        let np = self.b.use_var(self.next_poll);
+        let due = self.b.ins().icmp(IntCC::UnsignedGreaterThanOrEqual, s, np);
+        let (call, stop, cont) = (self.b.create_block(), self.b.create_block(), self.b.create_block());
+        self.b.ins().brif(due, call, &[], cont, &[]);
+        self.b.switch_to_block(call);
+        let run = self.run;
+        let r = self.call_int(helpers::poll as *const () as usize, &[run, s]);
+        self.b.def_var(self.next_poll, r);
+        self.b.ins().brif(r, cont, &[], stop, &[]);
+        self.b.switch_to_block(stop);
+        let v = self.b.ins().iconst(I64, STOPPED as i64);
+        self.b.ins().return_(&[v]);
+        self.b.switch_to_block(cont);
+    }
+
+    // ---- ops ----
+
+    fn op(&mut self, op: &Op) -> Option<()> {
+        match *op {
+            Op::Mov { dst, src } => self.mov(dst, src),
+            Op::Select { dst, cond, a, b } => match self.types.cls(dst) {
+                Cls::W64 => {
+                    let c = self.vget(cond, Cls::B);
+                    let (x, y) = (self.words(a), self.words(b));
+                    let w = std::array::from_fn(|l| {
+                        let cl = self.b.ins().extractlane(c, l as u8);
+                        let cl = self.b.ins().icmp_imm_s(IntCC::NotEqual, cl, 0);
+                        self.b.ins().select(cl, x[l], y[l])
+                    });
+                    self.set_words(dst, w);
+                }
+                cl => {
+                    let c = self.vget(cond, Cls::B);
+                    let (x, y) = (self.vget(a, cl), self.vget(b, cl));
+                    let v = self.b.ins().bitselect(c, x, y);
+                    self.vset(dst, v);
+                }
+            },
+            Op::Index { dst, base, index, index_ty, stride } => {
+                let base = self.words(base);
+                let w = std::array::from_fn(|l| {
+                    let i = self.word(index, l);
+                    let i = if index_ty == Sc::I32 {
+                        let x = self.b.ins().ireduce(I32, i);
+                        self.b.ins().sextend(I64, x)
+                    } else {
+                        i
+                    };
+                    let scaled = self.b.ins().imul_imm_s(i, stride as i64);
+                    self.b.ins().iadd(base[l], scaled)
+                });
+                self.set_words(dst, w);
+            }
+            Op::AddImm { dst, a, imm } => {
+                let x = self.words(a);
+                let w = x.map(|x| self.b.ins().iadd_imm_s(x, imm as i64));
+                self.set_words(dst, w);
+            }
+            Op::Bin { op, ty, dst, a, b } => self.bin(op, ty, dst, a, b)?,
+            Op::Un { op, ty, from, dst, a } => self.un(op, ty, from, dst, a)?,
+            Op::Tri { op, ty, dst, a, b, c } => self.tri(op, ty, dst, a, b, c)?,
+            Op::BitInsert { ty, dst, base, insert, offset, count } => {
+                let t = helpers::ty_code(ty) as i64;
+                let w = std::array::from_fn(|l| {
+                    let t = self.b.ins().iconst(I64, t);
+                    let args = [t, self.word(base, l), self.word(insert, l), self.word(offset, l), self.word(count, l)];
+                    self.call_int(helpers::bit_insert as *const () as usize, &args)
+                });
+                self.set_words(dst, w);
+            }
+            Op::Load { ty, space, dst, addr } => {
+                let w = self.load(ty, space, addr)?;
+                self.set_words(dst, w);
+            }
+            Op::Store { ty, space, addr, src } => self.store(ty, space, addr, src)?,
+            Op::Atomic { op, ty, space, dst, addr, a, b } => {
+                space_ok(space)?;
+                if space == Space::Lane {
+                    return None;
+                }
+                let desc = MemDesc { ty, space, kind: MemKind::Atomic(op) };
+                let d = self.site(desc);
+                let w = std::array::from_fn(|l| {
+                    let (at, x, y) = (self.word(addr, l), self.word(a, l), self.word(b, l));
+                    self.lane_call(d, l, at, x, y)
+                });
+                self.set_words(dst, w);
+            }
+            _ => return None,
+        }
+        Some(())
+    }
+
+    // ---- memory ----
+
+    fn site(&mut self, desc: MemDesc) -> i64 {
+        self.descs.push(desc);
+        self.descs.len() as i64 - 1
+    }
+
+    /// The memory helper for lane `l` at site `d`, when the lane runs (else 0).
+    fn lane_call(&mut self, d: i64, l: usize, at: Value, a: Value, b: Value) -> Value {
+        let (call_b, join) = (self.b.create_block(), self.b.create_block());
+        let out = self.b.append_block_param(join, I64);
+        let z = self.b.ins().iconst(I64, 0);
+        self.b.ins().brif(self.on[l], call_b, &[], join, &[z.into()]);
+        self.b.switch_to_block(call_b);
+        let dv = self.b.ins().iconst(I64, d);
+        let ls = self.b.use_var(self.lane_steps);
+        let s = self.b.ins().extractlane(ls, l as u8);
+        let s = self.b.ins().uextend(I64, s);
+        let lane = self.b.ins().iconst(I64, l as i64);
+        let run = self.run;
+        let v = self.call_int(helpers::mem_lane as *const () as usize, &[run, dv, at, a, b, s, lane]);
+        self.b.ins().jump(join, &[v.into()]);
+        self.b.switch_to_block(join);
+        out
+    }
+
+    /// `inline` when `ok`, else the helper for the lane when it runs.
+    fn guarded(&mut self, ok: Value, d: i64, l: usize, at: Value, v: Value, inline: impl FnOnce(&mut Self) -> Value) -> Value {
+        let (fast, slow, join) = (self.b.create_block(), self.b.create_block(), self.b.create_block());
+        let out = self.b.append_block_param(join, I64);
+        self.b.ins().brif(ok, fast, &[], slow, &[]);
+        self.b.switch_to_block(fast);
+        let x = inline(self);
+        self.b.ins().jump(join, &[x.into()]);
+        self.b.switch_to_block(slow);
+        let x = self.lane_call(d, l, at, v, v);
+        self.b.ins().jump(join, &[x.into()]);
+        self.b.switch_to_block(join);
+        out
+    }
+
+    /// Whether `size` bytes at `at` lie inside `len` bytes.
+    fn in_bounds(&mut self, at: Value, len: Value, size: u32) -> Value {
+        let last = self.b.ins().iadd_imm_s(len, -(size as i64));
+        let fits = self.b.ins().icmp(IntCC::UnsignedLessThanOrEqual, at, last);
+        let room = self.b.ins().icmp_imm_s(IntCC::UnsignedGreaterThanOrEqual, len, size as i64);
+        self.b.ins().band(fits, room)
+    }
+
+    /// The normalised word `ty` at `p`.
+    fn load_at(&mut self, ty: Sc, p: Value, off: i32) -> Value {
+        let flags = MemFlagsData::trusted();
+        if ty.size() == 8 {
+            return self.b.ins().load(I64, flags, p, off);
+        }
+        let w = self.b.ins().load(I32, flags, p, off);
+        if ty == Sc::Bool {
+            let c = self.b.ins().icmp_imm_s(IntCC::NotEqual, w, 0);
+            self.b.ins().uextend(I64, c)
+        } else {
+            self.b.ins().uextend(I64, w)
+        }
+    }
+
+    fn load(&mut self, ty: Sc, space: Space, addr: ir::Reg) -> Option<[Value; W]> {
+        space_ok(space)?;
+        let d = self.site(MemDesc { ty, space, kind: MemKind::Load });
+        let size = ty.size();
+        let fs = self.fs;
+        if space == Space::Lane {
+            if let Some(k) = self.types.konst(addr).filter(|&k| k.checked_add(size as u64).is_some_and(|e| e <= fs as u64)) {
+                // Every lane's frame is there: load all four, the blend keeps what is not run.
+                let frame = self.frame;
+                return Some(std::array::from_fn(|l| self.load_at(ty, frame, (l as u32 * fs + k as u32) as i32)));
+            }
+        }
+        let z = self.b.ins().iconst(I64, 0);
+        Some(std::array::from_fn(|l| {
+            let at = self.word(addr, l);
+            match space {
+                Space::Lane => {
+                    let len = self.b.ins().iconst(I64, fs as i64);
+                    let ok = self.in_bounds(at, len, size);
+                    let frame = self.frame;
+                    self.guarded(ok, d, l, at, z, |g| {
+                        let p = g.b.ins().iadd(frame, at);
+                        g.load_at(ty, p, (l as u32 * fs) as i32)
+                    })
+                }
+                Space::Push => {
+                    let (push, len) = (self.push, self.push_len);
+                    let ok = self.in_bounds(at, len, size);
+                    self.guarded(ok, d, l, at, z, |g| {
+                        let p = g.b.ins().iadd(push, at);
+                        g.load_at(ty, p, 0)
+                    })
+                }
+                _ => self.lane_call(d, l, at, z, z),
+            }
+        }))
+    }
+
+    fn store(&mut self, ty: Sc, space: Space, addr: ir::Reg, src: ir::Reg) -> Option<()> {
+        space_ok(space)?;
+        let d = self.site(MemDesc { ty, space, kind: MemKind::Store });
+        let size = ty.size();
+        let fs = self.fs;
+        for l in 0..W {
+            let (at, v) = (self.word(addr, l), self.word(src, l));
+            if space != Space::Lane {
+                self.lane_call(d, l, at, v, v);
+                continue;
+            }
+            let len = self.b.ins().iconst(I64, fs as i64);
+            let ok = self.in_bounds(at, len, size);
+            let ok = self.b.ins().band(ok, self.on[l]);
+            let frame = self.frame;
+            let (fast, slow, join) = (self.b.create_block(), self.b.create_block(), self.b.create_block());
+            self.b.ins().brif(ok, fast, &[], slow, &[]);
+            self.b.switch_to_block(fast);
+            let p = self.b.ins().iadd(frame, at);
+            let w = if size == 8 { v } else { self.b.ins().ireduce(I32, v) };
+            self.b.ins().store(MemFlagsData::trusted(), w, p, (l as u32 * fs) as i32);
+            self.b.ins().jump(join, &[]);
+            self.b.switch_to_block(slow);
+            // Out of bounds (a fault when the lane runs).
+            self.lane_call(d, l, at, v, v);
+            self.b.ins().jump(join, &[]);
+            self.b.switch_to_block(join);
+        }
+        Some(())
+    }
+}

@@ -1,0 +1,136 @@
+//! The SIMD native-code backend: four invocations per call, in Cranelift's 128-bit vector types.
+//!
+//! Registers take one form each (`types`): I32/F32 one i32x4 vector, Bool one lane mask, I64,
+//! F64 and addresses four scalar words. Blocks run under an execution mask in the
+//! interpreter's schedule (`gen`), so a divergent branch costs both sides but no per-lane
+//! dispatch; writes under a partial mask blend, except to registers that never outlive their
+//! block. ALU ops are vector instructions where the bits are `alu`'s (`alu`), sin/cos/exp the
+//! vectorised `vmath`; the rest, and every buffer access, go lane by lane through the scalar
+//! JIT's helpers, so values and fault records are the interpreter's. A program with anything
+//! else is declined and runs on the scalar JIT or the interpreter.
+use cranelift_codegen::ir::{types as cl, AbiParam, Function, UserFuncName};
+use cranelift_codegen::settings::{self, Configurable};
+use cranelift_frontend::{FunctionBuilder, FunctionBuilderContext};
+use cranelift_jit::{JITBuilder, JITModule};
+use cranelift_module::{Linkage, Module};
+
+use super::super::exec::{check_watchdog, init_frame, Ctx, Wg, CHECK_EVERY};
+use super::super::ir::{Op, Program, Sc, Term};
+use super::super::LANES;
+use super::helpers::{Run, STOPPED};
+use super::{flush, Jit};
+
+mod alu;
+mod gen;
+#[cfg(test)]
+mod tests;
+mod tramp;
+mod types;
+
+pub(in crate::shader) use gen::W;
+
+/// Whether the SIMD backend is the faster choice for `prog`: loops in which F32 arithmetic is
+/// at least an eighth of the ops. Four lanes of float math per instruction (sin/cos/exp
+/// vectorised) beat the scalar JIT there (compute-alu); loops of integer ops and branches
+/// (compute-divergent), whose lanes idle while others finish their loop, and lone buffer
+/// accesses (compute-memory, a helper call per lane either way) measured slower than on the
+/// scalar JIT (docs/BENCHMARKS.md).
+pub(super) fn pays(prog: &Program) -> bool {
+    let mut in_loop = vec![false; prog.blocks.len()];
+    for (i, blk) in prog.blocks.iter().enumerate() {
+        let targets: Vec<u32> = match &blk.term {
+            Term::Jump(t) => vec![*t],
+            Term::Cond { t, f, .. } => vec![*t, *f],
+            Term::Switch { default, cases, .. } => cases.iter().map(|c| c.1).chain([*default]).collect(),
+            _ => vec![],
+        };
+        for t in targets.into_iter().filter(|&t| t as usize <= i) {
+            in_loop[t as usize..=i].iter_mut().for_each(|b| *b = true);
+        }
+    }
+    let (mut ops, mut float) = (0usize, 0usize);
+    for blk in prog.blocks.iter().zip(&in_loop).filter(|b| *b.1).map(|b| b.0) {
+        ops += blk.ops.len();
+        float += blk.ops.iter().filter(|op| matches!(op, Op::Un { ty: Sc::F32, .. } | Op::Bin { ty: Sc::F32, .. } | Op::Tri { ty: Sc::F32, .. })).count();
+    }
+    float > 0 && float * 8 >= ops
+}
+
+/// Compiles `prog` for four invocations per call, or None when it uses something this backend
+/// does not compile or code generation fails.
+pub(super) fn compile(prog: &Program) -> Option<Jit> {
+    let types = types::analyse(prog)?;
+    // A panic inside Cranelift must not take pipeline creation down.
+    std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| build(prog, types))).ok().flatten()
+}
+
+fn build(prog: &Program, types: types::Types) -> Option<Jit> {
+    let mut flags = settings::builder();
+    flags.set("opt_level", "speed").ok()?;
+    flags.set("use_colocated_libcalls", "false").ok()?;
+    flags.set("is_pic", "false").ok()?;
+    // The host's SSE4.1/AVX/FMA flags come from cranelift_native's detection.
+    let isa = cranelift_native::builder().ok()?.finish(settings::Flags::new(flags)).ok()?;
+    let call_conv = isa.default_call_conv();
+    let mut module = JITModule::new(JITBuilder::with_isa(isa, cranelift_module::default_libcall_names()));
+    let mut sig = module.make_signature();
+    sig.params.extend((0..5).map(|_| AbiParam::new(cl::I64)));
+    sig.returns.push(AbiParam::new(cl::I64));
+    let id = module.declare_function("invocations4", Linkage::Export, &sig).ok()?;
+    let tramps = tramp::define(&mut module, call_conv)?;
+    let mut ctx = module.make_context();
+    ctx.func = Function::with_name_signature(UserFuncName::user(0, id.as_u32()), sig);
+    let tramps = tramps.map(|t| module.declare_func_in_func(t, &mut ctx.func));
+    let mut fctx = FunctionBuilderContext::new();
+    let mut b = FunctionBuilder::new(&mut ctx.func, &mut fctx);
+    let mut gen = gen::Gen::new(&mut b, prog, types, call_conv, tramps);
+    gen.translate()?;
+    let descs = std::mem::take(&mut gen.descs);
+    b.finalize(module.isa().frontend_config());
+    module.define_function(id, &mut ctx).ok()?;
+    module.clear_context(&mut ctx);
+    let code = arbor_jitcode::Code::new(module, id).ok()?;
+    Some(Jit { code, descs, lanes: W })
+}
+
+/// Runs workgroup `wg` four invocations at a time (the last call's missing lanes start done);
+/// `frames` holds four lane frames.
+pub(in crate::shader) fn run_workgroup(ctx: &Ctx, jit: &Jit, wg: &mut Wg, frames: &mut [u8]) {
+    let n = ctx.local.iter().product::<u32>();
+    let id = wg.id;
+    let fs = ctx.prog.lane_frame.len();
+    let mut run = Run { ctx, wg, descs: &jit.descs, invocation: 0, pending: Vec::new(), kept: 0, accounted: 0, panic: None, lanes: 0, lane_kept: [0; 4] };
+    let mut next_check = run.wg.steps + CHECK_EVERY;
+    for first in (0..n).step_by(W) {
+        let lanes = (n - first).min(W as u32);
+        for l in 0..W as u32 {
+            // A missing lane's frame is filled too (it is never run, but stays well-defined).
+            init_frame(ctx, &mut frames[l as usize * fs..][..fs], id, (first + l).min(n - 1), n);
+        }
+        run.invocation = first;
+        run.lanes = lanes;
+        run.lane_kept = [0; 4];
+        run.accounted = 0;
+        let steps = jit.code.call(&mut run, frames, ctx.push);
+        if let Some(p) = run.panic.take() {
+            std::panic::resume_unwind(p);
+        }
+        if steps == STOPPED {
+            flush(&mut run);
+            return;
+        }
+        run.wg.steps += steps - run.accounted;
+        if run.wg.steps >= next_check {
+            next_check = run.wg.steps + CHECK_EVERY;
+            if let Some(stop) = check_watchdog(ctx.watchdog, run.wg.steps) {
+                run.wg.stopped = Some(stop);
+                flush(&mut run);
+                return;
+            }
+        }
+        if (first + W as u32).is_multiple_of(LANES as u32) {
+            flush(&mut run);
+        }
+    }
+    flush(&mut run);
+}

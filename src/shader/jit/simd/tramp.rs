@@ -1,0 +1,61 @@
+//! Out-of-line lane helpers that clobber no register. The SIMD code calls the interpreter's
+//! helpers on rare paths (a NaN result); a System V call there clobbers every vector register,
+//! and the register allocator then keeps the hot path's vectors in stack slots. These
+//! trampolines use Cranelift's `preserve_all` convention (they save what they use, calls
+//! included), take the four lanes' operands from a buffer and leave the results there, so the
+//! calling code sees a call that clobbers nothing.
+use cranelift_codegen::ir::{types, AbiParam, Function, InstBuilder, MemFlagsData, Signature, UserFuncName};
+use cranelift_codegen::isa::CallConv;
+use cranelift_frontend::{FunctionBuilder, FunctionBuilderContext};
+use cranelift_jit::JITModule;
+use cranelift_module::{FuncId, Linkage, Module};
+
+use super::gen::W;
+
+/// Bytes of the buffer: up to three operands, then the results, each four i32 lanes.
+pub(super) const BUF: u32 = 64;
+/// Where the results start in the buffer.
+pub(super) const OUT: i32 = 48;
+
+/// Defines `lanes1`..`lanes3`: (helper address, op code, buffer) in `preserve_all`; each calls
+/// `helper(code, operand words…)` for the four lanes (32-bit operands zero-extended, results
+/// truncated to 32 bits).
+pub(super) fn define(module: &mut JITModule, call_conv: CallConv) -> Option<[FuncId; 3]> {
+    let mut sig = Signature::new(CallConv::PreserveAll);
+    sig.params.extend((0..3).map(|_| AbiParam::new(types::I64)));
+    let mut ids = Vec::new();
+    for n in 1..=3usize {
+        let id = module.declare_function(&format!("lanes{n}"), Linkage::Local, &sig).ok()?;
+        let mut ctx = module.make_context();
+        ctx.func = Function::with_name_signature(UserFuncName::user(1, n as u32), sig.clone());
+        let mut fctx = FunctionBuilderContext::new();
+        let mut b = FunctionBuilder::new(&mut ctx.func, &mut fctx);
+        let mut helper = Signature::new(call_conv);
+        helper.params.extend((0..=n).map(|_| AbiParam::new(types::I64)));
+        helper.returns.push(AbiParam::new(types::I64));
+        let helper = b.import_signature(helper);
+        let entry = b.create_block();
+        b.append_block_params_for_function_params(entry);
+        b.switch_to_block(entry);
+        let p = b.block_params(entry).to_vec();
+        let flags = MemFlagsData::trusted();
+        for l in 0..W as i32 {
+            let mut args = vec![p[1]];
+            for k in 0..n as i32 {
+                let x = b.ins().load(types::I32, flags, p[2], k * 16 + l * 4);
+                args.push(b.ins().uextend(types::I64, x));
+            }
+            let call = b.ins().call_indirect(helper, p[0], &args);
+            let r = b.inst_results(call)[0];
+            let r = b.ins().ireduce(types::I32, r);
+            b.ins().store(flags, r, p[2], OUT + l * 4);
+        }
+        b.ins().return_(&[]);
+        b.seal_all_blocks();
+        b.finalize(module.isa().frontend_config());
+        module.define_function(id, &mut ctx).ok()?;
+        module.clear_context(&mut ctx);
+        ids.push(id);
+    }
+    ids.try_into().ok()
+}
