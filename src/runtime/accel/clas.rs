@@ -693,7 +693,10 @@ impl Exec for ClusterCommand {
             }
             None => feature_struct_missing(&vuid, CMD),
         }
-        self.run(ctx.memory());
+        // The queue worker is the one thread of its own pool (`threads::run_as_inline_worker`):
+        // the records' parallel iterators reach the worker pool only through `run_parallel`.
+        let space = ctx.memory();
+        crate::threads::run_parallel(false, || self.run(space));
         Ok(())
     }
     fn uses(&self, c: &mut Collector<'_>) {
