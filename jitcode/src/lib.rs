@@ -3,10 +3,12 @@
 //! access to the rest of the driver, so, as with `arbor-prefetch`, the step lives in a crate of
 //! its own behind an interface that only accepts what the generated code expects.
 //!
-//! Soundness rests on the code generator (src/shader/jit/codegen.rs): the code is generated
-//! from a checked `ir::Program`; every memory access it makes either goes through a helper
-//! (safe Rust, reached with the context reference it was given) or is an inline access to the
-//! lane frame or push constants guarded by a bounds check against the lengths passed here.
+//! Soundness rests on the code generators (src/shader/jit/codegen.rs, one invocation per call,
+//! and src/shader/jit/simd/, four): the code is generated from a checked `ir::Program`; every
+//! memory access it makes either goes through a helper (safe Rust, reached with the context
+//! reference it was given) or is an inline access to the lane frame(s) or push constants
+//! guarded by a bounds check against the lengths passed here (the SIMD entry first checks that
+//! the frame holds its four lane frames).
 use cranelift_codegen::ir::{types, AbiParam, Signature};
 use cranelift_jit::JITModule;
 use cranelift_module::{FuncId, Module, ModuleError};
