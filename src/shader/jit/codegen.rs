@@ -16,7 +16,7 @@ use super::super::ir::{self, BinOp, Op, Program, Sc, Space, Term, TriOp, UnOp};
 use super::super::lower_copies::writes;
 use super::helpers::{self, MemDesc, MemKind, STOPPED};
 
-mod alu;
+pub(super) mod alu;
 #[cfg(test)]
 mod const_tests;
 pub(super) mod vmath;

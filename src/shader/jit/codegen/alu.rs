@@ -9,7 +9,8 @@ use super::vmath::Fn1;
 use super::{Gen, F32, I32, I64};
 use crate::shader::ir::{BinOp, Sc, UnOp};
 
-fn int_cc(op: BinOp) -> Option<IntCC> {
+/// The integer comparison of `op` (shared with the four-lane backend).
+pub(in crate::shader::jit) fn int_cc(op: BinOp) -> Option<IntCC> {
     use BinOp::*;
     Some(match op {
         IEq => IntCC::Equal,

@@ -2,31 +2,15 @@
 //! bits `alu` gives), sin/cos/exp through the vectorised `vmath`, everything else lane by lane
 //! through the helpers that run the interpreter's own arms. A float result that is a NaN in a
 //! running lane is recomputed by the helpers (the interpreter's NaN bits).
-use cranelift_codegen::ir::condcodes::{FloatCC, IntCC};
+use cranelift_codegen::ir::condcodes::FloatCC;
 use cranelift_codegen::ir::{InstBuilder, MemFlagsData, Value};
 
+use super::super::codegen::alu::int_cc;
 use super::super::codegen::vmath::{vmath, Fn1};
 use super::super::helpers;
 use super::gen::{Gen, F32X4, I32, I32X4, I64, W};
 use super::types::Cls;
 use crate::shader::ir::{BinOp, Reg, Sc, TriOp, UnOp};
-
-fn int_cc(op: BinOp) -> Option<IntCC> {
-    use BinOp::*;
-    Some(match op {
-        IEq => IntCC::Equal,
-        INe => IntCC::NotEqual,
-        ULt => IntCC::UnsignedLessThan,
-        ULe => IntCC::UnsignedLessThanOrEqual,
-        UGt => IntCC::UnsignedGreaterThan,
-        UGe => IntCC::UnsignedGreaterThanOrEqual,
-        SLt => IntCC::SignedLessThan,
-        SLe => IntCC::SignedLessThanOrEqual,
-        SGt => IntCC::SignedGreaterThan,
-        SGe => IntCC::SignedGreaterThanOrEqual,
-        _ => return None,
-    })
-}
 
 /// Float comparisons as the x64 backend's vector compares have them; FOrdNe and FUnordEq are
 /// composed of two.
