@@ -146,27 +146,36 @@ pub(super) fn run_workgroup(ctx: &Ctx, jit: &Jit, wg: &mut Wg, frame: &mut [u8])
         run.kept = 0;
         run.accounted = 0;
         let steps = jit.code.call(&mut run, frame, ctx.push);
-        if let Some(p) = run.panic.take() {
-            std::panic::resume_unwind(p);
-        }
-        if steps == STOPPED {
-            flush(&mut run);
+        if !account(&mut run, steps, &mut next_check) {
             return;
-        }
-        run.wg.steps += steps - run.accounted;
-        if run.wg.steps >= next_check {
-            next_check = run.wg.steps + CHECK_EVERY;
-            if let Some(stop) = check_watchdog(ctx.watchdog, run.wg.steps) {
-                run.wg.stopped = Some(stop);
-                flush(&mut run);
-                return;
-            }
         }
         if (index + 1) % LANES as u32 == 0 {
             flush(&mut run);
         }
     }
     flush(&mut run);
+}
+
+/// After one call of the code: re-raises a helper's panic, adds the call's steps to the
+/// workgroup's and polls the watchdog. False when the workgroup stops (its faults flushed).
+fn account(run: &mut Run, steps: u64, next_check: &mut u64) -> bool {
+    if let Some(p) = run.panic.take() {
+        std::panic::resume_unwind(p);
+    }
+    if steps == STOPPED {
+        flush(run);
+        return false;
+    }
+    run.wg.steps += steps - run.accounted;
+    if run.wg.steps >= *next_check {
+        *next_check = run.wg.steps + CHECK_EVERY;
+        if let Some(stop) = check_watchdog(run.ctx.watchdog, run.wg.steps) {
+            run.wg.stopped = Some(stop);
+            flush(run);
+            return false;
+        }
+    }
+    true
 }
 
 /// Moves a lane group's faults into the workgroup's report in the interpreter's order.

@@ -14,11 +14,11 @@ use cranelift_frontend::{FunctionBuilder, FunctionBuilderContext};
 use cranelift_jit::{JITBuilder, JITModule};
 use cranelift_module::{Linkage, Module};
 
-use super::super::exec::{check_watchdog, init_frame, Ctx, Wg, CHECK_EVERY};
+use super::super::exec::{init_frame, Ctx, Wg, CHECK_EVERY};
 use super::super::ir::{Op, Program, Sc, Term};
 use super::super::LANES;
-use super::helpers::{Run, STOPPED};
-use super::{flush, Jit};
+use super::helpers::Run;
+use super::{account, flush, Jit};
 
 mod alu;
 mod gen;
@@ -112,21 +112,8 @@ pub(in crate::shader) fn run_workgroup(ctx: &Ctx, jit: &Jit, wg: &mut Wg, frames
         run.lane_kept = [0; 4];
         run.accounted = 0;
         let steps = jit.code.call(&mut run, frames, ctx.push);
-        if let Some(p) = run.panic.take() {
-            std::panic::resume_unwind(p);
-        }
-        if steps == STOPPED {
-            flush(&mut run);
+        if !account(&mut run, steps, &mut next_check) {
             return;
-        }
-        run.wg.steps += steps - run.accounted;
-        if run.wg.steps >= next_check {
-            next_check = run.wg.steps + CHECK_EVERY;
-            if let Some(stop) = check_watchdog(ctx.watchdog, run.wg.steps) {
-                run.wg.stopped = Some(stop);
-                flush(&mut run);
-                return;
-            }
         }
         if (first + W as u32).is_multiple_of(LANES as u32) {
             flush(&mut run);
