@@ -76,11 +76,9 @@ pub(super) fn supported(prog: &Program) -> bool {
     })
 }
 
-/// Whether the interpreter runs `prog` faster: its lane arms compute `vmath`'s functions for
-/// eight lanes in one vectorised call, where native code computes them once per invocation.
-/// Loops whose ops are at least 1/16 such functions (compute-alu's are 3 in 40: sin, cos, exp)
-/// ran at about half the interpreter's rate (docs/BENCHMARKS.md), so they stay there.
-pub(super) fn prefers_interpreter(prog: &Program) -> bool {
+/// Which blocks lie in a loop: those from a back edge's target (a header, which comes first
+/// in structured order) to the block that branches back to it.
+pub(super) fn loop_blocks(prog: &Program) -> Vec<bool> {
     let mut in_loop = vec![false; prog.blocks.len()];
     for (i, blk) in prog.blocks.iter().enumerate() {
         let targets: Vec<u32> = match &blk.term {
@@ -93,6 +91,15 @@ pub(super) fn prefers_interpreter(prog: &Program) -> bool {
             in_loop[t as usize..=i].iter_mut().for_each(|b| *b = true);
         }
     }
+    in_loop
+}
+
+/// Whether the interpreter runs `prog` faster: its lane arms compute `vmath`'s functions for
+/// eight lanes in one vectorised call, where native code computes them once per invocation.
+/// Loops whose ops are at least 1/16 such functions (compute-alu's are 3 in 40: sin, cos, exp)
+/// ran at about half the interpreter's rate (docs/BENCHMARKS.md), so they stay there.
+pub(super) fn prefers_interpreter(prog: &Program) -> bool {
+    let in_loop = loop_blocks(prog);
     let (mut ops, mut math) = (0usize, 0usize);
     for blk in prog.blocks.iter().zip(&in_loop).filter(|b| *b.1).map(|b| b.0) {
         ops += blk.ops.len();

@@ -15,7 +15,7 @@ use cranelift_jit::{JITBuilder, JITModule};
 use cranelift_module::{Linkage, Module};
 
 use super::super::exec::{init_frame, Ctx, Wg, CHECK_EVERY};
-use super::super::ir::{Op, Program, Sc, Term};
+use super::super::ir::{Op, Program, Sc};
 use super::super::LANES;
 use super::helpers::Run;
 use super::{account, flush, Jit};
@@ -36,18 +36,7 @@ pub(in crate::shader) use gen::W;
 /// accesses (compute-memory, a helper call per lane either way) measured slower than on the
 /// scalar JIT (docs/BENCHMARKS.md).
 pub(super) fn pays(prog: &Program) -> bool {
-    let mut in_loop = vec![false; prog.blocks.len()];
-    for (i, blk) in prog.blocks.iter().enumerate() {
-        let targets: Vec<u32> = match &blk.term {
-            Term::Jump(t) => vec![*t],
-            Term::Cond { t, f, .. } => vec![*t, *f],
-            Term::Switch { default, cases, .. } => cases.iter().map(|c| c.1).chain([*default]).collect(),
-            _ => vec![],
-        };
-        for t in targets.into_iter().filter(|&t| t as usize <= i) {
-            in_loop[t as usize..=i].iter_mut().for_each(|b| *b = true);
-        }
-    }
+    let in_loop = super::codegen::loop_blocks(prog);
     let (mut ops, mut float) = (0usize, 0usize);
     for blk in prog.blocks.iter().zip(&in_loop).filter(|b| *b.1).map(|b| b.0) {
         ops += blk.ops.len();
