@@ -58,7 +58,7 @@ pub(super) struct Run<'r, 'a> {
     /// SIMD calls: how many of the call's lanes hold an invocation (`invocation` is the first
     /// one's index), and each lane's `kept`.
     pub lanes: u32,
-    pub lane_kept: [usize; 4],
+    pub lane_kept: [usize; super::simd::W],
 }
 
 /// SIMD calls: how many lanes of this call run an invocation (the others start done).
@@ -68,7 +68,7 @@ pub(super) extern "C" fn lanes(run: &mut Run) -> u64 {
 
 /// SIMD calls: `mem` for lane `lane` of the call (invocation `invocation + lane`).
 pub(super) extern "C" fn mem_lane(run: &mut Run, desc: u64, at: u64, a: u64, b: u64, steps: u64, lane: u64) -> u64 {
-    let lane = lane as usize % 4;
+    let lane = lane as usize % super::simd::W;
     let first = run.invocation;
     run.invocation = first + lane as u32;
     run.kept = run.lane_kept[lane];

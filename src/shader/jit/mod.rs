@@ -138,7 +138,7 @@ pub(super) fn run_workgroup(ctx: &Ctx, jit: &Jit, wg: &mut Wg, frame: &mut [u8])
     }
     let n = ctx.local.iter().product::<u32>();
     let id = wg.id;
-    let mut run = Run { ctx, wg, descs: &jit.descs, invocation: 0, pending: Vec::new(), kept: 0, accounted: 0, panic: None, lanes: 1, lane_kept: [0; 4] };
+    let mut run = Run { ctx, wg, descs: &jit.descs, invocation: 0, pending: Vec::new(), kept: 0, accounted: 0, panic: None, lanes: 1, lane_kept: [0; simd::W] };
     let mut next_check = run.wg.steps + CHECK_EVERY;
     for index in 0..n {
         init_frame(ctx, frame, id, index, n);

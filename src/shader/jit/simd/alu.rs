@@ -1,14 +1,15 @@
-//! ALU ops on four lanes: the common I32, F32 and Bool ops as vector instructions (each the
+//! ALU ops on a call's lanes: the common I32, F32 and Bool ops as vector instructions (each the
 //! bits `alu` gives), sin/cos/exp through the vectorised `vmath`, everything else lane by lane
 //! through the helpers that run the interpreter's own arms. A float result that is a NaN in a
 //! running lane is recomputed by the helpers (the interpreter's NaN bits).
 use cranelift_codegen::ir::condcodes::FloatCC;
 use cranelift_codegen::ir::{InstBuilder, MemFlagsData, Value};
+use cranelift_frontend::FunctionBuilder;
 
 use super::super::codegen::alu::int_cc;
 use super::super::codegen::vmath::{vmath, Fn1};
 use super::super::helpers;
-use super::gen::{Gen, F32X4, I32, I32X4, I64, W};
+use super::gen::{Gen, F32X4, I32, I32X4, I64, PARTS, V, W};
 use super::types::Cls;
 use crate::shader::ir::{BinOp, Reg, Sc, TriOp, UnOp};
 
@@ -31,12 +32,15 @@ fn float_cc(op: BinOp) -> Option<FloatCC> {
     })
 }
 
+/// A two-operand instruction, emitted once per part.
+type Op2 = fn(&mut FunctionBuilder, Value, Value) -> Value;
+
 impl Gen<'_, '_, '_> {
-    fn fv(&mut self, v: Value) -> Value {
-        self.b.ins().bitcast(F32X4, MemFlagsData::new(), v)
+    fn fv(&mut self, v: V) -> V {
+        self.map(v, |b, x| b.ins().bitcast(F32X4, MemFlagsData::new(), x))
     }
-    fn iv(&mut self, v: Value) -> Value {
-        self.b.ins().bitcast(I32X4, MemFlagsData::new(), v)
+    fn iv(&mut self, v: V) -> V {
+        self.map(v, |b, x| b.ins().bitcast(I32X4, MemFlagsData::new(), x))
     }
 
     /// Per lane, helper `f` of the lanes' words after the op code (`code` first).
@@ -48,30 +52,32 @@ impl Gen<'_, '_, '_> {
         })
     }
 
-    /// Helper `f` of W32 operands for the four lanes, through a trampoline that clobbers no
+    /// Helper `f` of W32 operands for every lane, through a trampoline that clobbers no
     /// register (`tramp`).
-    fn per_lane_w32(&mut self, f: usize, code: i64, args: &[Reg]) -> Value {
+    fn per_lane_w32(&mut self, f: usize, code: i64, args: &[Reg]) -> V {
         for (k, &r) in args.iter().enumerate() {
             let v = self.vget(r, Cls::W32);
-            self.b.ins().stack_store(I64, v, self.buf, k as i32 * 16);
+            for (p, &x) in v.iter().enumerate() {
+                self.b.ins().stack_store(I64, x, self.buf, super::tramp::operand(k, 4 * p));
+            }
         }
         let fv = self.b.ins().iconst(I64, f as i64);
         let c = self.b.ins().iconst(I64, code);
         let p = self.b.ins().stack_addr(I64, self.buf, 0);
         self.b.ins().call(self.tramps[args.len() - 1], &[fv, c, p]);
-        self.b.ins().stack_load(I64, I32X4, self.buf, super::tramp::OUT)
+        std::array::from_fn(|p| self.b.ins().stack_load(I64, I32X4, self.buf, super::tramp::OUT + 16 * p as i32))
     }
 
-    /// The W32 bits of F32 result `r` (f32x4). A NaN in a running lane is noted, and the run of
-    /// pure ops it is in is then redone through the helpers (`Gen::flush`); while redoing,
-    /// the helpers' words for every lane.
-    fn nan_guard(&mut self, r: Value, f: usize, code: i64, args: &[Reg]) -> Value {
+    /// The W32 bits of F32 result `r` (f32x4 parts). A NaN in a running lane is noted, and the
+    /// run of pure ops it is in is then redone through the helpers (`Gen::flush`); while
+    /// redoing, the helpers' words for every lane.
+    fn nan_guard(&mut self, r: V, f: usize, code: i64, args: &[Reg]) -> V {
         if self.redo {
             return self.per_lane_w32(f, code, args);
         }
-        let nan = self.b.ins().fcmp(FloatCC::Unordered, r, r);
+        let nan = self.map(r, |b, x| b.ins().fcmp(FloatCC::Unordered, x, x));
         self.nan_acc = Some(match self.nan_acc {
-            Some(acc) => self.b.ins().bor(acc, nan),
+            Some(acc) => self.map2(acc, nan, |b, a, n| b.ins().bor(a, n)),
             None => nan,
         });
         self.iv(r)
@@ -88,13 +94,13 @@ impl Gen<'_, '_, '_> {
         Some(())
     }
 
-    fn bin_vec(&mut self, op: BinOp, ty: Sc, code: i64, a: Reg, b: Reg) -> Option<Value> {
+    fn bin_vec(&mut self, op: BinOp, ty: Sc, code: i64, a: Reg, b: Reg) -> Option<V> {
         use BinOp::*;
         match ty {
             Sc::I32 => {
                 if let Some(cc) = int_cc(op) {
                     let (x, y) = (self.vget(a, Cls::W32), self.vget(b, Cls::W32));
-                    return Some(self.b.ins().icmp(cc, x, y));
+                    return Some(self.map2(x, y, |b, x, y| b.ins().icmp(cc, x, y)));
                 }
                 if matches!(op, Shl | ShrL | ShrA) {
                     // Vector shifts take one amount for all lanes: a constant one.
@@ -105,58 +111,67 @@ impl Gen<'_, '_, '_> {
                     }
                     let k = self.b.ins().iconst(I32, s.min(31) as i64);
                     return Some(match op {
-                        Shl => self.b.ins().ishl(x, k),
-                        ShrL => self.b.ins().ushr(x, k),
-                        _ => self.b.ins().sshr(x, k),
+                        Shl => self.map(x, |b, x| b.ins().ishl(x, k)),
+                        ShrL => self.map(x, |b, x| b.ins().ushr(x, k)),
+                        _ => self.map(x, |b, x| b.ins().sshr(x, k)),
                     });
                 }
-                let (x, y) = (self.vget(a, Cls::W32), self.vget(b, Cls::W32));
-                Some(match op {
-                    IAdd => self.b.ins().iadd(x, y),
-                    ISub => self.b.ins().isub(x, y),
-                    IMul => self.b.ins().imul(x, y),
-                    And => self.b.ins().band(x, y),
-                    Or => self.b.ins().bor(x, y),
-                    Xor => self.b.ins().bxor(x, y),
-                    UMin => self.b.ins().umin(x, y),
-                    UMax => self.b.ins().umax(x, y),
-                    SMin => self.b.ins().smin(x, y),
-                    SMax => self.b.ins().smax(x, y),
+                let f: Op2 = match op {
+                    IAdd => |b, x, y| b.ins().iadd(x, y),
+                    ISub => |b, x, y| b.ins().isub(x, y),
+                    IMul => |b, x, y| b.ins().imul(x, y),
+                    And => |b, x, y| b.ins().band(x, y),
+                    Or => |b, x, y| b.ins().bor(x, y),
+                    Xor => |b, x, y| b.ins().bxor(x, y),
+                    UMin => |b, x, y| b.ins().umin(x, y),
+                    UMax => |b, x, y| b.ins().umax(x, y),
+                    SMin => |b, x, y| b.ins().smin(x, y),
+                    SMax => |b, x, y| b.ins().smax(x, y),
                     _ => return None,
-                })
+                };
+                let (x, y) = (self.vget(a, Cls::W32), self.vget(b, Cls::W32));
+                Some(self.map2(x, y, f))
             }
             Sc::F32 => {
                 let (x, y) = (self.vget(a, Cls::W32), self.vget(b, Cls::W32));
                 let (x, y) = (self.fv(x), self.fv(y));
                 if let Some(cc) = float_cc(op) {
-                    return Some(self.b.ins().fcmp(cc, x, y));
+                    return Some(self.map2(x, y, |b, x, y| b.ins().fcmp(cc, x, y)));
                 }
-                let r = match op {
-                    FOrdNe | FUnordEq => {
-                        let (k1, k2) = if op == FOrdNe { (FloatCC::Ordered, FloatCC::NotEqual) } else { (FloatCC::Unordered, FloatCC::Equal) };
-                        let (c1, c2) = (self.b.ins().fcmp(k1, x, y), self.b.ins().fcmp(k2, x, y));
-                        return Some(if op == FOrdNe { self.b.ins().band(c1, c2) } else { self.b.ins().bor(c1, c2) });
-                    }
-                    FAdd => self.b.ins().fadd(x, y),
-                    FSub => self.b.ins().fsub(x, y),
-                    FMul => self.b.ins().fmul(x, y),
-                    FDiv => self.b.ins().fdiv(x, y),
+                let f: Op2 = match op {
+                    FOrdNe => |b, x, y| {
+                        let (c1, c2) = (b.ins().fcmp(FloatCC::Ordered, x, y), b.ins().fcmp(FloatCC::NotEqual, x, y));
+                        b.ins().band(c1, c2)
+                    },
+                    FUnordEq => |b, x, y| {
+                        let (c1, c2) = (b.ins().fcmp(FloatCC::Unordered, x, y), b.ins().fcmp(FloatCC::Equal, x, y));
+                        b.ins().bor(c1, c2)
+                    },
+                    FAdd => |b, x, y| b.ins().fadd(x, y),
+                    FSub => |b, x, y| b.ins().fsub(x, y),
+                    FMul => |b, x, y| b.ins().fmul(x, y),
+                    FDiv => |b, x, y| b.ins().fdiv(x, y),
                     _ => return None,
                 };
+                let r = self.map2(x, y, f);
+                if matches!(op, FOrdNe | FUnordEq) {
+                    return Some(r);
+                }
                 Some(self.nan_guard(r, helpers::bin as *const () as usize, code, &[a, b]))
             }
             Sc::Bool => {
-                let (x, y) = (self.vget(a, Cls::B), self.vget(b, Cls::B));
-                Some(match op {
-                    LAnd => self.b.ins().band(x, y),
-                    LOr => self.b.ins().bor(x, y),
-                    LNe | INe => self.b.ins().bxor(x, y),
-                    LEq | IEq => {
-                        let d = self.b.ins().bxor(x, y);
-                        self.b.ins().bnot(d)
-                    }
+                let f: Op2 = match op {
+                    LAnd => |b, x, y| b.ins().band(x, y),
+                    LOr => |b, x, y| b.ins().bor(x, y),
+                    LNe | INe => |b, x, y| b.ins().bxor(x, y),
+                    LEq | IEq => |b, x, y| {
+                        let d = b.ins().bxor(x, y);
+                        b.ins().bnot(d)
+                    },
                     _ => return None,
-                })
+                };
+                let (x, y) = (self.vget(a, Cls::B), self.vget(b, Cls::B));
+                Some(self.map2(x, y, f))
             }
             _ => None,
         }
@@ -181,43 +196,43 @@ impl Gen<'_, '_, '_> {
         Some(())
     }
 
-    fn un_vec(&mut self, op: UnOp, ty: Sc, from: Sc, code: i64, a: Reg) -> Option<Value> {
+    fn un_vec(&mut self, op: UnOp, ty: Sc, from: Sc, code: i64, a: Reg) -> Option<V> {
         use UnOp::*;
         let w32 = |t: Sc| matches!(t, Sc::I32 | Sc::F32);
         Some(match (op, ty, from) {
             (Bitcast | UConvert | SConvert, _, _) if w32(ty) && w32(from) && (op == Bitcast || ty == Sc::I32) => self.vget(a, Cls::W32),
             (SNeg, Sc::I32, _) => {
                 let x = self.vget(a, Cls::W32);
-                self.b.ins().ineg(x)
+                self.map(x, |b, x| b.ins().ineg(x))
             }
             (Not, Sc::I32, _) => {
                 let x = self.vget(a, Cls::W32);
-                self.b.ins().bnot(x)
+                self.map(x, |b, x| b.ins().bnot(x))
             }
             (LNot, Sc::Bool, Sc::Bool) => {
                 let x = self.vget(a, Cls::B);
-                self.b.ins().bnot(x)
+                self.map(x, |b, x| b.ins().bnot(x))
             }
             (ConvertSToF, Sc::F32, Sc::I32) => {
                 let x = self.vget(a, Cls::W32);
-                let f = self.b.ins().fcvt_from_sint(F32X4, x);
+                let f = self.map(x, |b, x| b.ins().fcvt_from_sint(F32X4, x));
                 self.iv(f)
             }
             (ConvertFToS, Sc::I32, Sc::F32) => {
                 let x = self.vget(a, Cls::W32);
                 let f = self.fv(x);
-                self.b.ins().fcvt_to_sint_sat(I32X4, f)
+                self.map(f, |b, x| b.ins().fcvt_to_sint_sat(I32X4, x))
             }
             (Sqrt | FNeg | FAbs | Sin | Cos | Exp, Sc::F32, Sc::F32) => {
                 let x = self.vget(a, Cls::W32);
                 let f = self.fv(x);
                 let r = match op {
-                    Sqrt => self.b.ins().sqrt(f),
-                    FNeg => self.b.ins().fneg(f),
-                    FAbs => self.b.ins().fabs(f),
-                    Sin => vmath(self.b, Fn1::Sin, f),
-                    Cos => vmath(self.b, Fn1::Cos, f),
-                    _ => vmath(self.b, Fn1::Exp, f),
+                    Sqrt => self.map(f, |b, x| b.ins().sqrt(x)),
+                    FNeg => self.map(f, |b, x| b.ins().fneg(x)),
+                    FAbs => self.map(f, |b, x| b.ins().fabs(x)),
+                    Sin => vmath(self.b, Fn1::Sin, &f).try_into().ok()?,
+                    Cos => vmath(self.b, Fn1::Cos, &f).try_into().ok()?,
+                    _ => vmath(self.b, Fn1::Exp, &f).try_into().ok()?,
                 };
                 self.nan_guard(r, helpers::un as *const () as usize, code, &[a])
             }
@@ -231,7 +246,7 @@ impl Gen<'_, '_, '_> {
             // Hardware and `vmath::fma1` both round the exact a·b + c once.
             let (x, y, z) = (self.vget(a, Cls::W32), self.vget(b, Cls::W32), self.vget(c, Cls::W32));
             let (x, y, z) = (self.fv(x), self.fv(y), self.fv(z));
-            let r = self.b.ins().fma(x, y, z);
+            let r = self.map3(x, y, z, |b, x, y, z| b.ins().fma(x, y, z));
             let v = self.nan_guard(r, helpers::tri as *const () as usize, code, &[a, b, c]);
             self.vset(dst, v);
         } else {
@@ -241,3 +256,5 @@ impl Gen<'_, '_, '_> {
         Some(())
     }
 }
+
+const _: () = assert!(W == 4 * PARTS);

@@ -1,25 +1,32 @@
-//! Registers, control flow and memory of the SIMD code.
+//! Registers and control flow of the SIMD code (memory is `mem`'s).
 //!
 //! Control flow is the interpreter's schedule made static: IR block `i` is emitted behind a
 //! guard ("does any lane have its cursor at `i`?"), blocks in index order, so the lanes a block
 //! runs for are exactly those the interpreter's lowest-cursor-first rule would run. A block's
 //! terminator moves its lanes' cursors; execution falls to the next guard, except that a taken
 //! back edge jumps to its header's guard (every running cursor is then at or past it).
+//!
+//! A vector register is `PARTS` independent i32x4 values side by side: each vector op is
+//! emitted once per part, so the core has that many dependency chains to overlap.
 use cranelift_codegen::ir::condcodes::IntCC;
-use cranelift_codegen::ir::{types, AbiParam, Block, FuncRef, InstBuilder, MemFlagsData, SigRef, Signature, StackSlot, StackSlotData, StackSlotKind, Value};
+use cranelift_codegen::ir::{types, AbiParam, Block, FuncRef, InstBuilder, SigRef, Signature, StackSlot, StackSlotData, StackSlotKind, Value};
 use cranelift_frontend::{FunctionBuilder, Variable};
 
 use super::super::super::exec::CHECK_EVERY;
 use super::super::super::ir::{self, Op, Program, Sc, Space, Term};
-use super::super::helpers::{self, MemDesc, MemKind, STOPPED};
+use super::super::helpers::{self, MemDesc, STOPPED};
 use super::types::{Cls, Types};
 
 pub(super) const I64: types::Type = types::I64;
 pub(super) const I32: types::Type = types::I32;
 pub(super) const I32X4: types::Type = types::I32X4;
 pub(super) const F32X4: types::Type = types::F32X4;
+/// i32x4 parts of a vector register.
+pub(in crate::shader) const PARTS: usize = 2;
 /// Invocations per call.
-pub(in crate::shader) const W: usize = 4;
+pub(in crate::shader) const W: usize = 4 * PARTS;
+/// A vector register's value: lane `l` is lane `l % 4` of part `l / 4`.
+pub(super) type V = [Value; PARTS];
 /// The cursor of a lane that is done (above every block index).
 const DONE: i64 = i32::MAX as i64;
 
@@ -32,14 +39,14 @@ pub(super) fn space_ok(space: Space) -> Option<()> {
 /// A register's value before a run of pure ops.
 #[derive(Clone, Copy)]
 enum Saved {
-    Vec(Value),
+    Vec(V),
     Wide([Value; W]),
 }
 
 /// A register's variables.
 #[derive(Clone, Copy)]
 enum Var {
-    Vec(Variable),
+    Vec([Variable; PARTS]),
     Wide([Variable; W]),
     Const(u64),
 }
@@ -49,19 +56,20 @@ pub(super) struct Gen<'p, 'b, 'f> {
     pub prog: &'p Program,
     pub types: Types,
     vars: Vec<Var>,
-    cursor: Variable,
+    cursor: [Variable; PARTS],
     /// Blocks each lane has run (the fault-order key), and blocks the call has run (the
     /// watchdog's steps).
-    lane_steps: Variable,
+    pub lane_steps: [Variable; PARTS],
     steps: Variable,
     next_poll: Variable,
-    run: Value,
-    frame: Value,
-    push: Value,
-    push_len: Value,
+    pub run: Value,
+    pub frame: Value,
+    pub push: Value,
+    pub push_len: Value,
     guards: Vec<Block>,
-    /// The running block's lanes: a mask, and per lane an i8 truth value.
-    pub mask: Value,
+    /// The running block's lanes: a mask, and per lane an i8 truth value (made only for
+    /// blocks whose ops go lane by lane).
+    pub mask: V,
     pub on: [Value; W],
     /// The block being emitted.
     block: usize,
@@ -72,7 +80,7 @@ pub(super) struct Gen<'p, 'b, 'f> {
     pending: Vec<Op>,
     saved: Vec<(ir::Reg, Saved)>,
     written: Vec<bool>,
-    pub nan_acc: Option<Value>,
+    pub nan_acc: Option<V>,
     pub redo: bool,
     sigs: Vec<SigRef>,
     /// `tramp`'s lane helpers (1 to 3 operands) and their buffer.
@@ -80,7 +88,7 @@ pub(super) struct Gen<'p, 'b, 'f> {
     pub buf: StackSlot,
     pub descs: Vec<MemDesc>,
     /// Bytes of one lane's frame; lane `l`'s frame starts at `l * fs`.
-    fs: u32,
+    pub fs: u32,
 }
 
 fn sig(call_conv: cranelift_codegen::isa::CallConv, n: usize) -> Signature {
@@ -106,11 +114,11 @@ fn declare_regs(b: &mut FunctionBuilder, prog: &Program, types: &Types) -> Vec<V
                     b.def_var(v, zero64);
                     v
                 })),
-                _ => {
+                _ => Var::Vec(std::array::from_fn(|_| {
                     let v = b.declare_var(I32X4);
                     b.def_var(v, zv);
-                    Var::Vec(v)
-                }
+                    v
+                })),
             }
         })
         .collect();
@@ -121,16 +129,24 @@ fn declare_regs(b: &mut FunctionBuilder, prog: &Program, types: &Types) -> Vec<V
                 let c = b.ins().iconst(I64, k as i64);
                 vs.iter().for_each(|&v| b.def_var(v, c));
             }
-            Var::Vec(v) => {
+            Var::Vec(vs) => {
                 let w = if types.cls(r) == Cls::B { -((k != 0) as i64) } else { k as u32 as i64 };
                 let c = b.ins().iconst(I32, w as i32 as u32 as i64);
                 let c = b.ins().splat(I32X4, c);
-                b.def_var(v, c);
+                vs.iter().for_each(|&v| b.def_var(v, c));
             }
             Var::Const(_) => {}
         }
     }
     vars
+}
+
+/// Whether block `blk` has ops that go lane by lane (memory, or writes of wide registers),
+/// which need the per-lane truth values.
+fn lane_ops(types: &Types, blk: &ir::Block) -> bool {
+    let wide = |r: ir::Reg| types.konst(r).is_none() && types.cls(r) == Cls::W64;
+    blk.phi_in.iter().any(|&(d, _)| wide(d))
+        || blk.ops.iter().any(|op| matches!(op, Op::Load { .. } | Op::Store { .. } | Op::Atomic { .. }) || super::types::defs_uses(op).is_some_and(|d| d.0.iter().any(|&r| wide(r))))
 }
 
 impl<'p, 'b, 'f> Gen<'p, 'b, 'f> {
@@ -145,14 +161,16 @@ impl<'p, 'b, 'f> Gen<'p, 'b, 'f> {
         let zero32 = b.ins().iconst(I32, 0);
         let zv = b.ins().splat(I32X4, zero32);
         let vars = declare_regs(b, prog, &types);
-        let (cursor, lane_steps, steps, next_poll) = (b.declare_var(I32X4), b.declare_var(I32X4), b.declare_var(I64), b.declare_var(I64));
-        b.def_var(lane_steps, zv);
+        let cursor = std::array::from_fn(|_| b.declare_var(I32X4));
+        let lane_steps = std::array::from_fn(|_| b.declare_var(I32X4));
+        let (steps, next_poll) = (b.declare_var(I64), b.declare_var(I64));
+        lane_steps.iter().for_each(|&v| b.def_var(v, zv));
         b.def_var(steps, zero64);
         let first = b.ins().iconst(I64, CHECK_EVERY as i64);
         b.def_var(next_poll, first);
         let guards: Vec<Block> = (0..=prog.blocks.len()).map(|_| b.create_block()).collect();
         let buf = b.create_sized_stack_slot(StackSlotData::new(StackSlotKind::ExplicitSlot, super::tramp::BUF, 4));
-        // Refuse a frame too small for four lanes (the inline accesses rely on it).
+        // Refuse a frame too small for every lane (the inline accesses rely on it).
         let (frame_len, ok_b, bad_b) = (p[2], b.create_block(), b.create_block());
         let small = b.ins().icmp_imm_s(IntCC::UnsignedLessThan, frame_len, (fs as usize * W) as i64);
         b.ins().brif(small, bad_b, &[], ok_b, &[]);
@@ -173,7 +191,7 @@ impl<'p, 'b, 'f> Gen<'p, 'b, 'f> {
             push: p[3],
             push_len: p[4],
             guards,
-            mask: zv,
+            mask: [zv; PARTS],
             on: [zero32; W],
             block: 0,
             pending: Vec::new(),
@@ -193,29 +211,56 @@ impl<'p, 'b, 'f> Gen<'p, 'b, 'f> {
         let count = g.b.ins().ireduce(I32, count);
         let count = g.b.ins().splat(I32X4, count);
         let idx = g.lane_index();
-        let live = g.b.ins().icmp(IntCC::UnsignedLessThan, idx, count);
         let z = g.splat32(0);
         let done = g.splat32(DONE);
-        let c = g.b.ins().bitselect(live, z, done);
-        g.b.def_var(g.cursor, c);
+        for (p, idx) in idx.into_iter().enumerate() {
+            let live = g.b.ins().icmp(IntCC::UnsignedLessThan, idx, count);
+            let c = g.b.ins().bitselect(live, z[p], done[p]);
+            g.b.def_var(g.cursor[p], c);
+        }
         let g0 = g.guards[0];
         g.b.ins().jump(g0, &[]);
         g
     }
 
-    /// [0, 1, 2, 3].
-    fn lane_index(&mut self) -> Value {
-        let mut v = self.splat32(0);
-        for l in 1..W {
-            let k = self.b.ins().iconst(I32, l as i64);
-            v = self.b.ins().insertlane(v, k, l as u8);
-        }
-        v
+    /// Each lane's index: [0, 1, 2, 3], [4, 5, 6, 7], …
+    fn lane_index(&mut self) -> V {
+        std::array::from_fn(|p| {
+            let k = self.b.ins().iconst(I32, 4 * p as i64);
+            let mut v = self.b.ins().splat(I32X4, k);
+            for l in 1..4 {
+                let k = self.b.ins().iconst(I32, (4 * p + l) as i64);
+                v = self.b.ins().insertlane(v, k, l as u8);
+            }
+            v
+        })
     }
 
-    pub(super) fn splat32(&mut self, k: i64) -> Value {
+    pub(super) fn splat32(&mut self, k: i64) -> V {
         let c = self.b.ins().iconst(I32, k as i32 as u32 as i64);
-        self.b.ins().splat(I32X4, c)
+        [self.b.ins().splat(I32X4, c); PARTS]
+    }
+
+    /// `f` of each part.
+    pub(super) fn map(&mut self, x: V, f: impl Fn(&mut FunctionBuilder<'f>, Value) -> Value) -> V {
+        std::array::from_fn(|p| f(self.b, x[p]))
+    }
+    pub(super) fn map2(&mut self, x: V, y: V, f: impl Fn(&mut FunctionBuilder<'f>, Value, Value) -> Value) -> V {
+        std::array::from_fn(|p| f(self.b, x[p], y[p]))
+    }
+    pub(super) fn map3(&mut self, x: V, y: V, z: V, f: impl Fn(&mut FunctionBuilder<'f>, Value, Value, Value) -> Value) -> V {
+        std::array::from_fn(|p| f(self.b, x[p], y[p], z[p]))
+    }
+
+    /// Whether any lane of mask `m` is set.
+    pub(super) fn any(&mut self, m: V) -> Value {
+        let all = m[1..].iter().fold(m[0], |acc, &x| self.b.ins().bor(acc, x));
+        self.b.ins().vany_true(all)
+    }
+
+    /// Lane `l` of `v`.
+    pub(super) fn lane(&mut self, v: V, l: usize) -> Value {
+        self.b.ins().extractlane(v[l / 4], (l % 4) as u8)
     }
 
     /// Emits every block; None when something is not compiled.
@@ -224,25 +269,29 @@ impl<'p, 'b, 'f> Gen<'p, 'b, 'f> {
         let n = prog.blocks.len();
         for (i, blk) in prog.blocks.iter().enumerate() {
             self.b.switch_to_block(self.guards[i]);
-            let c = self.b.use_var(self.cursor);
+            let c = self.cursors();
             let here = self.splat32(i as i64);
-            let m = self.b.ins().icmp(IntCC::Equal, c, here);
-            let any = self.b.ins().vany_true(m);
+            let m = self.map2(c, here, |b, c, h| b.ins().icmp(IntCC::Equal, c, h));
+            let any = self.any(m);
             let body = self.b.create_block();
             self.b.ins().brif(any, body, &[], self.guards[i + 1], &[]);
             self.b.switch_to_block(body);
             self.mask = m;
             self.block = i;
-            for l in 0..W {
-                let x = self.b.ins().extractlane(m, l as u8);
-                self.on[l] = self.b.ins().icmp_imm_s(IntCC::NotEqual, x, 0);
+            if lane_ops(&self.types, blk) {
+                for l in 0..W {
+                    let x = self.lane(m, l);
+                    self.on[l] = self.b.ins().icmp_imm_s(IntCC::NotEqual, x, 0);
+                }
             }
             let s = self.b.use_var(self.steps);
             let s = self.b.ins().iadd_imm_s(s, 1);
             self.b.def_var(self.steps, s);
-            let ls = self.b.use_var(self.lane_steps);
-            let ls = self.b.ins().isub(ls, m);
-            self.b.def_var(self.lane_steps, ls);
+            for p in 0..PARTS {
+                let ls = self.b.use_var(self.lane_steps[p]);
+                let ls = self.b.ins().isub(ls, m[p]);
+                self.b.def_var(self.lane_steps[p], ls);
+            }
             for &(dst, tmp) in &blk.phi_in {
                 self.mov(dst, tmp);
             }
@@ -267,6 +316,10 @@ impl<'p, 'b, 'f> Gen<'p, 'b, 'f> {
         Some(())
     }
 
+    fn cursors(&mut self) -> V {
+        std::array::from_fn(|p| self.b.use_var(self.cursor[p]))
+    }
+
     // ---- runs of pure ops ----
 
     /// Notes the pre-run values of the registers `op` reads that the run has not written.
@@ -277,7 +330,7 @@ impl<'p, 'b, 'f> Gen<'p, 'b, 'f> {
                 continue;
             }
             let v = match self.vars[r as usize] {
-                Var::Vec(v) => Saved::Vec(self.b.use_var(v)),
+                Var::Vec(vs) => Saved::Vec(vs.map(|v| self.b.use_var(v))),
                 Var::Wide(vs) => Saved::Wide(vs.map(|v| self.b.use_var(v))),
                 Var::Const(_) => continue,
             };
@@ -293,15 +346,16 @@ impl<'p, 'b, 'f> Gen<'p, 'b, 'f> {
         let saved = std::mem::take(&mut self.saved);
         ops.iter().filter_map(super::types::defs_uses).flat_map(|d| d.0).for_each(|d| self.written[d as usize] = false);
         let Some(acc) = self.nan_acc.take() else { return Some(()) };
-        let nan = self.b.ins().band(acc, self.mask);
-        let any = self.b.ins().vany_true(nan);
+        let mask = self.mask;
+        let nan = self.map2(acc, mask, |b, a, m| b.ins().band(a, m));
+        let any = self.any(nan);
         let (slow, join) = (self.b.create_block(), self.b.create_block());
         self.b.set_cold_block(slow);
         self.b.ins().brif(any, slow, &[], join, &[]);
         self.b.switch_to_block(slow);
         for (r, v) in saved {
             match (self.vars[r as usize], v) {
-                (Var::Vec(var), Saved::Vec(x)) => self.b.def_var(var, x),
+                (Var::Vec(vs), Saved::Vec(xs)) => (0..PARTS).for_each(|p| self.b.def_var(vs[p], xs[p])),
                 (Var::Wide(vs), Saved::Wide(xs)) => (0..W).for_each(|l| self.b.def_var(vs[l], xs[l])),
                 _ => {}
             }
@@ -320,18 +374,18 @@ impl<'p, 'b, 'f> Gen<'p, 'b, 'f> {
 
     /// Register `r` as a vector in class `c` (W32 or B).
     /// (A register of another class is converted as the interpreter would read its word.)
-    pub(super) fn vget(&mut self, r: ir::Reg, c: Cls) -> Value {
+    pub(super) fn vget(&mut self, r: ir::Reg, c: Cls) -> V {
         match self.vars[r as usize] {
-            Var::Vec(v) => {
-                let x = self.b.use_var(v);
+            Var::Vec(vs) => {
+                let x = vs.map(|v| self.b.use_var(v));
                 match (self.types.cls(r), c) {
                     (Cls::B, Cls::W32) => {
                         let one = self.splat32(1);
-                        self.b.ins().band(x, one)
+                        self.map2(x, one, |b, x, o| b.ins().band(x, o))
                     }
                     (Cls::W32, Cls::B) => {
                         let z = self.splat32(0);
-                        self.b.ins().icmp(IntCC::NotEqual, x, z)
+                        self.map2(x, z, |b, x, z| b.ins().icmp(IntCC::NotEqual, x, z))
                     }
                     _ => x,
                 }
@@ -350,9 +404,9 @@ impl<'p, 'b, 'f> Gen<'p, 'b, 'f> {
         match self.vars[r as usize] {
             Var::Wide(vs) => self.b.use_var(vs[l]),
             Var::Const(k) => self.b.ins().iconst(I64, k as i64),
-            Var::Vec(v) => {
-                let v = self.b.use_var(v);
-                let x = self.b.ins().extractlane(v, l as u8);
+            Var::Vec(vs) => {
+                let v = self.b.use_var(vs[l / 4]);
+                let x = self.b.ins().extractlane(v, (l % 4) as u8);
                 let x = if self.types.cls(r) == Cls::B { self.b.ins().band_imm_u(x, 1) } else { x };
                 self.b.ins().uextend(I64, x)
             }
@@ -364,15 +418,18 @@ impl<'p, 'b, 'f> Gen<'p, 'b, 'f> {
     }
 
     /// Writes vector `v` to `r` for the running lanes.
-    pub(super) fn vset(&mut self, r: ir::Reg, v: Value) {
-        let Var::Vec(var) = self.vars[r as usize] else { unreachable!("a vector written to a wide register") };
-        let v = if !self.types.blends(self.block, r) {
-            v
-        } else {
-            let old = self.b.use_var(var);
-            self.b.ins().bitselect(self.mask, v, old)
-        };
-        self.b.def_var(var, v);
+    pub(super) fn vset(&mut self, r: ir::Reg, v: V) {
+        let Var::Vec(vars) = self.vars[r as usize] else { unreachable!("a vector written to a wide register") };
+        let blend = self.types.blends(self.block, r);
+        for p in 0..PARTS {
+            let x = if !blend {
+                v[p]
+            } else {
+                let old = self.b.use_var(vars[p]);
+                self.b.ins().bitselect(self.mask[p], v[p], old)
+            };
+            self.b.def_var(vars[p], x);
+        }
     }
 
     /// Writes interpreter words (one per lane) to `r` in its class.
@@ -398,14 +455,16 @@ impl<'p, 'b, 'f> Gen<'p, 'b, 'f> {
         }
     }
 
-    /// Four words as a W32 vector (low halves) or a B mask (word != 0).
-    pub(super) fn vec_of_words(&mut self, w: [Value; W], bool_: bool) -> Value {
+    /// One word per lane as a W32 vector (low halves) or a B mask (word != 0).
+    pub(super) fn vec_of_words(&mut self, w: [Value; W], bool_: bool) -> V {
         let lanes: Vec<Value> = w.iter().map(|&x| if bool_ { self.b.ins().bmask(I32, x) } else { self.b.ins().ireduce(I32, x) }).collect();
-        let mut v = self.b.ins().splat(I32X4, lanes[0]);
-        for (l, &x) in lanes.iter().enumerate().skip(1) {
-            v = self.b.ins().insertlane(v, x, l as u8);
-        }
-        v
+        std::array::from_fn(|p| {
+            let mut v = self.b.ins().splat(I32X4, lanes[4 * p]);
+            for l in 1..4 {
+                v = self.b.ins().insertlane(v, lanes[4 * p + l], l as u8);
+            }
+            v
+        })
     }
 
     fn mov(&mut self, dst: ir::Reg, src: ir::Reg) {
@@ -438,14 +497,14 @@ impl<'p, 'b, 'f> Gen<'p, 'b, 'f> {
 
     fn term(&mut self, i: u32, blk: &ir::Block) -> Option<()> {
         let m = self.mask;
-        let cur = self.b.use_var(self.cursor);
+        let cur = self.cursors();
         // Each lane's next cursor (lanes outside the mask keep theirs).
         let next = match &blk.term {
             Term::Jump(t) => self.splat32(*t as i64),
             Term::Cond { cond, t, f } => {
                 let c = self.vget(*cond, Cls::B);
                 let (t, f) = (self.splat32(*t as i64), self.splat32(*f as i64));
-                self.b.ins().bitselect(c, t, f)
+                self.map3(c, t, f, |b, c, t, f| b.ins().bitselect(c, t, f))
             }
             Term::Switch { sel, default, cases } => {
                 let s = self.vget(*sel, Cls::W32);
@@ -453,9 +512,9 @@ impl<'p, 'b, 'f> Gen<'p, 'b, 'f> {
                 // The first matching case wins: apply them last to first.
                 for &(k, target) in cases.iter().rev() {
                     let k = self.splat32(k as u32 as i64);
-                    let hit = self.b.ins().icmp(IntCC::Equal, s, k);
+                    let hit = self.map2(s, k, |b, s, k| b.ins().icmp(IntCC::Equal, s, k));
                     let t = self.splat32(target as i64);
-                    v = self.b.ins().bitselect(hit, t, v);
+                    v = self.map3(hit, t, v, |b, h, t, v| b.ins().bitselect(h, t, v));
                 }
                 if cases.iter().any(|c| c.0 > u32::MAX as u64) {
                     return None;
@@ -465,15 +524,17 @@ impl<'p, 'b, 'f> Gen<'p, 'b, 'f> {
             Term::Exit => self.splat32(DONE),
             Term::Barrier(_) => return None,
         };
-        let moved = self.b.ins().bitselect(m, next, cur);
-        self.b.def_var(self.cursor, moved);
+        let moved = self.map3(m, next, cur, |b, m, n, c| b.ins().bitselect(m, n, c));
+        for p in 0..PARTS {
+            self.b.def_var(self.cursor[p], moved[p]);
+        }
         let mut targets: Vec<u32> = blk.edge_moves.iter().map(|e| e.target).collect();
         targets.sort_unstable();
         targets.dedup();
         for t in targets {
             let tv = self.splat32(t as i64);
-            let to = self.b.ins().icmp(IntCC::Equal, next, tv);
-            let lanes = self.b.ins().band(to, m);
+            let to = self.map2(next, tv, |b, n, t| b.ins().icmp(IntCC::Equal, n, t));
+            let lanes = self.map2(to, m, |b, t, m| b.ins().band(t, m));
             for e in blk.edge_moves.iter().filter(|e| e.target == t) {
                 self.edge_move(lanes, e.dst, e.src);
             }
@@ -488,9 +549,9 @@ impl<'p, 'b, 'f> Gen<'p, 'b, 'f> {
         let fall = self.guards[i as usize + 1];
         if let Some(h) = header {
             let iv = self.splat32(i as i64);
-            let took = self.b.ins().icmp(IntCC::UnsignedLessThanOrEqual, next, iv);
-            let took = self.b.ins().band(took, m);
-            let any = self.b.ins().vany_true(took);
+            let took = self.map2(next, iv, |b, n, i| b.ins().icmp(IntCC::UnsignedLessThanOrEqual, n, i));
+            let took = self.map2(took, m, |b, t, m| b.ins().band(t, m));
+            let any = self.any(took);
             let back_b = self.b.create_block();
             self.b.ins().brif(any, back_b, &[], fall, &[]);
             self.b.switch_to_block(back_b);
@@ -503,18 +564,20 @@ impl<'p, 'b, 'f> Gen<'p, 'b, 'f> {
     }
 
     /// A phi temporary filled for the lanes in `lanes` (a mask).
-    fn edge_move(&mut self, lanes: Value, dst: ir::Reg, src: ir::Reg) {
+    fn edge_move(&mut self, lanes: V, dst: ir::Reg, src: ir::Reg) {
         match self.vars[dst as usize] {
-            Var::Vec(var) => {
+            Var::Vec(vars) => {
                 let v = self.vget(src, self.types.cls(dst));
-                let old = self.b.use_var(var);
-                let v = self.b.ins().bitselect(lanes, v, old);
-                self.b.def_var(var, v);
+                for p in 0..PARTS {
+                    let old = self.b.use_var(vars[p]);
+                    let x = self.b.ins().bitselect(lanes[p], v[p], old);
+                    self.b.def_var(vars[p], x);
+                }
             }
             Var::Wide(vs) => {
                 let w = self.words(src);
                 for l in 0..W {
-                    let x = self.b.ins().extractlane(lanes, l as u8);
+                    let x = self.lane(lanes, l);
                     let on = self.b.ins().icmp_imm_s(IntCC::NotEqual, x, 0);
                     let old = self.b.use_var(vs[l]);
                     let v = self.b.ins().select(on, w[l], old);
@@ -553,7 +616,7 @@ impl<'p, 'b, 'f> Gen<'p, 'b, 'f> {
                     let c = self.vget(cond, Cls::B);
                     let (x, y) = (self.words(a), self.words(b));
                     let w = std::array::from_fn(|l| {
-                        let cl = self.b.ins().extractlane(c, l as u8);
+                        let cl = self.lane(c, l);
                         let cl = self.b.ins().icmp_imm_s(IntCC::NotEqual, cl, 0);
                         self.b.ins().select(cl, x[l], y[l])
                     });
@@ -562,7 +625,7 @@ impl<'p, 'b, 'f> Gen<'p, 'b, 'f> {
                 cl => {
                     let c = self.vget(cond, Cls::B);
                     let (x, y) = (self.vget(a, cl), self.vget(b, cl));
-                    let v = self.b.ins().bitselect(c, x, y);
+                    let v = self.map3(c, x, y, |b, c, x, y| b.ins().bitselect(c, x, y));
                     self.vset(dst, v);
                 }
             },
@@ -603,153 +666,8 @@ impl<'p, 'b, 'f> Gen<'p, 'b, 'f> {
                 self.set_words(dst, w);
             }
             Op::Store { ty, space, addr, src } => self.store(ty, space, addr, src)?,
-            Op::Atomic { op, ty, space, dst, addr, a, b } => {
-                space_ok(space)?;
-                if space == Space::Lane {
-                    return None;
-                }
-                let desc = MemDesc { ty, space, kind: MemKind::Atomic(op) };
-                let d = self.site(desc);
-                let w = std::array::from_fn(|l| {
-                    let (at, x, y) = (self.word(addr, l), self.word(a, l), self.word(b, l));
-                    self.lane_call(d, l, at, x, y)
-                });
-                self.set_words(dst, w);
-            }
+            Op::Atomic { op, ty, space, dst, addr, a, b } => self.atomic(op, ty, space, dst, addr, a, b)?,
             _ => return None,
-        }
-        Some(())
-    }
-
-    // ---- memory ----
-
-    fn site(&mut self, desc: MemDesc) -> i64 {
-        self.descs.push(desc);
-        self.descs.len() as i64 - 1
-    }
-
-    /// The memory helper for lane `l` at site `d`, when the lane runs (else 0).
-    fn lane_call(&mut self, d: i64, l: usize, at: Value, a: Value, b: Value) -> Value {
-        let (call_b, join) = (self.b.create_block(), self.b.create_block());
-        let out = self.b.append_block_param(join, I64);
-        let z = self.b.ins().iconst(I64, 0);
-        self.b.ins().brif(self.on[l], call_b, &[], join, &[z.into()]);
-        self.b.switch_to_block(call_b);
-        let dv = self.b.ins().iconst(I64, d);
-        let ls = self.b.use_var(self.lane_steps);
-        let s = self.b.ins().extractlane(ls, l as u8);
-        let s = self.b.ins().uextend(I64, s);
-        let lane = self.b.ins().iconst(I64, l as i64);
-        let run = self.run;
-        let v = self.call_int(helpers::mem_lane as *const () as usize, &[run, dv, at, a, b, s, lane]);
-        self.b.ins().jump(join, &[v.into()]);
-        self.b.switch_to_block(join);
-        out
-    }
-
-    /// `inline` when `ok`, else the helper for the lane when it runs.
-    fn guarded(&mut self, ok: Value, d: i64, l: usize, at: Value, v: Value, inline: impl FnOnce(&mut Self) -> Value) -> Value {
-        let (fast, slow, join) = (self.b.create_block(), self.b.create_block(), self.b.create_block());
-        let out = self.b.append_block_param(join, I64);
-        self.b.ins().brif(ok, fast, &[], slow, &[]);
-        self.b.switch_to_block(fast);
-        let x = inline(self);
-        self.b.ins().jump(join, &[x.into()]);
-        self.b.switch_to_block(slow);
-        let x = self.lane_call(d, l, at, v, v);
-        self.b.ins().jump(join, &[x.into()]);
-        self.b.switch_to_block(join);
-        out
-    }
-
-    /// Whether `size` bytes at `at` lie inside `len` bytes.
-    fn in_bounds(&mut self, at: Value, len: Value, size: u32) -> Value {
-        let last = self.b.ins().iadd_imm_s(len, -(size as i64));
-        let fits = self.b.ins().icmp(IntCC::UnsignedLessThanOrEqual, at, last);
-        let room = self.b.ins().icmp_imm_s(IntCC::UnsignedGreaterThanOrEqual, len, size as i64);
-        self.b.ins().band(fits, room)
-    }
-
-    /// The normalised word `ty` at `p`.
-    fn load_at(&mut self, ty: Sc, p: Value, off: i32) -> Value {
-        let flags = MemFlagsData::trusted();
-        if ty.size() == 8 {
-            return self.b.ins().load(I64, flags, p, off);
-        }
-        let w = self.b.ins().load(I32, flags, p, off);
-        if ty == Sc::Bool {
-            let c = self.b.ins().icmp_imm_s(IntCC::NotEqual, w, 0);
-            self.b.ins().uextend(I64, c)
-        } else {
-            self.b.ins().uextend(I64, w)
-        }
-    }
-
-    fn load(&mut self, ty: Sc, space: Space, addr: ir::Reg) -> Option<[Value; W]> {
-        space_ok(space)?;
-        let d = self.site(MemDesc { ty, space, kind: MemKind::Load });
-        let size = ty.size();
-        let fs = self.fs;
-        if space == Space::Lane {
-            if let Some(k) = self.types.konst(addr).filter(|&k| k.checked_add(size as u64).is_some_and(|e| e <= fs as u64)) {
-                // Every lane's frame is there: load all four, the blend keeps what is not run.
-                let frame = self.frame;
-                return Some(std::array::from_fn(|l| self.load_at(ty, frame, (l as u32 * fs + k as u32) as i32)));
-            }
-        }
-        let z = self.b.ins().iconst(I64, 0);
-        Some(std::array::from_fn(|l| {
-            let at = self.word(addr, l);
-            match space {
-                Space::Lane => {
-                    let len = self.b.ins().iconst(I64, fs as i64);
-                    let ok = self.in_bounds(at, len, size);
-                    let frame = self.frame;
-                    self.guarded(ok, d, l, at, z, |g| {
-                        let p = g.b.ins().iadd(frame, at);
-                        g.load_at(ty, p, (l as u32 * fs) as i32)
-                    })
-                }
-                Space::Push => {
-                    let (push, len) = (self.push, self.push_len);
-                    let ok = self.in_bounds(at, len, size);
-                    self.guarded(ok, d, l, at, z, |g| {
-                        let p = g.b.ins().iadd(push, at);
-                        g.load_at(ty, p, 0)
-                    })
-                }
-                _ => self.lane_call(d, l, at, z, z),
-            }
-        }))
-    }
-
-    fn store(&mut self, ty: Sc, space: Space, addr: ir::Reg, src: ir::Reg) -> Option<()> {
-        space_ok(space)?;
-        let d = self.site(MemDesc { ty, space, kind: MemKind::Store });
-        let size = ty.size();
-        let fs = self.fs;
-        for l in 0..W {
-            let (at, v) = (self.word(addr, l), self.word(src, l));
-            if space != Space::Lane {
-                self.lane_call(d, l, at, v, v);
-                continue;
-            }
-            let len = self.b.ins().iconst(I64, fs as i64);
-            let ok = self.in_bounds(at, len, size);
-            let ok = self.b.ins().band(ok, self.on[l]);
-            let frame = self.frame;
-            let (fast, slow, join) = (self.b.create_block(), self.b.create_block(), self.b.create_block());
-            self.b.ins().brif(ok, fast, &[], slow, &[]);
-            self.b.switch_to_block(fast);
-            let p = self.b.ins().iadd(frame, at);
-            let w = if size == 8 { v } else { self.b.ins().ireduce(I32, v) };
-            self.b.ins().store(MemFlagsData::trusted(), w, p, (l as u32 * fs) as i32);
-            self.b.ins().jump(join, &[]);
-            self.b.switch_to_block(slow);
-            // Out of bounds (a fault when the lane runs).
-            self.lane_call(d, l, at, v, v);
-            self.b.ins().jump(join, &[]);
-            self.b.switch_to_block(join);
         }
         Some(())
     }

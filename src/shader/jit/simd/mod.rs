@@ -22,6 +22,7 @@ use super::{account, flush, Jit};
 
 mod alu;
 mod gen;
+mod mem;
 #[cfg(test)]
 mod tests;
 mod tramp;
@@ -88,7 +89,7 @@ pub(in crate::shader) fn run_workgroup(ctx: &Ctx, jit: &Jit, wg: &mut Wg, frames
     let n = ctx.local.iter().product::<u32>();
     let id = wg.id;
     let fs = ctx.prog.lane_frame.len();
-    let mut run = Run { ctx, wg, descs: &jit.descs, invocation: 0, pending: Vec::new(), kept: 0, accounted: 0, panic: None, lanes: 0, lane_kept: [0; 4] };
+    let mut run = Run { ctx, wg, descs: &jit.descs, invocation: 0, pending: Vec::new(), kept: 0, accounted: 0, panic: None, lanes: 0, lane_kept: [0; W] };
     let mut next_check = run.wg.steps + CHECK_EVERY;
     for first in (0..n).step_by(W) {
         let lanes = (n - first).min(W as u32);
@@ -98,7 +99,7 @@ pub(in crate::shader) fn run_workgroup(ctx: &Ctx, jit: &Jit, wg: &mut Wg, frames
         }
         run.invocation = first;
         run.lanes = lanes;
-        run.lane_kept = [0; 4];
+        run.lane_kept = [0; W];
         run.accounted = 0;
         let steps = jit.code.call(&mut run, frames, ctx.push);
         if !account(&mut run, steps, &mut next_check) {

@@ -2,7 +2,7 @@
 //! helpers on rare paths (a NaN result); a System V call there clobbers every vector register,
 //! and the register allocator then keeps the hot path's vectors in stack slots. These
 //! trampolines use Cranelift's `preserve_all` convention (they save what they use, calls
-//! included), take the four lanes' operands from a buffer and leave the results there, so the
+//! included), take every lane's operands from a buffer and leave the results there, so the
 //! calling code sees a call that clobbers nothing.
 use cranelift_codegen::ir::{types, AbiParam, Function, InstBuilder, MemFlagsData, Signature, UserFuncName};
 use cranelift_codegen::isa::CallConv;
@@ -12,13 +12,18 @@ use cranelift_module::{FuncId, Linkage, Module};
 
 use super::gen::W;
 
-/// Bytes of the buffer: up to three operands, then the results, each four i32 lanes.
-pub(super) const BUF: u32 = 64;
+/// Bytes of the buffer: up to three operands, then the results, each `W` i32 lanes.
+pub(super) const BUF: u32 = 4 * W as u32 * 4;
 /// Where the results start in the buffer.
-pub(super) const OUT: i32 = 48;
+pub(super) const OUT: i32 = 3 * W as i32 * 4;
+
+/// Where lane `l` of operand `k` is in the buffer.
+pub(super) const fn operand(k: usize, l: usize) -> i32 {
+    ((k * W + l) * 4) as i32
+}
 
 /// Defines `lanes1`..`lanes3`: (helper address, op code, buffer) in `preserve_all`; each calls
-/// `helper(code, operand words…)` for the four lanes (32-bit operands zero-extended, results
+/// `helper(code, operand words…)` for every lane (32-bit operands zero-extended, results
 /// truncated to 32 bits).
 pub(super) fn define(module: &mut JITModule, call_conv: CallConv) -> Option<[FuncId; 3]> {
     let mut sig = Signature::new(CallConv::PreserveAll);
@@ -39,16 +44,16 @@ pub(super) fn define(module: &mut JITModule, call_conv: CallConv) -> Option<[Fun
         b.switch_to_block(entry);
         let p = b.block_params(entry).to_vec();
         let flags = MemFlagsData::trusted();
-        for l in 0..W as i32 {
+        for l in 0..W {
             let mut args = vec![p[1]];
-            for k in 0..n as i32 {
-                let x = b.ins().load(types::I32, flags, p[2], k * 16 + l * 4);
+            for k in 0..n {
+                let x = b.ins().load(types::I32, flags, p[2], operand(k, l));
                 args.push(b.ins().uextend(types::I64, x));
             }
             let call = b.ins().call_indirect(helper, p[0], &args);
             let r = b.inst_results(call)[0];
             let r = b.ins().ireduce(types::I32, r);
-            b.ins().store(flags, r, p[2], OUT + l * 4);
+            b.ins().store(flags, r, p[2], OUT + l as i32 * 4);
         }
         b.ins().return_(&[]);
         b.seal_all_blocks();
