@@ -5,7 +5,7 @@
 //! type: `f32` for the scalar JIT, `f32x4` parts for the SIMD one, whose parts are emitted
 //! step by step side by side (independent chains the core overlaps).
 use cranelift_codegen::ir::condcodes::FloatCC;
-use cranelift_codegen::ir::{types, InstBuilder, MemFlagsData, Type, Value};
+use cranelift_codegen::ir::{types, ConstantData, InstBuilder, MemFlagsData, Type, Value};
 use cranelift_frontend::FunctionBuilder;
 
 use super::Gen;
@@ -44,6 +44,14 @@ pub(in crate::shader::jit) fn vmath(b: &mut FunctionBuilder, f: Fn1, xs: &[Value
     }
 }
 
+/// A 128-bit vector of type `ty` with `bits` in every 32-bit lane: a constant-pool entry, which
+/// instructions read as a memory operand (no register held across the code, nothing built).
+pub(in crate::shader::jit) fn splat_const(b: &mut FunctionBuilder, ty: Type, bits: u32) -> Value {
+    let bytes: Vec<u8> = (0..4).flat_map(|_| bits.to_le_bytes()).collect();
+    let c = b.func.dfg.constants.insert(ConstantData::from(bytes));
+    b.ins().vconst(ty, c)
+}
+
 /// Values of one step, one per part.
 type Xs = Vec<Value>;
 
@@ -64,13 +72,11 @@ impl<'f> Emit<'_, 'f> {
         a.iter().zip(b).map(|(&x, &y)| f(self.b, x, y)).collect()
     }
     fn k(&mut self, v: f32) -> Xs {
-        let s = self.b.ins().f32const(v);
-        let s = if self.ty.is_vector() { self.b.ins().splat(self.ty, s) } else { s };
+        let s = if self.ty.is_vector() { splat_const(self.b, self.ty, v.to_bits()) } else { self.b.ins().f32const(v) };
         vec![s; self.n]
     }
     fn ik(&mut self, v: i64) -> Xs {
-        let s = self.b.ins().iconst(types::I32, v as i32 as u32 as i64);
-        let s = if self.ty.is_vector() { self.b.ins().splat(self.ity, s) } else { s };
+        let s = if self.ty.is_vector() { splat_const(self.b, self.ity, v as u32) } else { self.b.ins().iconst(types::I32, v as i32 as u32 as i64) };
         vec![s; self.n]
     }
     fn mul(&mut self, a: &Xs, b: &Xs) -> Xs {

@@ -75,12 +75,31 @@ impl Gen<'_, '_, '_> {
         if self.redo {
             return self.per_lane_w32(f, code, args);
         }
-        let nan = self.map(r, |b, x| b.ins().fcmp(FloatCC::Unordered, x, x));
+        // One unordered compare tests two results: they are paired up.
+        match self.nan_pending.take() {
+            None => self.nan_pending = Some(r),
+            Some(q) => {
+                let nan = self.map2(q, r, |b, x, y| b.ins().fcmp(FloatCC::Unordered, x, y));
+                self.note_nan(nan);
+            }
+        }
+        self.iv(r)
+    }
+
+    fn note_nan(&mut self, nan: V) {
         self.nan_acc = Some(match self.nan_acc {
             Some(acc) => self.map2(acc, nan, |b, a, n| b.ins().bor(a, n)),
             None => nan,
         });
-        self.iv(r)
+    }
+
+    /// Lanes in which a float result of the run was a NaN (None: no float result).
+    pub(super) fn nan_lanes(&mut self) -> Option<V> {
+        if let Some(q) = self.nan_pending.take() {
+            let nan = self.map(q, |b, x| b.ins().fcmp(FloatCC::Unordered, x, x));
+            self.note_nan(nan);
+        }
+        self.nan_acc.take()
     }
 
     pub(super) fn bin(&mut self, op: BinOp, ty: Sc, dst: Reg, a: Reg, b: Reg) -> Option<()> {
@@ -216,6 +235,13 @@ impl Gen<'_, '_, '_> {
             (ConvertSToF, Sc::F32, Sc::I32) => {
                 let x = self.vget(a, Cls::W32);
                 let f = self.map(x, |b, x| b.ins().fcvt_from_sint(F32X4, x));
+                self.iv(f)
+            }
+            // The x64 backend converts the halves exactly and rounds once in their sum (or
+            // uses AVX-512's conversion): the correctly rounded value, as `alu`'s.
+            (ConvertUToF, Sc::F32, Sc::I32) => {
+                let x = self.vget(a, Cls::W32);
+                let f = self.map(x, |b, x| b.ins().fcvt_from_uint(F32X4, x));
                 self.iv(f)
             }
             (ConvertFToS, Sc::I32, Sc::F32) => {

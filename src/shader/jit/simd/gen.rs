@@ -14,6 +14,7 @@ use cranelift_frontend::{FunctionBuilder, Variable};
 
 use super::super::super::exec::CHECK_EVERY;
 use super::super::super::ir::{self, Op, Program, Sc, Space, Term};
+use super::super::codegen::vmath::splat_const;
 use super::super::helpers::{self, MemDesc, STOPPED};
 use super::types::{Cls, Types};
 
@@ -81,6 +82,8 @@ pub(super) struct Gen<'p, 'b, 'f> {
     saved: Vec<(ir::Reg, Saved)>,
     written: Vec<bool>,
     pub nan_acc: Option<V>,
+    /// A float result whose NaN test waits for a second one.
+    pub nan_pending: Option<V>,
     pub redo: bool,
     sigs: Vec<SigRef>,
     /// `tramp`'s lane helpers (1 to 3 operands) and their buffer.
@@ -198,6 +201,7 @@ impl<'p, 'b, 'f> Gen<'p, 'b, 'f> {
             saved: Vec::new(),
             written: vec![false; prog.reg_count as usize],
             nan_acc: None,
+            nan_pending: None,
             redo: false,
             sigs,
             tramps,
@@ -237,8 +241,7 @@ impl<'p, 'b, 'f> Gen<'p, 'b, 'f> {
     }
 
     pub(super) fn splat32(&mut self, k: i64) -> V {
-        let c = self.b.ins().iconst(I32, k as i32 as u32 as i64);
-        [self.b.ins().splat(I32X4, c); PARTS]
+        [splat_const(self.b, I32X4, k as u32); PARTS]
     }
 
     /// `f` of each part.
@@ -345,7 +348,7 @@ impl<'p, 'b, 'f> Gen<'p, 'b, 'f> {
         let ops = std::mem::take(&mut self.pending);
         let saved = std::mem::take(&mut self.saved);
         ops.iter().filter_map(super::types::defs_uses).flat_map(|d| d.0).for_each(|d| self.written[d as usize] = false);
-        let Some(acc) = self.nan_acc.take() else { return Some(()) };
+        let Some(acc) = self.nan_lanes() else { return Some(()) };
         let mask = self.mask;
         let nan = self.map2(acc, mask, |b, a, m| b.ins().band(a, m));
         let any = self.any(nan);

@@ -56,7 +56,9 @@ pub(super) fn compile(prog: &Program) -> Option<Jit> {
 
 fn build(prog: &Program, types: types::Types) -> Option<Jit> {
     let mut flags = settings::builder();
-    flags.set("opt_level", "speed").ok()?;
+    // The code is emitted in the order it should run (parts side by side): the optimiser's
+    // rescheduling would put each part's whole chain after the other's.
+    flags.set("opt_level", "none").ok()?;
     flags.set("use_colocated_libcalls", "false").ok()?;
     flags.set("is_pic", "false").ok()?;
     // The host's SSE4.1/AVX/FMA flags come from cranelift_native's detection.
