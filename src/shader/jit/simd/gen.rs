@@ -14,6 +14,7 @@ use cranelift_frontend::{FunctionBuilder, Variable};
 
 use super::super::super::exec::CHECK_EVERY;
 use super::super::super::ir::{self, Op, Program, Sc, Space, Term};
+use super::super::super::LANES;
 use super::super::codegen::vmath::splat_const;
 use super::super::helpers::{self, MemDesc, STOPPED};
 use super::types::{Cls, Types};
@@ -58,10 +59,10 @@ pub(super) struct Gen<'p, 'b, 'f> {
     pub types: Types,
     vars: Vec<Var>,
     cursor: [Variable; PARTS],
-    /// Blocks each lane has run (the fault-order key), and blocks the call has run (the
-    /// watchdog's steps).
-    pub lane_steps: [Variable; PARTS],
-    steps: Variable,
+    /// Blocks each lane has run (the fault-order key of a call that is not one lane group:
+    /// None when it is), and blocks the call has run (the watchdog's steps).
+    pub lane_steps: Option<[Variable; PARTS]>,
+    pub steps: Variable,
     next_poll: Variable,
     pub run: Value,
     pub frame: Value,
@@ -165,9 +166,9 @@ impl<'p, 'b, 'f> Gen<'p, 'b, 'f> {
         let zv = b.ins().splat(I32X4, zero32);
         let vars = declare_regs(b, prog, &types);
         let cursor = std::array::from_fn(|_| b.declare_var(I32X4));
-        let lane_steps = std::array::from_fn(|_| b.declare_var(I32X4));
+        let lane_steps = (W != LANES).then(|| std::array::from_fn(|_| b.declare_var(I32X4)));
         let (steps, next_poll) = (b.declare_var(I64), b.declare_var(I64));
-        lane_steps.iter().for_each(|&v| b.def_var(v, zv));
+        lane_steps.iter().flatten().for_each(|&v| b.def_var(v, zv));
         b.def_var(steps, zero64);
         let first = b.ins().iconst(I64, CHECK_EVERY as i64);
         b.def_var(next_poll, first);
@@ -290,10 +291,10 @@ impl<'p, 'b, 'f> Gen<'p, 'b, 'f> {
             let s = self.b.use_var(self.steps);
             let s = self.b.ins().iadd_imm_s(s, 1);
             self.b.def_var(self.steps, s);
-            for p in 0..PARTS {
-                let ls = self.b.use_var(self.lane_steps[p]);
+            for (p, &v) in self.lane_steps.iter().flatten().enumerate() {
+                let ls = self.b.use_var(v);
                 let ls = self.b.ins().isub(ls, m[p]);
-                self.b.def_var(self.lane_steps[p], ls);
+                self.b.def_var(v, ls);
             }
             for &(dst, tmp) in &blk.phi_in {
                 self.mov(dst, tmp);

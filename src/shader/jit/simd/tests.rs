@@ -23,7 +23,7 @@ fn bench(name: &str) -> Pipeline {
 }
 
 #[test]
-fn the_bench_kernels_compile_for_four_lanes() {
+fn the_bench_kernels_compile_for_w_lanes() {
     for name in ["compute_alu.spv", "compute_divergent.spv", "compute_memory.spv"] {
         assert!(simd(&bench(name)).is_some(), "{name}");
     }
@@ -46,12 +46,12 @@ fn every_test_shader_it_accepts_gives_the_interpreters_memory_and_faults() {
             let Ok(module) = Module::parse(&words) else { continue };
             let Ok(p) = Pipeline::compute(&module, "main", &[]) else { continue };
             let Some(fast) = simd(&p) else { continue };
-            // The shader's own size, and sizes whose last call of four is partial (the
+            // The shader's own size, and sizes whose last call of W lanes is partial (the
             // built-ins follow the pipeline's size on both backends), for shaders that do not
             // build their indices from the workgroup size (whose invocations would then race).
             let sized = ["WorkGroupSize", "local_size_x_id", "NumWorkGroups", "shared"];
             let src = std::fs::read_to_string(PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("tests/shaders").join(&name)).unwrap_or_default();
-            let locals = if sized.iter().any(|w| src.contains(w)) { &[p.local_size][..] } else { &[p.local_size, [5, 1, 1], [3, 3, 1], [7, 2, 1]] };
+            let locals = if sized.iter().any(|w| src.contains(w)) { &[p.local_size][..] } else { &[p.local_size, [1, 1, 1], [5, 1, 1], [3, 3, 1], [7, 2, 1], [17, 1, 1], [33, 1, 1], [100, 1, 1]] };
             for &local in locals {
                 let (fast, interp) = (Pipeline { local_size: local, ..fast.clone() }, Pipeline { local_size: local, ..p.interpreted() });
                 for style in 0..3 {
@@ -127,7 +127,7 @@ fn check_op(op: Op, from: Sc, arity: usize, result: Sc, want: impl Fn(&[u64; 3])
         let v = v.map(|w| alu::norm(from, if from.size() == 4 { w & 0xFFFF_FFFF } else { w }));
         let got = u64::from_le_bytes(out[i * 8..][..8].try_into().unwrap());
         let want = alu::norm(result, want(&v));
-        assert_eq!(got, want, "{op:?} on {v:x?} (lane {})", i % 4);
+        assert_eq!(got, want, "{op:?} on {v:x?} (lane {})", i % super::W);
     }
     true
 }
@@ -233,7 +233,7 @@ fn compiled(name: &str) -> Vec<(String, Pipeline)> {
         .into_iter()
         .map(|(what, words)| {
             let p = Pipeline::compute(&Module::parse(&words).unwrap(), "main", &[]).unwrap();
-            (what, simd(&p).expect("compiles for four lanes"))
+            (what, simd(&p).expect("compiles for W lanes"))
         })
         .collect()
 }
@@ -266,5 +266,41 @@ fn simd_results_do_not_depend_on_thread_count() {
         assert!(one.1.iter().flatten().any(|&b| b != 0), "{what}");
         assert_eq!(run_on(2), one, "{what}");
         assert_eq!(run_on(3), one, "{what}");
+    }
+}
+
+/// compute_alu.spv (the float loop the backend exists for) at workgroup sizes that are and are
+/// not multiples of W, with `n` cutting the last workgroup short (lanes that leave at once
+/// beside lanes that loop): the interpreter's output bits on 1 and 3 threads.
+#[test]
+fn the_alu_kernel_gives_the_interpreters_bits_at_every_workgroup_size() {
+    let base = bench("compute_alu.spv");
+    let fast = simd(&base).expect("compiles");
+    for local in [1u32, 3, 5, 8, 17, 33, 64, 100] {
+        let groups = 3u32;
+        let n = groups * local - local / 2 - 1;
+        let mut push = Vec::new();
+        push.extend_from_slice(&n.to_le_bytes());
+        push.extend_from_slice(&5u32.to_le_bytes());
+        let run = |p: &Pipeline, threads: usize| {
+            let mut mem = HostMemory::new();
+            let out = mem.add_buffer(&vec![0xA5; (groups * local) as usize * 4]);
+            mem.bind(0, 0, out);
+            let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
+            let report = pool.install(|| dispatch(p, &mem, &push, [groups, 1, 1], [0; 3], &Watchdog::default()));
+            assert!(report.is_clean(), "local {local}: {report:?}");
+            mem.bytes(out)
+        };
+        let want = run(&Pipeline { local_size: [local, 1, 1], ..base.interpreted() }, 2);
+        let p = Pipeline { local_size: [local, 1, 1], ..fast.clone() };
+        for threads in [1, 3] {
+            let got = run(&p, threads);
+            let first = got.iter().zip(&want).position(|(a, b)| a != b);
+            assert!(first.is_none(), "local {local}, {threads} threads: differs first at byte {first:?}");
+        }
+        // The invocations past `n` wrote nothing; the others wrote a number.
+        let word = |i: usize| u32::from_le_bytes(want[i * 4..][..4].try_into().unwrap());
+        assert_eq!(word(n as usize), 0xA5A5_A5A5, "local {local}");
+        assert!(f32::from_bits(word(n as usize - 1)).is_finite(), "local {local}");
     }
 }
