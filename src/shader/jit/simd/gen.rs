@@ -529,8 +529,8 @@ impl<'p, 'b, 'f> Gen<'p, 'b, 'f> {
             Term::Barrier(_) => return None,
         };
         let moved = self.map3(m, next, cur, |b, m, n, c| b.ins().bitselect(m, n, c));
-        for p in 0..PARTS {
-            self.b.def_var(self.cursor[p], moved[p]);
+        for (&var, &v) in self.cursor.iter().zip(&moved) {
+            self.b.def_var(var, v);
         }
         let mut targets: Vec<u32> = blk.edge_moves.iter().map(|e| e.target).collect();
         targets.sort_unstable();
