@@ -151,33 +151,7 @@ impl Gen<'_, '_, '_> {
                 let (x, y) = (self.vget(a, Cls::W32), self.vget(b, Cls::W32));
                 Some(self.map2(x, y, f))
             }
-            Sc::F32 => {
-                let (x, y) = (self.vget(a, Cls::W32), self.vget(b, Cls::W32));
-                let (x, y) = (self.fv(x), self.fv(y));
-                if let Some(cc) = float_cc(op) {
-                    return Some(self.map2(x, y, |b, x, y| b.ins().fcmp(cc, x, y)));
-                }
-                let f: Op2 = match op {
-                    FOrdNe => |b, x, y| {
-                        let (c1, c2) = (b.ins().fcmp(FloatCC::Ordered, x, y), b.ins().fcmp(FloatCC::NotEqual, x, y));
-                        b.ins().band(c1, c2)
-                    },
-                    FUnordEq => |b, x, y| {
-                        let (c1, c2) = (b.ins().fcmp(FloatCC::Unordered, x, y), b.ins().fcmp(FloatCC::Equal, x, y));
-                        b.ins().bor(c1, c2)
-                    },
-                    FAdd => |b, x, y| b.ins().fadd(x, y),
-                    FSub => |b, x, y| b.ins().fsub(x, y),
-                    FMul => |b, x, y| b.ins().fmul(x, y),
-                    FDiv => |b, x, y| b.ins().fdiv(x, y),
-                    _ => return None,
-                };
-                let r = self.map2(x, y, f);
-                if matches!(op, FOrdNe | FUnordEq) {
-                    return Some(r);
-                }
-                Some(self.nan_guard(r, helpers::bin as *const () as usize, code, &[a, b]))
-            }
+            Sc::F32 => self.bin_f32(op, code, a, b),
             Sc::Bool => {
                 let f: Op2 = match op {
                     LAnd => |b, x, y| b.ins().band(x, y),
@@ -194,6 +168,35 @@ impl Gen<'_, '_, '_> {
             }
             _ => None,
         }
+    }
+
+    fn bin_f32(&mut self, op: BinOp, code: i64, a: Reg, b: Reg) -> Option<V> {
+        use BinOp::*;
+        let (x, y) = (self.vget(a, Cls::W32), self.vget(b, Cls::W32));
+        let (x, y) = (self.fv(x), self.fv(y));
+        if let Some(cc) = float_cc(op) {
+            return Some(self.map2(x, y, |b, x, y| b.ins().fcmp(cc, x, y)));
+        }
+        let f: Op2 = match op {
+            FOrdNe => |b, x, y| {
+                let (c1, c2) = (b.ins().fcmp(FloatCC::Ordered, x, y), b.ins().fcmp(FloatCC::NotEqual, x, y));
+                b.ins().band(c1, c2)
+            },
+            FUnordEq => |b, x, y| {
+                let (c1, c2) = (b.ins().fcmp(FloatCC::Unordered, x, y), b.ins().fcmp(FloatCC::Equal, x, y));
+                b.ins().bor(c1, c2)
+            },
+            FAdd => |b, x, y| b.ins().fadd(x, y),
+            FSub => |b, x, y| b.ins().fsub(x, y),
+            FMul => |b, x, y| b.ins().fmul(x, y),
+            FDiv => |b, x, y| b.ins().fdiv(x, y),
+            _ => return None,
+        };
+        let r = self.map2(x, y, f);
+        if matches!(op, FOrdNe | FUnordEq) {
+            return Some(r);
+        }
+        Some(self.nan_guard(r, helpers::bin as *const () as usize, code, &[a, b]))
     }
 
     pub(super) fn un(&mut self, op: UnOp, ty: Sc, from: Sc, dst: Reg, a: Reg) -> Option<()> {

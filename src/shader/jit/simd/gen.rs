@@ -612,27 +612,30 @@ impl<'p, 'b, 'f> Gen<'p, 'b, 'f> {
 
     // ---- ops ----
 
+    fn select(&mut self, dst: ir::Reg, cond: ir::Reg, a: ir::Reg, b: ir::Reg) {
+        let c = self.vget(cond, Cls::B);
+        match self.types.cls(dst) {
+            Cls::W64 => {
+                let (x, y) = (self.words(a), self.words(b));
+                let w = std::array::from_fn(|l| {
+                    let cl = self.lane(c, l);
+                    let cl = self.b.ins().icmp_imm_s(IntCC::NotEqual, cl, 0);
+                    self.b.ins().select(cl, x[l], y[l])
+                });
+                self.set_words(dst, w);
+            }
+            cl => {
+                let (x, y) = (self.vget(a, cl), self.vget(b, cl));
+                let v = self.map3(c, x, y, |b, c, x, y| b.ins().bitselect(c, x, y));
+                self.vset(dst, v);
+            }
+        }
+    }
+
     fn op(&mut self, op: &Op) -> Option<()> {
         match *op {
             Op::Mov { dst, src } => self.mov(dst, src),
-            Op::Select { dst, cond, a, b } => match self.types.cls(dst) {
-                Cls::W64 => {
-                    let c = self.vget(cond, Cls::B);
-                    let (x, y) = (self.words(a), self.words(b));
-                    let w = std::array::from_fn(|l| {
-                        let cl = self.lane(c, l);
-                        let cl = self.b.ins().icmp_imm_s(IntCC::NotEqual, cl, 0);
-                        self.b.ins().select(cl, x[l], y[l])
-                    });
-                    self.set_words(dst, w);
-                }
-                cl => {
-                    let c = self.vget(cond, Cls::B);
-                    let (x, y) = (self.vget(a, cl), self.vget(b, cl));
-                    let v = self.map3(c, x, y, |b, c, x, y| b.ins().bitselect(c, x, y));
-                    self.vset(dst, v);
-                }
-            },
+            Op::Select { dst, cond, a, b } => self.select(dst, cond, a, b),
             Op::Index { dst, base, index, index_ty, stride } => {
                 let base = self.words(base);
                 let w = std::array::from_fn(|l| {
