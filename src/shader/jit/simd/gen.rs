@@ -23,7 +23,8 @@ pub(super) const I64: types::Type = types::I64;
 pub(super) const I32: types::Type = types::I32;
 pub(super) const I32X4: types::Type = types::I32X4;
 pub(super) const F32X4: types::Type = types::F32X4;
-/// i32x4 parts of a vector register.
+/// i32x4 parts of a vector register. Two chains already fill the core's float units between
+/// latencies; with four, x64's sixteen vector registers spill and compile time doubles.
 pub(in crate::shader) const PARTS: usize = 2;
 /// Invocations per call.
 pub(in crate::shader) const W: usize = 4 * PARTS;

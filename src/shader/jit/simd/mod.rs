@@ -1,7 +1,8 @@
-//! The SIMD native-code backend: four invocations per call, in Cranelift's 128-bit vector types.
+//! The SIMD native-code backend: `W` invocations per call (one lane group of eight), in
+//! Cranelift's 128-bit vector types.
 //!
-//! Registers take one form each (`types`): I32/F32 one i32x4 vector, Bool one lane mask, I64,
-//! F64 and addresses four scalar words. Blocks run under an execution mask in the
+//! Registers take one form each (`types`): I32/F32 `PARTS` i32x4 vectors, Bool as many lane
+//! masks, I64, F64 and addresses `W` scalar words. Blocks run under an execution mask in the
 //! interpreter's schedule (`gen`), so a divergent branch costs both sides but no per-lane
 //! dispatch; writes under a partial mask blend, except to registers that never outlive their
 //! block. ALU ops are vector instructions where the bits are `alu`'s (`alu`), sin/cos/exp the
@@ -46,7 +47,7 @@ pub(super) fn pays(prog: &Program) -> bool {
     float > 0 && float * 8 >= ops
 }
 
-/// Compiles `prog` for four invocations per call, or None when it uses something this backend
+/// Compiles `prog` for `W` invocations per call, or None when it uses something this backend
 /// does not compile or code generation fails.
 pub(super) fn compile(prog: &Program) -> Option<Jit> {
     let types = types::analyse(prog)?;

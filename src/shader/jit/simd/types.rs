@@ -6,11 +6,11 @@ use super::super::super::ir::{BinOp, Op, Program, Reg, Sc, Space, Term};
 /// A register's form in the SIMD code.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub(super) enum Cls {
-    /// I32 or F32: one i32x4 vector of the low 32 bits (the upper half of the word is zero).
+    /// I32 or F32: i32x4 vectors of the low 32 bits (the upper half of the word is zero).
     W32,
-    /// Bool: one i32x4 lane mask (all ones for true).
+    /// Bool: i32x4 lane masks (all ones for true).
     B,
-    /// I64, F64 and addresses: four scalar i64 words.
+    /// I64, F64 and addresses: one scalar i64 word per lane.
     W64,
 }
 
