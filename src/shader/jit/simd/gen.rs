@@ -21,7 +21,7 @@ pub(super) const F32X4: types::Type = types::F32X4;
 /// Invocations per call.
 pub(in crate::shader) const W: usize = 4;
 /// The cursor of a lane that is done (above every block index).
-const DONE: i64 = i32::MAX as i64;
+pub(super) const DONE: i64 = i32::MAX as i64;
 
 /// The spaces the SIMD backend reaches (workgroup memory needs the lane schedule of a whole
 /// workgroup, images and the rest are left to the other backends).
@@ -38,7 +38,7 @@ enum Saved {
 
 /// A register's variables.
 #[derive(Clone, Copy)]
-enum Var {
+pub(super) enum Var {
     Vec(Variable),
     Wide([Variable; W]),
     Const(u64),
@@ -48,18 +48,20 @@ pub(super) struct Gen<'p, 'b, 'f> {
     pub b: &'b mut FunctionBuilder<'f>,
     pub prog: &'p Program,
     pub types: Types,
-    vars: Vec<Var>,
-    cursor: Variable,
+    pub vars: Vec<Var>,
+    pub cursor: Variable,
     /// Blocks each lane has run (the fault-order key), and blocks the call has run (the
     /// watchdog's steps).
-    lane_steps: Variable,
-    steps: Variable,
+    pub lane_steps: Variable,
+    pub steps: Variable,
     next_poll: Variable,
-    run: Value,
+    /// Invocations still to hand out to lanes (`refill`).
+    pub left: Variable,
+    pub run: Value,
     frame: Value,
     push: Value,
     push_len: Value,
-    guards: Vec<Block>,
+    pub guards: Vec<Block>,
     /// The running block's lanes: a mask, and per lane an i8 truth value.
     pub mask: Value,
     pub on: [Value; W],
@@ -146,6 +148,7 @@ impl<'p, 'b, 'f> Gen<'p, 'b, 'f> {
         let zv = b.ins().splat(I32X4, zero32);
         let vars = declare_regs(b, prog, &types);
         let (cursor, lane_steps, steps, next_poll) = (b.declare_var(I32X4), b.declare_var(I32X4), b.declare_var(I64), b.declare_var(I64));
+        let left = b.declare_var(I64);
         b.def_var(lane_steps, zv);
         b.def_var(steps, zero64);
         let first = b.ins().iconst(I64, CHECK_EVERY as i64);
@@ -168,6 +171,7 @@ impl<'p, 'b, 'f> Gen<'p, 'b, 'f> {
             lane_steps,
             steps,
             next_poll,
+            left,
             run: p[0],
             frame: p[1],
             push: p[3],
@@ -187,30 +191,15 @@ impl<'p, 'b, 'f> Gen<'p, 'b, 'f> {
             descs: Vec::new(),
             fs,
         };
-        // Lanes past the call's invocation count start done.
-        let run = g.run;
-        let count = g.call_int(helpers::lanes as *const () as usize, &[run]);
-        let count = g.b.ins().ireduce(I32, count);
-        let count = g.b.ins().splat(I32X4, count);
-        let idx = g.lane_index();
-        let live = g.b.ins().icmp(IntCC::UnsignedLessThan, idx, count);
-        let z = g.splat32(0);
+        // Every lane starts done, with invocations to hand out (the count is the first
+        // refill's answer): the code starts at the refill past the last block.
         let done = g.splat32(DONE);
-        let c = g.b.ins().bitselect(live, z, done);
-        g.b.def_var(g.cursor, c);
-        let g0 = g.guards[0];
-        g.b.ins().jump(g0, &[]);
+        g.b.def_var(g.cursor, done);
+        let unknown = g.b.ins().iconst(I64, -1);
+        g.b.def_var(g.left, unknown);
+        let end = g.guards[prog.blocks.len()];
+        g.b.ins().jump(end, &[]);
         g
-    }
-
-    /// [0, 1, 2, 3].
-    fn lane_index(&mut self) -> Value {
-        let mut v = self.splat32(0);
-        for l in 1..W {
-            let k = self.b.ins().iconst(I32, l as i64);
-            v = self.b.ins().insertlane(v, k, l as u8);
-        }
-        v
     }
 
     pub(super) fn splat32(&mut self, k: i64) -> Value {
@@ -221,7 +210,6 @@ impl<'p, 'b, 'f> Gen<'p, 'b, 'f> {
     /// Emits every block; None when something is not compiled.
     pub(super) fn translate(&mut self) -> Option<()> {
         let prog = self.prog;
-        let n = prog.blocks.len();
         for (i, blk) in prog.blocks.iter().enumerate() {
             self.b.switch_to_block(self.guards[i]);
             let c = self.b.use_var(self.cursor);
@@ -259,10 +247,7 @@ impl<'p, 'b, 'f> Gen<'p, 'b, 'f> {
             self.flush()?;
             self.term(i as u32, blk)?;
         }
-        // Past the last block every lane is done.
-        self.b.switch_to_block(self.guards[n]);
-        let s = self.b.use_var(self.steps);
-        self.b.ins().return_(&[s]);
+        self.refill_end();
         self.b.seal_all_blocks();
         Some(())
     }
@@ -495,7 +480,7 @@ impl<'p, 'b, 'f> Gen<'p, 'b, 'f> {
             self.b.ins().brif(any, back_b, &[], fall, &[]);
             self.b.switch_to_block(back_b);
             self.poll();
-            self.b.ins().jump(self.guards[h as usize], &[]);
+            self.back_edge(i, h);
         } else {
             self.b.ins().jump(fall, &[]);
         }
@@ -526,7 +511,7 @@ impl<'p, 'b, 'f> Gen<'p, 'b, 'f> {
     }
 
     /// At a taken back edge: once the step count reaches the next poll, ask the watchdog.
-    fn poll(&mut self) {
+    pub(super) fn poll(&mut self) {
         let s = self.b.use_var(self.steps);
         let np = self.b.use_var(self.next_poll);
         let due = self.b.ins().icmp(IntCC::UnsignedGreaterThanOrEqual, s, np);

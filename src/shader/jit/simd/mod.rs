@@ -14,14 +14,14 @@ use cranelift_frontend::{FunctionBuilder, FunctionBuilderContext};
 use cranelift_jit::{JITBuilder, JITModule};
 use cranelift_module::{Linkage, Module};
 
-use super::super::exec::{init_frame, Ctx, Wg, CHECK_EVERY};
+use super::super::exec::{Ctx, Wg, CHECK_EVERY};
 use super::super::ir::{Op, Program, Sc};
-use super::super::LANES;
 use super::helpers::Run;
 use super::{account, flush, Jit};
 
 mod alu;
 mod gen;
+mod refill;
 #[cfg(test)]
 mod tests;
 mod tramp;
@@ -48,7 +48,8 @@ pub(super) fn pays(prog: &Program) -> bool {
 /// Compiles `prog` for four invocations per call, or None when it uses something this backend
 /// does not compile or code generation fails.
 pub(super) fn compile(prog: &Program) -> Option<Jit> {
-    let types = types::analyse(prog)?;
+    let mut types = types::analyse(prog)?;
+    refill::widen_blends(prog, &mut types);
     // A panic inside Cranelift must not take pipeline creation down.
     std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| build(prog, types))).ok().flatten()
 }
@@ -82,31 +83,13 @@ fn build(prog: &Program, types: types::Types) -> Option<Jit> {
     Some(Jit { code, descs, lanes: W })
 }
 
-/// Runs workgroup `wg` four invocations at a time (the last call's missing lanes start done);
-/// `frames` holds four lane frames.
+/// Runs workgroup `wg` in one call, its lanes taking the next invocation as they finish;
+/// `frames` holds `W` lane frames (the code's refills fill them).
 pub(in crate::shader) fn run_workgroup(ctx: &Ctx, jit: &Jit, wg: &mut Wg, frames: &mut [u8]) {
-    let n = ctx.local.iter().product::<u32>();
-    let id = wg.id;
-    let fs = ctx.prog.lane_frame.len();
-    let mut run = Run { ctx, wg, descs: &jit.descs, invocation: 0, pending: Vec::new(), kept: 0, accounted: 0, panic: None, lanes: 0, lane_kept: [0; 4] };
+    let mut run = Run::new(ctx, wg, &jit.descs);
     let mut next_check = run.wg.steps + CHECK_EVERY;
-    for first in (0..n).step_by(W) {
-        let lanes = (n - first).min(W as u32);
-        for l in 0..W as u32 {
-            // A missing lane's frame is filled too (it is never run, but stays well-defined).
-            init_frame(ctx, &mut frames[l as usize * fs..][..fs], id, (first + l).min(n - 1), n);
-        }
-        run.invocation = first;
-        run.lanes = lanes;
-        run.lane_kept = [0; 4];
-        run.accounted = 0;
-        let steps = jit.code.call(&mut run, frames, ctx.push);
-        if !account(&mut run, steps, &mut next_check) {
-            return;
-        }
-        if (first + W as u32).is_multiple_of(LANES as u32) {
-            flush(&mut run);
-        }
+    let steps = jit.code.call(&mut run, frames, ctx.push);
+    if account(&mut run, steps, &mut next_check) {
+        flush(&mut run);
     }
-    flush(&mut run);
 }
