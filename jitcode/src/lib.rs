@@ -118,3 +118,11 @@ impl Drop for Code {
         }
     }
 }
+
+#[cfg(test)]
+mod tests {
+    #[test]
+    fn no_frame_is_reached_outside_a_call() {
+        assert!(super::with_frame(|f| f.len()).is_none());
+    }
+}

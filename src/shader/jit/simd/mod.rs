@@ -23,6 +23,8 @@ mod alu;
 mod gen;
 mod refill;
 #[cfg(test)]
+mod refill_tests;
+#[cfg(test)]
 mod tests;
 mod tramp;
 mod types;
