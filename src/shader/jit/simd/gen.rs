@@ -54,7 +54,7 @@ pub(super) struct Gen<'p, 'b, 'f> {
     /// watchdog's steps).
     pub lane_steps: Variable,
     pub steps: Variable,
-    next_poll: Variable,
+    pub next_poll: Variable,
     /// Invocations still to hand out to lanes (`refill`).
     pub left: Variable,
     pub run: Value,
@@ -80,6 +80,8 @@ pub(super) struct Gen<'p, 'b, 'f> {
     /// `tramp`'s lane helpers (1 to 3 operands) and their buffer.
     pub tramps: [FuncRef; 3],
     pub buf: StackSlot,
+    /// `refill`'s watchdog poll that clobbers no register (set after `new`).
+    pub poll_tramp: Option<FuncRef>,
     pub descs: Vec<MemDesc>,
     /// Bytes of one lane's frame; lane `l`'s frame starts at `l * fs`.
     fs: u32,
@@ -187,6 +189,7 @@ impl<'p, 'b, 'f> Gen<'p, 'b, 'f> {
             redo: false,
             sigs,
             tramps,
+            poll_tramp: None,
             buf,
             descs: Vec::new(),
             fs,
@@ -479,7 +482,6 @@ impl<'p, 'b, 'f> Gen<'p, 'b, 'f> {
             let back_b = self.b.create_block();
             self.b.ins().brif(any, back_b, &[], fall, &[]);
             self.b.switch_to_block(back_b);
-            self.poll();
             self.back_edge(i, h);
         } else {
             self.b.ins().jump(fall, &[]);

@@ -70,12 +70,15 @@ fn build(prog: &Program, types: types::Types) -> Option<Jit> {
     sig.returns.push(AbiParam::new(cl::I64));
     let id = module.declare_function("invocations4", Linkage::Export, &sig).ok()?;
     let tramps = tramp::define(&mut module, call_conv)?;
+    let poll_tramp = refill::define_poll(&mut module, call_conv)?;
     let mut ctx = module.make_context();
     ctx.func = Function::with_name_signature(UserFuncName::user(0, id.as_u32()), sig);
     let tramps = tramps.map(|t| module.declare_func_in_func(t, &mut ctx.func));
+    let poll_tramp = module.declare_func_in_func(poll_tramp, &mut ctx.func);
     let mut fctx = FunctionBuilderContext::new();
     let mut b = FunctionBuilder::new(&mut ctx.func, &mut fctx);
     let mut gen = gen::Gen::new(&mut b, prog, types, call_conv, tramps);
+    gen.poll_tramp = Some(poll_tramp);
     gen.translate()?;
     let descs = std::mem::take(&mut gen.descs);
     b.finalize(module.isa().frontend_config());
