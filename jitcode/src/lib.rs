@@ -8,7 +8,8 @@
 //! memory access it makes either goes through a helper (safe Rust, reached with the context
 //! reference it was given) or is an inline access to the lane frame(s) or push constants
 //! guarded by a bounds check against the lengths passed here (the SIMD entry first checks that
-//! the frame holds its four lane frames).
+//! the frame holds its lane frames). The helpers reach the running call's frame only through
+//! `with_frame`, while the code is suspended in them.
 use std::cell::Cell;
 
 use cranelift_codegen::ir::{types, AbiParam, Signature};

@@ -1,4 +1,5 @@
-//! The SIMD native-code backend: four invocations per call, in Cranelift's 128-bit vector types.
+//! The SIMD native-code backend: a workgroup per call on four lanes, in Cranelift's 128-bit
+//! vector types; a lane whose invocation has ended takes the workgroup's next one (`refill`).
 //!
 //! Registers take one form each (`types`): I32/F32 one i32x4 vector, Bool one lane mask, I64,
 //! F64 and addresses four scalar words. Blocks run under an execution mask in the
@@ -34,9 +35,9 @@ pub(in crate::shader) use gen::W;
 /// Whether the SIMD backend is the faster choice for `prog`: loops in which F32 arithmetic is
 /// at least an eighth of the ops. Four lanes of float math per instruction (sin/cos/exp
 /// vectorised) beat the scalar JIT there (compute-alu); loops of integer ops and branches
-/// (compute-divergent), whose lanes idle while others finish their loop, and lone buffer
-/// accesses (compute-memory, a helper call per lane either way) measured slower than on the
-/// scalar JIT (docs/BENCHMARKS.md).
+/// (compute-divergent: with lane refill the lanes stay busy, but the loop's vectors live in
+/// stack slots) and lone buffer accesses (compute-memory, a helper call per lane either way)
+/// measured slower than on the scalar JIT.
 pub(super) fn pays(prog: &Program) -> bool {
     let in_loop = super::codegen::loop_blocks(prog);
     let (mut ops, mut float) = (0usize, 0usize);
@@ -47,7 +48,7 @@ pub(super) fn pays(prog: &Program) -> bool {
     float > 0 && float * 8 >= ops
 }
 
-/// Compiles `prog` for four invocations per call, or None when it uses something this backend
+/// Compiles `prog` for the SIMD backend (a workgroup per call), or None when it uses something this backend
 /// does not compile or code generation fails.
 pub(super) fn compile(prog: &Program) -> Option<Jit> {
     let mut types = types::analyse(prog)?;
