@@ -34,10 +34,11 @@ pub(in crate::shader) use gen::W;
 
 /// Whether the SIMD backend is the faster choice for `prog`: loops in which F32 arithmetic is
 /// at least an eighth of the ops. Four lanes of float math per instruction (sin/cos/exp
-/// vectorised) beat the scalar JIT there (compute-alu); loops of integer ops and branches
-/// (compute-divergent: with lane refill the lanes stay busy, but the loop's vectors live in
-/// stack slots) and lone buffer accesses (compute-memory, a helper call per lane either way)
-/// measured slower than on the scalar JIT.
+/// vectorised) beat the scalar JIT there (compute-alu). Loops of integer ops and branches
+/// (compute-divergent) run with lane refill about as fast as on the scalar JIT, not enough
+/// faster to choose them (the cursor and block counts still live in stack slots across the
+/// per-lane memory calls), and lone buffer accesses (compute-memory, a helper call per lane
+/// either way) measured slower.
 pub(super) fn pays(prog: &Program) -> bool {
     let in_loop = super::codegen::loop_blocks(prog);
     let (mut ops, mut float) = (0usize, 0usize);
