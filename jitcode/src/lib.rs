@@ -8,7 +8,10 @@
 //! memory access it makes either goes through a helper (safe Rust, reached with the context
 //! reference it was given) or is an inline access to the lane frame(s) or push constants
 //! guarded by a bounds check against the lengths passed here (the SIMD entry first checks that
-//! the frame holds its four lane frames).
+//! the frame holds its lane frames). The helpers reach the running call's frame only through
+//! `with_frame`, while the code is suspended in them.
+use std::cell::Cell;
+
 use cranelift_codegen::ir::{types, AbiParam, Signature};
 use cranelift_jit::JITModule;
 use cranelift_module::{FuncId, Module, ModuleError};
@@ -55,10 +58,56 @@ impl Code {
 
     /// Runs the entry point with `context` (which the code passes on, unread, to the helpers it
     /// calls) over one invocation's `frame` and the push constants.
+    /// While the code runs, `with_frame` on this thread reaches `frame` (the helpers the code
+    /// calls fill lane frames there).
     #[inline]
     pub fn call<T>(&self, context: &mut T, frame: &mut [u8], push: &[u8]) -> u64 {
-        (self.entry)(context as *mut T as *mut u8, frame.as_mut_ptr(), frame.len() as u64, push.as_ptr(), push.len() as u64)
+        let ptr = frame.as_mut_ptr();
+        let len = frame.len();
+        let _lent = Lent::new(ptr, len);
+        (self.entry)(context as *mut T as *mut u8, ptr, len as u64, push.as_ptr(), push.len() as u64)
     }
+}
+
+thread_local! {
+    /// The frame of the call running on this thread (null when none, or while `with_frame`
+    /// has it).
+    static FRAME: Cell<(*mut u8, usize)> = const { Cell::new((std::ptr::null_mut(), 0)) };
+}
+
+/// Records a call's frame for its duration; restores the outer call's (a helper may run code
+/// itself) when the call returns or unwinds.
+struct Lent((*mut u8, usize));
+
+impl Lent {
+    fn new(ptr: *mut u8, len: usize) -> Lent {
+        Lent(FRAME.with(|f| f.replace((ptr, len))))
+    }
+}
+
+impl Drop for Lent {
+    fn drop(&mut self) {
+        FRAME.with(|f| f.set(self.0));
+    }
+}
+
+/// Runs `f` over the frame of the code running on this thread: for the helpers that code calls
+/// (safe Rust with no other way to the frame, which the call borrows). None outside a call, or
+/// inside another `with_frame`.
+pub fn with_frame<R>(f: impl FnOnce(&mut [u8]) -> R) -> Option<R> {
+    let (ptr, len) = FRAME.with(|c| c.replace((std::ptr::null_mut(), 0)));
+    if ptr.is_null() {
+        return None;
+    }
+    // Gives the frame back when `f` returns or unwinds.
+    let _back = Lent((ptr, len));
+    // SAFETY: `ptr` and `len` are the slice `Code::call` borrowed exclusively for the call
+    // still running on this thread (a finished call restores the slot it found, so a recorded
+    // frame always belongs to a live call). The generated code is suspended inside the helper
+    // that reached here and touches the frame again only after it returns, which is after `f`
+    // has; the slot is empty while `f` runs, so no second slice of it exists at once.
+    let frame = unsafe { std::slice::from_raw_parts_mut(ptr, len) };
+    Some(f(frame))
 }
 
 impl Drop for Code {
@@ -68,5 +117,13 @@ impl Drop for Code {
             // start: every call borrows `self`.
             unsafe { module.free_memory() };
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    #[test]
+    fn no_frame_is_reached_outside_a_call() {
+        assert!(super::with_frame(|f| f.len()).is_none());
     }
 }

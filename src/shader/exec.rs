@@ -275,33 +275,38 @@ fn init_group(ctx: &Ctx, group: &mut Group, wg: &Wg, g: u32, n: u32) {
 pub(super) fn init_frame(ctx: &Ctx, frame: &mut [u8], id: [u32; 3], index: u32, n: u32) {
     let [lx, ly, lz] = ctx.local;
     let groups = n.div_ceil(LANES as u32);
-    let (g, l) = (index / LANES as u32, index as usize % LANES);
-    frame.copy_from_slice(&ctx.prog.lane_frame);
+    let (g, l) = (index / LANES as u32, index % LANES as u32);
     let local = [index % lx, (index / lx) % ly, index / (lx * ly)];
     let global = [0, 1, 2].map(|i| id[i].wrapping_mul(ctx.local[i]).wrapping_add(local[i]));
     let all = (1u32 << LANES) - 1;
-    let words: [(u32, &[u32]); 15] = [
-        (bo::GLOBAL_INVOCATION_ID, &global),
-        (bo::LOCAL_INVOCATION_ID, &local),
-        (bo::WORKGROUP_ID, &id),
-        (bo::NUM_WORKGROUPS, &ctx.num_groups),
-        (bo::LOCAL_INVOCATION_INDEX, &[index]),
-        (bo::WORKGROUP_SIZE, &[lx, ly, lz]),
-        (bo::SUBGROUP_SIZE, &[LANES as u32]),
-        (bo::SUBGROUP_LOCAL_INVOCATION_ID, &[l as u32]),
-        (bo::SUBGROUP_ID, &[g]),
-        (bo::NUM_SUBGROUPS, &[groups]),
-        (bo::SUBGROUP_EQ_MASK, &[1 << l, 0, 0, 0]),
-        (bo::SUBGROUP_GE_MASK, &[all & !((1 << l) - 1), 0, 0, 0]),
-        (bo::SUBGROUP_GT_MASK, &[all & !((2 << l) - 1), 0, 0, 0]),
-        (bo::SUBGROUP_LE_MASK, &[(2 << l) - 1, 0, 0, 0]),
-        (bo::SUBGROUP_LT_MASK, &[(1 << l) - 1, 0, 0, 0]),
-    ];
-    for (at, vals) in words {
-        for (k, v) in vals.iter().enumerate() {
-            let o = at as usize + 4 * k;
-            frame[o..o + 4].copy_from_slice(&v.to_le_bytes());
-        }
+    // The built-ins fill the whole area before `END` (a mask's upper words are zero): one
+    // array written in one pass, a frame per invocation being filled in the backends' inner
+    // loop.
+    let mut w = [0u32; bo::END as usize / 4];
+    let mut put = |at: u32, vals: &[u32]| w[at as usize / 4..][..vals.len()].copy_from_slice(vals);
+    put(bo::GLOBAL_INVOCATION_ID, &global);
+    put(bo::LOCAL_INVOCATION_ID, &local);
+    put(bo::WORKGROUP_ID, &id);
+    put(bo::NUM_WORKGROUPS, &ctx.num_groups);
+    put(bo::LOCAL_INVOCATION_INDEX, &[index]);
+    put(bo::WORKGROUP_SIZE, &[lx, ly, lz]);
+    put(bo::SUBGROUP_SIZE, &[LANES as u32]);
+    put(bo::SUBGROUP_LOCAL_INVOCATION_ID, &[l]);
+    put(bo::SUBGROUP_ID, &[g]);
+    put(bo::NUM_SUBGROUPS, &[groups]);
+    put(bo::SUBGROUP_EQ_MASK, &[1 << l]);
+    put(bo::SUBGROUP_GE_MASK, &[all & !((1 << l) - 1)]);
+    put(bo::SUBGROUP_GT_MASK, &[all & !((2 << l) - 1)]);
+    put(bo::SUBGROUP_LE_MASK, &[(2 << l) - 1]);
+    put(bo::SUBGROUP_LT_MASK, &[(1 << l) - 1]);
+    let end = (bo::END as usize).min(frame.len());
+    let (head, tail) = frame.split_at_mut(end);
+    for (d, v) in head.chunks_exact_mut(4).zip(w) {
+        d.copy_from_slice(&v.to_le_bytes());
+    }
+    // The rest is the program's initial contents (Private and Function variables).
+    if let Some(init) = ctx.prog.lane_frame.get(end..).filter(|t| t.len() == tail.len()) {
+        tail.copy_from_slice(init);
     }
 }
 

@@ -3,13 +3,14 @@
 //! ops it does not emit inline); `mem` runs the interpreter's `access_one` for every access that
 //! is not an in-bounds lane-frame or push-constant access; `poll` is the watchdog.
 use super::super::alu;
-use super::super::exec::{check_watchdog, Ctx, Wg, CHECK_EVERY};
+use super::super::exec::{check_watchdog, init_frame, Ctx, Wg, CHECK_EVERY};
 use super::super::exec_alu::{exec_bin, exec_tri, exec_un};
 use super::super::exec_mem::{access_one, Access};
 use super::super::ir::{AtomicOp, BinOp, Sc, Space, TriOp, UnOp, ELEMENT_SHIFT};
 use super::super::memory::{Fault, FaultSpace};
 use super::super::vmath;
 use super::super::LANES;
+use super::simd::W;
 
 /// Faults kept per workgroup (the interpreter's limit).
 pub(super) const MAX_FAULTS: usize = 16;
@@ -34,9 +35,10 @@ pub(super) struct MemDesc {
     pub kind: MemKind,
 }
 
-/// Where a fault stands in the interpreter's order inside one lane group: the invocation's
-/// block count, the site, the lane.
-pub(super) type FaultKey = (u64, u32, u32);
+/// Where a fault stands in the interpreter's order inside one workgroup: the invocation's lane
+/// group, its progress (blocks run on the scalar backend, back edges taken on the SIMD one),
+/// the site, its lane in the group.
+pub(super) type FaultKey = (u32, u64, u32, u32);
 
 /// The context every helper gets: the dispatch, this workgroup, and the running invocation.
 pub(super) struct Run<'r, 'a> {
@@ -44,37 +46,66 @@ pub(super) struct Run<'r, 'a> {
     pub wg: &'r mut Wg,
     pub descs: &'r [MemDesc],
     pub invocation: u32,
-    /// This lane group's faults, sorted into the interpreter's order when the group is done.
+    /// This workgroup's faults, sorted into the interpreter's order when it is done.
     pub pending: Vec<(FaultKey, Fault)>,
     /// Faults of the running invocation kept in `pending` (the first `MAX_FAULTS` are all a
     /// workgroup's report can need).
     pub kept: usize,
-    /// Steps of the running invocation already added to the workgroup's count.
+    /// Steps of the running call already added to the workgroup's count.
     pub accounted: u64,
     /// A panic caught in a helper (a `Memory` implementation's): unwinding cannot cross the
     /// generated code, so the helper keeps it, later helpers do nothing, the next poll stops
     /// the invocation, and the caller resumes the unwind once the code has returned.
     pub panic: Option<Box<dyn std::any::Any + Send>>,
-    /// SIMD calls: how many of the call's lanes hold an invocation (`invocation` is the first
-    /// one's index), and each lane's `kept`.
-    pub lanes: u32,
-    pub lane_kept: [usize; super::simd::W],
+    /// SIMD calls (a whole workgroup each): every lane's invocation and `kept`, the next
+    /// invocation to hand out and the workgroup's count.
+    pub lane_inv: [u32; W],
+    pub lane_kept: [usize; W],
+    pub next: u32,
+    pub count: u32,
 }
 
-/// SIMD calls: how many lanes of this call run an invocation (the others start done).
-pub(super) extern "C" fn lanes(run: &mut Run) -> u64 {
-    run.lanes as u64
+impl<'r, 'a> Run<'r, 'a> {
+    pub fn new(ctx: &'r Ctx<'a>, wg: &'r mut Wg, descs: &'r [MemDesc]) -> Self {
+        let count = ctx.local.iter().product::<u32>();
+        Run { ctx, wg, descs, invocation: 0, pending: Vec::new(), kept: 0, accounted: 0, panic: None, lane_inv: [0; W], lane_kept: [0; W], next: 0, count }
+    }
 }
 
-/// SIMD calls: `mem` for lane `lane` of the call (invocation `invocation + lane`).
+/// SIMD calls: hands the next invocations to the lanes in `done` (a bit per lane) and fills
+/// their frames. The lanes refilled (a bit each) in the low word, the invocations still to hand
+/// out in the high word.
+pub(super) extern "C" fn refill(run: &mut Run, done: u64) -> u64 {
+    if run.panic.is_some() {
+        return 0;
+    }
+    let fs = run.ctx.prog.lane_frame.len();
+    let (ctx, id, count) = (run.ctx, run.wg.id, run.count);
+    let mut got = 0u64;
+    for l in (0..W).filter(|&l| done >> l & 1 != 0) {
+        if run.next >= count {
+            break;
+        }
+        let inv = run.next;
+        let filled = arbor_jitcode::with_frame(|frame| frame.get_mut(l * fs..(l + 1) * fs).map(|f| init_frame(ctx, f, id, inv, count)).is_some());
+        if filled != Some(true) {
+            break;
+        }
+        run.next += 1;
+        run.lane_inv[l] = inv;
+        run.lane_kept[l] = 0;
+        got |= 1 << l;
+    }
+    got | ((count - run.next) as u64) << 32
+}
+
+/// SIMD calls: `mem` for lane `lane` of the call.
 pub(super) extern "C" fn mem_lane(run: &mut Run, desc: u64, at: u64, a: u64, b: u64, steps: u64, lane: u64) -> u64 {
-    let lane = lane as usize % super::simd::W;
-    let first = run.invocation;
-    run.invocation = first + lane as u32;
+    let lane = lane as usize % W;
+    run.invocation = run.lane_inv[lane];
     run.kept = run.lane_kept[lane];
     let v = mem(run, desc, at, a, b, steps);
     run.lane_kept[lane] = run.kept;
-    run.invocation = first;
     v
 }
 
@@ -110,7 +141,8 @@ fn access(run: &mut Run, desc: u64, at: u64, a: u64, b: u64, steps: u64) -> u64 
                 let at = if matches!(fspace, FaultSpace::ArrayElement { .. }) { at & ((1 << ELEMENT_SHIFT) - 1) } else { at };
                 let write = !matches!(acc, Access::Read);
                 let fault = Fault { kind, space: fspace, at, len: d.ty.size(), write, workgroup: run.wg.id, invocation: run.invocation };
-                run.pending.push(((steps, desc as u32, run.invocation % LANES as u32), fault));
+                let inv = run.invocation;
+                run.pending.push(((inv / LANES as u32, steps, desc as u32, inv % LANES as u32), fault));
             }
             0
         }

@@ -6,11 +6,14 @@
 //! and reports the same faults. The one unsafe step, calling the finalized code, is in the
 //! `arbor-jitcode` crate.
 //!
-//! Fault order: the interpreter records a lane group's faults op by op, lane by lane; the JIT
-//! keys each fault by (blocks the invocation has run, site, lane) and sorts a lane group's
-//! faults by that key, which is the interpreter's order wherever the group's lanes run the
-//! same blocks up to the faulting access (and the same records, ordered by that key, where
-//! they do not).
+//! Fault order: the interpreter records a workgroup's faults lane group by lane group, op by
+//! op, lane by lane; the JIT keys each fault by (lane group, progress, site, lane) and sorts by
+//! that key, whatever order the invocations ran in. Progress is the invocation's block count on
+//! the scalar backend and its taken back edges on the SIMD one (the interpreter's lanes run a
+//! loop's rounds in step, a round's blocks in index order, which is also site order): the
+//! interpreter's order wherever a group's lanes take the same back edges up to the faulting
+//! access, acyclic divergence included (and the same records, ordered by that key, where
+//! their loops run different round counts).
 //!
 //! Steps: the watchdog's step count is the sum of the blocks every invocation ran (the
 //! interpreter counts lane-group block runs), polled at back edges every `CHECK_EVERY` blocks of
@@ -39,8 +42,8 @@ use helpers::{MemDesc, Run, MAX_FAULTS, STOPPED};
 pub(crate) struct Jit {
     code: arbor_jitcode::Code,
     descs: Vec<MemDesc>,
-    /// Invocations per call: 1 (`codegen`) or 4 (`simd`); a call's frame holds that many lane
-    /// frames.
+    /// Lanes per call: 1 (`codegen`, one invocation per call) or `simd::W` (`simd`, a
+    /// workgroup per call); a call's frame holds that many lane frames.
     pub(super) lanes: usize,
 }
 
@@ -85,7 +88,7 @@ pub(crate) fn for_pipeline(prog: &Program) -> Option<Jit> {
     }
 }
 
-/// Compiles `prog` for the SIMD backend (four invocations per call), or None.
+/// Compiles `prog` for the SIMD backend (a workgroup per call on four lanes), or None.
 pub(crate) fn compile_simd(prog: &Program) -> Option<Jit> {
     if !cfg!(target_arch = "x86_64") {
         return None;
@@ -130,7 +133,7 @@ fn build(prog: &Program) -> Option<Jit> {
     Some(Jit { code, descs, lanes: 1 })
 }
 
-/// Runs workgroup `wg` invocation by invocation (or four at a time on the SIMD backend);
+/// Runs workgroup `wg` invocation by invocation (or in one call on the SIMD backend);
 /// `frame` is this thread's buffer of `jit.lanes` lane frames.
 pub(super) fn run_workgroup(ctx: &Ctx, jit: &Jit, wg: &mut Wg, frame: &mut [u8]) {
     if jit.lanes == simd::W {
@@ -138,7 +141,7 @@ pub(super) fn run_workgroup(ctx: &Ctx, jit: &Jit, wg: &mut Wg, frame: &mut [u8])
     }
     let n = ctx.local.iter().product::<u32>();
     let id = wg.id;
-    let mut run = Run { ctx, wg, descs: &jit.descs, invocation: 0, pending: Vec::new(), kept: 0, accounted: 0, panic: None, lanes: 1, lane_kept: [0; simd::W] };
+    let mut run = Run::new(ctx, wg, &jit.descs);
     let mut next_check = run.wg.steps + CHECK_EVERY;
     for index in 0..n {
         init_frame(ctx, frame, id, index, n);

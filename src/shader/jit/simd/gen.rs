@@ -14,7 +14,6 @@ use cranelift_frontend::{FunctionBuilder, Variable};
 
 use super::super::super::exec::CHECK_EVERY;
 use super::super::super::ir::{self, Op, Program, Sc, Space, Term};
-use super::super::super::LANES;
 use super::super::codegen::vmath::splat_const;
 use super::super::helpers::{self, MemDesc, STOPPED};
 use super::types::{Cls, Types};
@@ -31,7 +30,7 @@ pub(in crate::shader) const W: usize = 4 * PARTS;
 /// A vector register's value: lane `l` is lane `l % 4` of part `l / 4`.
 pub(super) type V = [Value; PARTS];
 /// The cursor of a lane that is done (above every block index).
-const DONE: i64 = i32::MAX as i64;
+pub(super) const DONE: i64 = i32::MAX as i64;
 
 /// The spaces the SIMD backend reaches (workgroup memory needs the lane schedule of a whole
 /// workgroup, images and the rest are left to the other backends).
@@ -48,7 +47,7 @@ enum Saved {
 
 /// A register's variables.
 #[derive(Clone, Copy)]
-enum Var {
+pub(super) enum Var {
     Vec([Variable; PARTS]),
     Wide([Variable; W]),
     Const(u64),
@@ -58,24 +57,27 @@ pub(super) struct Gen<'p, 'b, 'f> {
     pub b: &'b mut FunctionBuilder<'f>,
     pub prog: &'p Program,
     pub types: Types,
-    vars: Vec<Var>,
-    cursor: [Variable; PARTS],
-    /// Blocks each lane has run (the fault-order key of a call that is not one lane group:
-    /// None when it is), and blocks the call has run (the watchdog's steps).
-    pub lane_steps: Option<[Variable; PARTS]>,
+    pub vars: Vec<Var>,
+    pub cursor: [Variable; PARTS],
+    /// Back edges each lane has taken (with the site, the fault-order key: the interpreter's
+    /// lanes run a loop's rounds in step, the blocks of a round in index order), and blocks
+    /// the call has run (the watchdog's steps).
+    pub lane_steps: [Variable; PARTS],
     pub steps: Variable,
-    next_poll: Variable,
+    pub next_poll: Variable,
+    /// Invocations still to hand out to lanes (`refill`).
+    pub left: Variable,
     pub run: Value,
     pub frame: Value,
     pub push: Value,
     pub push_len: Value,
-    guards: Vec<Block>,
+    pub guards: Vec<Block>,
     /// The running block's lanes: a mask, and per lane an i8 truth value (made only for
     /// blocks whose ops go lane by lane).
     pub mask: V,
     pub on: [Value; W],
     /// The block being emitted.
-    block: usize,
+    pub block: usize,
     /// The run of pure ops since the last memory op or block start: the ops, the values the
     /// registers they read had before it, the registers it wrote, and whether a float result
     /// in it was a NaN in some lane (`redo`: the run is being emitted again through the
@@ -91,9 +93,13 @@ pub(super) struct Gen<'p, 'b, 'f> {
     /// `tramp`'s lane helpers (1 to 3 operands) and their buffer.
     pub tramps: [FuncRef; 3],
     pub buf: StackSlot,
+    /// `refill`'s watchdog poll that clobbers no register (set after `new`).
+    pub poll_tramp: Option<FuncRef>,
     pub descs: Vec<MemDesc>,
     /// Bytes of one lane's frame; lane `l`'s frame starts at `l * fs`.
     pub fs: u32,
+    /// Per block, the header of the outermost loop holding it (`refill::outermost_loops`).
+    pub outer: Vec<Option<u32>>,
 }
 
 fn sig(call_conv: cranelift_codegen::isa::CallConv, n: usize) -> Signature {
@@ -167,9 +173,9 @@ impl<'p, 'b, 'f> Gen<'p, 'b, 'f> {
         let zv = b.ins().splat(I32X4, zero32);
         let vars = declare_regs(b, prog, &types);
         let cursor = std::array::from_fn(|_| b.declare_var(I32X4));
-        let lane_steps = (W != LANES).then(|| std::array::from_fn(|_| b.declare_var(I32X4)));
-        let (steps, next_poll) = (b.declare_var(I64), b.declare_var(I64));
-        lane_steps.iter().flatten().for_each(|&v| b.def_var(v, zv));
+        let lane_steps: [Variable; PARTS] = std::array::from_fn(|_| b.declare_var(I32X4));
+        let (steps, next_poll, left) = (b.declare_var(I64), b.declare_var(I64), b.declare_var(I64));
+        lane_steps.iter().for_each(|&v| b.def_var(v, zv));
         b.def_var(steps, zero64);
         let first = b.ins().iconst(I64, CHECK_EVERY as i64);
         b.def_var(next_poll, first);
@@ -191,6 +197,7 @@ impl<'p, 'b, 'f> Gen<'p, 'b, 'f> {
             lane_steps,
             steps,
             next_poll,
+            left,
             run: p[0],
             frame: p[1],
             push: p[3],
@@ -207,39 +214,23 @@ impl<'p, 'b, 'f> Gen<'p, 'b, 'f> {
             redo: false,
             sigs,
             tramps,
+            poll_tramp: None,
             buf,
             descs: Vec::new(),
             fs,
+            outer: super::refill::outermost_loops(prog),
         };
-        // Lanes past the call's invocation count start done.
-        let run = g.run;
-        let count = g.call_int(helpers::lanes as *const () as usize, &[run]);
-        let count = g.b.ins().ireduce(I32, count);
-        let count = g.b.ins().splat(I32X4, count);
-        let idx = g.lane_index();
-        let z = g.splat32(0);
+        // Every lane starts done, with invocations to hand out (the count is the first
+        // refill's answer): the code starts at the refill past the last block.
         let done = g.splat32(DONE);
-        for (p, idx) in idx.into_iter().enumerate() {
-            let live = g.b.ins().icmp(IntCC::UnsignedLessThan, idx, count);
-            let c = g.b.ins().bitselect(live, z[p], done[p]);
-            g.b.def_var(g.cursor[p], c);
+        for (&c, &d) in g.cursor.iter().zip(&done) {
+            g.b.def_var(c, d);
         }
-        let g0 = g.guards[0];
-        g.b.ins().jump(g0, &[]);
+        let unknown = g.b.ins().iconst(I64, -1);
+        g.b.def_var(g.left, unknown);
+        let end = g.guards[prog.blocks.len()];
+        g.b.ins().jump(end, &[]);
         g
-    }
-
-    /// Each lane's index: [0, 1, 2, 3], [4, 5, 6, 7], …
-    fn lane_index(&mut self) -> V {
-        std::array::from_fn(|p| {
-            let k = self.b.ins().iconst(I32, 4 * p as i64);
-            let mut v = self.b.ins().splat(I32X4, k);
-            for l in 1..4 {
-                let k = self.b.ins().iconst(I32, (4 * p + l) as i64);
-                v = self.b.ins().insertlane(v, k, l as u8);
-            }
-            v
-        })
     }
 
     pub(super) fn splat32(&mut self, k: i64) -> V {
@@ -271,7 +262,6 @@ impl<'p, 'b, 'f> Gen<'p, 'b, 'f> {
     /// Emits every block; None when something is not compiled.
     pub(super) fn translate(&mut self) -> Option<()> {
         let prog = self.prog;
-        let n = prog.blocks.len();
         for (i, blk) in prog.blocks.iter().enumerate() {
             self.b.switch_to_block(self.guards[i]);
             let c = self.cursors();
@@ -292,11 +282,6 @@ impl<'p, 'b, 'f> Gen<'p, 'b, 'f> {
             let s = self.b.use_var(self.steps);
             let s = self.b.ins().iadd_imm_s(s, 1);
             self.b.def_var(self.steps, s);
-            for (p, &v) in self.lane_steps.iter().flatten().enumerate() {
-                let ls = self.b.use_var(v);
-                let ls = self.b.ins().isub(ls, m[p]);
-                self.b.def_var(v, ls);
-            }
             for &(dst, tmp) in &blk.phi_in {
                 self.mov(dst, tmp);
             }
@@ -313,10 +298,7 @@ impl<'p, 'b, 'f> Gen<'p, 'b, 'f> {
             self.flush()?;
             self.term(i as u32, blk)?;
         }
-        // Past the last block every lane is done.
-        self.b.switch_to_block(self.guards[n]);
-        let s = self.b.use_var(self.steps);
-        self.b.ins().return_(&[s]);
+        self.refill_end();
         self.b.seal_all_blocks();
         Some(())
     }
@@ -533,7 +515,13 @@ impl<'p, 'b, 'f> Gen<'p, 'b, 'f> {
         for (&var, &v) in self.cursor.iter().zip(&moved) {
             self.b.def_var(var, v);
         }
-        let mut targets: Vec<u32> = blk.edge_moves.iter().map(|e| e.target).collect();
+        let back: Vec<u32> = match &blk.term {
+            Term::Jump(t) => vec![*t],
+            Term::Cond { t, f, .. } => vec![*t, *f],
+            Term::Switch { default, cases, .. } => cases.iter().map(|c| c.1).chain([*default]).collect(),
+            _ => vec![],
+        };
+        let mut targets: Vec<u32> = blk.edge_moves.iter().map(|e| e.target).chain(back.iter().copied().filter(|&t| (t as usize) < self.outer.len() && self.outer[t as usize] == Some(t))).collect();
         targets.sort_unstable();
         targets.dedup();
         for t in targets {
@@ -543,25 +531,25 @@ impl<'p, 'b, 'f> Gen<'p, 'b, 'f> {
             for e in blk.edge_moves.iter().filter(|e| e.target == t) {
                 self.edge_move(lanes, e.dst, e.src);
             }
+            self.enter_loop(i, t, lanes);
         }
-        let back: Vec<u32> = match &blk.term {
-            Term::Jump(t) => vec![*t],
-            Term::Cond { t, f, .. } => vec![*t, *f],
-            Term::Switch { default, cases, .. } => cases.iter().map(|c| c.1).chain([*default]).collect(),
-            _ => vec![],
-        };
         let header = back.into_iter().filter(|&t| t <= i).min();
         let fall = self.guards[i as usize + 1];
         if let Some(h) = header {
             let iv = self.splat32(i as i64);
             let took = self.map2(next, iv, |b, n, i| b.ins().icmp(IntCC::UnsignedLessThanOrEqual, n, i));
             let took = self.map2(took, m, |b, t, m| b.ins().band(t, m));
+            // The fault-order key counts each lane's taken back edges (`lane_steps`).
+            for (p, &v) in self.lane_steps.iter().enumerate() {
+                let ls = self.b.use_var(v);
+                let ls = self.b.ins().isub(ls, took[p]);
+                self.b.def_var(v, ls);
+            }
             let any = self.any(took);
             let back_b = self.b.create_block();
             self.b.ins().brif(any, back_b, &[], fall, &[]);
             self.b.switch_to_block(back_b);
-            self.poll();
-            self.b.ins().jump(self.guards[h as usize], &[]);
+            self.back_edge(i, h);
         } else {
             self.b.ins().jump(fall, &[]);
         }
@@ -594,7 +582,7 @@ impl<'p, 'b, 'f> Gen<'p, 'b, 'f> {
     }
 
     /// At a taken back edge: once the step count reaches the next poll, ask the watchdog.
-    fn poll(&mut self) {
+    pub(super) fn poll(&mut self) {
         let s = self.b.use_var(self.steps);
         let np = self.b.use_var(self.next_poll);
         let due = self.b.ins().icmp(IntCC::UnsignedGreaterThanOrEqual, s, np);

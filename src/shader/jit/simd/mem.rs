@@ -5,7 +5,6 @@ use cranelift_codegen::ir::condcodes::IntCC;
 use cranelift_codegen::ir::{InstBuilder, MemFlagsData, Value};
 
 use super::super::super::ir::{self, AtomicOp, Sc, Space};
-use super::super::super::LANES;
 use super::super::helpers::{self, MemDesc, MemKind};
 use super::gen::{space_ok, Gen, I32, I64, W};
 
@@ -23,19 +22,8 @@ impl Gen<'_, '_, '_> {
         self.b.ins().brif(self.on[l], call_b, &[], join, &[z.into()]);
         self.b.switch_to_block(call_b);
         let dv = self.b.ins().iconst(I64, d);
-        let s = match self.lane_steps {
-            // A call that is one lane group runs the interpreter's schedule: its step count
-            // orders faults as the interpreter meets them.
-            None => self.b.use_var(self.steps),
-            Some(ls) => {
-                let ls = self.b.use_var(ls[l / 4]);
-                let s = self.b.ins().extractlane(ls, (l % 4) as u8);
-                let s = self.b.ins().uextend(I64, s);
-                // The interpreter runs lane group after lane group: a call wider than one
-                // group orders its faults by group first.
-                if l >= LANES { self.b.ins().iadd_imm_s(s, ((l / LANES) as i64) << 32) } else { s }
-            }
-        };
+        // `helpers` keys its faults by lane group, then this.
+        let s = self.fault_progress(l);
         let lane = self.b.ins().iconst(I64, l as i64);
         let run = self.run;
         let v = self.call_int(helpers::mem_lane as *const () as usize, &[run, dv, at, a, b, s, lane]);

@@ -1,5 +1,6 @@
-//! The SIMD native-code backend: `W` invocations per call (one lane group of eight), in
-//! Cranelift's 128-bit vector types.
+//! The SIMD native-code backend: a workgroup per call on `W` lanes (one interpreter lane group
+//! of eight), in Cranelift's 128-bit vector types; a lane whose invocation has ended takes the
+//! workgroup's next one (`refill`).
 //!
 //! Registers take one form each (`types`): I32/F32 `PARTS` i32x4 vectors, Bool as many lane
 //! masks, I64, F64 and addresses `W` scalar words. Blocks run under an execution mask in the
@@ -15,15 +16,17 @@ use cranelift_frontend::{FunctionBuilder, FunctionBuilderContext};
 use cranelift_jit::{JITBuilder, JITModule};
 use cranelift_module::{Linkage, Module};
 
-use super::super::exec::{init_frame, Ctx, Wg, CHECK_EVERY};
+use super::super::exec::{Ctx, Wg, CHECK_EVERY};
 use super::super::ir::{Op, Program, Sc};
-use super::super::LANES;
 use super::helpers::Run;
 use super::{account, flush, Jit};
 
 mod alu;
 mod gen;
 mod mem;
+mod refill;
+#[cfg(test)]
+mod refill_tests;
 #[cfg(test)]
 mod tests;
 mod tramp;
@@ -33,10 +36,11 @@ pub(in crate::shader) use gen::W;
 
 /// Whether the SIMD backend is the faster choice for `prog`: loops in which F32 arithmetic is
 /// at least an eighth of the ops. Four lanes of float math per instruction (sin/cos/exp
-/// vectorised) beat the scalar JIT there (compute-alu); loops of integer ops and branches
-/// (compute-divergent), whose lanes idle while others finish their loop, and lone buffer
-/// accesses (compute-memory, a helper call per lane either way) measured slower than on the
-/// scalar JIT (docs/BENCHMARKS.md).
+/// vectorised) beat the scalar JIT there (compute-alu). Loops of integer ops and branches
+/// (compute-divergent) run with lane refill about as fast as on the scalar JIT, not enough
+/// faster to choose them (the cursor and block counts still live in stack slots across the
+/// per-lane memory calls), and lone buffer accesses (compute-memory, a helper call per lane
+/// either way) measured slower.
 pub(super) fn pays(prog: &Program) -> bool {
     let in_loop = super::codegen::loop_blocks(prog);
     let (mut ops, mut float) = (0usize, 0usize);
@@ -47,10 +51,11 @@ pub(super) fn pays(prog: &Program) -> bool {
     float > 0 && float * 8 >= ops
 }
 
-/// Compiles `prog` for `W` invocations per call, or None when it uses something this backend
-/// does not compile or code generation fails.
+/// Compiles `prog` for the SIMD backend (a workgroup per call on `W` lanes), or None when it
+/// uses something this backend does not compile or code generation fails.
 pub(super) fn compile(prog: &Program) -> Option<Jit> {
-    let types = types::analyse(prog)?;
+    let mut types = types::analyse(prog)?;
+    refill::widen_blends(prog, &mut types);
     // A panic inside Cranelift must not take pipeline creation down.
     std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| build(prog, types))).ok().flatten()
 }
@@ -71,12 +76,15 @@ fn build(prog: &Program, types: types::Types) -> Option<Jit> {
     sig.returns.push(AbiParam::new(cl::I64));
     let id = module.declare_function("invocations4", Linkage::Export, &sig).ok()?;
     let tramps = tramp::define(&mut module, call_conv)?;
+    let poll_tramp = refill::define_poll(&mut module, call_conv)?;
     let mut ctx = module.make_context();
     ctx.func = Function::with_name_signature(UserFuncName::user(0, id.as_u32()), sig);
     let tramps = tramps.map(|t| module.declare_func_in_func(t, &mut ctx.func));
+    let poll_tramp = module.declare_func_in_func(poll_tramp, &mut ctx.func);
     let mut fctx = FunctionBuilderContext::new();
     let mut b = FunctionBuilder::new(&mut ctx.func, &mut fctx);
     let mut gen = gen::Gen::new(&mut b, prog, types, call_conv, tramps);
+    gen.poll_tramp = Some(poll_tramp);
     gen.translate()?;
     let descs = std::mem::take(&mut gen.descs);
     b.finalize(module.isa().frontend_config());
@@ -86,31 +94,13 @@ fn build(prog: &Program, types: types::Types) -> Option<Jit> {
     Some(Jit { code, descs, lanes: W })
 }
 
-/// Runs workgroup `wg` four invocations at a time (the last call's missing lanes start done);
-/// `frames` holds four lane frames.
+/// Runs workgroup `wg` in one call, its lanes taking the next invocation as they finish;
+/// `frames` holds `W` lane frames (the code's refills fill them).
 pub(in crate::shader) fn run_workgroup(ctx: &Ctx, jit: &Jit, wg: &mut Wg, frames: &mut [u8]) {
-    let n = ctx.local.iter().product::<u32>();
-    let id = wg.id;
-    let fs = ctx.prog.lane_frame.len();
-    let mut run = Run { ctx, wg, descs: &jit.descs, invocation: 0, pending: Vec::new(), kept: 0, accounted: 0, panic: None, lanes: 0, lane_kept: [0; W] };
+    let mut run = Run::new(ctx, wg, &jit.descs);
     let mut next_check = run.wg.steps + CHECK_EVERY;
-    for first in (0..n).step_by(W) {
-        let lanes = (n - first).min(W as u32);
-        for l in 0..W as u32 {
-            // A missing lane's frame is filled too (it is never run, but stays well-defined).
-            init_frame(ctx, &mut frames[l as usize * fs..][..fs], id, (first + l).min(n - 1), n);
-        }
-        run.invocation = first;
-        run.lanes = lanes;
-        run.lane_kept = [0; W];
-        run.accounted = 0;
-        let steps = jit.code.call(&mut run, frames, ctx.push);
-        if !account(&mut run, steps, &mut next_check) {
-            return;
-        }
-        if (first + W as u32).is_multiple_of(LANES as u32) {
-            flush(&mut run);
-        }
+    let steps = jit.code.call(&mut run, frames, ctx.push);
+    if account(&mut run, steps, &mut next_check) {
+        flush(&mut run);
     }
-    flush(&mut run);
 }

@@ -37,8 +37,9 @@ pub(super) fn bool_result(op: BinOp) -> bool {
 pub(super) struct Types {
     cls: Vec<Cls>,
     konst: Vec<Option<u64>>,
-    /// Per block, the registers whose writes there blend (`blend_sets`).
-    blend: Vec<Vec<u64>>,
+    /// Per block, the registers whose writes there blend (`blend_sets`, widened by
+    /// `refill::widen_blends`).
+    pub(super) blend: Vec<Vec<u64>>,
 }
 
 impl Types {
