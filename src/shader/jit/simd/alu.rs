@@ -2,12 +2,12 @@
 //! bits `alu` gives), sin/cos/exp through the vectorised `vmath`, everything else lane by lane
 //! through the helpers that run the interpreter's own arms. A float result that is a NaN in a
 //! running lane is recomputed by the helpers (the interpreter's NaN bits).
-use cranelift_codegen::ir::condcodes::FloatCC;
+use cranelift_codegen::ir::condcodes::{FloatCC, IntCC};
 use cranelift_codegen::ir::{InstBuilder, MemFlagsData, Value};
 use cranelift_frontend::FunctionBuilder;
 
 use super::super::codegen::alu::int_cc;
-use super::super::codegen::vmath::{vmath, Fn1};
+use super::super::codegen::vmath::{splat_const, vmath, Fn1};
 use super::super::helpers;
 use super::gen::{Gen, F32X4, I32, I32X4, I64, PARTS, V, W};
 use super::types::Cls;
@@ -117,9 +117,15 @@ impl Gen<'_, '_, '_> {
         use BinOp::*;
         match ty {
             Sc::I32 => {
+                if let Some(v) = self.strict_unsigned(op, a, b) {
+                    return Some(v);
+                }
                 if let Some(cc) = int_cc(op) {
                     let (x, y) = (self.vget(a, Cls::W32), self.vget(b, Cls::W32));
                     return Some(self.map2(x, y, |b, x, y| b.ins().icmp(cc, x, y)));
+                }
+                if let Some(v) = self.mul_by_constant(op, a, b) {
+                    return Some(v);
                 }
                 if matches!(op, Shl | ShrL | ShrA) {
                     // Vector shifts take one amount for all lanes: a constant one.
@@ -168,6 +174,58 @@ impl Gen<'_, '_, '_> {
             }
             _ => None,
         }
+    }
+
+    /// `a <u b` and `a >u b` as one signed compare of sign-flipped operands (SSE has no unsigned
+    /// compare: Cranelift's max, equal and not take three), a constant flipped at compile time.
+    fn strict_unsigned(&mut self, op: BinOp, a: Reg, b: Reg) -> Option<V> {
+        let (lo, hi) = match op {
+            BinOp::ULt => (a, b),
+            BinOp::UGt => (b, a),
+            _ => return None,
+        };
+        let flip = |g: &mut Self, r: Reg| match g.types.konst(r) {
+            Some(k) => [splat_const(g.b, I32X4, k as u32 ^ 0x8000_0000); PARTS],
+            None => {
+                let x = g.vget(r, Cls::W32);
+                let sign = splat_const(g.b, I32X4, 0x8000_0000);
+                g.map(x, |b, x| b.ins().bxor(x, sign))
+            }
+        };
+        let (x, y) = (flip(self, hi), flip(self, lo));
+        Some(self.map2(x, y, |b, x, y| b.ins().icmp(IntCC::SignedGreaterThan, x, y)))
+    }
+
+    /// `a * k` for a constant `k` of the form 2^s, 2^s + 1 or 2^s - 1 as a shift and an add or
+    /// subtract (`pmulld` takes ten cycles on some cores; wrapping arithmetic gives the same bits).
+    fn mul_by_constant(&mut self, op: BinOp, a: Reg, b: Reg) -> Option<V> {
+        if op != BinOp::IMul {
+            return None;
+        }
+        let (x, k) = match (self.types.konst(a), self.types.konst(b)) {
+            (_, Some(k)) => (a, k as u32),
+            (Some(k), None) => (b, k as u32),
+            _ => return None,
+        };
+        let x = self.vget(x, Cls::W32);
+        let (s, tail) = if k.is_power_of_two() {
+            (k.trailing_zeros(), 0)
+        } else if k > 1 && (k - 1).is_power_of_two() {
+            ((k - 1).trailing_zeros(), 1)
+        } else if k.checked_add(1).is_some_and(u32::is_power_of_two) && k > 1 {
+            ((k + 1).trailing_zeros(), -1)
+        } else {
+            return None;
+        };
+        let sh = self.b.ins().iconst(I32, s as i64);
+        Some(self.map(x, |b, x| {
+            let y = b.ins().ishl(x, sh);
+            match tail {
+                1 => b.ins().iadd(y, x),
+                -1 => b.ins().isub(y, x),
+                _ => y,
+            }
+        }))
     }
 
     fn bin_f32(&mut self, op: BinOp, code: i64, a: Reg, b: Reg) -> Option<V> {

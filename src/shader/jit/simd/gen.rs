@@ -94,7 +94,7 @@ pub(super) struct Gen<'p, 'b, 'f> {
     pub tramps: [FuncRef; 3],
     pub buf: StackSlot,
     /// `refill`'s watchdog poll that clobbers no register (set after `new`).
-    pub poll_tramp: Option<FuncRef>,
+    pub calls: Option<[FuncRef; super::tramp::MAX_ARGS]>,
     pub descs: Vec<MemDesc>,
     /// Bytes of one lane's frame; lane `l`'s frame starts at `l * fs`.
     pub fs: u32,
@@ -214,7 +214,7 @@ impl<'p, 'b, 'f> Gen<'p, 'b, 'f> {
             redo: false,
             sigs,
             tramps,
-            poll_tramp: None,
+            calls: None,
             buf,
             descs: Vec::new(),
             fs,
@@ -475,9 +475,20 @@ impl<'p, 'b, 'f> Gen<'p, 'b, 'f> {
         self.b.inst_results(inst)[0]
     }
 
+    /// Helper `f` of `args`, through the `preserve_all` trampoline of its arity (`tramp`).
     pub(super) fn call_int(&mut self, f: usize, args: &[Value]) -> Value {
-        let sig = self.sigs[args.len() - 1];
-        self.call(f, sig, args)
+        let Some(calls) = self.calls else {
+            let sig = self.sigs[args.len() - 1];
+            return self.call(f, sig, args);
+        };
+        let fv = self.b.ins().iconst(I64, f as i64);
+        self.b.ins().stack_store(I64, fv, self.buf, 0);
+        for (k, &a) in args.iter().enumerate() {
+            self.b.ins().stack_store(I64, a, self.buf, 8 * (k as i32 + 1));
+        }
+        let p = self.b.ins().stack_addr(I64, self.buf, 0);
+        self.b.ins().call(calls[args.len() - 1], &[p]);
+        self.b.ins().stack_load(I64, I64, self.buf, 8 * (args.len() as i32 + 1))
     }
 
     // ---- control flow ----
@@ -537,8 +548,17 @@ impl<'p, 'b, 'f> Gen<'p, 'b, 'f> {
         let fall = self.guards[i as usize + 1];
         if let Some(h) = header {
             let iv = self.splat32(i as i64);
-            let took = self.map2(next, iv, |b, n, i| b.ins().icmp(IntCC::UnsignedLessThanOrEqual, n, i));
-            let took = self.map2(took, m, |b, t, m| b.ins().band(t, m));
+            let took = match blk.term {
+                // A two-way branch with one back edge: the condition picks the lanes.
+                Term::Cond { cond, t, f } if (t <= i) != (f <= i) => {
+                    let c = self.vget(cond, Cls::B);
+                    if t <= i { self.map2(c, m, |b, c, m| b.ins().band(c, m)) } else { self.map2(m, c, |b, m, c| b.ins().band_not(m, c)) }
+                }
+                _ => {
+                    let took = self.map2(next, iv, |b, n, i| b.ins().icmp(IntCC::UnsignedLessThanOrEqual, n, i));
+                    self.map2(took, m, |b, t, m| b.ins().band(t, m))
+                }
+            };
             // The fault-order key counts each lane's taken back edges (`lane_steps`).
             for (p, &v) in self.lane_steps.iter().enumerate() {
                 let ls = self.b.use_var(v);
@@ -587,6 +607,8 @@ impl<'p, 'b, 'f> Gen<'p, 'b, 'f> {
         let np = self.b.use_var(self.next_poll);
         let due = self.b.ins().icmp(IntCC::UnsignedGreaterThanOrEqual, s, np);
         let (call, stop, cont) = (self.b.create_block(), self.b.create_block(), self.b.create_block());
+        self.b.set_cold_block(call);
+        self.b.set_cold_block(stop);
         self.b.ins().brif(due, call, &[], cont, &[]);
         self.b.switch_to_block(call);
         let run = self.run;

@@ -26,6 +26,8 @@ mod gen;
 mod mem;
 mod refill;
 #[cfg(test)]
+mod const_tests;
+#[cfg(test)]
 mod refill_tests;
 #[cfg(test)]
 mod tests;
@@ -74,17 +76,17 @@ fn build(prog: &Program, types: types::Types) -> Option<Jit> {
     let mut sig = module.make_signature();
     sig.params.extend((0..5).map(|_| AbiParam::new(cl::I64)));
     sig.returns.push(AbiParam::new(cl::I64));
-    let id = module.declare_function("invocations4", Linkage::Export, &sig).ok()?;
+    let id = module.declare_function("invocations", Linkage::Export, &sig).ok()?;
     let tramps = tramp::define(&mut module, call_conv)?;
-    let poll_tramp = refill::define_poll(&mut module, call_conv)?;
+    let calls = tramp::define_calls(&mut module, call_conv)?;
     let mut ctx = module.make_context();
     ctx.func = Function::with_name_signature(UserFuncName::user(0, id.as_u32()), sig);
     let tramps = tramps.map(|t| module.declare_func_in_func(t, &mut ctx.func));
-    let poll_tramp = module.declare_func_in_func(poll_tramp, &mut ctx.func);
+    let calls = calls.map(|t| module.declare_func_in_func(t, &mut ctx.func));
     let mut fctx = FunctionBuilderContext::new();
     let mut b = FunctionBuilder::new(&mut ctx.func, &mut fctx);
     let mut gen = gen::Gen::new(&mut b, prog, types, call_conv, tramps);
-    gen.poll_tramp = Some(poll_tramp);
+    gen.calls = Some(calls);
     gen.translate()?;
     let descs = std::mem::take(&mut gen.descs);
     b.finalize(module.isa().frontend_config());

@@ -16,14 +16,10 @@
 //! Lanes may now wait at a back edge's target below the running block, so a write must keep
 //! (blend) the waiting lanes' values of the registers live there (`widen_blends`).
 use cranelift_codegen::ir::condcodes::IntCC;
-use cranelift_codegen::ir::{types, AbiParam, Function, InstBuilder, MemFlagsData, Signature, UserFuncName, Value};
-use cranelift_codegen::isa::CallConv;
-use cranelift_frontend::{FunctionBuilder, FunctionBuilderContext};
-use cranelift_jit::JITModule;
-use cranelift_module::{FuncId, Linkage, Module};
+use cranelift_codegen::ir::{InstBuilder, Value};
 
 use super::super::super::ir::{Program, Reg, Term};
-use super::super::helpers::{self, STOPPED};
+use super::super::helpers;
 use super::gen::{Gen, Var, DONE, I32, I32X4, I64, PARTS, V, W};
 use super::types::{defs_uses, Cls, Types};
 
@@ -144,37 +140,6 @@ pub(super) fn widen_blends(prog: &Program, types: &mut Types) {
     }
 }
 
-/// Defines `poll_all(run, steps, out)` in `preserve_all`: `helpers::poll(run, steps)` with
-/// its answer stored at `out`. The loops' back edges call it, and a call that clobbers no
-/// register lets the register allocator keep the loop's vectors in registers.
-pub(super) fn define_poll(module: &mut JITModule, call_conv: CallConv) -> Option<FuncId> {
-    let mut sig = Signature::new(CallConv::PreserveAll);
-    sig.params.extend((0..3).map(|_| AbiParam::new(types::I64)));
-    let id = module.declare_function("poll_all", Linkage::Local, &sig).ok()?;
-    let mut ctx = module.make_context();
-    ctx.func = Function::with_name_signature(UserFuncName::user(2, 0), sig);
-    let mut fctx = FunctionBuilderContext::new();
-    let mut b = FunctionBuilder::new(&mut ctx.func, &mut fctx);
-    let mut helper = Signature::new(call_conv);
-    helper.params.extend((0..2).map(|_| AbiParam::new(types::I64)));
-    helper.returns.push(AbiParam::new(types::I64));
-    let helper = b.import_signature(helper);
-    let entry = b.create_block();
-    b.append_block_params_for_function_params(entry);
-    b.switch_to_block(entry);
-    let p = b.block_params(entry).to_vec();
-    let f = b.ins().iconst(types::I64, helpers::poll as *const () as usize as i64);
-    let call = b.ins().call_indirect(helper, f, &[p[0], p[1]]);
-    let r = b.inst_results(call)[0];
-    b.ins().store(MemFlagsData::trusted(), r, p[2], 0);
-    b.ins().return_(&[]);
-    b.seal_all_blocks();
-    b.finalize(module.isa().frontend_config());
-    module.define_function(id, &mut ctx).ok()?;
-    module.clear_context(&mut ctx);
-    Some(id)
-}
-
 impl Gen<'_, '_, '_> {
     /// Lane `l`'s place in the interpreter's order at a memory op of the running block (the
     /// fault key's progress): the outermost loop's header (or the block, outside loops) in the
@@ -200,30 +165,6 @@ impl Gen<'_, '_, '_> {
             let ls = self.b.ins().band_not(ls, m);
             self.b.def_var(v, ls);
         }
-    }
-
-    /// At a taken back edge or a restart: once the step count reaches the next poll, ask the
-    /// watchdog (through `poll_all`), and return when it says stop.
-    fn poll_kept(&mut self) {
-        let Some(tramp) = self.poll_tramp else { return self.poll() };
-        let s = self.b.use_var(self.steps);
-        let np = self.b.use_var(self.next_poll);
-        let due = self.b.ins().icmp(IntCC::UnsignedGreaterThanOrEqual, s, np);
-        let (call, stop, cont) = (self.b.create_block(), self.b.create_block(), self.b.create_block());
-        self.b.set_cold_block(call);
-        self.b.set_cold_block(stop);
-        self.b.ins().brif(due, call, &[], cont, &[]);
-        self.b.switch_to_block(call);
-        let out = self.b.ins().stack_addr(I64, self.buf, 0);
-        let run = self.run;
-        self.b.ins().call(tramp, &[run, s, out]);
-        let r = self.b.ins().stack_load(I64, I64, self.buf, 0);
-        self.b.def_var(self.next_poll, r);
-        self.b.ins().brif(r, cont, &[], stop, &[]);
-        self.b.switch_to_block(stop);
-        let v = self.b.ins().iconst(I64, STOPPED as i64);
-        self.b.ins().return_(&[v]);
-        self.b.switch_to_block(cont);
     }
 
     /// A bit per lane: lane `l` of `m` (a lane mask) in bit `l`.
@@ -261,7 +202,7 @@ impl Gen<'_, '_, '_> {
     /// A taken back edge from block `i` to header `h`: polls, then falls through to block
     /// `i + 1` when invocations remain and enough lanes are parked past the loop.
     pub(super) fn back_edge(&mut self, i: u32, h: u32) {
-        self.poll_kept();
+        self.poll();
         let (back, fall) = (self.guards[h as usize], self.guards[i as usize + 1]);
         let left = self.b.use_var(self.left);
         let count_b = self.b.create_block();
@@ -324,7 +265,7 @@ impl Gen<'_, '_, '_> {
         self.b.ins().return_(&[s]);
         self.b.switch_to_block(again_b);
         // A restart is a back edge for the watchdog.
-        self.poll_kept();
+        self.poll();
         let g0 = self.guards[0];
         self.b.ins().jump(g0, &[]);
     }

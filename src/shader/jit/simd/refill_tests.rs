@@ -98,7 +98,7 @@ void main() {
 ";
 
 /// `src` compiled by glslang, and again through `spirv-opt -O`.
-fn compile(name: &str, src: &str) -> Vec<(String, Pipeline)> {
+pub(super) fn compile(name: &str, src: &str) -> Vec<(String, Pipeline)> {
     let dir = std::env::temp_dir().join(format!("arbor-refill-tests-{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();
     let (glsl, spv, opt) = (dir.join(format!("{name}.comp")), dir.join(format!("{name}.spv")), dir.join(format!("{name}.opt.spv")));
@@ -121,7 +121,7 @@ fn compile(name: &str, src: &str) -> Vec<(String, Pipeline)> {
 
 /// Runs `p` over `groups` workgroups of `local` invocations: an output word per invocation
 /// and a small buffer that many accesses overrun.
-fn run(p: &Pipeline, local: u32, groups: u32, watchdog: &Watchdog) -> (DispatchReport, Vec<u8>, Vec<u8>) {
+pub(super) fn run(p: &Pipeline, local: u32, groups: u32, watchdog: &Watchdog) -> (DispatchReport, Vec<u8>, Vec<u8>) {
     let p = Pipeline { local_size: [local, 1, 1], ..p.clone() };
     let mut mem = HostMemory::new();
     let (out, small) = (mem.add_buffer(&vec![0xA5; (local * groups) as usize * 4]), mem.add_buffer(&[0; 96 * 4]));

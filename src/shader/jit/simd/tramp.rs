@@ -64,3 +64,44 @@ pub(super) fn define(module: &mut JITModule, call_conv: CallConv) -> Option<[Fun
     }
     ids.try_into().ok()
 }
+
+/// Most arguments a helper takes (`helpers::mem_lane`).
+pub(super) const MAX_ARGS: usize = 7;
+
+/// Defines `call1`..`call7`: (buffer) in `preserve_all`; each calls the System V function whose
+/// address is the buffer's first word with the next `n` words and stores its result after them.
+/// Every helper call of the SIMD code goes through one, so the vectors live across it stay in
+/// registers (a System V call would clobber them all).
+pub(super) fn define_calls(module: &mut JITModule, call_conv: CallConv) -> Option<[FuncId; MAX_ARGS]> {
+    let mut sig = Signature::new(CallConv::PreserveAll);
+    sig.params.push(AbiParam::new(types::I64));
+    let mut ids = Vec::new();
+    for n in 1..=MAX_ARGS {
+        let id = module.declare_function(&format!("call{n}"), Linkage::Local, &sig).ok()?;
+        let mut ctx = module.make_context();
+        ctx.func = Function::with_name_signature(UserFuncName::user(3, n as u32), sig.clone());
+        let mut fctx = FunctionBuilderContext::new();
+        let mut b = FunctionBuilder::new(&mut ctx.func, &mut fctx);
+        let mut helper = Signature::new(call_conv);
+        helper.params.extend((0..n).map(|_| AbiParam::new(types::I64)));
+        helper.returns.push(AbiParam::new(types::I64));
+        let helper = b.import_signature(helper);
+        let entry = b.create_block();
+        b.append_block_params_for_function_params(entry);
+        b.switch_to_block(entry);
+        let buf = b.block_params(entry)[0];
+        let flags = MemFlagsData::trusted();
+        let f = b.ins().load(types::I64, flags, buf, 0);
+        let args: Vec<_> = (1..=n).map(|k| b.ins().load(types::I64, flags, buf, 8 * k as i32)).collect();
+        let call = b.ins().call_indirect(helper, f, &args);
+        let r = b.inst_results(call)[0];
+        b.ins().store(flags, r, buf, 8 * (n as i32 + 1));
+        b.ins().return_(&[]);
+        b.seal_all_blocks();
+        b.finalize(module.isa().frontend_config());
+        module.define_function(id, &mut ctx).ok()?;
+        module.clear_context(&mut ctx);
+        ids.push(id);
+    }
+    ids.try_into().ok()
+}
