@@ -17,7 +17,7 @@ use cranelift_jit::{JITBuilder, JITModule};
 use cranelift_module::{Linkage, Module};
 
 use super::super::exec::{Ctx, Wg, CHECK_EVERY};
-use super::super::ir::{Op, Program, Sc};
+use super::super::ir::{Op, Program, Sc, Space};
 use super::helpers::Run;
 use super::{account, flush, Jit};
 
@@ -37,20 +37,20 @@ mod types;
 pub(in crate::shader) use gen::W;
 
 /// Whether the SIMD backend is the faster choice for `prog`: loops in which F32 arithmetic is
-/// at least an eighth of the ops. Four lanes of float math per instruction (sin/cos/exp
-/// vectorised) beat the scalar JIT there (compute-alu). Loops of integer ops and branches
-/// (compute-divergent) run with lane refill about as fast as on the scalar JIT, not enough
-/// faster to choose them (the cursor and block counts still live in stack slots across the
-/// per-lane memory calls), and lone buffer accesses (compute-memory, a helper call per lane
-/// either way) measured slower.
+/// at least an eighth of the ops (W lanes of float math per instruction, sin/cos/exp
+/// vectorised: compute-alu), or loops without memory ops (integer loops and branches whose
+/// lanes end apart run with lane refill a little faster than on the scalar JIT:
+/// compute-divergent). Buffer accesses go lane by lane through a helper call on this backend,
+/// slower than the scalar JIT's (compute-memory); docs/BENCHMARKS.md has the figures.
 pub(super) fn pays(prog: &Program) -> bool {
     let in_loop = super::codegen::loop_blocks(prog);
-    let (mut ops, mut float) = (0usize, 0usize);
+    let (mut ops, mut float, mut memory) = (0usize, 0usize, 0usize);
     for blk in prog.blocks.iter().zip(&in_loop).filter(|b| *b.1).map(|b| b.0) {
         ops += blk.ops.len();
         float += blk.ops.iter().filter(|op| matches!(op, Op::Un { ty: Sc::F32, .. } | Op::Bin { ty: Sc::F32, .. } | Op::Tri { ty: Sc::F32, .. })).count();
+        memory += blk.ops.iter().filter(|op| matches!(op, Op::Load { space, .. } | Op::Store { space, .. } | Op::Atomic { space, .. } if *space != Space::Lane)).count();
     }
-    float > 0 && float * 8 >= ops
+    ops > 0 && ((float > 0 && float * 8 >= ops) || memory == 0)
 }
 
 /// Compiles `prog` for the SIMD backend (a workgroup per call on `W` lanes), or None when it
