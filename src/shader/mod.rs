@@ -27,12 +27,13 @@
 //!
 //! Backends. [`Pipeline::compute`] compiles the program with Cranelift (`jit`) unless
 //! `ARBOR_SHADER_JIT=0` (read once) or the host is neither x86-64 nor aarch64; the choice is
-//! made there, never at dispatch. For loops of float math on x86-64 the SIMD backend
-//! (`jit::simd`) comes first, for other programs second (`jit::simd::pays`):
-//! four invocations per call in 128-bit vectors (I32/F32 as i32x4, Bool as a lane mask, 64-bit
-//! values as four scalars), blocks run under an execution mask in the interpreter's
-//! lowest-cursor-first schedule, sin/cos/exp vectorised with `vmath`'s operations; a workgroup is
-//! ceil(size/4) calls, the last one's missing lanes masked off. It declines programs with
+//! made there, never at dispatch. For loops of float math, and loops without buffer accesses,
+//! on x86-64 the SIMD backend (`jit::simd`) comes first, for other programs second
+//! (`jit::simd::pays`): eight lanes side by side in two 128-bit vectors per register (I32/F32
+//! as i32x4 pairs, Bool as lane masks, 64-bit values as eight scalars), blocks run under an
+//! execution mask in the interpreter's lowest-cursor-first schedule, sin/cos/exp vectorised with
+//! `vmath`'s operations; a workgroup is one call, and a lane whose invocation has ended takes
+//! the workgroup's next one (`jit::simd::refill`). It declines programs with
 //! anything it does not cover (a register used as two types, images, subgroup ops, barriers,
 //! workgroup memory, ...). The other native backend is the scalar JIT (`ARBOR_SHADER_JIT=scalar`
 //! forces it): one invocation at a time (the IR's blocks as native blocks, registers as SSA variables), so

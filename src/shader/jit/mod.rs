@@ -88,7 +88,7 @@ pub(crate) fn for_pipeline(prog: &Program) -> Option<Jit> {
     }
 }
 
-/// Compiles `prog` for the SIMD backend (a workgroup per call on four lanes), or None.
+/// Compiles `prog` for the SIMD backend (a workgroup per call on `simd::W` lanes), or None.
 pub(crate) fn compile_simd(prog: &Program) -> Option<Jit> {
     if !cfg!(target_arch = "x86_64") {
         return None;

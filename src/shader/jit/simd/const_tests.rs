@@ -36,3 +36,34 @@ fn constant_multiplies_and_unsigned_compares_match_the_interpreter() {
         assert!(want.1.chunks(4).map(|c| c[3]).collect::<std::collections::BTreeSet<_>>().len() > 4, "{what}");
     }
 }
+
+/// NaNs born in the middle of add/multiply/fma/sqrt chains (inf - inf, 0 * inf, sqrt of a
+/// negative, NaN inputs with payloads) reach the output only through ops that carry them: the
+/// chain's intermediate results go untested (`nan::covered`), and the output bits must still be
+/// the interpreter's.
+const NAN_CHAINS: &str = "#version 450
+layout(local_size_x = 64) in;
+layout(std430, set = 0, binding = 0) buffer Out { uint r[]; };
+void main() {
+    uint i = gl_GlobalInvocationID.x;
+    float inf = uintBitsToFloat(0x7F800000u);
+    float pick[8] = float[8](0.0, -0.0, inf, -inf, uintBitsToFloat(0x7FC01234u), uintBitsToFloat(0xFF800001u), -2.5, 3.0);
+    float a = pick[i & 7u];
+    float b = pick[(i >> 3) & 7u];
+    float t = a * b + a;
+    float u = fma(t, b, a - b) * 0.5;
+    float v = sqrt(u * a) + t;
+    float w = -(v / b) * (u + 1.0);
+    r[i] = floatBitsToUint(w) ^ floatBitsToUint(v * 3.0);
+}
+";
+
+#[test]
+fn nans_born_inside_float_chains_keep_the_interpreters_bits() {
+    for (what, p) in compile("nan_chains", NAN_CHAINS) {
+        let want = run(&p.interpreted(), 64, 2, &Watchdog::default());
+        let got = run(&p, 64, 2, &Watchdog::default());
+        assert!(got.1 == want.1, "{what}: results");
+        assert_eq!(got.0, want.0, "{what}: reports");
+    }
+}

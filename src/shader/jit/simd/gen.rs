@@ -100,6 +100,10 @@ pub(super) struct Gen<'p, 'b, 'f> {
     pub fs: u32,
     /// Per block, the header of the outermost loop holding it (`refill::outermost_loops`).
     pub outer: Vec<Option<u32>>,
+    /// Per block and op, whether its float result needs no NaN test (`nan::covered`), and
+    /// that answer for the op being emitted.
+    nan_covered: Vec<Vec<bool>>,
+    pub skip_nan: bool,
 }
 
 fn sig(call_conv: cranelift_codegen::isa::CallConv, n: usize) -> Signature {
@@ -219,6 +223,8 @@ impl<'p, 'b, 'f> Gen<'p, 'b, 'f> {
             descs: Vec::new(),
             fs,
             outer: super::refill::outermost_loops(prog),
+            nan_covered: super::nan::covered(prog),
+            skip_nan: false,
         };
         // Every lane starts done, with invocations to hand out (the count is the first
         // refill's answer): the code starts at the refill past the last block.
@@ -285,7 +291,8 @@ impl<'p, 'b, 'f> Gen<'p, 'b, 'f> {
             for &(dst, tmp) in &blk.phi_in {
                 self.mov(dst, tmp);
             }
-            for op in &blk.ops {
+            for (k, op) in blk.ops.iter().enumerate() {
+                self.skip_nan = self.nan_covered[i][k];
                 if super::types::pure(op) {
                     self.save_inputs(op);
                     self.op(op)?;
@@ -295,6 +302,7 @@ impl<'p, 'b, 'f> Gen<'p, 'b, 'f> {
                     self.op(op)?;
                 }
             }
+            self.skip_nan = false;
             self.flush()?;
             self.term(i as u32, blk)?;
         }

@@ -24,6 +24,7 @@ use super::{account, flush, Jit};
 mod alu;
 mod gen;
 mod mem;
+mod nan;
 mod refill;
 #[cfg(test)]
 mod const_tests;

@@ -27,13 +27,13 @@ use super::types::{defs_uses, Cls, Types};
 const THRESHOLD: u32 = if W / 4 > 1 { (W / 4) as u32 } else { 1 };
 
 /// A register set, a bit per register.
-type Set = Vec<u64>;
+pub(super) type Set = Vec<u64>;
 
-fn has(s: &Set, r: Reg) -> bool {
+pub(super) fn has(s: &Set, r: Reg) -> bool {
     s[r as usize / 64] >> (r % 64) & 1 != 0
 }
 
-fn successors(term: &Term) -> Vec<usize> {
+pub(super) fn successors(term: &Term) -> Vec<usize> {
     match term {
         Term::Jump(t) | Term::Barrier(t) => vec![*t as usize],
         Term::Cond { t, f, .. } => vec![*t as usize, *f as usize],
