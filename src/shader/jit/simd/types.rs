@@ -247,59 +247,7 @@ fn constrain(uf: &mut Uf, op: &Op) -> Option<()> {
 fn blend_sets(prog: &Program, n: usize) -> Vec<Vec<u64>> {
     let words = n.div_ceil(64);
     let nb = prog.blocks.len();
-    let set = |v: &mut Vec<u64>, r: Reg| v[r as usize / 64] |= 1 << (r % 64);
-    let has = |v: &Vec<u64>, r: Reg| v[r as usize / 64] >> (r % 64) & 1 != 0;
-    // Uses before any def in the block (gen), and defs (kill).
-    let mut gen = vec![vec![0u64; words]; nb];
-    let mut kill = vec![vec![0u64; words]; nb];
-    let mut succ = vec![Vec::new(); nb];
-    for (b, blk) in prog.blocks.iter().enumerate() {
-        let (g, k) = (&mut gen[b], &mut kill[b]);
-        let use_ = |g: &mut Vec<u64>, k: &Vec<u64>, r: Reg| {
-            if !has(k, r) {
-                set(g, r);
-            }
-        };
-        for &(d, t) in &blk.phi_in {
-            use_(g, k, t);
-            set(k, d);
-        }
-        for op in &blk.ops {
-            let (d, u) = defs_uses(op).unwrap_or_default();
-            u.into_iter().for_each(|r| use_(g, k, r));
-            d.into_iter().for_each(|r| set(k, r));
-        }
-        let term_uses: Vec<Reg> = match &blk.term {
-            Term::Cond { cond, .. } => vec![*cond],
-            Term::Switch { sel, .. } => vec![*sel],
-            _ => vec![],
-        };
-        // Edge moves write on one edge only: uses, not kills.
-        term_uses.into_iter().chain(blk.edge_moves.iter().map(|m| m.src)).for_each(|r| use_(g, k, r));
-        succ[b] = match &blk.term {
-            Term::Jump(t) | Term::Barrier(t) => vec![*t as usize],
-            Term::Cond { t, f, .. } => vec![*t as usize, *f as usize],
-            Term::Switch { default, cases, .. } => cases.iter().map(|c| c.1 as usize).chain([*default as usize]).collect(),
-            Term::Exit => vec![],
-        };
-    }
-    let mut live_in = gen.clone();
-    loop {
-        let mut changed = false;
-        for b in (0..nb).rev() {
-            for w in 0..words {
-                let out = succ[b].iter().filter(|&&s| s < nb).fold(0u64, |acc, &s| acc | live_in[s][w]);
-                let v = gen[b][w] | (out & !kill[b][w]);
-                if v != live_in[b][w] {
-                    live_in[b][w] = v;
-                    changed = true;
-                }
-            }
-        }
-        if !changed {
-            break;
-        }
-    }
+    let live_in = super::refill::live_in(prog);
     let mut after = vec![vec![0u64; words]; nb];
     for b in (0..nb.saturating_sub(1)).rev() {
         let next: Vec<u64> = (0..words).map(|w| after[b + 1][w] | live_in[b + 1][w]).collect();
