@@ -5,7 +5,7 @@
 //! loads from a buffer keeps its branch.
 use std::sync::Arc;
 
-use crate::shader::ir::{BinOp, Block, EdgeMove, Op, Program, Reg, Sc, Space, Term};
+use crate::shader::ir::{BinOp, Block, EdgeMove, Op, Reg, Sc, Space, Term};
 use crate::shader::lower_select::{simplify, Bounds};
 use crate::shader::{dispatch, DispatchReport, HostMemory, ImageBinding, ImageFormat, Module, Pipeline, Watchdog};
 
@@ -145,19 +145,7 @@ impl Hand {
         if convert {
             simplify(&mut blocks, &mut regs, &mut consts, &Bounds { push: 0, frame: 160 });
         }
-        let program = Program {
-            blocks,
-            reg_count: regs,
-            consts,
-            lane_frame: vec![0; 160],
-            workgroup_bytes: 0,
-            bindings: vec![(0, 0), (0, 1)],
-            binding_counts: vec![1, 1],
-            images: vec![],
-            image_counts: vec![],
-            accel_arrays: vec![],
-            accel_bindings: vec![],
-        };
+        let program = crate::shader::tests::two_buffer_program(blocks, regs, consts, 160);
         Pipeline { program: Arc::new(program), local_size: [N as u32, 1, 1], push_constant_size: 0, jit: None }
     }
 

@@ -737,3 +737,21 @@ fn spec_constant_vector_swizzles() {
         }
     }
 }
+
+/// A hand-built test program over buffers (0, 0) and (0, 1): no images, structures or
+/// workgroup memory.
+pub(super) fn two_buffer_program(blocks: Vec<ir::Block>, reg_count: u32, consts: Vec<(ir::Reg, u64)>, frame: usize) -> ir::Program {
+    ir::Program {
+        blocks,
+        reg_count,
+        consts,
+        lane_frame: vec![0; frame],
+        workgroup_bytes: 0,
+        bindings: vec![(0, 0), (0, 1)],
+        binding_counts: vec![1, 1],
+        images: vec![],
+        image_counts: vec![],
+        accel_arrays: vec![],
+        accel_bindings: vec![],
+    }
+}

@@ -126,19 +126,7 @@ fn op_program(op: Op, from: Sc, arity: usize) -> Program {
     ops.push(op);
     ops.push(Op::Index { dst: 6, base: n8, index: 3, index_ty: Sc::I32, stride: 8 });
     ops.push(Op::Store { ty: Sc::I64, space: Space::Buffer(1), addr: 6, src: 20 });
-    Program {
-        blocks: vec![ir::Block { ops, term: ir::Term::Exit, phi_in: vec![], edge_moves: vec![] }],
-        reg_count: 24,
-        consts: vec![(gid, bo::GLOBAL_INVOCATION_ID as u64), (eight, 8), (n8, 0)],
-        lane_frame: vec![0; bo::END as usize],
-        workgroup_bytes: 0,
-        bindings: vec![(0, 0), (0, 1)],
-        binding_counts: vec![1, 1],
-        images: vec![],
-        image_counts: vec![],
-        accel_arrays: vec![],
-        accel_bindings: vec![],
-    }
+    crate::shader::tests::two_buffer_program(vec![ir::Block { ops, term: ir::Term::Exit, phi_in: vec![], edge_moves: vec![] }], 24, vec![(gid, bo::GLOBAL_INVOCATION_ID as u64), (eight, 8), (n8, 0)], bo::END as usize)
 }
 
 const EDGES: [u64; 24] = [

@@ -59,19 +59,7 @@ fn program() -> (Program, usize) {
         ops.push(Op::Index { dst: at, base, index: 2, index_ty: Sc::I32, stride: 8 * s as u64 });
         ops.push(Op::Store { ty: Sc::I64, space: Space::Buffer(1), addr: at, src: r });
     }
-    let program = Program {
-        blocks: vec![Block { ops, term: Term::Exit, phi_in: vec![], edge_moves: vec![] }],
-        reg_count: next + 1,
-        consts,
-        lane_frame: vec![0; 160],
-        workgroup_bytes: 0,
-        bindings: vec![(0, 0), (0, 1)],
-        binding_counts: vec![1, 1],
-        images: vec![],
-        image_counts: vec![],
-        accel_arrays: vec![],
-        accel_bindings: vec![],
-    };
+    let program = crate::shader::tests::two_buffer_program(vec![Block { ops, term: Term::Exit, phi_in: vec![], edge_moves: vec![] }], next + 1, consts, 160);
     (program, slots)
 }
 
