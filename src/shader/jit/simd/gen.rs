@@ -61,8 +61,9 @@ pub(super) struct Gen<'p, 'b, 'f> {
     pub cursor: [Variable; PARTS],
     /// Back edges each lane has taken (with the site, the fault-order key: the interpreter's
     /// lanes run a loop's rounds in step, the blocks of a round in index order), and blocks
-    /// the call has run (the watchdog's steps).
-    pub lane_steps: [Variable; PARTS],
+    /// the call has run (the watchdog's steps). No back-edge counts when no memory op (no
+    /// fault) is inside a loop.
+    pub lane_steps: Option<[Variable; PARTS]>,
     pub steps: Variable,
     pub next_poll: Variable,
     /// Invocations still to hand out to lanes (`refill`).
@@ -177,9 +178,14 @@ impl<'p, 'b, 'f> Gen<'p, 'b, 'f> {
         let zv = b.ins().splat(I32X4, zero32);
         let vars = declare_regs(b, prog, &types);
         let cursor = std::array::from_fn(|_| b.declare_var(I32X4));
-        let lane_steps: [Variable; PARTS] = std::array::from_fn(|_| b.declare_var(I32X4));
+        let outer = super::refill::outermost_loops(prog);
+        let keyed = prog.blocks.iter().zip(&outer).any(|(blk, o)| o.is_some() && blk.ops.iter().any(|op| matches!(op, Op::Load { .. } | Op::Store { .. } | Op::Atomic { .. })));
+        let lane_steps = keyed.then(|| {
+            let vs: [Variable; PARTS] = std::array::from_fn(|_| b.declare_var(I32X4));
+            vs.iter().for_each(|&v| b.def_var(v, zv));
+            vs
+        });
         let (steps, next_poll, left) = (b.declare_var(I64), b.declare_var(I64), b.declare_var(I64));
-        lane_steps.iter().for_each(|&v| b.def_var(v, zv));
         b.def_var(steps, zero64);
         let first = b.ins().iconst(I64, CHECK_EVERY as i64);
         b.def_var(next_poll, first);
@@ -222,7 +228,7 @@ impl<'p, 'b, 'f> Gen<'p, 'b, 'f> {
             buf,
             descs: Vec::new(),
             fs,
-            outer: super::refill::outermost_loops(prog),
+            outer,
             nan_covered: super::nan::covered(prog),
             skip_nan: false,
         };
@@ -268,8 +274,14 @@ impl<'p, 'b, 'f> Gen<'p, 'b, 'f> {
     /// Emits every block; None when something is not compiled.
     pub(super) fn translate(&mut self) -> Option<()> {
         let prog = self.prog;
+        let reached = super::refill::reachable(prog);
         for (i, blk) in prog.blocks.iter().enumerate() {
             self.b.switch_to_block(self.guards[i]);
+            if !reached[i] {
+                // No cursor ever names it (glslang's merge blocks after a return).
+                self.b.ins().jump(self.guards[i + 1], &[]);
+                continue;
+            }
             let c = self.cursors();
             let here = self.splat32(i as i64);
             let m = self.map2(c, here, |b, c, h| b.ins().icmp(IntCC::Equal, c, h));
@@ -277,41 +289,50 @@ impl<'p, 'b, 'f> Gen<'p, 'b, 'f> {
             let body = self.b.create_block();
             self.b.ins().brif(any, body, &[], self.guards[i + 1], &[]);
             self.b.switch_to_block(body);
-            self.mask = m;
-            self.block = i;
-            if lane_ops(&self.types, blk) {
-                for l in 0..W {
-                    let x = self.lane(m, l);
-                    self.on[l] = self.b.ins().icmp_imm_s(IntCC::NotEqual, x, 0);
-                }
+            if let Some((stay_if, exit)) = super::tight::self_loop(i, blk) {
+                self.tight_loop(i as u32, blk, m, stay_if, exit)?;
+            } else {
+                self.body(i, blk, m)?;
+                self.term(i as u32, blk)?;
             }
-            let s = self.b.use_var(self.steps);
-            let s = self.b.ins().iadd_imm_s(s, 1);
-            self.b.def_var(self.steps, s);
-            for &(dst, tmp) in &blk.phi_in {
-                self.mov(dst, tmp);
-            }
-            for (k, op) in blk.ops.iter().enumerate() {
-                self.skip_nan = self.nan_covered[i][k];
-                if super::types::pure(op) {
-                    self.save_inputs(op);
-                    self.op(op)?;
-                    self.pending.push(op.clone());
-                } else {
-                    self.flush()?;
-                    self.op(op)?;
-                }
-            }
-            self.skip_nan = false;
-            self.flush()?;
-            self.term(i as u32, blk)?;
         }
         self.refill_end();
         self.b.seal_all_blocks();
         Some(())
     }
 
-    fn cursors(&mut self) -> V {
+    /// Block `i`'s phi moves and ops for the lanes of mask `m` (its terminator is the caller's).
+    pub(super) fn body(&mut self, i: usize, blk: &ir::Block, m: V) -> Option<()> {
+        self.mask = m;
+        self.block = i;
+        if lane_ops(&self.types, blk) {
+            for l in 0..W {
+                let x = self.lane(m, l);
+                self.on[l] = self.b.ins().icmp_imm_s(IntCC::NotEqual, x, 0);
+            }
+        }
+        let s = self.b.use_var(self.steps);
+        let s = self.b.ins().iadd_imm_s(s, 1);
+        self.b.def_var(self.steps, s);
+        for &(dst, tmp) in &blk.phi_in {
+            self.mov(dst, tmp);
+        }
+        for (k, op) in blk.ops.iter().enumerate() {
+            self.skip_nan = self.nan_covered[i][k];
+            if super::types::pure(op) {
+                self.save_inputs(op);
+                self.op(op)?;
+                self.pending.push(op.clone());
+            } else {
+                self.flush()?;
+                self.op(op)?;
+            }
+        }
+        self.skip_nan = false;
+        self.flush()
+    }
+
+    pub(super) fn cursors(&mut self) -> V {
         std::array::from_fn(|p| self.b.use_var(self.cursor[p]))
     }
 
@@ -452,6 +473,11 @@ impl<'p, 'b, 'f> Gen<'p, 'b, 'f> {
 
     /// One word per lane as a W32 vector (low halves) or a B mask (word != 0).
     pub(super) fn vec_of_words(&mut self, w: [Value; W], bool_: bool) -> V {
+        if w.iter().all(|&x| x == w[0]) {
+            // One word for every lane (a uniform load): a splat.
+            let x = if bool_ { self.b.ins().bmask(I32, w[0]) } else { self.b.ins().ireduce(I32, w[0]) };
+            return [self.b.ins().splat(I32X4, x); PARTS];
+        }
         let lanes: Vec<Value> = w.iter().map(|&x| if bool_ { self.b.ins().bmask(I32, x) } else { self.b.ins().ireduce(I32, x) }).collect();
         std::array::from_fn(|p| {
             let mut v = self.b.ins().splat(I32X4, lanes[4 * p]);
@@ -567,12 +593,7 @@ impl<'p, 'b, 'f> Gen<'p, 'b, 'f> {
                     self.map2(took, m, |b, t, m| b.ins().band(t, m))
                 }
             };
-            // The fault-order key counts each lane's taken back edges (`lane_steps`).
-            for (p, &v) in self.lane_steps.iter().enumerate() {
-                let ls = self.b.use_var(v);
-                let ls = self.b.ins().isub(ls, took[p]);
-                self.b.def_var(v, ls);
-            }
+            self.count_back_edges(took);
             let any = self.any(took);
             let back_b = self.b.create_block();
             self.b.ins().brif(any, back_b, &[], fall, &[]);
@@ -585,7 +606,7 @@ impl<'p, 'b, 'f> Gen<'p, 'b, 'f> {
     }
 
     /// A phi temporary filled for the lanes in `lanes` (a mask).
-    fn edge_move(&mut self, lanes: V, dst: ir::Reg, src: ir::Reg) {
+    pub(super) fn edge_move(&mut self, lanes: V, dst: ir::Reg, src: ir::Reg) {
         match self.vars[dst as usize] {
             Var::Vec(vars) => {
                 let v = self.vget(src, self.types.cls(dst));
@@ -642,6 +663,17 @@ impl<'p, 'b, 'f> Gen<'p, 'b, 'f> {
                     self.b.ins().select(cl, x[l], y[l])
                 });
                 self.set_words(dst, w);
+            }
+            // `c && a` and `c || b` (logical and/or as glslang writes them): one op, no blend.
+            Cls::B if b == cond => {
+                let x = self.vget(a, Cls::B);
+                let v = self.map2(c, x, |b, c, x| b.ins().band(c, x));
+                self.vset(dst, v);
+            }
+            Cls::B if a == cond => {
+                let y = self.vget(b, Cls::B);
+                let v = self.map2(c, y, |b, c, y| b.ins().bor(c, y));
+                self.vset(dst, v);
             }
             cl => {
                 let (x, y) = (self.vget(a, cl), self.vget(b, cl));

@@ -82,6 +82,9 @@ impl Gen<'_, '_, '_> {
                 return Some(std::array::from_fn(|l| self.load_at(ty, frame, (l as u32 * fs + k as u32) as i32)));
             }
         }
+        if let (Space::Push, Some(k)) = (space, self.types.konst(addr)) {
+            return Some([self.uniform_push(d, ty, k); W]);
+        }
         let z = self.b.ins().iconst(I64, 0);
         Some(std::array::from_fn(|l| {
             let at = self.word(addr, l);
@@ -106,6 +109,30 @@ impl Gen<'_, '_, '_> {
                 _ => self.lane_call(d, l, at, z, z),
             }
         }))
+    }
+
+    /// A push constant at constant offset `k`: one word for every lane, loaded once. Out of
+    /// range, each running lane faults and reads 0, as in the interpreter.
+    fn uniform_push(&mut self, d: i64, ty: Sc, k: u64) -> Value {
+        let (push, len) = (self.push, self.push_len);
+        let at = self.b.ins().iconst(I64, k as i64);
+        let ok = self.in_bounds(at, len, ty.size());
+        let (fast, slow, join) = (self.b.create_block(), self.b.create_block(), self.b.create_block());
+        let out = self.b.append_block_param(join, I64);
+        self.b.ins().brif(ok, fast, &[], slow, &[]);
+        self.b.switch_to_block(fast);
+        let p = self.b.ins().iadd(push, at);
+        let x = self.load_at(ty, p, 0);
+        self.b.ins().jump(join, &[x.into()]);
+        self.b.switch_to_block(slow);
+        self.b.set_cold_block(slow);
+        let z = self.b.ins().iconst(I64, 0);
+        for l in 0..W {
+            self.lane_call(d, l, at, z, z);
+        }
+        self.b.ins().jump(join, &[z.into()]);
+        self.b.switch_to_block(join);
+        out
     }
 
     pub(super) fn store(&mut self, ty: Sc, space: Space, addr: ir::Reg, src: ir::Reg) -> Option<()> {

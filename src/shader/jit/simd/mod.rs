@@ -26,6 +26,9 @@ mod gen;
 mod mem;
 mod nan;
 mod refill;
+mod tight;
+#[cfg(test)]
+mod tight_tests;
 #[cfg(test)]
 mod const_tests;
 #[cfg(test)]

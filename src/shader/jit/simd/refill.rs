@@ -24,7 +24,7 @@ use super::gen::{Gen, Var, DONE, I32, I32X4, I64, PARTS, V, W};
 use super::types::{defs_uses, Cls, Types};
 
 /// Parked lanes (past the loop, done ones included) for which a back edge falls through.
-const THRESHOLD: u32 = if W / 4 > 1 { (W / 4) as u32 } else { 1 };
+pub(super) const THRESHOLD: u32 = if W / 4 > 1 { (W / 4) as u32 } else { 1 };
 
 /// A register set, a bit per register.
 pub(super) type Set = Vec<u64>;
@@ -40,6 +40,19 @@ pub(super) fn successors(term: &Term) -> Vec<usize> {
         Term::Switch { default, cases, .. } => cases.iter().map(|c| c.1 as usize).chain([*default as usize]).collect(),
         Term::Exit => vec![],
     }
+}
+
+/// Per block, whether some path from block 0 reaches it.
+pub(super) fn reachable(prog: &Program) -> Vec<bool> {
+    let mut seen = vec![false; prog.blocks.len()];
+    let mut work = vec![0usize];
+    while let Some(b) = work.pop() {
+        if b < seen.len() && !seen[b] {
+            seen[b] = true;
+            work.extend(successors(&prog.blocks[b].term));
+        }
+    }
+    seen
 }
 
 /// The registers live into each block: read before written on some path from its start.
@@ -148,7 +161,8 @@ impl Gen<'_, '_, '_> {
         let Some(h) = self.outer[self.block] else {
             return self.b.ins().iconst(I64, (self.block as i64) << 32);
         };
-        let ls = self.b.use_var(self.lane_steps[l / 4]);
+        let Some(steps) = self.lane_steps else { unreachable!("a memory op in a loop keeps back-edge counts") };
+        let ls = self.b.use_var(steps[l / 4]);
         let s = self.b.ins().extractlane(ls, (l % 4) as u8);
         let s = self.b.ins().uextend(I64, s);
         self.b.ins().iadd_imm_s(s, (h as i64) << 32)
@@ -160,7 +174,21 @@ impl Gen<'_, '_, '_> {
         if self.outer[t as usize] != Some(t) || self.outer[i as usize] == Some(t) {
             return;
         }
-        for (&v, &m) in self.lane_steps.iter().zip(&lanes) {
+        self.restart_back_edges(lanes);
+    }
+
+    /// The lanes of `lanes` took a back edge: their counts grow by one (a mask lane is -1).
+    pub(super) fn count_back_edges(&mut self, lanes: V) {
+        for (&v, &m) in self.lane_steps.iter().flat_map(|vs| vs.iter()).zip(&lanes) {
+            let ls = self.b.use_var(v);
+            let ls = self.b.ins().isub(ls, m);
+            self.b.def_var(v, ls);
+        }
+    }
+
+    /// The back-edge counts of the lanes of `lanes` restart at 0.
+    fn restart_back_edges(&mut self, lanes: V) {
+        for (&v, &m) in self.lane_steps.iter().flat_map(|vs| vs.iter()).zip(&lanes) {
             let ls = self.b.use_var(v);
             let ls = self.b.ins().band_not(ls, m);
             self.b.def_var(v, ls);
@@ -168,7 +196,7 @@ impl Gen<'_, '_, '_> {
     }
 
     /// A bit per lane: lane `l` of `m` (a lane mask) in bit `l`.
-    fn bits(&mut self, m: V) -> Value {
+    pub(super) fn bits(&mut self, m: V) -> Value {
         let mut acc = self.b.ins().vhigh_bits(I64, m[0]);
         for (p, &x) in m.iter().enumerate().skip(1) {
             let hi = self.b.ins().vhigh_bits(I64, x);
@@ -247,10 +275,8 @@ impl Gen<'_, '_, '_> {
         for p in 0..PARTS {
             let c = self.b.ins().bitselect(got[p], z32[p], cur[p]);
             self.b.def_var(self.cursor[p], c);
-            let ls = self.b.use_var(self.lane_steps[p]);
-            let ls = self.b.ins().band_not(ls, got[p]);
-            self.b.def_var(self.lane_steps[p], ls);
         }
+        self.restart_back_edges(got);
         self.reset_live(got);
         self.b.ins().jump(check_b, &[]);
         self.b.switch_to_block(check_b);
