@@ -181,6 +181,21 @@ pub enum Op {
     RayQuery(Box<RayQueryOp>),
 }
 
+impl Op {
+    /// The registers the op writes.
+    pub fn defs(&self) -> Vec<Reg> {
+        match self {
+            Op::Mov { dst, .. } | Op::Un { dst, .. } | Op::Bin { dst, .. } | Op::Tri { dst, .. } | Op::BitInsert { dst, .. } | Op::Select { dst, .. } => vec![*dst],
+            Op::Index { dst, .. } | Op::AddImm { dst, .. } | Op::Load { dst, .. } | Op::Atomic { dst, .. } | Op::Subgroup { dst, .. } | Op::BallotOp { dst, .. } | Op::ImageTexel { dst, .. } => vec![*dst],
+            Op::Ballot { dst, .. } => dst.to_vec(),
+            Op::ImageRead { dst, n, .. } => dst[..*n as usize].to_vec(),
+            Op::ImageSize { dst, .. } => dst.to_vec(),
+            Op::RayQuery(rq) => rq.dst.clone(),
+            Op::Store { .. } | Op::ImageWrite { .. } => vec![],
+        }
+    }
+}
+
 /// One `OpRayQuery*` instruction. `query` holds the lane-frame address of the ray-query
 /// variable, which is the query's identity: the executor keeps each lane's traversal state
 /// keyed by it.
