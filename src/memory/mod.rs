@@ -320,6 +320,18 @@ impl Buffer {
         m.write(o, data)
     }
 
+    /// The host address of `len` bytes at buffer offset `offset`, when they are ordinary
+    /// memory that holds them for as long as the buffer lives: bound, not freed, not a sparse
+    /// range (whose pages come and go). Loads and stores there are what `read`/`write` do.
+    pub fn host_span(&self, offset: u64, len: u64) -> Option<usize> {
+        let (m, o) = self.locate(offset, len).ok()?;
+        if m.sparse.is_some() {
+            return None;
+        }
+        m.check(o, len).ok()?;
+        m.host_ptr(o).map(|p| p as usize)
+    }
+
     /// [`Memory::atomic`] at a buffer-relative offset.
     pub fn atomic(&self, offset: u64, size: usize, update: &dyn Fn(u64) -> u64) -> Result<u64, AccessError> {
         let (m, o) = self.locate(offset, size as u64)?;

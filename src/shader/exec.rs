@@ -95,6 +95,9 @@ pub(super) struct Ctx<'a> {
     /// Per `Program::bindings` slot, the region of each array element (one for a single
     /// descriptor).
     pub regions: Vec<Vec<Option<Region>>>,
+    /// Per `Program::bindings` slot, where native code loads and stores inline: the host
+    /// address and length of a single descriptor's region (`Memory::host_span`), or [0, 0].
+    pub spans: Vec<[u64; 2]>,
     /// Per `Program::images` slot, the view of each array element (one for a single image).
     pub images: Vec<Vec<Option<ImageBinding>>>,
     pub push: &'a [u8],
@@ -146,10 +149,12 @@ pub fn dispatch(
     } else {
         push_constants
     };
+    let regions = super::exec_mem::binding_regions(prog, memory);
     let ctx = Ctx {
         prog,
         mem: memory,
-        regions: super::exec_mem::binding_regions(prog, memory),
+        spans: super::exec_mem::host_spans(prog, memory, &regions),
+        regions,
         images: super::exec_image::image_bindings(prog, memory),
         push: push_constants,
         accel: prog.accel_bindings.iter().map(|&(_, (s, b))| memory.acceleration_structure(s, b).unwrap_or(0)).collect(),

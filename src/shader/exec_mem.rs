@@ -145,6 +145,20 @@ pub(super) fn binding_regions(prog: &Program, memory: &dyn Memory) -> Vec<Vec<Op
         .collect()
 }
 
+/// Per binding slot, the host address and length of a single descriptor's region when the
+/// memory lets native code reach it directly (`Memory::host_span`), else [0, 0]: an array's
+/// elements, and everything else, take the checked path.
+pub(super) fn host_spans(prog: &Program, memory: &dyn Memory, regions: &[Vec<Option<Region>>]) -> Vec<[u64; 2]> {
+    prog.binding_counts
+        .iter()
+        .zip(regions)
+        .map(|(&n, r)| match (n, r.first().copied().flatten()) {
+            (1, Some(reg)) => memory.host_span(reg.buffer, reg.offset, reg.len).map_or([0, 0], |at| [at as u64, reg.len]),
+            _ => [0, 0],
+        })
+        .collect()
+}
+
 /// The structure address of every element of every acceleration-structure array, resolved
 /// once per dispatch (0 for an element with nothing bound: a query on it faults).
 pub(super) fn accel_arrays(prog: &Program, memory: &dyn Memory) -> Vec<Vec<u64>> {

@@ -60,6 +60,13 @@ pub trait Memory: Sync {
     /// Atomically replaces the `size`-byte (4 or 8) little-endian value at `offset` with
     /// `update(old)` and returns `old`.
     fn atomic(&self, buffer: u64, offset: u64, size: usize, update: &dyn Fn(u64) -> u64) -> Option<u64>;
+    /// The host address of bytes [offset, offset + len) of `buffer`, when they are ordinary
+    /// host memory, in order, that native code may load from and store to directly for the
+    /// rest of the dispatch (exactly what `read`/`write` would do there, never a fault). None
+    /// keeps every access on `read`/`write`.
+    fn host_span(&self, _buffer: u64, _offset: u64, _len: u64) -> Option<usize> {
+        None
+    }
 
     /// Ray queries: the device address of the acceleration structure bound at (set, binding)
     /// (an `accelerationStructureEXT` descriptor), resolved once per dispatch; None when
@@ -388,6 +395,12 @@ impl Memory for HostMemory {
             i += n;
         }
         true
+    }
+
+    fn host_span(&self, buffer: u64, offset: u64, len: u64) -> Option<usize> {
+        // The words hold the bytes in order only on a little-endian host.
+        let b = self.buffer(buffer, offset, usize::try_from(len).ok()?).filter(|_| cfg!(target_endian = "little"))?;
+        Some(b.words.as_ptr() as usize + offset as usize)
     }
 
     fn atomic(&self, buffer: u64, offset: u64, size: usize, update: &dyn Fn(u64) -> u64) -> Option<u64> {

@@ -43,10 +43,11 @@
 //! (`ARBOR_SHADER_JIT=all` compiles them too). The scalar JIT covers ALU ops of every type (the
 //! common integer, Bool and float ops inline; sin, cos, exp written out as `vmath` computes
 //! them; the rest through helpers that run the interpreter's own lane arms), control flow,
-//! phis, selects, push constants and lane memory inline behind bounds checks, and every other
-//! buffer access (descriptors, arrays, device addresses, atomics) through the interpreter's
-//! access function, so faults are the same records; the SIMD backend reaches memory and the
-//! uncommon ops through the same helpers, lane by lane. Programs that need the invocations of a
+//! phis, selects, push constants, lane memory and single buffer descriptors whose memory is
+//! plain host memory (`Memory::host_span`) inline behind bounds checks, and every other buffer
+//! access (arrays, device addresses, atomics, anything out of bounds) through the
+//! interpreter's access function, so faults are the same records; the SIMD backend does the
+//! same lane by lane and reaches the uncommon ops through the same helpers. Programs that need the invocations of a
 //! lane group or workgroup together stay on the interpreter: workgroup barriers and shared
 //! memory (whose unsynchronised order the lane schedule defines), subgroup and ballot ops,
 //! images and ray queries, atomics on lane memory. The interpreter is the reference: same

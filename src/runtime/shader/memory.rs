@@ -235,6 +235,13 @@ impl Memory for DispatchMemory<'_> {
         self.buffer(buffer).is_some_and(|b| b.write(offset, data).is_ok())
     }
 
+    fn host_span(&self, buffer: u64, offset: u64, len: u64) -> Option<usize> {
+        if buffer & (ADDRESS_TAG | IMAGE_TAG) != 0 {
+            return None;
+        }
+        self.buffer(buffer)?.host_span(offset, len)
+    }
+
     fn atomic(&self, buffer: u64, offset: u64, size: usize, update: &dyn Fn(u64) -> u64) -> Option<u64> {
         if buffer & ADDRESS_TAG != 0 {
             let address = (buffer & !ADDRESS_TAG) + offset;

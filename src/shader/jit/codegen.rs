@@ -60,6 +60,15 @@ fn sig(call_conv: cranelift_codegen::isa::CallConv, ty: types::Type, n: usize) -
 }
 
 /// Whether `translate` can compile `prog` at all (the checks that need no code generation).
+/// The host address and length of binding slot `slot`'s region, from the run context's span
+/// table (`helpers::SPANS_AT`); a length of 0 when its accesses take the helper's path.
+pub(super) fn span(b: &mut FunctionBuilder, run: Value, slot: u16) -> (Value, Value) {
+    let flags = MemFlagsData::trusted();
+    let table = b.ins().load(I64, flags, run, helpers::SPANS_AT);
+    let at = 16 * slot as i32;
+    (b.ins().load(I64, flags, table, at), b.ins().load(I64, flags, table, at + 8))
+}
+
 pub(super) fn supported(prog: &Program) -> bool {
     if !prog.accel_bindings.is_empty() {
         return false;
@@ -469,6 +478,7 @@ impl<'p, 'b, 'f> Gen<'p, 'b, 'f> {
         let (base, len) = match space {
             Space::Lane => (self.frame, self.frame_len),
             Space::Push => (self.push, self.push_len),
+            Space::Buffer(slot) => span(self.b, self.run, slot),
             Space::Workgroup => return None,
             _ => {
                 let z = self.b.ins().iconst(I64, 0);
@@ -498,22 +508,21 @@ impl<'p, 'b, 'f> Gen<'p, 'b, 'f> {
     fn store(&mut self, ty: Sc, space: Space, addr: ir::Reg, src: ir::Reg) -> Option<()> {
         let (at, v) = (self.get(addr), self.get(src));
         let desc = MemDesc { ty, space, kind: MemKind::Store };
-        match space {
-            Space::Lane => {}
+        let (base, len) = match space {
+            Space::Lane => (self.frame, self.frame_len),
+            Space::Buffer(slot) => span(self.b, self.run, slot),
             Space::Workgroup => return None,
             _ => {
                 self.mem_call(desc, at, v, v);
                 return Some(());
             }
-        }
-        let len = self.frame_len;
+        };
         let ok = self.in_bounds(at, len, ty.size());
-        let frame = self.frame;
         self.guarded(
             ok,
             |g| g.mem_call(desc, at, v, v),
             |g| {
-                let p = g.b.ins().iadd(frame, at);
+                let p = g.b.ins().iadd(base, at);
                 let w = if ty.size() == 8 { v } else { g.lo(v) };
                 g.b.ins().store(MemFlagsData::new(), w, p, 0);
                 g.b.ins().iconst(I64, 0)

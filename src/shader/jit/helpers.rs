@@ -1,7 +1,8 @@
 //! What the generated code calls: `extern "C"` functions in safe Rust. The ALU helpers run
 //! `alu`'s and `vmath`'s own functions (so the JIT cannot disagree with the interpreter on the
 //! ops it does not emit inline); `mem` runs the interpreter's `access_one` for every access that
-//! is not an in-bounds lane-frame or push-constant access; `poll` is the watchdog.
+//! is not an in-bounds lane-frame, push-constant or host-span buffer access; `poll` is the
+//! watchdog.
 use super::super::alu;
 use super::super::exec::{check_watchdog, init_frame, Ctx, Wg, CHECK_EVERY};
 use super::super::exec_alu::{exec_bin, exec_tri, exec_un};
@@ -63,12 +64,17 @@ pub(super) struct Run<'r, 'a> {
     pub lane_kept: [usize; W],
     pub next: u32,
     pub count: u32,
+    /// `Ctx::spans`, for the generated code's inline buffer accesses (`SPANS_AT`).
+    pub spans: *const [u64; 2],
 }
+
+/// Where the generated code finds `Run::spans` in the context it is passed.
+pub(super) const SPANS_AT: i32 = std::mem::offset_of!(Run<'static, 'static>, spans) as i32;
 
 impl<'r, 'a> Run<'r, 'a> {
     pub fn new(ctx: &'r Ctx<'a>, wg: &'r mut Wg, descs: &'r [MemDesc]) -> Self {
         let count = ctx.local.iter().product::<u32>();
-        Run { ctx, wg, descs, invocation: 0, pending: Vec::new(), kept: 0, accounted: 0, panic: None, lane_inv: [0; W], lane_kept: [0; W], next: 0, count }
+        Run { ctx, wg, descs, invocation: 0, pending: Vec::new(), kept: 0, accounted: 0, panic: None, lane_inv: [0; W], lane_kept: [0; W], next: 0, count, spans: ctx.spans.as_ptr() }
     }
 }
 

@@ -378,3 +378,61 @@ fn a_panic_in_memory_unwinds_out_of_native_code() {
     let msg = r.expect_err("the panic reaches the caller");
     assert_eq!(msg.downcast_ref::<&str>(), Some(&"read refused"));
 }
+
+/// Memory that exposes no host spans: every buffer access of native code takes the checked
+/// helper path.
+struct Checked<'m>(&'m HostMemory);
+
+impl crate::shader::Memory for Checked<'_> {
+    fn binding(&self, set: u32, binding: u32) -> Option<crate::shader::Region> {
+        self.0.binding(set, binding)
+    }
+    fn address(&self, address: u64, len: u64) -> Option<crate::shader::Region> {
+        self.0.address(address, len)
+    }
+    fn read(&self, buffer: u64, offset: u64, out: &mut [u8]) -> bool {
+        self.0.read(buffer, offset, out)
+    }
+    fn write(&self, buffer: u64, offset: u64, data: &[u8]) -> bool {
+        self.0.write(buffer, offset, data)
+    }
+    fn atomic(&self, buffer: u64, offset: u64, size: usize, update: &dyn Fn(u64) -> u64) -> Option<u64> {
+        self.0.atomic(buffer, offset, size, update)
+    }
+}
+
+/// Buffer loads and stores inline in host memory (`Memory::host_span`) leave the same bytes
+/// and faults as the checked path, on both native backends, in and out of bounds.
+#[test]
+fn inline_buffer_accesses_match_the_checked_path() {
+    use crate::shader::Memory;
+    let mut seen = 0;
+    for name in ["arith.comp", "oob.comp", "control.comp"] {
+        for (what, words) in compile_with(name, &[]) {
+            let p = Pipeline::compute(&Module::parse(&words).unwrap(), "main", &[]).unwrap();
+            let simd = super::compile_simd(&p.program).map(|j| Pipeline { jit: Some(std::sync::Arc::new(j)), ..p.clone() });
+            for (backend, fast) in [("scalar", p.compiled()), ("simd", simd)] {
+                let Some(fast) = fast else { continue };
+                let go = |spans: bool| {
+                    let mut mem = HostMemory::new();
+                    let ids: Vec<usize> = fast.bindings().iter().enumerate().map(|(k, b)| {
+                        let id = mem.add_buffer(&fill(2, 7 + 31 * k as u64, 4096));
+                        mem.bind(b.set, b.binding, id);
+                        id
+                    }).collect();
+                    let push = fill(2, 99, (fast.push_constant_size as usize).next_multiple_of(8));
+                    let checked = Checked(&mem);
+                    let m: &dyn Memory = if spans { &mem } else { &checked };
+                    assert_eq!(m.host_span(0, 0, 4).is_some(), spans);
+                    let report = dispatch(&fast, m, &push, [3, 2, 1], [0; 3], &Watchdog::default());
+                    (report, ids.iter().map(|&id| mem.bytes(id)).collect::<Vec<_>>())
+                };
+                let (inline, checked) = (go(true), go(false));
+                assert_eq!(inline.0, checked.0, "{what} on {backend}: reports");
+                assert!(inline.1 == checked.1, "{what} on {backend}: memory");
+                seen += 1;
+            }
+        }
+    }
+    assert!(seen >= 6, "{seen} pipelines");
+}

@@ -1,11 +1,13 @@
-//! Memory ops of the SIMD code, lane by lane: the lane frame and push constants inline when in
-//! bounds, everything else (and every fault) through the scalar JIT's helpers, so values and
-//! fault records are the interpreter's.
+//! Memory ops of the SIMD code, lane by lane: the lane frame, push constants and buffers whose
+//! bytes the memory exposes (`Memory::host_span`) inline when in bounds, everything else (and
+//! every fault) through the scalar JIT's helpers, so values and fault records are the
+//! interpreter's.
 use cranelift_codegen::ir::condcodes::IntCC;
 use cranelift_codegen::ir::{InstBuilder, MemFlagsData, Value};
 
 use super::super::super::ir::{self, AtomicOp, Sc, Space};
 use super::super::helpers::{self, MemDesc, MemKind};
+use super::super::codegen::span;
 use super::gen::{space_ok, Gen, I32, I64, W};
 
 impl Gen<'_, '_, '_> {
@@ -57,7 +59,8 @@ impl Gen<'_, '_, '_> {
 
     /// The normalised word `ty` at `p`.
     fn load_at(&mut self, ty: Sc, p: Value, off: i32) -> Value {
-        let flags = MemFlagsData::trusted();
+        // Buffer words need not be aligned.
+        let flags = MemFlagsData::new();
         if ty.size() == 8 {
             return self.b.ins().load(I64, flags, p, off);
         }
@@ -85,9 +88,20 @@ impl Gen<'_, '_, '_> {
         if let (Space::Push, Some(k)) = (space, self.types.konst(addr)) {
             return Some([self.uniform_push(d, ty, k); W]);
         }
+        let span = match space {
+            Space::Buffer(slot) => Some(span(self.b, self.run, slot)),
+            _ => None,
+        };
         let z = self.b.ins().iconst(I64, 0);
         Some(std::array::from_fn(|l| {
             let at = self.word(addr, l);
+            if let Some((base, len)) = span {
+                let ok = self.in_bounds(at, len, size);
+                return self.guarded(ok, d, l, at, z, |g| {
+                    let p = g.b.ins().iadd(base, at);
+                    g.load_at(ty, p, 0)
+                });
+            }
             match space {
                 Space::Lane => {
                     let len = self.b.ins().iconst(I64, fs as i64);
@@ -140,22 +154,33 @@ impl Gen<'_, '_, '_> {
         let d = self.site(MemDesc { ty, space, kind: MemKind::Store });
         let size = ty.size();
         let fs = self.fs;
+        // Inline where the bytes are: lane `l`'s frame, or the binding's host span.
+        let (base, len, stride) = match space {
+            Space::Lane => (self.frame, self.b.ins().iconst(I64, fs as i64), fs),
+            Space::Buffer(slot) => {
+                let (base, len) = span(self.b, self.run, slot);
+                (base, len, 0)
+            }
+            _ => {
+                for l in 0..W {
+                    let (at, v) = (self.word(addr, l), self.word(src, l));
+                    self.lane_call(d, l, at, v, v);
+                }
+                return Some(());
+            }
+        };
         for l in 0..W {
             let (at, v) = (self.word(addr, l), self.word(src, l));
-            if space != Space::Lane {
-                self.lane_call(d, l, at, v, v);
-                continue;
-            }
-            let len = self.b.ins().iconst(I64, fs as i64);
             let ok = self.in_bounds(at, len, size);
             let ok = self.b.ins().band(ok, self.on[l]);
-            let frame = self.frame;
             let (fast, slow, join) = (self.b.create_block(), self.b.create_block(), self.b.create_block());
             self.b.ins().brif(ok, fast, &[], slow, &[]);
             self.b.switch_to_block(fast);
-            let p = self.b.ins().iadd(frame, at);
+            let p = self.b.ins().iadd(base, at);
             let w = if size == 8 { v } else { self.b.ins().ireduce(I32, v) };
-            self.b.ins().store(MemFlagsData::trusted(), w, p, (l as u32 * fs) as i32);
+            // Buffer memory may be shared with other threads' workgroups: not `trusted`.
+            let flags = if stride == 0 { MemFlagsData::new() } else { MemFlagsData::trusted() };
+            self.b.ins().store(flags, w, p, (l as u32 * stride) as i32);
             self.b.ins().jump(join, &[]);
             self.b.switch_to_block(slow);
             // Out of bounds (a fault when the lane runs).

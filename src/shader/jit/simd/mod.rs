@@ -7,9 +7,10 @@
 //! interpreter's schedule (`gen`), so a divergent branch costs both sides but no per-lane
 //! dispatch; writes under a partial mask blend, except to registers that never outlive their
 //! block. ALU ops are vector instructions where the bits are `alu`'s (`alu`), sin/cos/exp the
-//! vectorised `vmath`; the rest, and every buffer access, go lane by lane through the scalar
-//! JIT's helpers, so values and fault records are the interpreter's. A program with anything
-//! else is declined and runs on the scalar JIT or the interpreter.
+//! vectorised `vmath`; the rest, and every memory access, go lane by lane (in-bounds accesses
+//! to the lane frame, push constants and host-span buffers inline, everything else through the
+//! scalar JIT's helpers), so values and fault records are the interpreter's. A program with
+//! anything else is declined and runs on the scalar JIT or the interpreter.
 use cranelift_codegen::ir::{types as cl, AbiParam, Function, UserFuncName};
 use cranelift_codegen::settings::{self, Configurable};
 use cranelift_frontend::{FunctionBuilder, FunctionBuilderContext};
@@ -44,8 +45,8 @@ pub(in crate::shader) use gen::W;
 /// at least an eighth of the ops (W lanes of float math per instruction, sin/cos/exp
 /// vectorised: compute-alu), or loops without memory ops (integer loops and branches whose
 /// lanes end apart run with lane refill a little faster than on the scalar JIT:
-/// compute-divergent). Buffer accesses go lane by lane through a helper call on this backend,
-/// slower than the scalar JIT's (compute-memory); docs/BENCHMARKS.md has the figures.
+/// compute-divergent). Buffer accesses go lane by lane on this backend, slower than the scalar
+/// JIT's (compute-memory); docs/BENCHMARKS.md has the figures.
 pub(super) fn pays(prog: &Program) -> bool {
     let in_loop = super::codegen::loop_blocks(prog);
     let (mut ops, mut float, mut memory) = (0usize, 0usize, 0usize);
