@@ -109,8 +109,8 @@ pub(super) struct Ctx<'a> {
     num_groups: [u32; 3],
     pub watchdog: &'a Watchdog<'a>,
     stop: AtomicBool,
-    /// A bit per built-in word the program reads (`builtins_read`).
-    builtins: u64,
+    /// What of a lane frame the program reads (`frame_use`).
+    frame: FrameUse,
 }
 
 /// Per-workgroup mutable state besides the lane groups.
@@ -164,7 +164,7 @@ pub fn dispatch(
         num_groups: group_count,
         watchdog,
         stop: AtomicBool::new(false),
-        builtins: builtins_read(prog),
+        frame: frame_use(prog),
     };
     let total = group_count.iter().map(|&c| c as u64).product::<u64>();
     let per_row = group_count[0] as u64 * group_count[1] as u64;
@@ -278,72 +278,81 @@ fn init_group(ctx: &Ctx, group: &mut Group, wg: &Wg, g: u32, n: u32) {
     }
 }
 
-/// A bit per word of the built-in area that `prog` reads: lane-frame accesses at constant
-/// offsets name theirs; one at a computed offset may reach any word.
-pub(super) fn builtins_read(prog: &Program) -> u64 {
+/// What of a lane frame a program reads: a bit per word of the built-in area, and whether
+/// anything past it (Private and Function variables, whose initial contents each invocation
+/// must then find).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(super) struct FrameUse {
+    pub builtins: u64,
+    pub tail: bool,
+}
+
+/// Lane-frame accesses at constant offsets name the words they reach; one at a computed offset
+/// may reach any.
+pub(super) fn frame_use(prog: &Program) -> FrameUse {
     let words = bo::END / 4;
     let konst = |r| prog.consts.iter().find(|c| c.0 == r).map(|c| c.1);
     let written: Vec<_> = prog.blocks.iter().flat_map(|b| b.ops.iter().flat_map(Op::defs).chain(b.phi_in.iter().map(|p| p.0)).chain(b.edge_moves.iter().map(|m| m.dst))).collect();
-    let mut read = 0u64;
+    let mut used = FrameUse { builtins: 0, tail: false };
     for op in prog.blocks.iter().flat_map(|b| &b.ops) {
         let (ty, addr) = match *op {
             Op::Load { ty, space: Space::Lane, addr, .. } | Op::Store { ty, space: Space::Lane, addr, .. } | Op::Atomic { ty, space: Space::Lane, addr, .. } => (ty, addr),
             _ => continue,
         };
         match konst(addr).filter(|_| !written.contains(&addr)) {
-            Some(k) if k >= bo::END as u64 => {}
-            Some(k) => (k / 4..(k + ty.size() as u64).div_ceil(4).min(words as u64)).for_each(|w| read |= 1 << w),
-            None => return (1 << words) - 1,
+            Some(k) if k >= bo::END as u64 => used.tail = true,
+            Some(k) => (k / 4..(k + ty.size() as u64).div_ceil(4).min(words as u64)).for_each(|w| used.builtins |= 1 << w),
+            None => return FrameUse { builtins: (1 << words) - 1, tail: true },
         }
     }
-    read
+    used
 }
 
-/// The three words of gl_GlobalInvocationID, the only built-in most shaders read.
-const GLOBAL_ONLY: u64 = 0b111;
-
-/// Fills invocation `index`'s lane frame (of `n` in workgroup `id`): the program's initial
-/// contents, then the built-in inputs it reads.
+/// Fills invocation `index`'s lane frame (of `n` in workgroup `id`): the built-in words the
+/// program reads, then the program's initial contents past them when it reads those.
 pub(super) fn init_frame(ctx: &Ctx, frame: &mut [u8], id: [u32; 3], index: u32, n: u32) {
     let [lx, ly, lz] = ctx.local;
-    let local = [index % lx, (index / lx) % ly, index / (lx * ly)];
-    let global = [0, 1, 2].map(|i| id[i].wrapping_mul(ctx.local[i]).wrapping_add(local[i]));
+    // A one-dimensional workgroup (the common shape) needs no division.
+    let local = if ly == 1 && lz == 1 { [index, 0, 0] } else { [index % lx, (index / lx) % ly, index / (lx * ly)] };
     let end = (bo::END as usize).min(frame.len());
     let (head, tail) = frame.split_at_mut(end);
-    if ctx.builtins & !GLOBAL_ONLY == 0 {
-        for (d, v) in head.chunks_exact_mut(4).zip(global) {
-            d.copy_from_slice(&v.to_le_bytes());
+    let mut words = ctx.frame.builtins;
+    while words != 0 {
+        let w = words.trailing_zeros();
+        words &= words - 1;
+        if let Some(d) = head.get_mut(4 * w as usize..4 * w as usize + 4) {
+            d.copy_from_slice(&builtin_word(ctx, id, index, n, local, w).to_le_bytes());
         }
-    } else {
-        let groups = n.div_ceil(LANES as u32);
-        let (g, l) = (index / LANES as u32, index % LANES as u32);
-        let all = (1u32 << LANES) - 1;
-        // The built-ins fill the whole area before `END` (a mask's upper words are zero): one
-        // array written in one pass, a frame per invocation being filled in the backends'
-        // inner loop.
-        let mut w = [0u32; bo::END as usize / 4];
-        let mut put = |at: u32, vals: &[u32]| w[at as usize / 4..][..vals.len()].copy_from_slice(vals);
-        put(bo::GLOBAL_INVOCATION_ID, &global);
-        put(bo::LOCAL_INVOCATION_ID, &local);
-        put(bo::WORKGROUP_ID, &id);
-        put(bo::NUM_WORKGROUPS, &ctx.num_groups);
-        put(bo::LOCAL_INVOCATION_INDEX, &[index]);
-        put(bo::WORKGROUP_SIZE, &[lx, ly, lz]);
-        put(bo::SUBGROUP_SIZE, &[LANES as u32]);
-        put(bo::SUBGROUP_LOCAL_INVOCATION_ID, &[l]);
-        put(bo::SUBGROUP_ID, &[g]);
-        put(bo::NUM_SUBGROUPS, &[groups]);
-        put(bo::SUBGROUP_EQ_MASK, &[1 << l]);
-        put(bo::SUBGROUP_GE_MASK, &[all & !((1 << l) - 1)]);
-        put(bo::SUBGROUP_GT_MASK, &[all & !((2 << l) - 1)]);
-        put(bo::SUBGROUP_LE_MASK, &[(2 << l) - 1]);
-        put(bo::SUBGROUP_LT_MASK, &[(1 << l) - 1]);
-        let w = w.map(u32::to_le);
-        head.copy_from_slice(&bytemuck::cast_slice(&w)[..end]);
     }
-    // The rest is the program's initial contents (Private and Function variables).
-    if let Some(init) = ctx.prog.lane_frame.get(end..).filter(|t| t.len() == tail.len()) {
+    if let Some(init) = ctx.prog.lane_frame.get(end..).filter(|t| ctx.frame.tail && t.len() == tail.len()) {
         tail.copy_from_slice(init);
+    }
+}
+
+/// Word `w` of the built-in area (`ir::builtin_offset`) of invocation `index` (of `n`, local id
+/// `local`) in workgroup `id`. A subgroup mask's upper words are zero.
+fn builtin_word(ctx: &Ctx, id: [u32; 3], index: u32, n: u32, local: [u32; 3], w: u32) -> u32 {
+    let at = 4 * w;
+    let k = |base: u32| ((at - base) / 4) as usize;
+    let lane = index % LANES as u32;
+    let all = (1u32 << LANES) - 1;
+    match at {
+        a if a < bo::LOCAL_INVOCATION_ID => id[k(0)].wrapping_mul(ctx.local[k(0)]).wrapping_add(local[k(0)]),
+        a if a < bo::WORKGROUP_ID => local[k(bo::LOCAL_INVOCATION_ID)],
+        a if a < bo::NUM_WORKGROUPS => id[k(bo::WORKGROUP_ID)],
+        a if a < bo::LOCAL_INVOCATION_INDEX => ctx.num_groups[k(bo::NUM_WORKGROUPS)],
+        bo::LOCAL_INVOCATION_INDEX => index,
+        a if a < bo::SUBGROUP_SIZE => ctx.local[k(bo::WORKGROUP_SIZE)],
+        bo::SUBGROUP_SIZE => LANES as u32,
+        bo::SUBGROUP_LOCAL_INVOCATION_ID => lane,
+        bo::SUBGROUP_ID => index / LANES as u32,
+        bo::NUM_SUBGROUPS => n.div_ceil(LANES as u32),
+        bo::SUBGROUP_EQ_MASK => 1 << lane,
+        bo::SUBGROUP_GE_MASK => all & !((1 << lane) - 1),
+        bo::SUBGROUP_GT_MASK => all & !((2 << lane) - 1),
+        bo::SUBGROUP_LE_MASK => (2 << lane) - 1,
+        bo::SUBGROUP_LT_MASK => (1 << lane) - 1,
+        _ => 0,
     }
 }
 

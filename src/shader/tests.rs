@@ -756,24 +756,28 @@ pub(super) fn two_buffer_program(blocks: Vec<ir::Block>, reg_count: u32, consts:
     }
 }
 
-/// Frames get only the built-ins the program reads: gl_GlobalInvocationID's words for a shader
-/// that reads nothing else, more for one that does, and every word once an address into the
-/// frame is computed.
+/// Frames get only what the program reads: gl_GlobalInvocationID's words for a shader that
+/// reads nothing else, more for one that does, and every word and the variables past the
+/// built-ins once an address into the frame is computed.
 #[test]
-fn lane_frames_get_the_builtins_the_program_reads() {
-    use super::exec::builtins_read;
+fn lane_frames_get_what_the_program_reads() {
+    use super::exec::frame_use;
     use ir::{Op, Sc, Space};
     let all = (1u64 << (ir::builtin_offset::END / 4)) - 1;
     for (what, words) in compile("arith.comp") {
-        let read = builtins_read(&pipeline(&words, &[]).program);
-        assert!(read != 0 && read & !0b111 == 0, "{what}: {read:b}");
+        let used = frame_use(&pipeline(&words, &[]).program);
+        assert!(used.builtins != 0 && used.builtins & !0b111 == 0, "{what}: {used:?}");
     }
     for (what, words) in compile("misc.comp") {
-        let read = builtins_read(&pipeline(&words, &[]).program);
-        assert!(read & !0b111 != 0, "{what}: {read:b}");
+        let used = frame_use(&pipeline(&words, &[]).program);
+        assert!(used.builtins & !0b111 != 0 && used.tail, "{what}: {used:?}");
     }
-    let (addr, gid) = (0, 1);
-    let ops = vec![Op::Load { ty: Sc::I32, space: Space::Lane, dst: gid, addr }, Op::Load { ty: Sc::I32, space: Space::Lane, dst: 2, addr: gid }];
+    let (addr, gid, var) = (0, 1, 3);
+    let ops = vec![Op::Load { ty: Sc::I32, space: Space::Lane, dst: gid, addr }, Op::Load { ty: Sc::I32, space: Space::Lane, dst: 2, addr: var }];
+    let konsts = vec![(addr, 0), (var, ir::builtin_offset::END as u64)];
+    let prog = two_buffer_program(vec![ir::Block { ops: ops.clone(), term: ir::Term::Exit, phi_in: vec![], edge_moves: vec![] }], 4, konsts, 168);
+    assert_eq!(frame_use(&prog), super::exec::FrameUse { builtins: 1, tail: true });
+    let ops = vec![ops[0].clone(), Op::Load { ty: Sc::I32, space: Space::Lane, dst: 2, addr: gid }];
     let prog = two_buffer_program(vec![ir::Block { ops, term: ir::Term::Exit, phi_in: vec![], edge_moves: vec![] }], 3, vec![(addr, 0)], 160);
-    assert_eq!(builtins_read(&prog), all);
+    assert_eq!(frame_use(&prog), super::exec::FrameUse { builtins: all, tail: true });
 }

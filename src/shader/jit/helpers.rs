@@ -88,20 +88,16 @@ pub(super) extern "C" fn refill(run: &mut Run, done: u64) -> u64 {
     let fs = run.ctx.prog.lane_frame.len();
     let (ctx, id, count) = (run.ctx, run.wg.id, run.count);
     let mut got = 0u64;
-    for l in (0..W).filter(|&l| done >> l & 1 != 0) {
-        if run.next >= count {
-            break;
+    arbor_jitcode::with_frame(|frame| {
+        for l in (0..W).filter(|&l| done >> l & 1 != 0) {
+            let Some(f) = frame.get_mut(l * fs..(l + 1) * fs).filter(|_| run.next < count) else { break };
+            init_frame(ctx, f, id, run.next, count);
+            run.lane_inv[l] = run.next;
+            run.lane_kept[l] = 0;
+            run.next += 1;
+            got |= 1 << l;
         }
-        let inv = run.next;
-        let filled = arbor_jitcode::with_frame(|frame| frame.get_mut(l * fs..(l + 1) * fs).map(|f| init_frame(ctx, f, id, inv, count)).is_some());
-        if filled != Some(true) {
-            break;
-        }
-        run.next += 1;
-        run.lane_inv[l] = inv;
-        run.lane_kept[l] = 0;
-        got |= 1 << l;
-    }
+    });
     got | ((count - run.next) as u64) << 32
 }
 
