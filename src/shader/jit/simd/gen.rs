@@ -105,6 +105,8 @@ pub(super) struct Gen<'p, 'b, 'f> {
     /// that answer for the op being emitted.
     nan_covered: Vec<Vec<bool>>,
     pub skip_nan: bool,
+    /// Not-equal-zero tests folded into their select (`fuse`).
+    fused: super::fuse::Fused,
 }
 
 fn sig(call_conv: cranelift_codegen::isa::CallConv, n: usize) -> Signature {
@@ -198,6 +200,7 @@ impl<'p, 'b, 'f> Gen<'p, 'b, 'f> {
         b.switch_to_block(bad_b);
         b.ins().return_(&[zero64]);
         b.switch_to_block(ok_b);
+        let fused = super::fuse::fuse(prog, &types);
         let mut g = Gen {
             b,
             prog,
@@ -231,6 +234,7 @@ impl<'p, 'b, 'f> Gen<'p, 'b, 'f> {
             outer,
             nan_covered: super::nan::covered(prog),
             skip_nan: false,
+            fused,
         };
         // Every lane starts done, with invocations to hand out (the count is the first
         // refill's answer): the code starts at the refill past the last block.
@@ -318,6 +322,9 @@ impl<'p, 'b, 'f> Gen<'p, 'b, 'f> {
             self.mov(dst, tmp);
         }
         for (k, op) in blk.ops.iter().enumerate() {
+            if self.fused.skip[i][k] {
+                continue;
+            }
             self.skip_nan = self.nan_covered[i][k];
             if super::types::pure(op) {
                 self.save_inputs(op);
@@ -653,6 +660,15 @@ impl<'p, 'b, 'f> Gen<'p, 'b, 'f> {
     // ---- ops ----
 
     fn select(&mut self, dst: ir::Reg, cond: ir::Reg, a: ir::Reg, b: ir::Reg) {
+        if let Some(t) = self.fused.negated[cond as usize] {
+            // `t != 0 ? a : b` is `t == 0 ? b : a`.
+            let (x, y, z) = (self.vget(t, Cls::W32), self.vget(b, self.types.cls(dst)), self.vget(a, self.types.cls(dst)));
+            let zero = self.splat32(0);
+            let eq = self.map2(x, zero, |b, x, z| b.ins().icmp(IntCC::Equal, x, z));
+            let v = self.map3(eq, y, z, |b, c, y, z| b.ins().bitselect(c, y, z));
+            self.vset(dst, v);
+            return;
+        }
         let c = self.vget(cond, Cls::B);
         match self.types.cls(dst) {
             Cls::W64 => {

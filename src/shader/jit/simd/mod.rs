@@ -23,6 +23,7 @@ use super::helpers::Run;
 use super::{account, flush, Jit};
 
 mod alu;
+mod fuse;
 mod gen;
 mod mem;
 mod nan;

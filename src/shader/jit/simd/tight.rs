@@ -36,17 +36,18 @@ impl Gen<'_, '_, '_> {
     pub(super) fn tight_loop(&mut self, i: u32, blk: &ir::Block, m0: V, stay_if: bool, exit: u32) -> Option<()> {
         let Term::Cond { cond, .. } = blk.term else { return None };
         let cur = self.cursors();
-        // Refill's test, "at least THRESHOLD lanes parked past the loop", becomes "at most
-        // `limit` lanes still looping"; -1 (never) when no invocation is left to hand out.
+        // The loop is left when at most `limit` lanes still loop: none, or (while invocations
+        // are left to hand out) few enough that refill's THRESHOLD lanes are parked past it.
         let iv = self.splat32(i as i64);
         let below = self.map2(cur, iv, |b, c, i| b.ins().icmp(IntCC::SignedLessThan, c, i));
         let below = self.bits(below);
         let below = self.b.ins().popcnt(below);
         let most = self.b.ins().iconst(I64, (W as u32 - THRESHOLD) as i64);
         let limit = self.b.ins().isub(most, below);
+        let zero = self.b.ins().iconst(I64, 0);
+        let limit = self.b.ins().smax(limit, zero);
         let left = self.b.use_var(self.left);
-        let never = self.b.ins().iconst(I64, -1);
-        let limit = self.b.ins().select(left, limit, never);
+        let limit = self.b.ins().select(left, limit, zero);
         let looping: [Variable; PARTS] = std::array::from_fn(|_| self.b.declare_var(I32X4));
         for (&v, &x) in looping.iter().zip(&m0) {
             self.b.def_var(v, x);
@@ -68,13 +69,13 @@ impl Gen<'_, '_, '_> {
             self.b.def_var(v, x);
         }
         let bits = self.bits(took);
-        self.b.ins().brif(bits, cont, &[], out, &[]);
+        let n = self.b.ins().popcnt(bits);
+        let again = self.b.ins().icmp(IntCC::SignedGreaterThan, n, limit);
+        self.b.ins().brif(again, cont, &[], out, &[]);
 
         self.b.switch_to_block(cont);
         self.poll();
-        let n = self.b.ins().popcnt(bits);
-        let again = self.b.ins().icmp(IntCC::SignedGreaterThan, n, limit);
-        self.b.ins().brif(again, head, &[], out, &[]);
+        self.b.ins().jump(head, &[]);
 
         // The lanes that left move to the exit; those still looping wait at `i`.
         self.b.switch_to_block(out);
