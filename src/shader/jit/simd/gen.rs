@@ -161,10 +161,17 @@ fn declare_regs(b: &mut FunctionBuilder, prog: &Program, types: &Types) -> Vec<V
 
 /// Whether block `blk` has ops that go lane by lane (memory, or writes of wide registers),
 /// which need the per-lane truth values.
-fn lane_ops(types: &Types, blk: &ir::Block) -> bool {
+fn lane_ops(types: &Types, blk: &ir::Block, frame: usize) -> bool {
     let wide = |r: ir::Reg| types.konst(r).is_none() && types.cls(r) == Cls::W64;
+    // Loads at constant offsets of the lane frame or push constants need no lane's truth
+    // value (`mem`: every frame is there; a push constant is one load for all).
+    let uniform = |op: &Op| match *op {
+        Op::Load { space: Space::Push, addr, .. } => types.konst(addr).is_some(),
+        Op::Load { ty, space: Space::Lane, addr, .. } => types.konst(addr).is_some_and(|k| k.checked_add(ty.size() as u64).is_some_and(|e| e <= frame as u64)),
+        _ => false,
+    };
     blk.phi_in.iter().any(|&(d, _)| wide(d))
-        || blk.ops.iter().any(|op| matches!(op, Op::Load { .. } | Op::Store { .. } | Op::Atomic { .. }) || super::types::defs_uses(op).is_some_and(|d| d.0.iter().any(|&r| wide(r))))
+        || blk.ops.iter().any(|op| (matches!(op, Op::Load { .. } | Op::Store { .. } | Op::Atomic { .. }) && !uniform(op)) || super::types::defs_uses(op).is_some_and(|d| d.0.iter().any(|&r| wide(r))))
 }
 
 impl<'p, 'b, 'f> Gen<'p, 'b, 'f> {
@@ -309,7 +316,7 @@ impl<'p, 'b, 'f> Gen<'p, 'b, 'f> {
     pub(super) fn body(&mut self, i: usize, blk: &ir::Block, m: V) -> Option<()> {
         self.mask = m;
         self.block = i;
-        if lane_ops(&self.types, blk) {
+        if lane_ops(&self.types, blk, self.prog.lane_frame.len()) {
             for l in 0..W {
                 let x = self.lane(m, l);
                 self.on[l] = self.b.ins().icmp_imm_s(IntCC::NotEqual, x, 0);

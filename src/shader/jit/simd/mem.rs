@@ -141,9 +141,16 @@ impl Gen<'_, '_, '_> {
         self.b.switch_to_block(slow);
         self.b.set_cold_block(slow);
         let z = self.b.ins().iconst(I64, 0);
+        // The block's lanes' truth values are made here, where they are needed (`lane_ops`).
+        let outer = self.on;
+        for l in 0..W {
+            let x = self.lane(self.mask, l);
+            self.on[l] = self.b.ins().icmp_imm_s(IntCC::NotEqual, x, 0);
+        }
         for l in 0..W {
             self.lane_call(d, l, at, z, z);
         }
+        self.on = outer;
         self.b.ins().jump(join, &[z.into()]);
         self.b.switch_to_block(join);
         out
