@@ -23,8 +23,9 @@ use super::super::helpers;
 use super::gen::{Gen, Var, DONE, I32, I32X4, I64, PARTS, V, W};
 use super::types::{defs_uses, Cls, Types};
 
-/// Parked lanes (past the loop, done ones included) for which a back edge falls through.
-pub(super) const THRESHOLD: u32 = if W / 4 > 1 { (W / 4) as u32 } else { 1 };
+/// Parked lanes (past the loop, done ones included) for which a back edge falls through: three
+/// in eight, fewer refill passes while most lanes are still busy (docs/BENCHMARKS.md).
+pub(super) const THRESHOLD: u32 = if 3 * W / 8 > 1 { (3 * W / 8) as u32 } else { 1 };
 
 /// A register set, a bit per register.
 pub(super) type Set = Vec<u64>;
