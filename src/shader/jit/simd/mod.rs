@@ -46,8 +46,8 @@ pub(in crate::shader) use gen::W;
 /// at least an eighth of the ops (W lanes of float math per instruction, sin/cos/exp
 /// vectorised: compute-alu), or loops without memory ops (integer loops and branches whose
 /// lanes end apart run with lane refill a little faster than on the scalar JIT:
-/// compute-divergent). Buffer accesses go lane by lane on this backend, slower than the scalar
-/// JIT's (compute-memory); docs/BENCHMARKS.md has the figures.
+/// compute-divergent). Buffer accesses go lane by lane on this backend, which gains nothing over
+/// the scalar JIT there (compute-memory); docs/BENCHMARKS.md has the figures.
 pub(super) fn pays(prog: &Program) -> bool {
     let in_loop = super::codegen::loop_blocks(prog);
     let (mut ops, mut float, mut memory) = (0usize, 0usize, 0usize);
