@@ -343,24 +343,32 @@ fn loops_heavy_in_float_functions_stay_on_the_interpreter() {
     }
 }
 
-/// Memory whose reads panic, as a broken `Memory` implementation would.
-struct PanickingReads(HostMemory);
+/// Host memory behind the `Memory` trait's checked calls only (no host spans: every buffer
+/// access of native code takes the helper path); with `panic_reads`, reads panic, as a broken
+/// implementation's would.
+struct Checked<'m> {
+    mem: &'m HostMemory,
+    panic_reads: bool,
+}
 
-impl crate::shader::Memory for PanickingReads {
+impl crate::shader::Memory for Checked<'_> {
     fn binding(&self, set: u32, binding: u32) -> Option<crate::shader::Region> {
-        self.0.binding(set, binding)
+        self.mem.binding(set, binding)
     }
     fn address(&self, address: u64, len: u64) -> Option<crate::shader::Region> {
-        self.0.address(address, len)
+        self.mem.address(address, len)
     }
-    fn read(&self, _: u64, _: u64, _: &mut [u8]) -> bool {
-        panic!("read refused")
+    fn read(&self, buffer: u64, offset: u64, out: &mut [u8]) -> bool {
+        if self.panic_reads {
+            panic!("read refused");
+        }
+        self.mem.read(buffer, offset, out)
     }
     fn write(&self, buffer: u64, offset: u64, data: &[u8]) -> bool {
-        self.0.write(buffer, offset, data)
+        self.mem.write(buffer, offset, data)
     }
     fn atomic(&self, buffer: u64, offset: u64, size: usize, update: &dyn Fn(u64) -> u64) -> Option<u64> {
-        self.0.atomic(buffer, offset, size, update)
+        self.mem.atomic(buffer, offset, size, update)
     }
 }
 
@@ -373,32 +381,10 @@ fn a_panic_in_memory_unwinds_out_of_native_code() {
     let (a, o) = (host.add_buffer(&[0; 512]), host.add_buffer(&[0; 512]));
     host.bind(0, 0, a);
     host.bind(0, 1, o);
-    let mem = PanickingReads(host);
+    let mem = Checked { mem: &host, panic_reads: true };
     let r = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| dispatch(&p, &mem, &[], [1, 1, 1], [0; 3], &Watchdog::default())));
     let msg = r.expect_err("the panic reaches the caller");
     assert_eq!(msg.downcast_ref::<&str>(), Some(&"read refused"));
-}
-
-/// Memory that exposes no host spans: every buffer access of native code takes the checked
-/// helper path.
-struct Checked<'m>(&'m HostMemory);
-
-impl crate::shader::Memory for Checked<'_> {
-    fn binding(&self, set: u32, binding: u32) -> Option<crate::shader::Region> {
-        self.0.binding(set, binding)
-    }
-    fn address(&self, address: u64, len: u64) -> Option<crate::shader::Region> {
-        self.0.address(address, len)
-    }
-    fn read(&self, buffer: u64, offset: u64, out: &mut [u8]) -> bool {
-        self.0.read(buffer, offset, out)
-    }
-    fn write(&self, buffer: u64, offset: u64, data: &[u8]) -> bool {
-        self.0.write(buffer, offset, data)
-    }
-    fn atomic(&self, buffer: u64, offset: u64, size: usize, update: &dyn Fn(u64) -> u64) -> Option<u64> {
-        self.0.atomic(buffer, offset, size, update)
-    }
 }
 
 /// Buffer loads and stores inline in host memory (`Memory::host_span`) leave the same bytes
@@ -421,7 +407,7 @@ fn inline_buffer_accesses_match_the_checked_path() {
                         id
                     }).collect();
                     let push = fill(2, 99, (fast.push_constant_size as usize).next_multiple_of(8));
-                    let checked = Checked(&mem);
+                    let checked = Checked { mem: &mem, panic_reads: false };
                     let m: &dyn Memory = if spans { &mem } else { &checked };
                     assert_eq!(m.host_span(0, 0, 4).is_some(), spans);
                     let report = dispatch(&fast, m, &push, [3, 2, 1], [0; 3], &Watchdog::default());
