@@ -332,26 +332,40 @@ pub(super) fn init_frame(ctx: &Ctx, frame: &mut [u8], id: [u32; 3], index: u32, 
 /// Word `w` of the built-in area (`ir::builtin_offset`) of invocation `index` (of `n`, local id
 /// `local`) in workgroup `id`. A subgroup mask's upper words are zero.
 fn builtin_word(ctx: &Ctx, id: [u32; 3], index: u32, n: u32, local: [u32; 3], w: u32) -> u32 {
-    let at = 4 * w;
-    let k = |base: u32| ((at - base) / 4) as usize;
+    // Word indices: range patterns over them compile to one table jump.
+    const GID: u32 = bo::GLOBAL_INVOCATION_ID / 4;
+    const LID: u32 = bo::LOCAL_INVOCATION_ID / 4;
+    const WID: u32 = bo::WORKGROUP_ID / 4;
+    const NWG: u32 = bo::NUM_WORKGROUPS / 4;
+    const IDX: u32 = bo::LOCAL_INVOCATION_INDEX / 4;
+    const WGS: u32 = bo::WORKGROUP_SIZE / 4;
+    const SGS: u32 = bo::SUBGROUP_SIZE / 4;
+    const SLI: u32 = bo::SUBGROUP_LOCAL_INVOCATION_ID / 4;
+    const SID: u32 = bo::SUBGROUP_ID / 4;
+    const NSG: u32 = bo::NUM_SUBGROUPS / 4;
+    const EQ: u32 = bo::SUBGROUP_EQ_MASK / 4;
+    const GE: u32 = bo::SUBGROUP_GE_MASK / 4;
+    const GT: u32 = bo::SUBGROUP_GT_MASK / 4;
+    const LE: u32 = bo::SUBGROUP_LE_MASK / 4;
+    const LT: u32 = bo::SUBGROUP_LT_MASK / 4;
     let lane = index % LANES as u32;
     let all = (1u32 << LANES) - 1;
-    match at {
-        a if a < bo::LOCAL_INVOCATION_ID => id[k(0)].wrapping_mul(ctx.local[k(0)]).wrapping_add(local[k(0)]),
-        a if a < bo::WORKGROUP_ID => local[k(bo::LOCAL_INVOCATION_ID)],
-        a if a < bo::NUM_WORKGROUPS => id[k(bo::WORKGROUP_ID)],
-        a if a < bo::LOCAL_INVOCATION_INDEX => ctx.num_groups[k(bo::NUM_WORKGROUPS)],
-        bo::LOCAL_INVOCATION_INDEX => index,
-        a if a < bo::SUBGROUP_SIZE => ctx.local[k(bo::WORKGROUP_SIZE)],
-        bo::SUBGROUP_SIZE => LANES as u32,
-        bo::SUBGROUP_LOCAL_INVOCATION_ID => lane,
-        bo::SUBGROUP_ID => index / LANES as u32,
-        bo::NUM_SUBGROUPS => n.div_ceil(LANES as u32),
-        bo::SUBGROUP_EQ_MASK => 1 << lane,
-        bo::SUBGROUP_GE_MASK => all & !((1 << lane) - 1),
-        bo::SUBGROUP_GT_MASK => all & !((2 << lane) - 1),
-        bo::SUBGROUP_LE_MASK => (2 << lane) - 1,
-        bo::SUBGROUP_LT_MASK => (1 << lane) - 1,
+    match w {
+        GID..LID => id[(w - GID) as usize].wrapping_mul(ctx.local[(w - GID) as usize]).wrapping_add(local[(w - GID) as usize]),
+        LID..WID => local[(w - LID) as usize],
+        WID..NWG => id[(w - WID) as usize],
+        NWG..IDX => ctx.num_groups[(w - NWG) as usize],
+        IDX => index,
+        WGS..SGS => ctx.local[(w - WGS) as usize],
+        SGS => LANES as u32,
+        SLI => lane,
+        SID => index / LANES as u32,
+        NSG => n.div_ceil(LANES as u32),
+        EQ => 1 << lane,
+        GE => all & !((1 << lane) - 1),
+        GT => all & !((2 << lane) - 1),
+        LE => (2 << lane) - 1,
+        LT => (1 << lane) - 1,
         _ => 0,
     }
 }
