@@ -291,15 +291,19 @@ pub(super) struct FrameUse {
 /// may reach any.
 pub(super) fn frame_use(prog: &Program) -> FrameUse {
     let words = bo::END / 4;
-    let konst = |r| prog.consts.iter().find(|c| c.0 == r).map(|c| c.1);
-    let written: Vec<_> = prog.blocks.iter().flat_map(|b| b.ops.iter().flat_map(Op::defs).chain(b.phi_in.iter().map(|p| p.0)).chain(b.edge_moves.iter().map(|m| m.dst))).collect();
+    let mut konst = vec![None; prog.reg_count as usize];
+    prog.consts.iter().for_each(|&(r, k)| konst[r as usize] = Some(k));
+    let mut written = vec![false; prog.reg_count as usize];
+    for b in &prog.blocks {
+        b.ops.iter().flat_map(Op::defs).chain(b.phi_in.iter().map(|p| p.0)).chain(b.edge_moves.iter().map(|m| m.dst)).for_each(|r| written[r as usize] = true);
+    }
     let mut used = FrameUse { builtins: 0, tail: false };
     for op in prog.blocks.iter().flat_map(|b| &b.ops) {
         let (ty, addr) = match *op {
             Op::Load { ty, space: Space::Lane, addr, .. } | Op::Store { ty, space: Space::Lane, addr, .. } | Op::Atomic { ty, space: Space::Lane, addr, .. } => (ty, addr),
             _ => continue,
         };
-        match konst(addr).filter(|_| !written.contains(&addr)) {
+        match konst[addr as usize].filter(|_| !written[addr as usize]) {
             Some(k) if k >= bo::END as u64 => used.tail = true,
             Some(k) => (k / 4..(k + ty.size() as u64).div_ceil(4).min(words as u64)).for_each(|w| used.builtins |= 1 << w),
             None => return FrameUse { builtins: (1 << words) - 1, tail: true },
